@@ -1,0 +1,18 @@
+"""Typed, validated configuration (YAML in ``configs/`` -> dataclasses).
+
+Public names: :class:`Config` and its sections, :func:`load_config`, :func:`apply_overrides`,
+:func:`dump_config`, :func:`config_to_dict`, :class:`ConfigError`, :func:`configs_dir`.
+"""
+
+from .loader import apply_overrides, config_to_dict, configs_dir, dump_config, load_config, read_yaml, repo_root
+from .schema import (SITE_NAMES, CameraConfig, CMaxConfig, Config, ControllerConfig, ControllerSetting,
+                     DPRConfig, DynamicsConfig, EmulatorConfig, EstimatorConfig, LoggingConfig,
+                     OracleConfig, RenderConfig, SimulationConfig, SiteConfig)
+from .validate import ConfigError, build
+
+__all__ = [
+    "Config", "CameraConfig", "RenderConfig", "EmulatorConfig", "EstimatorConfig", "DPRConfig",
+    "CMaxConfig", "OracleConfig", "ControllerConfig", "ControllerSetting", "DynamicsConfig",
+    "SimulationConfig", "SiteConfig", "LoggingConfig", "SITE_NAMES", "ConfigError", "load_config",
+    "apply_overrides", "dump_config", "config_to_dict", "configs_dir", "repo_root", "read_yaml", "build",
+]

@@ -1,0 +1,139 @@
+"""Load YAML configs into validated dataclasses; apply ``--set key=value`` overrides; dump."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import typing
+from pathlib import Path
+from typing import Iterable, Optional, Union
+
+import yaml
+
+from .schema import LIST_ITEM_TYPES, Config
+from .validate import ConfigError, _strip_optional, build, check_config
+
+PathLike = Union[str, Path]
+
+
+def repo_root() -> Path:
+    """The source checkout holding ``configs/`` (the package is installed editable)."""
+    return Path(__file__).resolve().parents[2]
+
+
+def configs_dir() -> Path:
+    """Folder of the shipped YAML configs (``configs/``)."""
+    return repo_root() / "configs"
+
+
+def read_yaml(path: PathLike) -> dict:
+    """Read a YAML mapping; a missing file or a non-mapping is a ConfigError naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping of sections")
+    return data
+
+
+def _resolve_path(cls, keys: list, text: str):
+    """Check that dotted ``keys`` name a field of dataclass ``cls``; return the field's type."""
+    tp = cls
+    owner, name = None, ""
+    for i, key in enumerate(keys):
+        tp, _ = _strip_optional(tp)
+        if dataclasses.is_dataclass(tp):
+            names = [f.name for f in dataclasses.fields(tp)]
+            if key not in names:
+                where = ".".join(keys[:i]) or "config"
+                raise ConfigError(f"--set {text}: unknown key '{'.'.join(keys[:i + 1])}'; "
+                                  f"known keys in {where}: {sorted(names)}")
+            owner, name = tp, key
+            tp = typing.get_type_hints(tp)[key]
+        elif (tp is list or typing.get_origin(tp) is list) and key.isdigit():
+            tp = LIST_ITEM_TYPES.get((owner, name), object)
+        elif tp is dict:
+            return object  # free-form parameters
+        else:
+            raise ConfigError(f"--set {text}: '{'.'.join(keys[:i])}' has no sub-key '{key}'")
+    return tp
+
+
+def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
+    """Return a copy of raw config ``data`` with ``section.key=value`` overrides applied.
+
+    Values are parsed as YAML (``5e6``, ``[1, 2]``, ``null``) and typed later by the
+    dataclass field. List elements are addressed by index: ``simulation.sites.0.z0_m=5000``.
+    """
+    data = copy.deepcopy(data)
+    for text in overrides or ():
+        if "=" not in text:
+            raise ConfigError(f"--set {text!r}: expected section.key=value")
+        key, raw = text.split("=", 1)
+        keys = [k for k in key.strip().split(".") if k]
+        if not keys:
+            raise ConfigError(f"--set {text!r}: empty key")
+        _resolve_path(Config, keys, text)
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else ""
+        except yaml.YAMLError:
+            value = raw
+        node = data
+        for k in keys[:-1]:
+            if isinstance(node, list):
+                idx = int(k)
+                if idx >= len(node):
+                    raise ConfigError(f"--set {text}: index {idx} is out of range (list has {len(node)})")
+                node = node[idx]
+            else:
+                if node.get(k) is None:
+                    node[k] = {}
+                node = node[k]
+        last = keys[-1]
+        if isinstance(node, list):
+            node[int(last)] = value
+        else:
+            node[last] = value
+    return data
+
+
+def load_config(path: Optional[PathLike] = None, overrides: Iterable[str] = ()) -> Config:
+    """Load, override and validate a config.
+
+    Args:
+        path: YAML file; ``None`` gives the defaults (``configs/paper.yaml`` if present).
+        overrides: ``section.key=value`` strings, applied after the file.
+
+    Raises:
+        ConfigError: unknown key, wrong type, or value out of range (message names it).
+    """
+    if path is None:
+        default = configs_dir() / "paper.yaml"
+        path = default if default.is_file() else None
+    data = read_yaml(path) if path is not None else {}
+    overrides = list(overrides or ())
+    source = str(path) if path is not None else "defaults"
+    if overrides:
+        source += " with --set overrides"
+    data = apply_overrides(data, overrides)
+    cfg = build(Config, data, source=source)
+    return check_config(cfg, source=source)
+
+
+def config_to_dict(cfg) -> dict:
+    """Plain nested dict of a config dataclass (for YAML, JSON, TensorBoard)."""
+    return dataclasses.asdict(cfg)
+
+
+def dump_config(cfg, path: Optional[PathLike] = None) -> str:
+    """YAML text of ``cfg``; also written to ``path`` when given."""
+    text = yaml.safe_dump(config_to_dict(cfg), sort_keys=False, default_flow_style=None)
+    if path is not None:
+        Path(path).write_text(text)
+    return text

@@ -1,0 +1,230 @@
+"""Typed configuration sections of a dvsland run.
+
+Every field declares its allowed range (``rng``) or choices (``choices``) in its metadata;
+:func:`dvsland.config.validate.validate` checks them and names the parameter and the range
+on failure. Units are in the field names where they are not SI seconds/metres.
+
+Numbers the paper (Sikorski, Izzo, Meoni 2021) does not give are marked "not in paper" in
+the field's ``doc``; ``configs/paper.yaml`` repeats that as comments.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+INF = float("inf")
+
+#: Site names of the paper (DESIGN.md section 3).
+SITE_NAMES = ("A", "B", "C", "D", "E", "F", "G", "H", "I")
+
+
+def opt(default: Any, doc: str = "", rng: Optional[tuple] = None, choices: Optional[tuple] = None,
+        open_lo: bool = False, open_hi: bool = False, factory=None):
+    """A dataclass field with validation metadata.
+
+    Args:
+        default: default value (ignored when ``factory`` is given).
+        doc: one-line description with unit.
+        rng: ``(lo, hi)`` allowed range, inclusive unless ``open_lo`` / ``open_hi``.
+        choices: allowed values (for strings).
+    """
+    md = {"doc": doc, "rng": rng, "choices": choices, "open_lo": open_lo, "open_hi": open_hi}
+    if factory is not None:
+        return field(default_factory=factory, metadata=md)
+    return field(default=default, metadata=md)
+
+
+@dataclass
+class CameraConfig:
+    """Nadir pinhole event camera (DVS128)."""
+
+    width_px: int = opt(128, "sensor width in pixels", rng=(8, 4096))
+    height_px: int = opt(128, "sensor height in pixels", rng=(8, 4096))
+    fov_deg: float = opt(60.0, "full field of view across the width, degrees "
+                         "(not in paper: ~60 deg for a 4.5 mm lens on 40 um pixels)",
+                         rng=(1.0, 150.0))
+    frame_rate_hz: float = opt(10.0, "frame (and control) rate, Hz", rng=(0.1, 10000.0), open_lo=True)
+
+
+@dataclass
+class SiteConfig:
+    """One landing site and the initial conditions of its descent."""
+
+    name: str = opt("A", "site name; its terrain spec is configs/sites/<name>.yaml", choices=SITE_NAMES)
+    z0_m: float = opt(10000.0, "initial altitude above the landing point, m", rng=(0.0, 100000.0), open_lo=True)
+    v0_mps: float = opt(-200.0, "initial vertical velocity, m/s (negative = descending)",
+                        rng=(-10000.0, 0.0), open_hi=True)
+
+
+@dataclass
+class RenderConfig:
+    """Scene rendering."""
+
+    renderer: str = opt("fast", "renderer backend", choices=("fast", "pyrender"))
+    sun_elevation_deg: Optional[float] = opt(None, "override every site's sun elevation, degrees "
+                                             "(not in paper; sites default to ~15 deg)", rng=(1.0, 90.0))
+    ambient: float = opt(0.02, "ambient irradiance floor as a fraction of full sun (not in paper)",
+                         rng=(0.0, 1.0), open_lo=True)
+    min_altitude_m: float = opt(10.0, "lowest altitude the renderer accepts, m", rng=(0.1, 1e5), open_lo=True)
+    max_altitude_m: float = opt(20000.0, "highest altitude the renderer accepts, m", rng=(1.0, 1e6))
+
+
+@dataclass
+class EmulatorConfig:
+    """DVS pixel model (DESIGN.md section 4)."""
+
+    threshold: float = opt(0.1, "ON contrast threshold (log intensity)", rng=(0.0, 10.0), open_lo=True)
+    threshold_off: Optional[float] = opt(None, "OFF contrast threshold; null = same as threshold",
+                                         rng=(0.0, 10.0), open_lo=True)
+    refractory_us: float = opt(15.0, "pixel refractory period, microseconds", rng=(0.0, 1e7))
+    log_eps: float = opt(1e-4, "epsilon in L = log(I + eps)", rng=(0.0, 1.0), open_lo=True)
+    interpolation: str = opt("log", "interpolate log intensity or linear irradiance between frames",
+                             choices=("log", "linear"))
+    mismatch_sigma: float = opt(0.0, "per-pixel threshold mismatch (std. dev., relative); 0 = ideal "
+                                "(not in paper)", rng=(0.0, 1.0))
+    background_rate_hz: float = opt(0.0, "background activity per pixel, events/s; 0 = ideal "
+                                    "(not in paper)", rng=(0.0, 1e4))
+
+
+@dataclass
+class DPRConfig:
+    """The paper's Density Peaks Ranking + mean-shift estimator (section 4)."""
+
+    n_max: int = opt(15, "N_max: centroids kept by DPR", rng=(1, 1000))
+    n_min: int = opt(15, "n_min: events within R needed to keep a centroid", rng=(1, 100000))
+    radius_px: float = opt(4.0, "R: flat mean-shift kernel radius, px", rng=(0.5, 64.0))
+    c_min: int = opt(3, "C_min: below this many centroids, re-initialise with DPR", rng=(2, 1000))
+    r_min_px: float = opt(3.0, "r_min: drop a centroid closer than this to the edge, px", rng=(0.0, 64.0))
+    memory_ms: float = opt(500.0, "temporal memory T of events, ms", rng=(1.0, 100000.0))
+    blur_sigma_px: float = opt(2.0, "DPR Gaussian blur sigma, px (not in paper)", rng=(0.1, 32.0))
+    meanshift_iters: int = opt(20, "maximum mean-shift iterations per step (not in paper)", rng=(1, 1000))
+    meanshift_tol_px: float = opt(0.01, "mean-shift convergence tolerance, px (not in paper)",
+                                  rng=(0.0, 10.0), open_lo=True)
+
+
+@dataclass
+class CMaxConfig:
+    """Contrast-maximisation divergence estimator (after McLeod et al. 2022)."""
+
+    window_ms: float = opt(100.0, "event window warped per estimate, ms", rng=(1.0, 10000.0))
+    d_min: float = opt(-2.0, "lowest divergence searched, 1/s", rng=(-100.0, 0.0))
+    d_max: float = opt(0.5, "highest divergence searched, 1/s", rng=(0.0, 100.0))
+    n_grid: int = opt(41, "coarse grid size of the D search", rng=(3, 10000))
+    n_refine: int = opt(2, "refinement rounds around the best grid value", rng=(0, 20))
+    min_events: int = opt(50, "fewer events in the window than this gives NaN", rng=(1, 10**9))
+
+
+@dataclass
+class OracleConfig:
+    """Ground-truth divergence, optionally corrupted, for controller studies."""
+
+    noise_abs: float = opt(0.0, "additive Gaussian noise sigma, 1/s", rng=(0.0, 100.0))
+    noise_rel: float = opt(0.0, "proportional Gaussian noise sigma (fraction of |D|)", rng=(0.0, 100.0))
+    delay_steps: int = opt(0, "delay in control steps", rng=(0, 10000))
+
+
+@dataclass
+class EstimatorConfig:
+    """Which divergence estimator runs, and its parameters."""
+
+    name: str = opt("dpr", "estimator name (see dvsland.estimators.available_estimators())")
+    dpr: DPRConfig = opt(None, "parameters of 'dpr'", factory=DPRConfig)
+    cmax: CMaxConfig = opt(None, "parameters of 'cmax'", factory=CMaxConfig)
+    oracle: OracleConfig = opt(None, "parameters of 'oracle'", factory=OracleConfig)
+    params: dict = opt(None, "free-form keyword parameters for other (third-party) estimators",
+                       factory=dict)
+
+
+@dataclass
+class ControllerSetting:
+    """One controller setting (paper: Kp = 5e6 with n_bin = 5, Kp = 4e6 with n_bin = 10)."""
+
+    kp: float = opt(5e6, "proportional gain Kp, N/s", rng=(0.0, 1e12), open_lo=True)
+    n_bin: int = opt(5, "moving-average filter length, estimates", rng=(1, 10000))
+    label: str = opt("", "label used in results and logs; empty = derived from kp and n_bin")
+
+
+def _paper_settings():
+    return [ControllerSetting(kp=5e6, n_bin=5), ControllerSetting(kp=4e6, n_bin=10)]
+
+
+@dataclass
+class ControllerConfig:
+    """TTC tracking controller of Eq. 2: u = Kp (tau* - tau_hat) + m g, clamped."""
+
+    name: str = opt("tau_p", "controller law", choices=("tau_p",))
+    c2: float = opt(0.5, "c^2 in tau*(t) = tau0 - c^2 t", rng=(0.0, 1.0), open_lo=True, open_hi=True)
+    settings: list = opt(None, "controller settings flown for every site", factory=_paper_settings)
+    thrust_min_n: float = opt(0.0, "lowest thrust, N (not in paper: an engine cannot pull)", rng=(0.0, 1e9))
+    thrust_max_n: Optional[float] = opt(None, "highest thrust, N; null = unbounded (Eq. 2 as written; "
+                                        "not in paper)", rng=(0.0, 1e12), open_lo=True)
+    missing_policy: str = opt("hold", "what to do when the filtered estimate is missing or has the "
+                              "wrong sign: hold the last thrust, or hover (m g)", choices=("hold", "hover"))
+
+
+@dataclass
+class DynamicsConfig:
+    """Vertical 1-D lander dynamics (paper Eq. 1)."""
+
+    g_mps2: float = opt(1.62, "gravity, m/s^2 (Moon)", rng=(0.0, 100.0), open_lo=True)
+    g0_mps2: float = opt(9.81, "standard gravity for Isp, m/s^2", rng=(0.0, 100.0), open_lo=True)
+    isp_s: float = opt(600.0, "specific impulse, s", rng=(0.0, 1e5), open_lo=True)
+    mass_kg: float = opt(10000.0, "initial mass, kg (not in paper)", rng=(0.0, 1e9), open_lo=True)
+    dry_mass_kg: float = opt(1000.0, "dry mass: thrust ends when reached, kg (not in paper)",
+                             rng=(0.0, 1e9), open_lo=True)
+    integrator: str = opt("exact", "zero-order-hold integration over a control step",
+                          choices=("exact", "substeps"))
+    substeps: int = opt(100, "sub-steps per control step for integrator='substeps'", rng=(1, 100000))
+
+
+@dataclass
+class SimulationConfig:
+    """The batched closed-loop experiment."""
+
+    sites: list = opt(None, "sites and their initial conditions", factory=list)
+    seed: int = opt(0, "master seed; expands to per-element seeds", rng=(0, 2**63 - 1))
+    n_seeds: int = opt(1, "independent seeds per (site, setting)", rng=(1, 100000))
+    t_max_s: float = opt(200.0, "timeout, s of flight", rng=(0.0, 1e6), open_lo=True)
+    success_altitude_m: float = opt(50.0, "success when altitude <= this, m", rng=(0.0, 1e5))
+    crash_divergence: float = opt(0.5, "crash when |D| = -v/z >= this, 1/s", rng=(0.0, 1e3), open_lo=True)
+    device: str = opt("cpu", "torch device ('cpu', 'cuda', 'cuda:0', ...)")
+
+
+@dataclass
+class LoggingConfig:
+    """Run output."""
+
+    root: str = opt("logs", "folder under which run folders are made")
+    tensorboard: bool = opt(True, "write TensorBoard event files")
+    image_every_s: float = opt(5.0, "log frames and event images every this many s of flight",
+                               rng=(0.0, 1e6), open_lo=True)
+    figures: bool = opt(True, "write PNG figures at the end of a run")
+    quiet: bool = opt(False, "no progress bar or summary printout")
+
+
+@dataclass
+class Config:
+    """A whole dvsland run."""
+
+    name: str = opt("run", "run name; the run folder is logs/<name>-<UTC timestamp>/")
+    camera: CameraConfig = opt(None, factory=CameraConfig)
+    render: RenderConfig = opt(None, factory=RenderConfig)
+    emulator: EmulatorConfig = opt(None, factory=EmulatorConfig)
+    estimator: EstimatorConfig = opt(None, factory=EstimatorConfig)
+    controller: ControllerConfig = opt(None, factory=ControllerConfig)
+    dynamics: DynamicsConfig = opt(None, factory=DynamicsConfig)
+    simulation: SimulationConfig = opt(None, factory=SimulationConfig)
+    logging: LoggingConfig = opt(None, factory=LoggingConfig)
+
+    @property
+    def dt_s(self) -> float:
+        """Control / frame interval, s."""
+        return 1.0 / self.camera.frame_rate_hz
+
+
+#: Element types of list-valued fields (dataclass annotations cannot say it at runtime).
+LIST_ITEM_TYPES = {
+    (SimulationConfig, "sites"): SiteConfig,
+    (ControllerConfig, "settings"): ControllerSetting,
+}

@@ -1,0 +1,12 @@
+"""Divergence estimators behind one interface (DESIGN.md section 5).
+
+Public names: :class:`DivergenceEstimator`, :class:`Truth`, :func:`get_estimator`,
+:func:`register_estimator`, :func:`available_estimators`, and the built-in estimators.
+"""
+
+from .base import DivergenceEstimator, Truth
+from .registry import available_estimators, get_estimator, refresh_entry_points, register_estimator
+from . import oracle  # noqa: F401  (registers 'oracle')
+
+__all__ = ["DivergenceEstimator", "Truth", "get_estimator", "register_estimator", "available_estimators",
+           "refresh_entry_points"]

@@ -1,0 +1,57 @@
+"""``oracle``: the true divergence, optionally with noise and delay, for controller studies."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from .base import DivergenceEstimator, Truth
+from .registry import register_estimator
+
+
+@register_estimator("oracle")
+class OracleEstimator(DivergenceEstimator):
+    """Returns D = v/z from ``truth``, plus Gaussian noise, delayed by ``delay_steps`` updates.
+
+    Args:
+        noise_abs: additive noise sigma, 1/s.
+        noise_rel: proportional noise sigma (fraction of |D|).
+        delay_steps: the estimate returned at step k is the one of step k - delay_steps
+            (NaN before enough steps exist).
+        seed: seed of the noise generator (drawn on CPU, then moved).
+    """
+
+    def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, noise_abs: float = 0.0,
+                 noise_rel: float = 0.0, delay_steps: int = 0, seed: int = 0, **unused):
+        super().__init__(batch_size, sensor_size, device, dt_s)
+        if noise_abs < 0 or noise_rel < 0:
+            raise ValueError(f"noise_abs and noise_rel must be >= 0, got {noise_abs}, {noise_rel}")
+        if int(delay_steps) < 0:
+            raise ValueError(f"delay_steps must be >= 0, got {delay_steps}")
+        self.noise_abs = float(noise_abs)
+        self.noise_rel = float(noise_rel)
+        self.delay_steps = int(delay_steps)
+        self.needs_events = False
+        self._gen = torch.Generator(device="cpu").manual_seed(int(seed))
+        # ring of past estimates, (delay + 1, B); NaN = not yet available
+        self._ring = torch.full((self.delay_steps + 1, self.batch_size), float("nan"),
+                                dtype=torch.float32, device=self.device)
+
+    def reset(self, mask: Optional[torch.Tensor] = None) -> None:
+        mask = self._mask(mask)
+        self._ring[:, mask] = float("nan")
+
+    def update(self, events, t_us: int, truth: Optional[Truth] = None) -> torch.Tensor:
+        if truth is None:
+            raise ValueError("the 'oracle' estimator needs truth=Truth(altitude_m, velocity_mps)")
+        d = truth.divergence.to(device=self.device, dtype=torch.float64)
+        if self.noise_abs > 0 or self.noise_rel > 0:
+            n = torch.randn(self.batch_size, generator=self._gen, dtype=torch.float64).to(self.device)
+            d = d + n * (self.noise_abs + self.noise_rel * d.abs())
+        self._ring = torch.roll(self._ring, 1, dims=0)
+        self._ring[0] = d.to(torch.float32)
+        return self._ring[self.delay_steps].clone()
+
+    def diagnostics(self):
+        return {"d_oracle": self._ring[0].clone()}

@@ -1,0 +1,77 @@
+"""Estimators by name: built-ins, ``@register_estimator``, and the ``dvsland.estimators``
+entry-point group for third-party packages."""
+
+from __future__ import annotations
+
+from importlib import metadata
+from typing import Any, Callable, Dict, List, Tuple
+
+_REGISTRY: Dict[str, Callable] = {}
+_ENTRY_POINT_GROUP = "dvsland.estimators"
+_entry_points_loaded = False
+
+
+def register_estimator(name: str) -> Callable:
+    """Class decorator: make an estimator available under ``name``.
+
+    Example::
+
+        @register_estimator("mine")
+        class Mine(DivergenceEstimator): ...
+    """
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"estimator name must be a non-empty string, got {name!r}")
+
+    def deco(cls):
+        _REGISTRY[name] = cls
+        return cls
+
+    return deco
+
+
+def _load_entry_points() -> None:
+    global _entry_points_loaded
+    if _entry_points_loaded:
+        return
+    _entry_points_loaded = True
+    try:
+        eps = metadata.entry_points(group=_ENTRY_POINT_GROUP)
+    except TypeError:  # Python < 3.10 API
+        eps = metadata.entry_points().get(_ENTRY_POINT_GROUP, [])
+    for ep in eps:
+        if ep.name in _REGISTRY:
+            continue
+        try:
+            obj = ep.load()
+        except Exception as exc:  # a broken plug-in must not break dvsland
+            import warnings
+
+            warnings.warn(f"estimator entry point {ep.name!r} ({ep.value}) failed to load: {exc}")
+            continue
+        _REGISTRY.setdefault(ep.name, obj)
+
+
+def refresh_entry_points() -> None:
+    """Look for newly installed third-party estimators again."""
+    global _entry_points_loaded
+    _entry_points_loaded = False
+    _load_entry_points()
+
+
+def available_estimators() -> List[str]:
+    """Sorted names of every known estimator (built-in, registered, entry points)."""
+    _load_entry_points()
+    return sorted(_REGISTRY)
+
+
+def get_estimator(name: str, batch_size: int, sensor_size: Tuple[int, int], device: Any = "cpu",
+                  **params):
+    """Build estimator ``name`` for B = ``batch_size`` descents.
+
+    Raises:
+        ValueError: unknown name (the message lists the known ones).
+    """
+    _load_entry_points()
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown estimator {name!r}; known estimators: {available_estimators()}")
+    return _REGISTRY[name](batch_size=batch_size, sensor_size=sensor_size, device=device, **params)
