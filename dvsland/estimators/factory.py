@@ -1,0 +1,35 @@
+"""Build the configured estimator for a batch (the simulator's and the evaluator's one way in)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from dvsland.config import Config
+
+from .registry import get_estimator
+
+
+def estimator_params(cfg: Config, name: str | None = None) -> dict:
+    """Keyword parameters of estimator ``name`` (default ``cfg.estimator.name``) from the config.
+
+    Built-ins take their section (``estimator.dpr``, ``estimator.cmax``, ``estimator.oracle``);
+    any other estimator takes the free-form ``estimator.params``.
+    """
+    name = name or cfg.estimator.name
+    section = getattr(cfg.estimator, name, None)
+    if dataclasses.is_dataclass(section):
+        return dataclasses.asdict(section)
+    return dict(cfg.estimator.params)
+
+
+def make_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: str | None = None, seed: int | None = None):
+    """Instantiate the configured estimator for ``batch_size`` descents on ``device``.
+
+    The estimator receives ``dt_s`` (the frame interval) and ``seed`` in addition to its params.
+    """
+    name = name or cfg.estimator.name
+    params = estimator_params(cfg, name)
+    params.setdefault("dt_s", cfg.dt_s)
+    params.setdefault("seed", cfg.simulation.seed if seed is None else seed)
+    return get_estimator(name, batch_size, (cfg.camera.width_px, cfg.camera.height_px), device, **params)
