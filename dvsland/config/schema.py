@@ -178,11 +178,18 @@ class DynamicsConfig:
     substeps: int = opt(100, "sub-steps per control step for integrator='substeps'", rng=(1, 100000))
 
 
+def _paper_sites():
+    """The paper's nine sites: A-C from 10 km at -200 m/s, D-I from 4 km at -100 m/s."""
+    return [SiteConfig(name=n, z0_m=10000.0, v0_mps=-200.0) if n in "ABC"
+            else SiteConfig(name=n, z0_m=4000.0, v0_mps=-100.0) for n in SITE_NAMES]
+
+
 @dataclass
 class SimulationConfig:
     """The batched closed-loop experiment."""
 
-    sites: list = opt(None, "sites and their initial conditions", factory=list)
+    sites: list = opt(None, "sites and their initial conditions (default: the paper's nine)",
+                     factory=_paper_sites)
     seed: int = opt(0, "master seed; expands to per-element seeds", rng=(0, 2**63 - 1))
     n_seeds: int = opt(1, "independent seeds per (site, setting)", rng=(1, 100000))
     t_max_s: float = opt(200.0, "timeout, s of flight", rng=(0.0, 1e6), open_lo=True)

@@ -1,0 +1,33 @@
+"""Shared fixtures: devices to test on (CPU always, CUDA when present), repo paths."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _devices():
+    devs = ["cpu"]
+    if torch.cuda.is_available():
+        devs.append("cuda")
+    return devs
+
+
+@pytest.fixture(params=_devices())
+def device(request) -> torch.device:
+    """Every device present: 'cpu', and 'cuda' when available (kornia-style)."""
+    return torch.device(request.param)
+
+
+@pytest.fixture
+def repo_root() -> Path:
+    return REPO
+
+
+@pytest.fixture
+def paper_yaml() -> Path:
+    return REPO / "configs" / "paper.yaml"
