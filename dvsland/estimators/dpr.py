@@ -1,0 +1,189 @@
+"""``dpr``: the paper's estimator (Sikorski et al. 2021, section 4; DESIGN.md section 5).
+
+Per step:
+
+1. The interval's events become a count image (ON + OFF summed: shadows and lit rims both mark a
+   feature, and the clustering only needs where events are). A ring of the last
+   ``K = round(memory_ms / dt)`` count images gives the windowed count image over T = memory_ms.
+2. Mean-shift (flat kernel R = ``radius_px``) seeded with last step's centroids, iterated to
+   convergence on the windowed image, batched over (B, N_max).
+3. A centroid is dropped when fewer than ``n_min`` events lie within R of it, when it is closer
+   than ``r_min_px`` to the sensor edge (pixel centres at 0 .. W-1), or when it has merged with a
+   better-ranked centroid (closer than ``merge_px``, not in paper).
+4. Eq. 8 over all pairs tracked at both steps gives D (NaN when no pair).
+5. Elements left with fewer than ``c_min`` centroids re-initialise with Density Peaks Ranking
+   (blur, max-pool local maxima, top ``n_max`` by density) on the windowed image, followed by
+   mean-shift to convergence on the same image (so the next step compares like with like). DPR
+   runs only for those elements.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import torch
+
+from ._counts import count_image
+from .base import DivergenceEstimator, Truth
+from .density_peaks import density_peaks
+from .divergence import pairwise_divergence
+from .meanshift import meanshift_flat
+from .registry import register_estimator
+
+
+def _check(name: str, value, lo, hi=None):
+    if value < lo or (hi is not None and value > hi):
+        rng = f"[{lo}, {hi}]" if hi is not None else f">= {lo}"
+        raise ValueError(f"{name} must be in {rng}, got {value}")
+
+
+@register_estimator("dpr")
+class DPREstimator(DivergenceEstimator):
+    """Density Peaks Ranking + mean-shift tracking + Eq. 8 (the paper's pipeline), batched.
+
+    Args:
+        batch_size, sensor_size (W, H), device, dt_s: see :class:`DivergenceEstimator`.
+        n_max: N_max, centroids kept by DPR.
+        n_min: events within R needed to keep a centroid.
+        radius_px: R, flat mean-shift kernel radius, px.
+        c_min: below this many tracked centroids an element re-initialises with DPR.
+        r_min_px: centroids closer than this to the edge are dropped, px.
+        memory_ms: temporal memory T, ms (rounded to whole steps, at least one).
+        blur_sigma_px: DPR Gaussian blur sigma, px.
+        meanshift_iters: maximum mean-shift iterations per step.
+        meanshift_tol_px: mean-shift convergence tolerance, px.
+        merge_px: two centroids closer than this merge (the lower-ranked one is dropped), px.
+        nms_px: odd max-pool window of the DPR local maxima, px.
+    """
+
+    def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, n_max: int = 15,
+                 n_min: int = 15, radius_px: float = 4.0, c_min: int = 3, r_min_px: float = 3.0,
+                 memory_ms: float = 500.0, blur_sigma_px: float = 2.0, meanshift_iters: int = 20,
+                 meanshift_tol_px: float = 0.01, merge_px: float = 1.0, nms_px: int = 3, **unused):
+        super().__init__(batch_size, sensor_size, device, dt_s)
+        _check("n_max", int(n_max), 1)
+        _check("n_min", int(n_min), 1)
+        _check("radius_px", float(radius_px), 1e-3)
+        _check("c_min", int(c_min), 2)
+        _check("r_min_px", float(r_min_px), 0.0)
+        _check("memory_ms", float(memory_ms), 1e-3)
+        _check("blur_sigma_px", float(blur_sigma_px), 1e-3)
+        _check("meanshift_iters", int(meanshift_iters), 1)
+        _check("meanshift_tol_px", float(meanshift_tol_px), 0.0)
+        _check("merge_px", float(merge_px), 0.0)
+        if int(nms_px) < 1 or int(nms_px) % 2 == 0:
+            raise ValueError(f"nms_px must be an odd integer >= 1, got {nms_px}")
+        self.n_max, self.n_min, self.c_min = int(n_max), int(n_min), int(c_min)
+        self.radius_px, self.r_min_px = float(radius_px), float(r_min_px)
+        self.memory_ms, self.blur_sigma_px = float(memory_ms), float(blur_sigma_px)
+        self.meanshift_iters, self.meanshift_tol_px = int(meanshift_iters), float(meanshift_tol_px)
+        self.merge_px, self.nms_px = float(merge_px), int(nms_px)
+        #: number of per-step count images in the ring (T / dt, at least 1)
+        self.n_ring = max(1, int(round(self.memory_ms / (1000.0 * self.dt_s))))
+        B, N = self.batch_size, self.n_max
+        W, H = self.sensor_size
+        dev = self.device
+        self._ring = torch.zeros(self.n_ring, B, H, W, dtype=torch.float32, device=dev)
+        self._slot = 0
+        self._centroids = torch.full((B, N, 2), float("nan"), dtype=torch.float32, device=dev)
+        self._valid = torch.zeros(B, N, dtype=torch.bool, device=dev)
+        self._counts = torch.zeros(B, N, dtype=torch.float32, device=dev)
+        self._reinit = torch.zeros(B, dtype=torch.bool, device=dev)
+        self._n_pairs = torch.zeros(B, dtype=torch.int64, device=dev)
+        self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
+        self._last_t_us: Optional[int] = None
+
+    # ------------------------------------------------------------------ state
+    def reset(self, mask: Optional[torch.Tensor] = None) -> None:
+        mask = self._mask(mask)
+        self._ring[:, mask] = 0.0
+        self._centroids[mask] = float("nan")
+        self._valid[mask] = False
+        self._counts[mask] = 0.0
+        self._reinit[mask] = False
+        self._n_pairs[mask] = 0
+        self._d[mask] = float("nan")
+
+    def window_image(self) -> torch.Tensor:
+        """The windowed count image over the last T, (B, H, W) float32."""
+        return self._ring.sum(0)
+
+    # ------------------------------------------------------------------ rules
+    def _keep(self, c: torch.Tensor, counts: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """Apply n_min, r_min and merge rules; returns the kept mask (B', N) bool."""
+        W, H = self.sensor_size
+        r = self.r_min_px
+        x, y = c[..., 0], c[..., 1]
+        inside = (x >= r) & (x <= W - 1 - r) & (y >= r) & (y <= H - 1 - r)
+        keep = valid & (counts >= self.n_min) & inside  # NaN compares False
+        if self.merge_px > 0 and keep.shape[1] > 1:
+            cc = c.nan_to_num(0.0)
+            dist = (cc.unsqueeze(2) - cc.unsqueeze(1)).norm(dim=-1)  # (B', N, N)
+            N = keep.shape[1]
+            upper = torch.ones(N, N, dtype=torch.bool, device=c.device).triu(1)
+            close = upper & keep.unsqueeze(-1) & keep.unsqueeze(-2) & (dist < self.merge_px)
+            keep = keep & ~close.any(1)  # j merged into a better-ranked i < j
+        return keep
+
+    def _initialise(self, image: torch.Tensor):
+        """DPR + mean-shift to convergence on ``image`` (B', H, W); returns (c, counts, keep)."""
+        peaks, _, ok = density_peaks(image, self.n_max, self.blur_sigma_px, self.nms_px)
+        c, counts, _ = meanshift_flat(image, peaks, ok, self.radius_px, self.meanshift_iters,
+                                      self.meanshift_tol_px)
+        keep = self._keep(c, counts, ok & ~torch.isnan(c[..., 0]))
+        # compact: kept centroids first, in rank order
+        order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)
+        c = torch.gather(c, 1, order.unsqueeze(-1).expand(-1, -1, 2))
+        counts = torch.gather(counts, 1, order)
+        keep = torch.gather(keep, 1, order)
+        return c, counts, keep
+
+    # ------------------------------------------------------------------ step
+    def update(self, events, t_us: int, truth: Optional[Truth] = None) -> torch.Tensor:
+        W, H = self.sensor_size
+        t_us = int(t_us)
+        dt = self.dt_s
+        if self._last_t_us is not None and t_us > self._last_t_us:
+            dt = (t_us - self._last_t_us) * 1e-6
+        self._last_t_us = t_us
+        self._ring[self._slot] = count_image(events, self.batch_size, H, W, self.device)
+        self._slot = (self._slot + 1) % self.n_ring
+        image = self.window_image()
+
+        # 1. track: mean-shift from last step's centroids
+        prev = self._centroids
+        c, counts, _ = meanshift_flat(image, prev, self._valid, self.radius_px, self.meanshift_iters,
+                                      self.meanshift_tol_px)
+        keep = self._keep(c, counts, self._valid & ~torch.isnan(c[..., 0]))
+        # 2. Eq. 8 over the pairs tracked at both steps (computed before any re-initialisation)
+        d, n_pairs = pairwise_divergence(prev, c, keep, dt)
+        nan = torch.full_like(c, float("nan"))
+        self._centroids = torch.where(keep.unsqueeze(-1), c, nan)
+        self._valid = keep
+        self._counts = torch.where(keep, counts, torch.zeros_like(counts))
+        # 3. re-initialise (DPR) the elements below C_min, only those
+        need = keep.sum(1) < self.c_min
+        self._reinit = need
+        if bool(need.any()):
+            idx = need.nonzero().squeeze(1)
+            ci, ni, ki = self._initialise(image[idx])
+            self._centroids[idx] = torch.where(ki.unsqueeze(-1), ci, torch.full_like(ci, float("nan")))
+            self._valid[idx] = ki
+            self._counts[idx] = torch.where(ki, ni, torch.zeros_like(ni))
+        self._n_pairs = n_pairs
+        self._d = d
+        return d.clone()
+
+    def diagnostics(self):
+        """centroids (B, N_max, 2) float32 (x, y) px, NaN = unused; n_tracked (B,) int64;
+        reinit (B,) bool (DPR ran this step); counts (B, N_max) events within R; n_pairs (B,)
+        pairs used by Eq. 8; window_events (B,) events in the memory window."""
+        return {
+            "centroids": self._centroids.clone(),
+            "n_tracked": self._valid.sum(1),
+            "reinit": self._reinit.clone(),
+            "counts": self._counts.clone(),
+            "n_pairs": self._n_pairs.clone(),
+            "window_events": self._ring.sum((0, 2, 3)),
+        }
