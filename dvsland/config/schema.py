@@ -101,6 +101,9 @@ class DPRConfig:
     meanshift_iters: int = opt(20, "maximum mean-shift iterations per step (not in paper)", rng=(1, 1000))
     meanshift_tol_px: float = opt(0.01, "mean-shift convergence tolerance, px (not in paper)",
                                   rng=(0.0, 10.0), open_lo=True)
+    merge_px: float = opt(1.0, "centroids closer than this merge, the lower-ranked is dropped, px (not in paper)",
+                          rng=(0.0, 64.0))
+    nms_px: int = opt(3, "odd max-pool window of the DPR local maxima, px (not in paper)", rng=(1, 63))
 
 
 @dataclass
