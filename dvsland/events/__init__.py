@@ -1,11 +1,15 @@
 """Event camera: the DVS pixel model (frames -> events), packed events and their representations.
 
 Public names:
-    Events: packed events (b, x, y, t [int64 µs], p [int8 ±1]) sorted by (b, t), with count
-        images, voxel grids and tonic interop.
+    Events: packed events (b, x, y int64; t int64 µs; p int8 ±1) sorted by (b, t), with count
+        images (B, 2, H, W; channel 0 = ON), voxel grids and tonic interop.
+    EventEmulator: exact batched DVS emulator (reset(frames, t_us); step(frames, t_us) -> Events).
+    LEVEL_TOL: tolerance (in thresholds) when counting level crossings.
     TONIC_DTYPE: numpy dtype of tonic event arrays (x, y int16, t int64, p int8 OFF=0/ON=1).
+    io: save/load of Events as .npz or .h5 (``dvsland.events.io.save_events``/``load_events``).
 """
 
+from .emulator import LEVEL_TOL, EventEmulator
 from .events import TONIC_DTYPE, Events
 
-__all__ = ["Events", "TONIC_DTYPE"]
+__all__ = ["Events", "EventEmulator", "LEVEL_TOL", "TONIC_DTYPE"]

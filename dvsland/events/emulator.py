@@ -1,0 +1,412 @@
+"""The DVS pixel model: exact, batched conversion of frames to events (DESIGN.md section 4).
+
+Model, per pixel (all arithmetic in float64):
+
+- ``L = log(I + log_eps)``; a reference level ``L_ref`` set at :meth:`EventEmulator.reset`.
+- Between two frames at t0 < t1 the pixel follows a straight line in time: in L
+  (``interpolation="log"``, ESIM's model) or in I (``interpolation="linear"``, the paper's wording).
+- Every crossing of ``L_ref + k θ_on`` (ON) or ``L_ref - k θ_off`` (OFF), k = 1, 2, ..., is one
+  crossing at its own interpolated time; ``L_ref`` moves by one threshold per crossing. The number
+  of crossings in a step is ``floor((L1 - L_ref) / θ_on + tol)`` (ON) or
+  ``floor((L_ref - L1) / θ_off + tol)`` (OFF), with ``tol = 1e-9`` (:data:`LEVEL_TOL`): a change of
+  exactly θ (up to 1e-9 θ of float rounding) emits. Within one step all crossings of a pixel have
+  the same polarity (the path is monotone and ``L_ref`` always ends within one threshold of L).
+- Refractory period: a crossing at time t is emitted only when ``t - t_last >= refractory_us``,
+  ``t_last`` being the (float64) time of the pixel's last *emitted* event; a dropped crossing still
+  moves ``L_ref``.
+- Timestamps: computed in float64 relative to the step start, returned as int64 µs rounded to
+  nearest (``floor(t + 0.5)``) and clamped into ``(t0, t1]`` (so a crossing within 0.5 µs after
+  t0 is stamped t0 + 1). ``t_last`` keeps the unrounded time.
+
+Vectorisation: per pixel the crossing count is a floor; with ``interpolation="log"`` the crossing
+times of a step are equally spaced (spacing ``Δt θ / |ΔL|``), so the emitted ones are the first
+crossing ``j0`` at or after ``t_last + r`` and then every ``m``-th with ``m = ceil(r / spacing)``:
+closed form per pixel. With ``interpolation="linear"`` the spacing is not uniform; the refractory
+rule is then resolved exactly by a loop over the crossing index k = 1..max crossings per pixel in
+this step (not over pixels or events), each iteration vectorised over the pixels having >= k
+crossings. Events are generated with ``repeat_interleave`` and sorted once by a packed int64 key
+(batch, µs offset from the step start, pixel, polarity) from which all fields are decoded, so no
+permutation gathers are needed.
+
+Options off by default (the ideal model): per-pixel threshold mismatch ``mismatch_sigma`` (relative
+Gaussian, drawn per batch element from ``seed`` at :meth:`reset`, clamped to >= 1 % of the nominal
+threshold), and background activity ``background_rate_hz`` (Poisson events per pixel, uniform
+time and polarity, independent of the pixel state: they neither move ``L_ref`` nor start a
+refractory period).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional, Tuple
+
+import torch
+
+from .events import Events
+
+#: Tolerance, in units of the threshold, when counting level crossings.
+LEVEL_TOL = 1e-9
+
+_INTERPOLATIONS = ("log", "linear")
+
+
+def _check_t_us(t_us, name: str = "t_us") -> int:
+    if isinstance(t_us, torch.Tensor):
+        if t_us.numel() != 1:
+            raise ValueError(f"{name} must be a scalar, got shape {tuple(t_us.shape)}")
+        t_us = t_us.item()
+    try:
+        tf = float(t_us)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be an integer number of microseconds, got {t_us!r}") from None
+    if not math.isfinite(tf) or tf != int(t_us) or abs(tf) > 2 ** 53:
+        raise ValueError(f"{name} must be a finite integer number of microseconds (|t| <= 2^53), "
+                         f"got {t_us!r}")
+    return int(t_us)
+
+
+class EventEmulator:
+    """Batched DVS emulator: frames (B, H, W) of linear irradiance -> :class:`Events`.
+
+    Args:
+        threshold: ON contrast threshold θ_on in log intensity, > 0.
+        threshold_off: OFF threshold θ_off, > 0; None = ``threshold``.
+        refractory_us: refractory period r, µs, >= 0.
+        log_eps: ε in L = log(I + ε), > 0.
+        interpolation: "log" (interpolate L in time) or "linear" (interpolate I).
+        device: device of the state and the output; None = device of the frames given to reset.
+        mismatch_sigma: relative std. dev. of per-pixel threshold mismatch, >= 0 (0 = ideal).
+        background_rate_hz: background events per pixel per second, >= 0 (0 = ideal).
+        seed: seed of mismatch and background activity (CPU generators, results moved).
+
+    Usage::
+
+        emu = EventEmulator(threshold=0.1, refractory_us=15.0)
+        emu.reset(frames0, t_us=0)            # (B, H, W), no events
+        ev = emu.step(frames1, t_us=100_000)  # events in (0, 100000]
+    """
+
+    def __init__(self, threshold: float = 0.1, threshold_off: Optional[float] = None,
+                 refractory_us: float = 15.0, log_eps: float = 1e-4, interpolation: str = "log",
+                 device=None, mismatch_sigma: float = 0.0, background_rate_hz: float = 0.0,
+                 seed: int = 0):
+        def pos(name, v):
+            v = float(v)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {v}")
+            return v
+
+        def nonneg(name, v):
+            v = float(v)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+            return v
+
+        self.threshold = pos("threshold", threshold)
+        self.threshold_off = pos("threshold_off", threshold if threshold_off is None else threshold_off)
+        self.refractory_us = nonneg("refractory_us", refractory_us)
+        self.log_eps = pos("log_eps", log_eps)
+        if interpolation not in _INTERPOLATIONS:
+            raise ValueError(f"interpolation must be one of {_INTERPOLATIONS}, got {interpolation!r}")
+        self.interpolation = interpolation
+        self.mismatch_sigma = nonneg("mismatch_sigma", mismatch_sigma)
+        self.background_rate_hz = nonneg("background_rate_hz", background_rate_hz)
+        self.seed = int(seed)
+        self.device = torch.device(device) if device is not None else None
+        self._bg_gen = torch.Generator(device="cpu").manual_seed(self.seed ^ 0x5EED_BAC6)
+        self._shape: Optional[Tuple[int, int, int]] = None
+        self.t_us: Optional[int] = None
+
+    @classmethod
+    def from_config(cls, cfg, device=None, seed: int = 0) -> "EventEmulator":
+        """Build from a :class:`dvsland.config.schema.EmulatorConfig`."""
+        return cls(threshold=cfg.threshold, threshold_off=cfg.threshold_off,
+                   refractory_us=cfg.refractory_us, log_eps=cfg.log_eps,
+                   interpolation=cfg.interpolation, device=device,
+                   mismatch_sigma=cfg.mismatch_sigma, background_rate_hz=cfg.background_rate_hz,
+                   seed=seed)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def batch_size(self) -> int:
+        return self._shape[0] if self._shape else 0
+
+    @property
+    def sensor_hw(self) -> Tuple[int, int]:
+        """(H, W) of the frames given to :meth:`reset`."""
+        return (self._shape[1], self._shape[2]) if self._shape else (0, 0)
+
+    @property
+    def reference(self) -> torch.Tensor:
+        """(B, H, W) float64: per-pixel reference log level L_ref."""
+        return self._lref
+
+    def _check_frames(self, frames, reset: bool) -> torch.Tensor:
+        if not isinstance(frames, torch.Tensor):
+            frames = torch.as_tensor(frames)
+        if not frames.is_floating_point():
+            raise ValueError(f"frames must be a floating-point tensor (linear irradiance), got {frames.dtype}")
+        if frames.dim() != 3:
+            raise ValueError(f"frames must have shape (B, H, W), got {tuple(frames.shape)}")
+        if reset:
+            if min(frames.shape) < 1:
+                raise ValueError(f"frames must have B, H, W >= 1, got {tuple(frames.shape)}")
+            if self.device is None:
+                self.device = frames.device
+        elif tuple(frames.shape) != self._shape:
+            what = "batch size" if frames.shape[0] != self._shape[0] else "sensor size"
+            raise ValueError(f"frames {what} changed: got shape {tuple(frames.shape)}, reset with "
+                             f"{self._shape}")
+        f = frames.to(device=self.device, dtype=torch.float64)
+        lo, hi = torch.aminmax(f)
+        lo, hi = torch.stack((lo, hi)).tolist()  # one sync
+        if not (lo >= 0 and hi < math.inf):
+            if math.isnan(lo) or math.isnan(hi):
+                raise ValueError("frames contain NaN; irradiance must be finite and >= 0")
+            if hi == math.inf or lo == math.inf:
+                raise ValueError("frames contain inf; irradiance must be finite and >= 0")
+            raise ValueError(f"frames contain negative irradiance (min {lo}); irradiance must be >= 0")
+        return f
+
+    def _draw_mismatch(self, B: int, H: int, W: int) -> None:
+        if self.mismatch_sigma == 0:
+            self._th_on = self.threshold
+            self._th_off = self.threshold_off
+            return
+        maps = torch.empty(B, 2, H, W, dtype=torch.float64)
+        for b in range(B):  # per-element seeds: element b's draw does not depend on B (reset only)
+            g = torch.Generator(device="cpu").manual_seed((self.seed * 1_000_003 + b) % (2 ** 63))
+            maps[b] = torch.randn(2, H, W, generator=g, dtype=torch.float64)
+        maps = (1.0 + self.mismatch_sigma * maps).clamp_(min=0.01).to(self.device)
+        self._th_on = self.threshold * maps[:, 0]
+        self._th_off = self.threshold_off * maps[:, 1]
+
+    def reset(self, frames: torch.Tensor, t_us: int) -> None:
+        """Start (or restart) all pixels: L_ref = log(frames + eps) at time ``t_us``; no events.
+
+        Args:
+            frames: (B, H, W) floating, linear irradiance, finite, >= 0.
+            t_us: int, µs.
+        """
+        t_us = _check_t_us(t_us)
+        f = self._check_frames(frames, reset=True)
+        self._shape = tuple(int(s) for s in f.shape)
+        B, H, W = self._shape
+        self._lref = torch.log(f + self.log_eps)
+        self._l_prev = self._lref
+        self._i_prev = f if self.interpolation == "linear" else None
+        self._t_last = torch.full(self._shape, -math.inf, dtype=torch.float64, device=self.device)
+        self._draw_mismatch(B, H, W)
+        self.t_us = t_us
+
+    # ------------------------------------------------------------------- step
+    def step(self, frames: torch.Tensor, t_us: int) -> Events:
+        """Advance to ``t_us`` with new frames; return the events in (t_prev, t_us], sorted by (b, t).
+
+        Args:
+            frames: (B, H, W) floating, linear irradiance, finite, >= 0, same shape as at reset.
+            t_us: int µs, > the previous time.
+
+        Returns:
+            :class:`Events` on the emulator's device.
+        """
+        if self._shape is None:
+            raise RuntimeError("EventEmulator.step called before reset(frames, t_us)")
+        t1 = _check_t_us(t_us)
+        if t1 <= self.t_us:
+            raise ValueError(f"t_us must increase: got {t1} after {self.t_us}")
+        f1 = self._check_frames(frames, reset=False)
+        t0 = self.t_us
+        dt = float(t1 - t0)
+        B, H, W = self._shape
+        HW = H * W
+        dev = self.device
+        th_on, th_off = self._th_on, self._th_off
+        r = self.refractory_us
+
+        l1 = torch.log(f1 + self.log_eps)
+        d = l1 - self._lref
+        # per-pixel crossing counts (float64 integers), at most one of them > 0
+        n_on = torch.floor(d / th_on + LEVEL_TOL).clamp_(min=0)
+        n_off = torch.floor(-d / th_off + LEVEL_TOL).clamp_(min=0)
+        n = n_on + n_off
+        act = torch.nonzero(n.view(-1) > 0).squeeze(1)  # (A,) flat pixel index (sync)
+
+        keys = None
+        if act.numel() > 0:
+            on = n_on.view(-1)[act] > 0
+            n_a = n.view(-1)[act]
+            th_a = torch.where(on, _take(th_on, act), -_take(th_off, act))  # signed step of L_ref
+            lref_a = self._lref.view(-1)[act]
+            tl_a = self._t_last.view(-1)[act] - t0  # relative, <= 0 or -inf
+            if self.interpolation == "log":
+                seg, tau, cnt, tlast_new = _emitted_log(n_a, th_a, lref_a, self._l_prev.view(-1)[act],
+                                                        l1.view(-1)[act], dt, tl_a, r)
+            else:
+                seg, tau, cnt, tlast_new = _emitted_linear(
+                    n_a, th_a, lref_a, self._i_prev.view(-1)[act], f1.view(-1)[act], dt, tl_a, r,
+                    self.log_eps)
+            # state: last emitted time (pixels with >= 1 emitted event)
+            tl_flat = self._t_last.view(-1)
+            tl_flat[act] = torch.where(cnt > 0, tlast_new + t0, tl_flat[act])
+            t_rel = torch.floor(tau + 0.5).clamp_(1.0, dt).to(torch.int64)
+            keys = _pack_keys(act[seg], t_rel, ~on[seg], B, HW, dt)
+
+        # reference moves by one threshold per crossing (emitted or dropped)
+        self._lref = self._lref + n_on * th_on - n_off * th_off
+        self._l_prev = l1
+        if self.interpolation == "linear":
+            self._i_prev = f1
+        self.t_us = t1
+
+        if self.background_rate_hz > 0:
+            bg = self._background_keys(B, HW, dt)
+            keys = bg if keys is None else torch.cat((keys, bg))
+        if keys is None or keys.numel() == 0:
+            return Events.empty(dev)
+        keys = torch.sort(keys).values
+        return _unpack_keys(keys, HW, W, dt, t0)
+
+    def _background_keys(self, B: int, HW: int, dt: float) -> torch.Tensor:
+        lam = self.background_rate_hz * dt * 1e-6 * B * HW
+        n = int(torch.poisson(torch.tensor([lam], dtype=torch.float64), generator=self._bg_gen).item())
+        g = self._bg_gen
+        pix = torch.randint(0, B * HW, (n,), generator=g)
+        t_rel = torch.randint(1, int(dt) + 1, (n,), generator=g)
+        off = torch.randint(0, 2, (n,), generator=g).bool()
+        return _pack_keys(pix.to(self.device), t_rel.to(self.device), off.to(self.device), B, HW, dt)
+
+
+# ---------------------------------------------------------------------------- helpers
+def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r):
+    """Log interpolation: emitted crossings in closed form per pixel.
+
+    Args (A active pixels, (A,) float64): crossing count n_a, signed threshold th_a (+θ_on or
+    -θ_off), L_ref, L0, L1; dt step length (µs); tl_a last emitted time relative to the step
+    start (<= 0, -inf = never); r refractory period (µs).
+
+    Returns:
+        seg (N,) int64 active-pixel index of each emitted event, tau (N,) float64 its time after
+        the step start (µs), cnt (A,) int64 emitted per pixel, tlast (A,) float64 time of the
+        last emitted crossing (meaningful where cnt > 0).
+
+    Crossing j (1..n) is at ``tau_j = base + j * spacing`` (equally spaced). Emitted: the first
+    j0 with tau_j0 >= tl + r, then every m-th, m = ceil(r / spacing).
+    """
+    dl = l1_a - l0_a
+    spacing = dt * th_a / dl  # µs between crossings, > 0
+    base = dt * (lref_a - l0_a) / dl
+    deg = ~(torch.isfinite(spacing) & torch.isfinite(base))  # L0 == L1 up to rounding
+    if bool(deg.any()):
+        spacing = torch.where(deg, torch.zeros_like(spacing), spacing)
+        base = torch.where(deg, torch.full_like(base, dt), base)
+    if r > 0:
+        target = tl_a + r
+        first_ok = base + spacing >= target
+        j0 = torch.where(first_ok, torch.ones_like(n_a),
+                         torch.ceil((target - base) / spacing)).clamp_(min=1.0).minimum(n_a + 1)
+        m = torch.ceil(r / spacing).clamp_(min=1.0).minimum(n_a + 1)
+        cnt = torch.where(j0 <= n_a, torch.floor((n_a - j0) / m) + 1, torch.zeros_like(n_a))
+        j_last = j0 + (cnt - 1).clamp_(min=0) * m
+        first = base + j0 * spacing
+        step = m * spacing
+    else:
+        cnt = n_a
+        j_last = n_a
+        first = base + spacing
+        step = spacing
+    cnti = cnt.to(torch.int64)
+    seg, i = _segments(cnti)
+    tau = first[seg] + i.to(torch.float64) * step[seg]
+    tlast = base + j_last * spacing
+    return seg, tau, cnti, tlast
+
+
+def _emitted_linear(n_a, th_a, lref_a, i0_a, i1_a, dt, tl_a, r, eps):
+    """Linear irradiance interpolation: crossing times are not equally spaced.
+
+    Same arguments and returns as :func:`_emitted_log`, with I0, I1 in place of L0, L1 and the
+    log epsilon ``eps``. Crossing j is at ``tau_j = dt (exp(L_ref + j θ) - eps - I0) / (I1 - I0)``.
+    Without refractory every crossing is emitted (closed form). With refractory the greedy rule
+    is applied exactly by a loop over the crossing index k (1..max crossings of a pixel in this
+    step), vectorised over the pixels having >= k crossings (pixels sorted by count, so those
+    are a prefix).
+    """
+    di = i1_a - i0_a
+    dev = n_a.device
+
+    def tau_of(s, jj):
+        x = dt * (torch.exp(lref_a[s] + jj * th_a[s]) - eps - i0_a[s]) / di[s]
+        return torch.nan_to_num(x, nan=dt, posinf=dt, neginf=0.0)
+
+    ni = n_a.to(torch.int64)
+    A = ni.numel()
+    if r == 0:
+        seg, i = _segments(ni)
+        tau = tau_of(seg, (i + 1).to(torch.float64))
+        return seg, tau, ni, tau_of(torch.arange(A, device=dev), n_a)
+    order = torch.sort(ni, descending=True, stable=True).indices
+    n_sorted = ni[order]
+    kmax = int(n_sorted[0])
+    # prefix sizes P_k = #(n >= k), k = 1..kmax
+    sizes = torch.bincount(n_sorted, minlength=kmax + 1).flip(0).cumsum(0).flip(0)[1:].tolist()
+    tl = tl_a[order].clone()
+    emit_parts, seg_parts, tau_parts = [], [], []
+    for k, P in enumerate(sizes, start=1):
+        s = order[:P]
+        tau_k = tau_of(s, torch.full((P,), float(k), dtype=torch.float64, device=dev))
+        e = tau_k >= tl[:P] + r
+        tl[:P] = torch.where(e, tau_k, tl[:P])
+        emit_parts.append(e)
+        seg_parts.append(s)
+        tau_parts.append(tau_k)
+    emit = torch.cat(emit_parts)
+    seg = torch.cat(seg_parts)[emit]
+    tau = torch.cat(tau_parts)[emit]
+    cnt = torch.bincount(seg, minlength=A)
+    tlast = torch.empty(A, dtype=torch.float64, device=dev)
+    tlast[order] = tl
+    return seg, tau, cnt, tlast
+
+
+def _take(th, idx):
+    """Threshold of the pixels ``idx``: a float, or a (B, H, W) map gathered."""
+    if isinstance(th, torch.Tensor):
+        return th.reshape(-1)[idx]
+    return torch.full(idx.shape, th, dtype=torch.float64, device=idx.device)
+
+
+def _segments(cnt: torch.Tensor):
+    """For counts (A,) int64: segment id (N,) and index within the segment (N,), N = sum(cnt)."""
+    seg = torch.repeat_interleave(cnt)
+    start = torch.cumsum(cnt, 0) - cnt
+    i = torch.arange(seg.numel(), device=cnt.device) - start[seg]
+    return seg, i
+
+
+def _pack_keys(pix: torch.Tensor, t_rel: torch.Tensor, off: torch.Tensor, B: int, HW: int, dt: float):
+    """int64 sort key ((b * (dt + 1) + t_rel) * HW + yx) * 2 + off, with pix = b * HW + yx.
+
+    Sorting these keys orders events by (b, t), then pixel (row-major), and every field can be
+    decoded from the key (:func:`_unpack_keys`)."""
+    span = int(dt) + 1
+    if 2 * B * HW * span >= 2 ** 63:
+        raise ValueError(f"frame interval too long for the packed event key: B * H * W * (dt_us + 1) "
+                         f"must be < 2^62, got {B} * {HW} * {span}")
+    b = torch.div(pix, HW, rounding_mode="floor")
+    yx = pix - b * HW
+    return ((b * span + t_rel) * HW + yx) * 2 + off.to(torch.int64)
+
+
+def _unpack_keys(keys: torch.Tensor, HW: int, W: int, dt: float, t0: int) -> Events:
+    span = int(dt) + 1
+    off = keys & 1
+    q = keys >> 1
+    yx = q % HW
+    q = torch.div(q, HW, rounding_mode="floor")
+    t_rel = q % span
+    b = torch.div(q, span, rounding_mode="floor")
+    y = torch.div(yx, W, rounding_mode="floor")
+    x = yx - y * W
+    p = (1 - 2 * off).to(torch.int8)
+    return Events(b=b, x=x, y=y, t=t_rel + t0, p=p)
