@@ -209,6 +209,9 @@ class LoggingConfig:
     tensorboard: bool = opt(True, "write TensorBoard event files")
     image_every_s: float = opt(5.0, "log frames and event images every this many s of flight",
                                rng=(0.0, 1e6), open_lo=True)
+    scalar_every_s: float = opt(0.5, "write TensorBoard scalars every this many s of flight (the control "
+                                "step or less: every step; traces.npz always holds every step)",
+                                rng=(0.0, 1e6), open_lo=True)
     figures: bool = opt(True, "write PNG figures at the end of a run")
     quiet: bool = opt(False, "no progress bar or summary printout")
 

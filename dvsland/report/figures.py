@@ -1,0 +1,108 @@
+"""PNG figures of a simulation: per-run descent plots (like the paper's Fig. 6) and the
+lowest-altitude chart per site and setting (like Fig. 7). Matplotlib, Agg backend."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from dvsland.dynamics import closed_form_state
+
+from .tensorboard import run_folder_name
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _run_rows(traces: Dict[str, np.ndarray], b: int) -> np.ndarray:
+    """Row indices of run ``b`` while it flew, plus its final row."""
+    act = traces["active"][:, b]
+    rows = np.nonzero(act)[0]
+    if rows.size and rows[-1] + 1 < act.shape[0] and np.isfinite(traces["z_m"][rows[-1] + 1, b]):
+        rows = np.append(rows, rows[-1] + 1)
+    return rows
+
+
+def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: float = 0.5):
+    """Four panels for run ``b``: altitude, velocity (with the closed form), D true / estimated /
+    filtered, thrust. Saved to ``path``; returns the path."""
+    plt = _plt()
+    rows = _run_rows(traces, b)
+    t = traces["t_s"][rows, b]
+    fig, ax = plt.subplots(4, 1, figsize=(7, 9), sharex=True)
+    title = f"{run.get('run', b)}  ({run['estimator']}): {run['outcome']} at {run['t_end_s']:.1f} s, " \
+            f"lowest {run['lowest_altitude_m']:.0f} m, loop gain {run['loop_gain']:.3g}"
+    fig.suptitle(title, fontsize=9)
+    zc = vc = None
+    if run.get("z0_m") and run.get("v0_mps", 0) < 0:
+        zc, vc = closed_form_state(t, run["z0_m"], run["v0_mps"], c2)
+    ax[0].plot(t, traces["z_m"][rows, b], label="altitude")
+    if zc is not None:
+        ax[0].plot(t, zc, "k--", lw=0.8, label="closed form")
+    ax[0].set_ylabel("z [m]")
+    ax[0].legend(fontsize=7)
+    ax[1].plot(t, traces["v_mps"][rows, b], label="velocity")
+    if vc is not None:
+        ax[1].plot(t, vc, "k--", lw=0.8, label="closed form")
+    ax[1].set_ylabel("v [m/s]")
+    ax[1].legend(fontsize=7)
+    ax[2].plot(t, traces["d_true"][rows, b], "k", lw=1.0, label="D true")
+    ax[2].plot(t, traces["d_est"][rows, b], ".", ms=2, label="D estimated")
+    ax[2].plot(t, traces["d_filtered"][rows, b], lw=0.8, label="D filtered")
+    ax[2].set_ylabel("D [1/s]")
+    ax[2].legend(fontsize=7)
+    ax[3].step(t, traces["thrust_n"][rows, b] / 1e3, where="post", lw=0.8)
+    ax[3].set_ylabel("thrust [kN]")
+    ax[3].set_xlabel("t [s]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return Path(path)
+
+
+def lowest_altitude_chart(runs: List[dict], path, success_altitude_m: float = 50.0):
+    """Grouped bars: lowest altitude reached per site (x) and setting (colour), log scale; the
+    success altitude dashed. Saved to ``path``."""
+    plt = _plt()
+    sites = list(dict.fromkeys(r["site"] for r in runs))
+    labels = list(dict.fromkeys(r["label"] for r in runs))
+    fig, ax = plt.subplots(figsize=(8, 4))
+    width = 0.8 / max(len(labels), 1)
+    for j, lab in enumerate(labels):
+        vals = []
+        for s in sites:
+            sel = [r["lowest_altitude_m"] for r in runs if r["site"] == s and r["label"] == lab]
+            vals.append(np.mean(sel) if sel else np.nan)
+        x = np.arange(len(sites)) + (j - (len(labels) - 1) / 2) * width
+        ax.bar(x, np.maximum(vals, 1.0), width, label=lab)
+    ax.axhline(success_altitude_m, color="k", ls="--", lw=0.8, label=f"success ({success_altitude_m:g} m)")
+    ax.set_yscale("log")
+    ax.set_xticks(np.arange(len(sites)))
+    ax.set_xticklabels(sites)
+    ax.set_xlabel("site")
+    ax.set_ylabel("lowest altitude reached [m]")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return Path(path)
+
+
+def write_figures(run_dir, runs: List[dict], traces: Dict[str, np.ndarray], c2: float = 0.5,
+                  success_altitude_m: float = 50.0, max_descent_plots: Optional[int] = 64) -> List[Path]:
+    """All figures into ``<run_dir>/figures/``: ``descent_<run>.png`` per run (at most
+    ``max_descent_plots``) and ``lowest_altitude.png``. Returns the paths written."""
+    out = Path(run_dir) / "figures"
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [lowest_altitude_chart(runs, out / "lowest_altitude.png", success_altitude_m)]
+    for b, run in enumerate(runs[:max_descent_plots] if max_descent_plots else runs):
+        paths.append(descent_figure(traces, b, run, out / f"descent_{run_folder_name(run['run'])}.png", c2))
+    return paths

@@ -1,0 +1,42 @@
+"""How a descent ends (DESIGN.md section 2): success, ascent, crash, timeout."""
+
+from __future__ import annotations
+
+import torch
+
+Tensor = torch.Tensor
+
+#: Outcome codes; index = code stored in the int8 outcome tensor.
+OUTCOMES = ("running", "success", "ascent", "crash", "timeout", "interrupted")
+RUNNING, SUCCESS, ASCENT, CRASH, TIMEOUT, INTERRUPTED = range(6)
+
+
+def termination_code(z_m: Tensor, v_mps: Tensor, t_s, success_altitude_m: float, crash_divergence: float,
+                     t_max_s: float) -> Tensor:
+    """Outcome code per element after a step (0 = still flying).
+
+    Precedence: z <= 0 crash; z <= success altitude success; |D| = -v/z >= crash_divergence
+    crash; v > 0 ascent; t >= t_max timeout.
+
+    Args:
+        z_m, v_mps: (B,) float64 state after the step.
+        t_s: scalar or (B,) float64 time after the step, s.
+        success_altitude_m, crash_divergence, t_max_s: thresholds.
+
+    Returns:
+        (B,) int8 codes (see :data:`OUTCOMES`).
+    """
+    if crash_divergence <= 0:
+        raise ValueError(f"crash_divergence must be > 0, got {crash_divergence}")
+    if t_max_s <= 0:
+        raise ValueError(f"t_max_s must be > 0, got {t_max_s}")
+    code = torch.zeros(z_m.shape, dtype=torch.int8, device=z_m.device)
+    t = torch.as_tensor(t_s, dtype=torch.float64, device=z_m.device)
+    timeout = (t >= t_max_s - 1e-9).expand_as(z_m)
+    code = torch.where(timeout, torch.full_like(code, TIMEOUT), code)
+    code = torch.where(v_mps > 0, torch.full_like(code, ASCENT), code)
+    div_mag = -v_mps / z_m.clamp_min(1e-12)
+    code = torch.where(div_mag >= crash_divergence, torch.full_like(code, CRASH), code)
+    code = torch.where(z_m <= success_altitude_m, torch.full_like(code, SUCCESS), code)
+    code = torch.where(z_m <= 0, torch.full_like(code, CRASH), code)
+    return code
