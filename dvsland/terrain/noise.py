@@ -1,0 +1,96 @@
+"""Seeded 2-D gradient (Perlin) noise and band-limited fBm, evaluated at world points.
+
+Lattice gradients come from a seeded permutation table (period 4096 cells, one table per
+octave) and a fixed table of 16 unit vectors, so a value depends only on the point, the wavelength and the seed: the terrain is
+continuous and any grid over it is reproducible bit for bit (float64 on CPU).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+_PERIOD = 4096  # lattice period in cells (per octave; octaves have their own tables)
+_ANG = torch.arange(16, dtype=torch.float64) * (2 * math.pi / 16) + math.pi / 16
+_GRAD = torch.stack([torch.cos(_ANG), torch.sin(_ANG)], dim=-1).to(torch.float32)  # (16, 2)
+_PERMS: dict = {}
+
+
+def _perm(seed: int) -> torch.Tensor:
+    """Seeded permutation table of the lattice, (2 * _PERIOD,) int64 (numpy PCG64, cached)."""
+    t = _PERMS.get(seed)
+    if t is None:
+        p = np.random.default_rng([0x5EED, int(seed) & 0xFFFFFFFF]).permutation(_PERIOD)
+        t = torch.from_numpy(np.concatenate([p, p]).astype(np.int64))
+        _PERMS[seed] = t
+    return t
+
+
+def _fade(t: torch.Tensor) -> torch.Tensor:
+    return t * t * t * (t * (t * 6 - 15) + 10)
+
+
+def perlin(x: torch.Tensor, y: torch.Tensor, seed: int) -> torch.Tensor:
+    """Gradient noise at lattice coordinates (x, y) (float64, any shape) -> float32, about [-0.7, 0.7]."""
+    x0 = torch.floor(x)
+    y0 = torch.floor(y)
+    fx = (x - x0).to(torch.float32)  # fractions in float32: 4x less memory traffic
+    fy = (y - y0).to(torch.float32)
+    m = _PERIOD - 1
+    ix = x0.to(torch.int64) & m
+    iy = y0.to(torch.int64) & m
+    perm = _perm(seed).to(x.device)
+    gx = _GRAD[:, 0].to(x.device)
+    gy = _GRAD[:, 1].to(x.device)
+    px0 = perm[ix]
+    px1 = perm[ix + 1]
+
+    def corner(px: torch.Tensor, dx: int, dy: int) -> torch.Tensor:
+        k = perm[px + iy + dy] & 15
+        return gx[k] * (fx - dx) + gy[k] * (fy - dy)
+
+    u = _fade(fx)
+    v = _fade(fy)
+    n0 = torch.lerp(corner(px0, 0, 0), corner(px1, 1, 0), u)
+    n1 = torch.lerp(corner(px0, 0, 1), corner(px1, 1, 1), u)
+    return torch.lerp(n0, n1, v)
+
+
+def band_weight(size_over_texel: torch.Tensor | float, lo: float, hi: float):
+    """Smooth fade-in of a feature of size ``size`` on a grid of spacing ``texel``: 0 below ``lo``
+    texels, 1 above ``hi`` texels (smoothstep), so features appear gradually across levels."""
+    if isinstance(size_over_texel, torch.Tensor):
+        t = ((size_over_texel - lo) / (hi - lo)).clamp(0.0, 1.0)
+    else:
+        t = min(max((size_over_texel - lo) / (hi - lo), 0.0), 1.0)
+    return t * t * (3 - 2 * t)
+
+
+def fbm(x_m: torch.Tensor, y_m: torch.Tensor, seed: int, texel_m: float, max_wavelength_m: float,
+        min_wavelength_m: float, amplitude_at_1km: float, hurst: float,
+        lo_texels: float = 4.0, hi_texels: float = 8.0, lam_from: float = 0.0,
+        lam_below: float = float("inf")) -> torch.Tensor:
+    """Band-limited fractional Brownian motion at world points (float64, metres).
+
+    Octaves of wavelength lambda = max_wavelength / 2^k down to ``min_wavelength``, amplitude
+    ``amplitude_at_1km * (lambda / 1000)^hurst``; an octave fades in between ``lo_texels`` and
+    ``hi_texels`` texels per wavelength, so nothing finer than the grid can show is added.
+    Only octaves with ``lam_from <= lambda < lam_below`` are summed (to split the work in tiers).
+    """
+    out = torch.zeros_like(x_m)
+    lam = max_wavelength_m
+    k = 0
+    while lam >= min_wavelength_m * 0.999:
+        w = band_weight(lam / texel_m, lo_texels, hi_texels)
+        if w <= 0.0:
+            break
+        if lam_from <= lam < lam_below:
+            amp = amplitude_at_1km * (lam / 1000.0) ** hurst * w
+            # per-octave offset decorrelates the lattices of neighbouring octaves
+            off = 0.5 + 0.37 * k
+            out += amp * perlin(x_m / lam + off, y_m / lam - off, seed * 131 + k)
+        lam *= 0.5
+        k += 1
+    return out
