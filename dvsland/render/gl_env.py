@@ -19,7 +19,7 @@ import sys
 
 import numpy as np
 
-__all__ = ["egl_available", "egl_unavailable_reason", "import_pyrender"]
+__all__ = ["egl_available", "egl_unavailable_reason", "import_pyrender", "delete_offscreen"]
 
 if "OpenGL" in sys.modules and os.environ.get("PYOPENGL_PLATFORM") not in (None, "egl"):
     # Someone imported PyOpenGL first with another platform: leave it, it is their choice.
@@ -52,13 +52,43 @@ def egl_available() -> bool:
         try:
             pyrender = import_pyrender()
             r = pyrender.OffscreenRenderer(4, 4)
-            r.delete()
+            delete_offscreen(r)
             _EGL_STATE["ok"] = True
             _EGL_STATE["reason"] = ""
         except Exception as exc:  # any failure (missing libEGL, no driver, ...) means "no"
             _EGL_STATE["ok"] = False
             _EGL_STATE["reason"] = f"{type(exc).__name__}: {exc}"
     return bool(_EGL_STATE["ok"])
+
+
+def delete_offscreen(osr) -> None:
+    """Free a pyrender ``OffscreenRenderer`` without ``eglTerminate``.
+
+    pyrender's ``OffscreenRenderer.delete`` terminates the EGL display, which is shared by every
+    context of the process: any other live renderer then fails with EGL_BAD_DISPLAY. This frees
+    the GL objects and destroys only this context.
+    """
+    platform = getattr(osr, "_platform", None)
+    if platform is None:
+        return
+    try:
+        platform.make_current()
+        if osr._renderer is not None:
+            osr._renderer.delete()
+    finally:
+        display = getattr(platform, "_egl_display", None)
+        context = getattr(platform, "_egl_context", None)
+        if display is not None and context is not None:
+            from OpenGL.EGL import EGL_NO_CONTEXT, EGL_NO_SURFACE, eglDestroyContext, eglMakeCurrent
+
+            eglMakeCurrent(display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT)
+            eglDestroyContext(display, context)
+            platform._egl_context = None
+            platform._egl_display = None  # else the platform's __del__ calls eglTerminate
+        elif hasattr(platform, "delete_context") and display is None:
+            platform.delete_context()  # not EGL (osmesa / pyglet): its own clean-up
+        osr._renderer = None
+        osr._platform = None
 
 
 def egl_unavailable_reason() -> str:
