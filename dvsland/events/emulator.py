@@ -157,8 +157,7 @@ class EventEmulator:
             what = "batch size" if frames.shape[0] != self._shape[0] else "sensor size"
             raise ValueError(f"frames {what} changed: got shape {tuple(frames.shape)}, reset with "
                              f"{self._shape}")
-        f = frames.to(device=self.device, dtype=torch.float64)
-        lo, hi = torch.aminmax(f)
+        lo, hi = torch.aminmax(frames)
         lo, hi = torch.stack((lo, hi)).tolist()  # one sync
         if not (lo >= 0 and hi < math.inf):
             if math.isnan(lo) or math.isnan(hi):
@@ -166,10 +165,12 @@ class EventEmulator:
             if hi == math.inf or lo == math.inf:
                 raise ValueError("frames contain inf; irradiance must be finite and >= 0")
             raise ValueError(f"frames contain negative irradiance (min {lo}); irradiance must be >= 0")
-        return f
+        # always a private float64 copy: it becomes state, and may be modified in place
+        return frames.to(device=self.device, dtype=torch.float64, copy=True)
 
     def _draw_mismatch(self, B: int, H: int, W: int) -> None:
         if self.mismatch_sigma == 0:
+            self._th_scalar = True
             self._th_on = self.threshold
             self._th_off = self.threshold_off
             return
@@ -178,6 +179,7 @@ class EventEmulator:
             g = torch.Generator(device="cpu").manual_seed((self.seed * 1_000_003 + b) % (2 ** 63))
             maps[b] = torch.randn(2, H, W, generator=g, dtype=torch.float64)
         maps = (1.0 + self.mismatch_sigma * maps).clamp_(min=0.01).to(self.device)
+        self._th_scalar = False
         self._th_on = self.threshold * maps[:, 0]
         self._th_off = self.threshold_off * maps[:, 1]
 
@@ -193,10 +195,11 @@ class EventEmulator:
         self._shape = tuple(int(s) for s in f.shape)
         B, H, W = self._shape
         self._lref = torch.log(f + self.log_eps)
-        self._l_prev = self._lref
+        self._l_prev = self._lref.clone()
         self._i_prev = f if self.interpolation == "linear" else None
         self._t_last = torch.full(self._shape, -math.inf, dtype=torch.float64, device=self.device)
         self._draw_mismatch(B, H, W)
+        self._layout = _KeyLayout(B, H, W, self.device)
         self.t_us = t_us
 
     # ------------------------------------------------------------------- step
@@ -208,7 +211,7 @@ class EventEmulator:
             t_us: int µs, > the previous time.
 
         Returns:
-            :class:`Events` on the emulator's device.
+            :class:`Events` on the emulator's device, sorted by (b, t), ties by row-major pixel.
         """
         if self._shape is None:
             raise RuntimeError("EventEmulator.step called before reset(frames, t_us)")
@@ -218,95 +221,116 @@ class EventEmulator:
         f1 = self._check_frames(frames, reset=False)
         t0 = self.t_us
         dt = float(t1 - t0)
-        B, H, W = self._shape
-        HW = H * W
+        layout = self._layout
+        tb = int(t1 - t0).bit_length()  # bits of t_rel in (0, dt]
         dev = self.device
         th_on, th_off = self._th_on, self._th_off
         r = self.refractory_us
 
-        l1 = torch.log(f1 + self.log_eps)
+        if self.interpolation == "log":
+            l1 = f1.add_(self.log_eps).log_()  # f1 is a private copy
+        else:
+            l1 = torch.log(f1 + self.log_eps)
         d = l1 - self._lref
-        # per-pixel crossing counts (float64 integers), at most one of them > 0
-        n_on = torch.floor(d / th_on + LEVEL_TOL).clamp_(min=0)
-        n_off = torch.floor(-d / th_off + LEVEL_TOL).clamp_(min=0)
-        n = n_on + n_off
-        act = torch.nonzero(n.view(-1) > 0).squeeze(1)  # (A,) flat pixel index (sync)
+        # candidate pixels: a superset of those with >= 1 crossing (exact counts follow)
+        if self._th_scalar:
+            lo_on = th_on * (1.0 - 2 * LEVEL_TOL)
+            lo_off = th_off * (1.0 - 2 * LEVEL_TOL)
+            if lo_on == lo_off:
+                cand = d.abs() >= lo_on
+            else:
+                c = 0.5 * (lo_on - lo_off)
+                cand = (d - c).abs_() >= (0.5 * (lo_on + lo_off)) * (1.0 - 1e-12)
+        else:
+            cand = (d >= th_on * (1.0 - 2 * LEVEL_TOL)) | (d <= -th_off * (1.0 - 2 * LEVEL_TOL))
+        act = torch.nonzero(cand.view(-1)).squeeze(1)  # (A,) flat pixel index (sync)
 
-        keys = None
+        bt = pc = None  # per event: (b << tb) | t_rel, and the (y, x, off) code
         if act.numel() > 0:
-            on = n_on.view(-1)[act] > 0
-            n_a = n.view(-1)[act]
-            th_a = torch.where(on, _take(th_on, act), -_take(th_off, act))  # signed step of L_ref
-            lref_a = self._lref.view(-1)[act]
-            tl_a = self._t_last.view(-1)[act] - t0  # relative, <= 0 or -inf
+            d_a = d.view(-1).index_select(0, act)
+            if self._th_scalar and th_on == th_off:
+                q = d_a / th_on
+                n_on = torch.floor(q + LEVEL_TOL).clamp_(min=0)
+                n_off = torch.floor(LEVEL_TOL - q).clamp_(min=0)
+                th_a = torch.sign(d_a) * th_on  # d_a != 0 for candidates
+            else:
+                th_on_a, th_off_a = _take(th_on, act), _take(th_off, act)
+                n_on = torch.floor(d_a / th_on_a + LEVEL_TOL).clamp_(min=0)
+                n_off = torch.floor(-d_a / th_off_a + LEVEL_TOL).clamp_(min=0)
+                th_a = torch.where(d_a > 0, th_on_a, -th_off_a)  # signed step of L_ref
+            n_a = n_on + n_off  # at most one of them > 0
+            lref_flat = self._lref.view(-1)
+            lref_a = lref_flat.index_select(0, act)
+            tl_flat = self._t_last.view(-1)
+            tl_abs = tl_flat.index_select(0, act)
+            tl_a = tl_abs - t0  # relative, <= 0 or -inf
             if self.interpolation == "log":
-                seg, tau, cnt, tlast_new = _emitted_log(n_a, th_a, lref_a, self._l_prev.view(-1)[act],
-                                                        l1.view(-1)[act], dt, tl_a, r)
+                seg, tau, cnt, tlast_new = _emitted_log(
+                    n_a, th_a, lref_a, self._l_prev.view(-1).index_select(0, act),
+                    l1.view(-1).index_select(0, act), dt, tl_a, r)
             else:
                 seg, tau, cnt, tlast_new = _emitted_linear(
-                    n_a, th_a, lref_a, self._i_prev.view(-1)[act], f1.view(-1)[act], dt, tl_a, r,
-                    self.log_eps)
-            # state: last emitted time (pixels with >= 1 emitted event)
-            tl_flat = self._t_last.view(-1)
-            tl_flat[act] = torch.where(cnt > 0, tlast_new + t0, tl_flat[act])
-            t_rel = torch.floor(tau + 0.5).clamp_(1.0, dt).to(torch.int64)
-            keys = _pack_keys(act[seg], t_rel, ~on[seg], B, HW, dt)
+                    n_a, th_a, lref_a, self._i_prev.view(-1).index_select(0, act),
+                    f1.view(-1).index_select(0, act), dt, tl_a, r, self.log_eps)
+            # state: the reference moves by one threshold per crossing (emitted or dropped);
+            # the last emitted time where >= 1 event was emitted
+            lref_flat.index_copy_(0, act, lref_a + n_a * th_a)
+            tl_flat.index_copy_(0, act, torch.where(cnt > 0, tlast_new + t0, tl_abs))
+            t_rel = torch.floor(tau.add_(0.5)).clamp_(1.0, dt).to(torch.int64)
+            b_a, pc_a = layout.pixel_parts(act, d_a < 0)
+            bt = (b_a << tb).index_select(0, seg).add_(t_rel)
+            pc = pc_a.index_select(0, seg)
 
-        # reference moves by one threshold per crossing (emitted or dropped)
-        self._lref = self._lref + n_on * th_on - n_off * th_off
         self._l_prev = l1
         if self.interpolation == "linear":
             self._i_prev = f1
         self.t_us = t1
 
         if self.background_rate_hz > 0:
-            bg = self._background_keys(B, HW, dt)
-            keys = bg if keys is None else torch.cat((keys, bg))
-        if keys is None or keys.numel() == 0:
+            bt_bg, pc_bg = self._background(tb, dt)
+            bt = bt_bg if bt is None else torch.cat((bt, bt_bg))
+            pc = pc_bg if pc is None else torch.cat((pc, pc_bg))
+        if bt is None or bt.numel() == 0:
             return Events.empty(dev)
-        keys = torch.sort(keys).values
-        return _unpack_keys(keys, HW, W, dt, t0)
+        return layout.sort_decode(bt, pc, tb, t0)
 
-    def _background_keys(self, B: int, HW: int, dt: float) -> torch.Tensor:
-        lam = self.background_rate_hz * dt * 1e-6 * B * HW
-        n = int(torch.poisson(torch.tensor([lam], dtype=torch.float64), generator=self._bg_gen).item())
+    def _background(self, tb: int, dt: float):
+        B, H, W = self._shape
+        lam = self.background_rate_hz * dt * 1e-6 * B * H * W
         g = self._bg_gen
-        pix = torch.randint(0, B * HW, (n,), generator=g)
-        t_rel = torch.randint(1, int(dt) + 1, (n,), generator=g)
-        off = torch.randint(0, 2, (n,), generator=g).bool()
-        return _pack_keys(pix.to(self.device), t_rel.to(self.device), off.to(self.device), B, HW, dt)
+        n = int(torch.poisson(torch.tensor([lam], dtype=torch.float64), generator=g).item())
+        pix = torch.randint(0, B * H * W, (n,), generator=g).to(self.device)
+        t_rel = torch.randint(1, int(dt) + 1, (n,), generator=g).to(self.device)
+        off = torch.randint(0, 2, (n,), generator=g).bool().to(self.device)
+        b, pc = self._layout.pixel_parts(pix, off)
+        return (b << tb) + t_rel, pc
 
 
 # ---------------------------------------------------------------------------- helpers
 def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r):
     """Log interpolation: emitted crossings in closed form per pixel.
 
-    Args (A active pixels, (A,) float64): crossing count n_a, signed threshold th_a (+θ_on or
-    -θ_off), L_ref, L0, L1; dt step length (µs); tl_a last emitted time relative to the step
-    start (<= 0, -inf = never); r refractory period (µs).
+    Args (A candidate pixels, (A,) float64): crossing count n_a (may be 0), signed threshold
+    th_a (+θ_on or -θ_off), L_ref, L0, L1; dt step length (µs); tl_a last emitted time relative
+    to the step start (<= 0, -inf = never); r refractory period (µs).
 
     Returns:
-        seg (N,) int64 active-pixel index of each emitted event, tau (N,) float64 its time after
+        seg (N,) int64 candidate index of each emitted event, tau (N,) float64 its time after
         the step start (µs), cnt (A,) int64 emitted per pixel, tlast (A,) float64 time of the
         last emitted crossing (meaningful where cnt > 0).
 
     Crossing j (1..n) is at ``tau_j = base + j * spacing`` (equally spaced). Emitted: the first
     j0 with tau_j0 >= tl + r, then every m-th, m = ceil(r / spacing).
     """
-    dl = l1_a - l0_a
-    spacing = dt * th_a / dl  # µs between crossings, > 0
-    base = dt * (lref_a - l0_a) / dl
-    deg = ~(torch.isfinite(spacing) & torch.isfinite(base))  # L0 == L1 up to rounding
-    if bool(deg.any()):
-        spacing = torch.where(deg, torch.zeros_like(spacing), spacing)
-        base = torch.where(deg, torch.full_like(base, dt), base)
+    # L moves in the direction of th_a whenever n > 0; the clamp only guards 0-crossing candidates
+    dl = torch.copysign((l1_a - l0_a).abs_().clamp_(min=1e-15), th_a)
+    scale = dt / dl
+    spacing = th_a * scale  # µs between crossings, > 0
+    base = (lref_a - l0_a) * scale
     if r > 0:
-        target = tl_a + r
-        first_ok = base + spacing >= target
-        j0 = torch.where(first_ok, torch.ones_like(n_a),
-                         torch.ceil((target - base) / spacing)).clamp_(min=1.0).minimum(n_a + 1)
+        j0 = torch.ceil((tl_a + (r - base)) / spacing).clamp_(min=1.0).minimum(n_a + 1)
         m = torch.ceil(r / spacing).clamp_(min=1.0).minimum(n_a + 1)
-        cnt = torch.where(j0 <= n_a, torch.floor((n_a - j0) / m) + 1, torch.zeros_like(n_a))
+        cnt = torch.floor((n_a - j0) / m).add_(1.0).clamp_(min=0.0)
         j_last = j0 + (cnt - 1).clamp_(min=0) * m
         first = base + j0 * spacing
         step = m * spacing
@@ -317,7 +341,7 @@ def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r):
         step = spacing
     cnti = cnt.to(torch.int64)
     seg, i = _segments(cnti)
-    tau = first[seg] + i.to(torch.float64) * step[seg]
+    tau = first.index_select(0, seg).addcmul_(i.to(torch.float64), step.index_select(0, seg))
     tlast = base + j_last * spacing
     return seg, tau, cnti, tlast
 
@@ -360,6 +384,9 @@ def _emitted_linear(n_a, th_a, lref_a, i0_a, i1_a, dt, tl_a, r, eps):
         emit_parts.append(e)
         seg_parts.append(s)
         tau_parts.append(tau_k)
+    if not emit_parts:
+        empty = torch.empty(0, dtype=torch.int64, device=dev)
+        return empty, empty.to(torch.float64), torch.zeros_like(ni), tl_a
     emit = torch.cat(emit_parts)
     seg = torch.cat(seg_parts)[emit]
     tau = torch.cat(tau_parts)[emit]
@@ -384,29 +411,57 @@ def _segments(cnt: torch.Tensor):
     return seg, i
 
 
-def _pack_keys(pix: torch.Tensor, t_rel: torch.Tensor, off: torch.Tensor, B: int, HW: int, dt: float):
-    """int64 sort key ((b * (dt + 1) + t_rel) * HW + yx) * 2 + off, with pix = b * HW + yx.
+class _KeyLayout:
+    """Packing of event fields for the one sort of a step.
 
-    Sorting these keys orders events by (b, t), then pixel (row-major), and every field can be
-    decoded from the key (:func:`_unpack_keys`)."""
-    span = int(dt) + 1
-    if 2 * B * HW * span >= 2 ** 63:
-        raise ValueError(f"frame interval too long for the packed event key: B * H * W * (dt_us + 1) "
-                         f"must be < 2^62, got {B} * {HW} * {span}")
-    b = torch.div(pix, HW, rounding_mode="floor")
-    yx = pix - b * HW
-    return ((b * span + t_rel) * HW + yx) * 2 + off.to(torch.int64)
+    Per event two integers: ``bt = (b << tb) | t_rel`` (t_rel = t - t0 in [1, dt] µs, tb its bit
+    width) and the pixel code ``pc = (y << y_shift) | (x << 1) | off`` (off = 1 for OFF).
+    When bt fits in 31 bits (B = 256 with 0.1 s steps needs 25), bt is sorted as int32 with a
+    stable sort (2x faster than int64) and pc follows by one gather; ties in (b, t) then keep
+    the generation order, which is row-major pixel order. Otherwise the single int64 key
+    ``(bt << t_shift) | pc`` is sorted. Either way the result is sorted by (b, t, y, x) and
+    deterministic on any device. The (y, x) bits come from a table of H * W codes built once.
+    """
 
+    def __init__(self, B: int, H: int, W: int, device):
+        self.B, self.H, self.W = B, H, W
+        xb = max(1, (W - 1).bit_length())
+        yb = max(1, (H - 1).bit_length())
+        self.bb = max(1, (B - 1).bit_length())
+        self.y_shift = 1 + xb
+        self.t_shift = 1 + xb + yb
+        self.x_mask, self.y_mask = (1 << xb) - 1, (1 << yb) - 1
+        yy = torch.arange(H, device=device).view(H, 1)
+        xx = torch.arange(W, device=device).view(1, W)
+        self.yx_code = ((yy << self.y_shift) | (xx << 1)).reshape(-1)  # (H*W,) int64
 
-def _unpack_keys(keys: torch.Tensor, HW: int, W: int, dt: float, t0: int) -> Events:
-    span = int(dt) + 1
-    off = keys & 1
-    q = keys >> 1
-    yx = q % HW
-    q = torch.div(q, HW, rounding_mode="floor")
-    t_rel = q % span
-    b = torch.div(q, span, rounding_mode="floor")
-    y = torch.div(yx, W, rounding_mode="floor")
-    x = yx - y * W
-    p = (1 - 2 * off).to(torch.int8)
-    return Events(b=b, x=x, y=y, t=t_rel + t0, p=p)
+    def pixel_parts(self, pix: torch.Tensor, off: torch.Tensor):
+        """(b, pc) int64 of flat pixel indices ``pix`` = (b * H + y) * W + x and OFF flags."""
+        HW = self.H * self.W
+        # floor of the correctly rounded float64 quotient is the exact integer quotient here
+        # (pix < 2^53; pix / HW is never within pix * 2^-53 below the next integer)
+        b = torch.floor(pix.to(torch.float64) / HW).to(torch.int64)
+        yx = pix - b * HW
+        return b, self.yx_code.index_select(0, yx) | off.to(torch.int64)
+
+    def sort_decode(self, bt: torch.Tensor, pc: torch.Tensor, tb: int, t0: int) -> Events:
+        """Sort by (b, t, y, x) and unpack into :class:`Events` (t = t0 + t_rel)."""
+        if self.bb + tb <= 31:
+            vals, perm = torch.sort(bt.to(torch.int32), stable=True)
+            vals = vals.to(torch.int64)
+            pc = pc.index_select(0, perm)
+            b = vals >> tb
+            t = (vals & ((1 << tb) - 1)) + t0
+        else:
+            if self.bb + tb + self.t_shift > 63:
+                raise ValueError(f"frame interval too long for the packed event key: B={self.B}, "
+                                 f"H={self.H}, W={self.W}, t_rel bits={tb} need more than 63 bits")
+            keys = torch.sort((bt << self.t_shift) | pc).values
+            pc = keys
+            tt = keys >> self.t_shift
+            b = tt >> tb
+            t = (tt & ((1 << tb) - 1)) + t0
+        p = (1 - 2 * (pc & 1)).to(torch.int8)
+        x = (pc >> 1) & self.x_mask
+        y = (pc >> self.y_shift) & self.y_mask
+        return Events(b=b, x=x, y=y, t=t, p=p)
