@@ -8,6 +8,7 @@ from .base import DivergenceEstimator, Truth
 from .registry import available_estimators, get_estimator, refresh_entry_points, register_estimator
 from . import oracle  # noqa: F401  (registers 'oracle')
 from . import dpr  # noqa: F401  (registers 'dpr')
+from . import cmax  # noqa: F401  (registers 'cmax')
 from .factory import estimator_params, make_estimator
 
 __all__ = ["DivergenceEstimator", "Truth", "get_estimator", "register_estimator", "available_estimators",

@@ -10,7 +10,9 @@ Per step:
 3. A centroid is dropped when fewer than ``n_min`` events lie within R of it, when it is closer
    than ``r_min_px`` to the sensor edge (pixel centres at 0 .. W-1), or when it has merged with a
    better-ranked centroid (closer than ``merge_px``, not in paper).
-4. Eq. 8 over all pairs tracked at both steps gives D (NaN when no pair).
+4. Eq. 8 over all pairs tracked at both steps gives D (NaN when no pair). For the first
+   ``K`` steps after a reset the ring is still filling and the window's mean event time moves
+   by dt / 2 per step, so Eq. 8 uses dt / 2 there (not in paper).
 5. Elements left with fewer than ``c_min`` centroids re-initialise with Density Peaks Ranking
    (blur, max-pool local maxima, top ``n_max`` by density) on the windowed image, followed by
    mean-shift to convergence on the same image (so the next step compares like with like). DPR
@@ -86,6 +88,7 @@ class DPREstimator(DivergenceEstimator):
         dev = self.device
         self._ring = torch.zeros(self.n_ring, B, H, W, dtype=torch.float32, device=dev)
         self._slot = 0
+        self._window = torch.zeros(B, H, W, dtype=torch.float32, device=dev)  # running ring sum
         self._centroids = torch.full((B, N, 2), float("nan"), dtype=torch.float32, device=dev)
         self._valid = torch.zeros(B, N, dtype=torch.bool, device=dev)
         self._counts = torch.zeros(B, N, dtype=torch.float32, device=dev)
@@ -93,21 +96,26 @@ class DPREstimator(DivergenceEstimator):
         self._n_pairs = torch.zeros(B, dtype=torch.int64, device=dev)
         self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
         self._last_t_us: Optional[int] = None
+        self._age = torch.zeros(B, dtype=torch.int64, device=dev)  # steps since reset
 
     # ------------------------------------------------------------------ state
     def reset(self, mask: Optional[torch.Tensor] = None) -> None:
         mask = self._mask(mask)
         self._ring[:, mask] = 0.0
+        self._window[mask] = 0.0
         self._centroids[mask] = float("nan")
         self._valid[mask] = False
         self._counts[mask] = 0.0
         self._reinit[mask] = False
         self._n_pairs[mask] = 0
         self._d[mask] = float("nan")
+        self._age[mask] = 0
 
     def window_image(self) -> torch.Tensor:
-        """The windowed count image over the last T, (B, H, W) float32."""
-        return self._ring.sum(0)
+        """The windowed count image over the last T, (B, H, W) float32 (a copy).
+
+        Kept as a running sum of the ring (counts are integers: float32 adds them exactly)."""
+        return self._window.clone()
 
     # ------------------------------------------------------------------ rules
     def _keep(self, c: torch.Tensor, counts: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -147,17 +155,23 @@ class DPREstimator(DivergenceEstimator):
         if self._last_t_us is not None and t_us > self._last_t_us:
             dt = (t_us - self._last_t_us) * 1e-6
         self._last_t_us = t_us
-        self._ring[self._slot] = count_image(events, self.batch_size, H, W, self.device)
+        new = count_image(events, self.batch_size, H, W, self.device)
+        self._window += new - self._ring[self._slot]
+        self._ring[self._slot] = new
         self._slot = (self._slot + 1) % self.n_ring
-        image = self.window_image()
+        image = self._window
 
         # 1. track: mean-shift from last step's centroids
         prev = self._centroids
         c, counts, _ = meanshift_flat(image, prev, self._valid, self.radius_px, self.meanshift_iters,
                                       self.meanshift_tol_px)
         keep = self._keep(c, counts, self._valid & ~torch.isnan(c[..., 0]))
-        # 2. Eq. 8 over the pairs tracked at both steps (computed before any re-initialisation)
+        # 2. Eq. 8 over the pairs tracked at both steps (computed before any re-initialisation).
+        # While the ring fills after a reset the window's mean event time advances by dt / 2 per
+        # step instead of dt: Eq. 8 then uses dt / 2 (not in paper; removes a x2 bias at start).
+        self._age += 1
         d, n_pairs = pairwise_divergence(prev, c, keep, dt)
+        d = d * torch.where(self._age <= self.n_ring, 2.0, 1.0)
         nan = torch.full_like(c, float("nan"))
         self._centroids = torch.where(keep.unsqueeze(-1), c, nan)
         self._valid = keep
@@ -185,5 +199,5 @@ class DPREstimator(DivergenceEstimator):
             "reinit": self._reinit.clone(),
             "counts": self._counts.clone(),
             "n_pairs": self._n_pairs.clone(),
-            "window_events": self._ring.sum((0, 2, 3)),
+            "window_events": self._window.sum((1, 2)),
         }

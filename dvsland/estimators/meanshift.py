@@ -11,7 +11,6 @@ import math
 from typing import Tuple
 
 import torch
-import torch.nn.functional as F
 
 
 def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor, radius_px: float,
@@ -48,11 +47,8 @@ def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor
     N = seeds.shape[1]
     dev = image.device
     r_int = int(math.ceil(radius_px))
-    pad = r_int + 1
     P = 2 * r_int + 2  # patch side: covers [floor(c) - r_int, floor(c) + r_int + 1]
-    img = F.pad(image.to(torch.float32), (pad, pad, pad, pad))  # zeros outside the sensor
-    Hp, Wp = H + 2 * pad, W + 2 * pad
-    flat = img.reshape(B, Hp * Wp)
+    flat = image.to(torch.float32).reshape(B, H * W)
     off = torch.arange(P, device=dev, dtype=torch.float32) - r_int  # -r .. r+1
     oy, ox = torch.meshgrid(off, off, indexing="ij")
     ox = ox.reshape(1, 1, P * P)
@@ -70,10 +66,11 @@ def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor
         base = cc.floor()
         px = base[..., :1] + ox  # (B, N, P*P) pixel x
         py = base[..., 1:] + oy
-        inside = ((px - cc[..., :1]) ** 2 + (py - cc[..., 1:]) ** 2) <= r2
-        ix = (px + pad).clamp(0, Wp - 1).long()
-        iy = (py + pad).clamp(0, Hp - 1).long()
-        w = torch.gather(flat, 1, (iy * Wp + ix).reshape(B, N * P * P)).reshape(B, N, P * P)
+        # in the kernel and on the sensor (outside the sensor counts are zero)
+        inside = (((px - cc[..., :1]) ** 2 + (py - cc[..., 1:]) ** 2) <= r2) & \
+            (px >= 0) & (px <= W - 1) & (py >= 0) & (py <= H - 1)
+        lin = (py.clamp(0, H - 1) * W + px.clamp(0, W - 1)).long()
+        w = torch.gather(flat, 1, lin.reshape(B, N * P * P)).reshape(B, N, P * P)
         w = w * inside
         return px, py, w
 

@@ -1,0 +1,172 @@
+"""``cmax``: divergence by contrast maximisation of radially warped events (beyond the paper).
+
+After McLeod, Meoni, Izzo et al., "Globally optimal event-based divergence estimation for ventral
+landing" (ECCV Workshops 2022): the events of the last ``window_ms`` are warped radially about
+the focus of expansion (the image centre for a nadir camera) for a candidate D, and the D that
+makes the warped count image sharpest (highest variance) is the estimate. The search is a
+batched grid over [d_min, d_max] followed by ``n_refine`` rounds of ``refine_points`` candidates
+within one grid step of the best, and a parabolic fit through the best three; every element and
+every candidate is scored at once (chunked only to bound memory). The returned D refers to the
+middle of the window. See :mod:`dvsland.estimators.contrast` for the warp.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import List, Optional
+
+import torch
+
+from .base import DivergenceEstimator, Truth
+from .contrast import warped_contrast
+from .registry import register_estimator
+
+
+def _parabola_offset(s_left: torch.Tensor, s_mid: torch.Tensor, s_right: torch.Tensor) -> torch.Tensor:
+    """Vertex offset (in grid steps, within [-0.5, 0.5]) of the parabola through three scores."""
+    den = s_left - 2 * s_mid + s_right
+    off = 0.5 * (s_left - s_right) / torch.where(den.abs() > 0, den, torch.ones_like(den))
+    return torch.where(den < 0, off.clamp(-0.5, 0.5), torch.zeros_like(off))
+
+
+@register_estimator("cmax")
+class CMaxEstimator(DivergenceEstimator):
+    """Contrast-maximisation divergence estimator (global, no feature tracking).
+
+    Args:
+        batch_size, sensor_size (W, H), device, dt_s: see :class:`DivergenceEstimator`.
+        window_ms: events of the last window_ms are warped (kept across steps when > dt).
+        d_min, d_max: searched range of D, 1/s (d_min < d_max).
+        n_grid: coarse grid size (>= 3).
+        n_refine: refinement rounds.
+        min_events: an element with fewer events in the window gets NaN.
+        refine_points: candidates per refinement round (odd, >= 3; not in paper).
+        blur_sigma_px: Gaussian blur of the warped image before the variance, px (0 = none).
+        max_events: per element at most this many events (evenly strided) are warped; 0 = all.
+        dither: spread each event uniformly within its pixel (seeded) before warping. Without it
+            the un-warped D = 0 lands every event of a pixel on the same spot and wins whenever
+            the motion in the window is sub-pixel (high altitude).
+        seed: seed of the dither generator (drawn on CPU, then moved).
+    """
+
+    def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, window_ms: float = 100.0,
+                 d_min: float = -2.0, d_max: float = 0.5, n_grid: int = 41, n_refine: int = 2,
+                 min_events: int = 50, refine_points: int = 9, blur_sigma_px: float = 0.0,
+                 max_events: int = 0, dither: bool = True, seed: int = 0, **unused):
+        super().__init__(batch_size, sensor_size, device, dt_s)
+        if not window_ms > 0:
+            raise ValueError(f"window_ms must be > 0, got {window_ms}")
+        if not d_min < d_max:
+            raise ValueError(f"d_min must be < d_max, got d_min={d_min}, d_max={d_max}")
+        if int(n_grid) < 3:
+            raise ValueError(f"n_grid must be >= 3, got {n_grid}")
+        if int(n_refine) < 0:
+            raise ValueError(f"n_refine must be >= 0, got {n_refine}")
+        if int(min_events) < 1:
+            raise ValueError(f"min_events must be >= 1, got {min_events}")
+        if int(refine_points) < 3 or int(refine_points) % 2 == 0:
+            raise ValueError(f"refine_points must be an odd integer >= 3, got {refine_points}")
+        if blur_sigma_px < 0:
+            raise ValueError(f"blur_sigma_px must be >= 0, got {blur_sigma_px}")
+        if int(max_events) < 0:
+            raise ValueError(f"max_events must be >= 0, got {max_events}")
+        self.window_us = int(round(float(window_ms) * 1000.0))
+        self.d_min, self.d_max = float(d_min), float(d_max)
+        self.n_grid, self.n_refine = int(n_grid), int(n_refine)
+        self.min_events, self.refine_points = int(min_events), int(refine_points)
+        self.blur_sigma_px, self.max_events = float(blur_sigma_px), int(max_events)
+        self.dither = bool(dither)
+        self._gen = torch.Generator(device="cpu").manual_seed(int(seed))
+        W, H = self.sensor_size
+        # canvas margin: the largest radial displacement over half a window, plus one pixel
+        half_s = 0.5 * self.window_us * 1e-6
+        grow = math.exp(max(abs(self.d_min), abs(self.d_max)) * half_s) - 1.0
+        self.pad_px = int(math.ceil(grow * 0.5 * max(W, H))) + 1
+        self._store: List[tuple] = []  # (b, x, y, t) of recent steps
+        B = self.batch_size
+        self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=self.device)
+        self._n_events = torch.zeros(B, dtype=torch.int64, device=self.device)
+        self._contrast = torch.zeros(B, dtype=torch.float32, device=self.device)
+
+    def reset(self, mask: Optional[torch.Tensor] = None) -> None:
+        mask = self._mask(mask)
+        self._store = [tuple(f[~mask[s[0]]] for f in s) for s in self._store]
+        self._d[mask] = float("nan")
+        self._n_events[mask] = 0
+        self._contrast[mask] = 0.0
+
+    def _window_events(self, events, t_us: int):
+        if events is not None and events.b.numel() > 0:
+            self._store.append(tuple(getattr(events, f).to(self.device) for f in ("b", "x", "y", "t")))
+        t0 = t_us - self.window_us
+        self._store = [s for s in self._store if s[3].numel() > 0 and bool(s[3].max() > t0)]
+        if not self._store:
+            z = torch.zeros(0, dtype=torch.int64, device=self.device)
+            return z, z, z, z
+        b, x, y, t = (torch.cat(f) for f in zip(*self._store))
+        keep = (t > t0) & (t <= t_us) & (b >= 0) & (b < self.batch_size)
+        return b[keep], x[keep], y[keep], t[keep]
+
+    def _subsample(self, b, x, y, t, n_per):
+        """Keep an even stride of at most max_events events per element (no loops)."""
+        if self.max_events <= 0 or b.numel() == 0 or bool((n_per <= self.max_events).all()):
+            return b, x, y, t
+        order = torch.argsort(b, stable=True)
+        b, x, y, t = b[order], x[order], y[order], t[order]
+        start = torch.cumsum(n_per, 0) - n_per
+        rank = torch.arange(b.numel(), device=b.device) - start[b]
+        stride = (n_per + self.max_events - 1) // self.max_events
+        keep = (rank % stride[b]) == 0
+        return b[keep], x[keep], y[keep], t[keep]
+
+    def update(self, events, t_us: int, truth: Optional[Truth] = None) -> torch.Tensor:
+        B = self.batch_size
+        dev = self.device
+        t_us = int(t_us)
+        b, x, y, t = self._window_events(events, t_us)
+        n_per = torch.bincount(b, minlength=B)[:B]
+        self._n_events = n_per
+        ok = n_per >= self.min_events
+        if not bool(ok.any()):
+            self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
+            return self._d.clone()
+        sel = ok[b]
+        b, x, y, t = b[sel], x[sel], y[sel], t[sel]
+        b, x, y, t = self._subsample(b, x, y, t, torch.where(ok, n_per, torch.zeros_like(n_per)))
+        t_ref = t_us - self.window_us // 2
+        tau = (t - t_ref).to(torch.float64).mul(1e-6).to(torch.float32)
+        x = x.to(torch.float32)
+        y = y.to(torch.float32)
+        if self.dither:
+            u = torch.rand(2, x.numel(), generator=self._gen).to(dev) - 0.5
+            x = x + u[0]
+            y = y + u[1]
+        W, H = self.sensor_size
+        kw = dict(sensor_hw=(H, W), pad_px=self.pad_px, blur_sigma_px=self.blur_sigma_px)
+
+        grid = torch.linspace(self.d_min, self.d_max, self.n_grid, device=dev, dtype=torch.float32)
+        cand = grid.unsqueeze(0).expand(B, -1)
+        step = torch.full((B,), (self.d_max - self.d_min) / (self.n_grid - 1), device=dev)
+        score = warped_contrast(x, y, b, tau, cand, **kw)
+        for _ in range(self.n_refine):
+            best = cand.gather(1, score.argmax(1, keepdim=True))  # (B, 1)
+            off = torch.linspace(-1.0, 1.0, self.refine_points, device=dev)
+            cand = best + step.unsqueeze(1) * off
+            step = step * 2.0 / (self.refine_points - 1)
+            score = warped_contrast(x, y, b, tau, cand, **kw)
+        i = score.argmax(1)
+        G = cand.shape[1]
+        il, ir = (i - 1).clamp(0, G - 1), (i + 1).clamp(0, G - 1)
+        s = lambda j: score.gather(1, j.unsqueeze(1)).squeeze(1)  # noqa: E731
+        d_best = cand.gather(1, i.unsqueeze(1)).squeeze(1)
+        interior = (i > 0) & (i < G - 1)
+        spacing = (cand[:, -1] - cand[:, 0]) / (G - 1)
+        off = torch.where(interior, _parabola_offset(s(il), s(i), s(ir)), torch.zeros_like(d_best))
+        d = d_best + off * spacing
+        self._contrast = s(i)
+        self._d = torch.where(ok, d, torch.full_like(d, float("nan"))).to(torch.float32)
+        return self._d.clone()
+
+    def diagnostics(self):
+        """n_events (B,) events in the window; contrast (B,) best variance."""
+        return {"n_events": self._n_events.clone(), "contrast": self._contrast.clone()}

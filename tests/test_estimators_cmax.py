@@ -1,0 +1,92 @@
+"""Contrast maximisation: warp, splat, and the 'cmax' estimator."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dvsland.estimators import get_estimator
+from dvsland.estimators.contrast import image_variance, radial_warp, splat_bilinear
+from dvsland.evaluate.synthetic import blob_layout, zoom_blob_events
+from dvsland.events import Events
+
+W = H = 64
+
+
+def test_radial_warp_inverts_zoom():
+    # a point at r0 at t = 0 seen at r0 exp(-D t): warping back with the true D returns r0
+    D = -0.4
+    x0, y0 = torch.tensor([40.0, 10.0]), torch.tensor([20.0, 50.0])
+    c = (31.5, 31.5)
+    t = torch.tensor([0.3, 0.3])
+    s = torch.exp(torch.tensor(-D * 0.3))
+    x, y = c[0] + (x0 - c[0]) * s, c[1] + (y0 - c[1]) * s
+    xw, yw = radial_warp(x, y, t, torch.full((2, 1), D), c)
+    assert torch.allclose(xw[:, 0], x0, atol=1e-4) and torch.allclose(yw[:, 0], y0, atol=1e-4)
+
+
+def test_splat_bilinear_conserves_weight():
+    xw = torch.tensor([[1.25], [3.0], [-5.0]])
+    yw = torch.tensor([[2.5], [0.0], [1.0]])
+    img = splat_bilinear(xw, yw, torch.zeros(3, 1, dtype=torch.int64), 1, 4, 5)
+    assert img.shape == (1, 4, 5)
+    assert img.sum().item() == pytest.approx(2.0)  # the third sample is off the image
+    assert img[0, 2, 1].item() == pytest.approx(0.375) and img[0, 0, 3].item() == pytest.approx(1.0)
+
+
+def test_image_variance_blur_reduces():
+    img = torch.zeros(2, 16, 16)
+    img[:, 8, 8] = 1.0
+    assert (image_variance(img, 1.0) < image_variance(img, 0.0)).all()
+
+
+def _run(est, D, steps, seed=0, start=0, n_blobs=40, per_blob=20):
+    offsets = blob_layout(est.batch_size, n_blobs, (W, H), extent=0.8, seed=seed)
+    out = []
+    for k in range(start, start + steps):
+        ev = zoom_blob_events(offsets, D, k * 100_000, (k + 1) * 100_000, (W, H), events_per_blob=per_blob,
+                              sigma_px=0.4, seed=k + 100 * seed, device=est.device)
+        out.append(est.update(ev, (k + 1) * 100_000))
+    return torch.stack(out)
+
+
+def test_cmax_recovers_known_divergence(device):
+    D = torch.tensor([-1.0, -0.5, 0.0, 0.3])
+    est = get_estimator("cmax", 4, (W, H), device, dt_s=0.1, window_ms=300.0, d_min=-2.0, d_max=0.5,
+                        n_grid=26, n_refine=2, min_events=50)
+    d = _run(est, D.to(device), 5)[-1].cpu()
+    assert torch.isfinite(d).all()
+    assert torch.allclose(d, D, atol=0.08), d
+
+
+def test_cmax_empty_single_nan_then_recover():
+    est = get_estimator("cmax", 2, (W, H), "cpu", dt_s=0.1, window_ms=200.0, min_events=20)
+    assert torch.isnan(est.update(Events.empty(), 100_000)).all()
+    assert torch.isnan(est.update(None, 200_000)).all()
+    one = Events(torch.tensor([0]), torch.tensor([5]), torch.tensor([6]), torch.tensor([250_000]),
+                 torch.tensor([1], dtype=torch.int8))
+    d = est.update(one, 300_000)
+    assert d.shape == (2,) and torch.isnan(d).all()
+    d = _run(est, torch.tensor([-0.5, -0.5]), 3, start=3)
+    assert torch.isfinite(d[-1]).all()
+    for k in range(6, 9):  # the window empties again
+        d = est.update(Events.empty(), (k + 1) * 100_000)
+    assert torch.isnan(d).all() and not torch.isinf(d).any()
+
+
+def test_cmax_reset_mask_touches_only_masked():
+    est = get_estimator("cmax", 3, (W, H), "cpu", dt_s=0.1, window_ms=300.0, min_events=20)
+    _run(est, torch.tensor([-0.5, -0.5, -0.5]), 2)
+    est.reset(torch.tensor([False, True, False]))
+    d = est.update(Events.empty(), 300_000)  # only the stored window remains
+    assert torch.isnan(d[1]) and torch.isfinite(d[[0, 2]]).all()
+    assert est.diagnostics()["n_events"][1] == 0
+
+
+def test_cmax_bad_params():
+    with pytest.raises(ValueError, match="d_min"):
+        get_estimator("cmax", 1, (W, H), d_min=0.5, d_max=-1.0)
+    with pytest.raises(ValueError, match="n_grid"):
+        get_estimator("cmax", 1, (W, H), n_grid=2)
+    with pytest.raises(ValueError, match="refine_points"):
+        get_estimator("cmax", 1, (W, H), refine_points=4)

@@ -1,0 +1,222 @@
+"""The paper's estimator: DPR, mean-shift, Eq. 8 and the 'dpr' estimator (kornia-style tests)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from dvsland.estimators import get_estimator
+from dvsland.estimators.density_peaks import density_peaks
+from dvsland.estimators.divergence import pairwise_divergence
+from dvsland.estimators.dpr import DPREstimator
+from dvsland.estimators.meanshift import meanshift_flat
+from dvsland.evaluate.synthetic import blob_layout, zoom_blob_events
+from dvsland.events import Events
+
+W = H = 64
+
+
+def _plant(image, x, y, amp, sigma=1.0):
+    yy, xx = torch.meshgrid(torch.arange(image.shape[-2], dtype=torch.float32),
+                            torch.arange(image.shape[-1], dtype=torch.float32), indexing="ij")
+    image += amp * torch.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * sigma ** 2))
+
+
+# ---------------------------------------------------------------- DPR
+def test_density_peaks_rank_order(device):
+    img = torch.zeros(2, H, W)
+    blobs = [(10, 12, 50.0), (40, 20, 30.0), (25, 50, 80.0), (52, 52, 10.0)]
+    for x, y, a in blobs:
+        _plant(img[0], x, y, a)
+    _plant(img[1], 30, 30, 5.0)
+    peaks, dens, valid = density_peaks(img.to(device), n_max=5, sigma_px=2.0)
+    assert peaks.shape == (2, 5, 2) and dens.shape == (2, 5) and valid.shape == (2, 5)
+    want = sorted(blobs, key=lambda b: -b[2])
+    got = peaks[0, :4].cpu()
+    assert torch.equal(got, torch.tensor([[x, y] for x, y, _ in want], dtype=torch.float32))
+    assert valid[0, :4].all() and not valid[0, 4] and torch.isnan(peaks[0, 4]).all()
+    assert (dens[0, :3] >= dens[0, 1:4]).all()
+    assert valid[1].sum() == 1 and torch.equal(peaks[1, 0].cpu(), torch.tensor([30.0, 30.0]))
+
+
+def test_density_peaks_empty_and_errors():
+    peaks, dens, valid = density_peaks(torch.zeros(3, 8, 8), 4)
+    assert not valid.any() and torch.isnan(peaks).all() and (dens == 0).all()
+    with pytest.raises(ValueError, match="n_max"):
+        density_peaks(torch.zeros(1, 8, 8), 0)
+    with pytest.raises(ValueError, match="sigma_px"):
+        density_peaks(torch.zeros(1, 8, 8), 2, sigma_px=0.0)
+    with pytest.raises(ValueError, match="image"):
+        density_peaks(torch.zeros(8, 8), 2)
+
+
+# ---------------------------------------------------------------- mean-shift
+def test_meanshift_converges_to_known_centroid(device):
+    img = torch.zeros(1, H, W)
+    # a symmetric cluster around (20.25, 30.5): centroid known exactly
+    pts = [(20, 30), (21, 30), (20, 31), (21, 31), (19, 30), (22, 31)]
+    for x, y in pts:
+        img[0, y, x] += 10.0
+    cx = sum(p[0] for p in pts) / len(pts)
+    cy = sum(p[1] for p in pts) / len(pts)
+    seeds = torch.tensor([[[cx + 2.5, cy - 2.0]]])
+    c, counts, n_iter = meanshift_flat(img.to(device), seeds.to(device), torch.tensor([[True]], device=device),
+                                       radius_px=4.0, iters=50, tol_px=1e-4)
+    assert torch.allclose(c[0, 0].cpu(), torch.tensor([cx, cy]), atol=1e-5)
+    assert counts[0, 0].item() == pytest.approx(60.0)
+    assert int(n_iter) < 50
+
+
+def test_meanshift_invalid_and_empty_seeds():
+    img = torch.zeros(1, 16, 16)
+    img[0, 8, 8] = 5
+    seeds = torch.tensor([[[8.0, 8.0], [2.0, 2.0], [float("nan"), 1.0]]])
+    valid = torch.tensor([[True, True, False]])
+    c, counts, _ = meanshift_flat(img, seeds, valid, 3.0)
+    assert torch.equal(c[0, 0], torch.tensor([8.0, 8.0]))
+    assert torch.isnan(c[0, 1:]).all() and (counts[0, 1:] == 0).all()
+
+
+def _estimator(B=1, **kw):
+    params = dict(n_max=15, n_min=15, radius_px=4.0, c_min=3, r_min_px=3.0, memory_ms=500.0)
+    params.update(kw)
+    return DPREstimator(B, (W, H), dt_s=0.1, **params)
+
+
+def _events_from_points(points, b=0, t_us=100_000):
+    x = torch.tensor([p[0] for p in points])
+    y = torch.tensor([p[1] for p in points])
+    n = len(points)
+    return Events(torch.full((n,), b), x, y, torch.full((n,), t_us), torch.ones(n, dtype=torch.int8))
+
+
+def _cluster(x, y, n):
+    return [(x + (i % 3) - 1, y + (i // 3) % 3 - 1) for i in range(n)]
+
+
+def test_dpr_drops_thin_and_edge_clusters():
+    est = _estimator(n_min=15, r_min_px=3.0, c_min=2)
+    pts = _cluster(20, 20, 30) + _cluster(40, 40, 30) + _cluster(20, 45, 8) + _cluster(1, 30, 30)
+    est.update(_events_from_points(pts), 100_000)
+    dg = est.diagnostics()
+    c = dg["centroids"][0]
+    kept = c[~torch.isnan(c[:, 0])]
+    assert dg["n_tracked"][0].item() == 2 and dg["reinit"][0]
+    near = lambda x, y: ((kept - torch.tensor([x, y], dtype=torch.float32)).norm(dim=1) < 1.0).any()  # noqa: E731
+    assert near(20, 20) and near(40, 40)
+    assert not near(20, 45)  # thin cluster: 8 < n_min events
+    assert not near(1, 30)  # edge cluster: closer than r_min to the edge
+    assert dg["centroids"].shape == (1, 15, 2) and dg["centroids"].dtype == torch.float32
+
+
+# ---------------------------------------------------------------- Eq. 8
+@pytest.mark.parametrize("scale", [1.01, 1.2, 0.95])
+def test_eq8_exact_for_pure_zoom(scale):
+    g = torch.Generator().manual_seed(1)
+    prev = torch.rand(3, 10, 2, generator=g, dtype=torch.float64) * 100
+    centre = torch.tensor([50.0, 40.0], dtype=torch.float64)
+    cur = centre + (prev - centre) * scale
+    valid = torch.ones(3, 10, dtype=torch.bool)
+    valid[1, 5:] = False
+    d, n = pairwise_divergence(prev, cur, valid, dt_s=0.1)
+    assert torch.allclose(d.double(), torch.full((3,), (1 - scale) / 0.1, dtype=torch.float64), rtol=1e-5)
+    assert n.tolist() == [45, 10, 45]
+    assert (d < 0).all() == (scale > 1)
+
+
+def test_eq8_no_pairs_is_nan():
+    prev = torch.rand(2, 4, 2)
+    valid = torch.tensor([[True, False, False, False], [False] * 4])
+    d, n = pairwise_divergence(prev, prev, valid, 0.1)
+    assert torch.isnan(d).all() and (n == 0).all()
+    with pytest.raises(ValueError, match="dt_s"):
+        pairwise_divergence(prev, prev, valid, 0.0)
+
+
+# ---------------------------------------------------------------- the estimator
+def _run_zoom(est, D, steps, seed=0, start=0, active=None, n_blobs=30):
+    B = est.batch_size
+    offsets = blob_layout(B, n_blobs, (W, H), extent=0.75, seed=seed)
+    out = []
+    for k in range(start, start + steps):
+        ev = zoom_blob_events(offsets, D, k * 100_000, (k + 1) * 100_000, (W, H), events_per_blob=12,
+                              sigma_px=0.6, seed=1000 * seed + k, active=active, device=est.device)
+        out.append(est.update(ev, (k + 1) * 100_000))
+    return torch.stack(out)
+
+
+def test_dpr_tracks_known_zoom(device):
+    D = torch.tensor([-0.3, -0.15, 0.0])
+    est = get_estimator("dpr", 3, (W, H), device, dt_s=0.1, n_min=10, n_max=15, radius_px=3.0)
+    d = _run_zoom(est, D.to(device), 15, n_blobs=12)
+    late = d[8:].cpu()
+    assert not torch.isnan(late).any() and torch.isfinite(late).all()
+    med = late.median(0).values
+    assert torch.allclose(med, D, atol=0.05), med
+    assert med[0] < med[1] < 0.02  # sign: spreading features -> D < 0
+
+
+def test_dpr_empty_single_and_lost_give_nan_then_recover():
+    est = _estimator(B=2, n_min=10, radius_px=3.0)
+    empty = Events.empty()
+    for k in range(3):
+        d = est.update(empty, (k + 1) * 100_000)
+        assert d.shape == (2,) and d.dtype == torch.float32 and torch.isnan(d).all()
+    d = est.update(None, 400_000)
+    assert torch.isnan(d).all()
+    d = est.update(_events_from_points([(30, 30)]), 500_000)  # a single event
+    assert torch.isnan(d).all()
+    D = torch.tensor([-0.2, -0.2])
+    d = _run_zoom(est, D, 10, start=5, n_blobs=12)
+    assert torch.isfinite(d[-3:]).all()
+    # all centroids lost: the events stop for longer than the memory
+    for k in range(15, 22):
+        d = est.update(Events.empty(), (k + 1) * 100_000)
+        assert not torch.isinf(d).any()
+    assert torch.isnan(d).all() and (est.diagnostics()["n_tracked"] == 0).all()
+    d = _run_zoom(est, D, 10, start=22, n_blobs=12)
+    assert torch.isfinite(d[-3:]).all()
+
+
+def test_dpr_reset_mask_touches_only_masked():
+    est = _estimator(B=3, n_min=10, radius_px=3.0)
+    _run_zoom(est, torch.tensor([-0.2, -0.2, -0.2]), 6, n_blobs=12)
+    before = {k: v.clone() for k, v in est.diagnostics().items()}
+    ring = est._ring.clone()
+    mask = torch.tensor([False, True, False])
+    est.reset(mask)
+    after = est.diagnostics()
+    assert torch.isnan(after["centroids"][1]).all() and after["n_tracked"][1] == 0
+    assert after["window_events"][1] == 0 and (est._ring[:, 1] == 0).all()
+    for k in ("centroids", "n_tracked", "counts", "window_events"):
+        assert torch.equal(after[k][~mask].nan_to_num(-1), before[k][~mask].nan_to_num(-1)), k
+    assert torch.equal(est._ring[:, ~mask], ring[:, ~mask])
+    with pytest.raises(ValueError, match="mask"):
+        est.reset(torch.tensor([True, False]))
+
+
+def test_dpr_bad_params():
+    with pytest.raises(ValueError, match="n_max"):
+        _estimator(n_max=0)
+    with pytest.raises(ValueError, match="c_min"):
+        _estimator(c_min=1)
+    with pytest.raises(ValueError, match="nms_px"):
+        _estimator(nms_px=4)
+    with pytest.raises(ValueError, match="radius_px"):
+        _estimator(radius_px=0.0)
+
+
+def test_dpr_ring_covers_memory():
+    assert _estimator(memory_ms=500.0).n_ring == 5
+    assert _estimator(memory_ms=10.0).n_ring == 1
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_dpr_cpu_cuda_agree():
+    D = torch.tensor([-0.2, -0.1])
+    a = _run_zoom(_estimator(B=2, n_min=10, radius_px=3.0), D, 8, n_blobs=12)
+    est = DPREstimator(2, (W, H), device="cuda", dt_s=0.1, n_min=10, radius_px=3.0)
+    b = _run_zoom(est, D.cuda(), 8, n_blobs=12).cpu()
+    assert torch.allclose(a.nan_to_num(9), b.nan_to_num(9), atol=1e-4)
