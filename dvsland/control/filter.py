@@ -27,12 +27,13 @@ def nan_moving_average(history: Tensor, n_bin: Tensor) -> Tuple[Tensor, Tensor]:
     """
     n = history.shape[0]
     rows = torch.arange(n, device=history.device).unsqueeze(1)
-    in_window = rows < n_bin.to(history.device).unsqueeze(0)
+    return _masked_mean(history, rows < n_bin.to(history.device).unsqueeze(0))
+
+
+def _masked_mean(history: Tensor, in_window: Tensor) -> Tuple[Tensor, Tensor]:
     valid = in_window & torch.isfinite(history)
-    total = torch.where(valid, history, torch.zeros_like(history)).sum(0)
     n_used = valid.sum(0)
-    mean = total / n_used.clamp_min(1).to(history.dtype)
-    mean = torch.where(n_used > 0, mean, torch.full_like(mean, float("nan")))
+    mean = torch.where(valid, history, 0.0).sum(0) / n_used  # 0 / 0 = NaN where none
     return mean, n_used
 
 
@@ -58,6 +59,8 @@ class MovingAverageFilter:
         self.batch_size = int(n_bin.numel())
         self.n_max = int(n_bin.max())
         self._hist = torch.full((self.n_max, self.batch_size), float("nan"), dtype=dtype, device=device)
+        rows = torch.arange(self.n_max, device=device).unsqueeze(1)
+        self._in_window = rows < n_bin.unsqueeze(0)  # (N, B) which ring rows count, newest first
 
     def reset(self, mask: Optional[Tensor] = None) -> None:
         """Forget the history of the elements where ``mask`` (B,) bool is True (all when None)."""
@@ -85,4 +88,4 @@ class MovingAverageFilter:
         if mask is not None:
             rolled = torch.where(mask.unsqueeze(0), rolled, self._hist)
         self._hist = rolled
-        return nan_moving_average(self._hist, self.n_bin)
+        return _masked_mean(self._hist, self._in_window)

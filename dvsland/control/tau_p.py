@@ -63,8 +63,8 @@ class TauPController(Controller):
         thrust_min_n: lower clamp, N (>= 0).
         thrust_max_n: upper clamp, N, or None for unbounded.
         missing_policy: ``"hold"`` or ``"hover"``.
-        initial_thrust_n: (B,) the "last thrust" before the first command; default hover m0 g
-            (set on first call).
+
+    Before the first command (and after a reset) the "last thrust" is hover, m g.
     """
 
     def __init__(self, kp: Tensor, tau0_s: Tensor, c2: float, g_mps2: float, thrust_min_n: float = 0.0,
@@ -87,35 +87,45 @@ class TauPController(Controller):
         self.thrust_max_n = None if thrust_max_n is None else float(thrust_max_n)
         self.missing_policy = missing_policy
         self._last: Optional[Tensor] = None
+        self._pending_reset = False
 
     def reset(self, mask: Optional[Tensor] = None) -> None:
         """Forget the last command (hover is used until a command exists)."""
+        self._pending_reset = True
         if mask is None or self._last is None:
             self._last = None
         else:
-            self._last = torch.where(mask, torch.full_like(self._last, float("nan")), self._last)
+            self._last = torch.where(mask, float("nan"), self._last)  # NaN = hover at the next call
 
     def _clamp(self, u: Tensor) -> Tensor:
-        u = torch.nan_to_num(u, nan=self.thrust_min_n, posinf=float("inf"), neginf=self.thrust_min_n)
-        u = u.clamp_min(self.thrust_min_n)
+        u = u.clamp_min(self.thrust_min_n)  # also maps -inf (D_hat -> 0-) to thrust_min
         if self.thrust_max_n is not None:
             u = u.clamp_max(self.thrust_max_n)
-        # unbounded law (Eq. 2 as written): still never inf
-        return torch.nan_to_num(u, posinf=torch.finfo(torch.float64).max / 4)
+        return u
 
     def __call__(self, t_s, d_filtered: Tensor, mass_kg: Tensor, active: Optional[Tensor] = None) -> ControlOutput:
+        """Thrust for filtered divergence ``d_filtered`` (B,) at flight time ``t_s`` (float or (B,)).
+
+        Finite by construction: a usable D < 0 gives tau_hat = -1/D in (0, inf], so
+        Kp (tau* - tau_hat) is finite or -inf, and the clamp maps -inf to ``thrust_min_n``.
+        """
         d = d_filtered.to(torch.float64)
-        m = mass_kg.to(torch.float64)
-        hover = self._clamp(m * self.g_mps2)
-        tau_star = tau_target(torch.as_tensor(t_s, dtype=torch.float64, device=d.device), self.tau0_s, self.c2)
-        usable = torch.isfinite(d) & (d < 0)
-        tau_hat = torch.where(usable, -1.0 / torch.where(usable, d, -torch.ones_like(d)),
-                              torch.full_like(d, float("nan")))
-        u = self._clamp(self.kp * (tau_star - torch.where(usable, tau_hat, tau_star)) + m * self.g_mps2)
-        last = hover if self._last is None else torch.where(torch.isfinite(self._last), self._last, hover)
-        fallback = last if self.missing_policy == "hold" else hover
+        mg = mass_kg.to(torch.float64) * self.g_mps2
+        tau_star = self.tau0_s - self.c2 * t_s
+        usable = d < 0  # False for NaN and for D >= 0 (not approaching)
+        tau_hat = torch.where(usable, -1.0 / d, float("nan"))
+        u = self._clamp(self.kp * (tau_star - tau_hat) + mg)
+        if self._last is None:
+            self._last = self._clamp(mg)
+        elif self._pending_reset:
+            self._last = torch.where(torch.isnan(self._last), self._clamp(mg), self._last)
+        self._pending_reset = False
+        if self.missing_policy == "hold":
+            fallback = self._last
+        else:
+            fallback = self._clamp(mg)
         thrust = torch.where(usable, u, fallback)
         if active is not None:
-            thrust = torch.where(active, thrust, last)
+            thrust = torch.where(active, thrust, self._last)
         self._last = thrust
         return ControlOutput(thrust_n=thrust, tau_hat_s=tau_hat, tau_target_s=tau_star, held=~usable)

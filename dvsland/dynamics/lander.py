@@ -62,13 +62,12 @@ def _check(z_m: Tensor, v_mps: Tensor, m_kg: Tensor, thrust_n: Tensor, dt_s: flo
                          f"{tuple(v_mps.shape)}, {tuple(m_kg.shape)}, {tuple(thrust_n.shape)}")
 
 
-def _log1p_neg_integral_over_x(x: Tensor) -> Tensor:
-    """((1 - x) ln(1 - x) + x) / x for x in [0, 1), stable at x -> 0 (series below 1e-4)."""
+def _log1p_neg_integral_over_x(x: Tensor, log1p_neg_x: Tensor) -> Tensor:
+    """((1 - x) ln(1 - x) + x) / x for x in [0, 1), given ln(1 - x); the series
+    x/2 + x^2/6 + x^3/12 below x = 1e-4 (exact at x = 0, no 0/0)."""
     small = x < 1e-4
-    xs = torch.where(small, x, torch.zeros_like(x))
-    series = xs / 2 + xs * xs / 6 + xs * xs * xs / 12
-    xl = torch.where(small, torch.full_like(x, 0.5), x)
-    exact = ((1 - xl) * torch.log1p(-xl) + xl) / xl
+    series = x * (0.5 + x * (1.0 / 6.0 + x * (1.0 / 12.0)))
+    exact = ((1 - x) * log1p_neg_x + x) / torch.where(small, 1.0, x)
     return torch.where(small, series, exact)
 
 
@@ -96,23 +95,21 @@ def step_exact(z_m: Tensor, v_mps: Tensor, m_kg: Tensor, thrust_n: Tensor, dt_s:
     dtype = torch.float64
     z0, v0, m0 = z_m.to(dtype), v_mps.to(dtype), m_kg.to(dtype)
     u = thrust_n.to(dtype).clamp_min(0.0)
-    ce, g = params.exhaust_velocity_mps, params.g_mps2
-    fuel = (m0 - params.dry_mass_kg).clamp_min(0.0)
-    mdot = u / ce
-    # burn time inside this step: dt unless the tank empties first (no fuel -> no thrust)
-    t_burnout = torch.where(mdot > 0, fuel / mdot.clamp_min(1e-300), torch.full_like(u, float("inf")))
-    h1 = torch.clamp(t_burnout, max=dt_s)
-    h1 = torch.where(fuel > 0, h1, torch.zeros_like(h1))
-    x = (mdot * h1 / m0).clamp(0.0, 1.0 - 1e-15)
-    v1 = v0 - g * h1 - ce * torch.log1p(-x)
-    z1 = z0 + v0 * h1 - 0.5 * g * h1 * h1 + ce * h1 * _log1p_neg_integral_over_x(x)
-    burned_out = (h1 < dt_s) & (u > 0)
-    m1 = torch.where(burned_out, torch.full_like(m0, params.dry_mass_kg), m0 - mdot * h1)
-    m1 = torch.maximum(m1, torch.clamp(m0, max=params.dry_mass_kg))  # never below dry (or below m0 if lighter)
-    h2 = dt_s - h1  # free fall after burnout
-    z2 = z1 + v1 * h2 - 0.5 * g * h2 * h2
+    ce, g, dry = params.exhaust_velocity_mps, params.g_mps2, params.dry_mass_kg
+    fuel = (m0 - dry).clamp_min(0.0)
+    mdot = u * (1.0 / ce)
+    # burn time inside this step: dt unless the tank empties first (u = 0 -> dt; no fuel -> 0)
+    full = mdot * dt_s <= fuel
+    h1 = torch.where(full, dt_s, fuel / mdot)
+    x = (mdot * h1 / m0).clamp_max(1.0 - 1e-15)
+    log_ratio = torch.log1p(-x)  # ln(m1 / m0)
+    v1 = v0 - g * h1 - ce * log_ratio
+    z1 = z0 + h1 * (v0 - 0.5 * g * h1 + ce * _log1p_neg_integral_over_x(x, log_ratio))
+    m1 = torch.where(full, m0 - mdot * h1, torch.clamp(m0, max=dry))  # never below dry (nor above m0)
+    h2 = dt_s - h1  # free fall after burnout (0 unless the tank ran dry)
+    z2 = z1 + h2 * (v1 - 0.5 * g * h2)
     v2 = v1 - g * h2
-    return z2, v2, m1, torch.where(u > 0, h1, torch.zeros_like(h1))
+    return z2, v2, m1, torch.where(u > 0, h1, 0.0)
 
 
 def step_substeps(z_m: Tensor, v_mps: Tensor, m_kg: Tensor, thrust_n: Tensor, dt_s: float,

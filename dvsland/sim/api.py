@@ -64,7 +64,7 @@ def build_event_stages(cfg: Config, site_names: Sequence[str], device, renderer=
         renderer = get_renderer(cfg.render.renderer, list(site_names), cfg.camera, cfg.render, device)
     from dvsland.events import EventEmulator
 
-    emulator = EventEmulator.from_config(cfg.emulator, device)
+    emulator = EventEmulator.from_config(cfg.emulator, device, seed=cfg.simulation.seed)
     return renderer, emulator
 
 

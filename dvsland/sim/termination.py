@@ -30,13 +30,13 @@ def termination_code(z_m: Tensor, v_mps: Tensor, t_s, success_altitude_m: float,
         raise ValueError(f"crash_divergence must be > 0, got {crash_divergence}")
     if t_max_s <= 0:
         raise ValueError(f"t_max_s must be > 0, got {t_max_s}")
-    code = torch.zeros(z_m.shape, dtype=torch.int8, device=z_m.device)
-    t = torch.as_tensor(t_s, dtype=torch.float64, device=z_m.device)
-    timeout = (t >= t_max_s - 1e-9).expand_as(z_m)
-    code = torch.where(timeout, torch.full_like(code, TIMEOUT), code)
-    code = torch.where(v_mps > 0, torch.full_like(code, ASCENT), code)
-    div_mag = -v_mps / z_m.clamp_min(1e-12)
-    code = torch.where(div_mag >= crash_divergence, torch.full_like(code, CRASH), code)
-    code = torch.where(z_m <= success_altitude_m, torch.full_like(code, SUCCESS), code)
-    code = torch.where(z_m <= 0, torch.full_like(code, CRASH), code)
-    return code
+    if isinstance(t_s, torch.Tensor):
+        code = torch.where(t_s >= t_max_s - 1e-9, TIMEOUT, RUNNING).to(torch.int8).expand_as(z_m)
+    else:
+        code = torch.full(z_m.shape, TIMEOUT if t_s >= t_max_s - 1e-9 else RUNNING, dtype=torch.int8,
+                          device=z_m.device)
+    code = torch.where(v_mps > 0, ASCENT, code)
+    # |D| = -v/z >= c  <=>  -v >= c z  (z > 0 here; z <= 0 is a crash anyway)
+    code = torch.where(-v_mps >= crash_divergence * z_m, CRASH, code)
+    code = torch.where(z_m <= success_altitude_m, SUCCESS, code)
+    return torch.where(z_m <= 0, CRASH, code).to(torch.int8)
