@@ -86,17 +86,16 @@ class Terrain:
     def fields(self, grid: Grid) -> Tuple[torch.Tensor, torch.Tensor]:
         """Height (m) and albedo on a grid, each (n_rows, n_cols) float64 on CPU.
 
-        Two tiers: noise octaves shorter than 32 texels and features narrower than 64 texels are
-        evaluated at every texel; longer octaves and larger features on a 4x coarser grid, then
-        bicubic-upsampled (they are smooth at that scale).
+        Two tiers for the noise: octaves shorter than 32 texels are evaluated at every texel,
+        longer ones on a 4x coarser grid and bicubic-upsampled (8+ samples per wavelength: smooth).
+        Craters and boulders are always evaluated at every texel (sharp rims).
         """
         s = grid.spacing_m
         split_noise = _COARSE_TEXELS * s
-        split_feat = 2 * _COARSE_TEXELS * s
         height = self._noise(grid, "height", lam_below=split_noise)
         log_alb = self._noise(grid, "albedo", lam_below=split_noise)
         rel_alb = torch.zeros_like(height)
-        self._features(grid, height, rel_alb, s, d_below=split_feat)
+        self._features(grid, height, rel_alb, s)
         # coarse tier: texel (I, J) sits at fine index 4 I + 1.5 - 4 m (m coarse texels of margin)
         m = 2
         nrc = -(-grid.n_rows // 4) + 2 * m
@@ -106,13 +105,10 @@ class Terrain:
         coarse = Grid(float(ox), float(oy), grid.angle_rad, nrc, ncc, 4 * s)
         ch = self._noise(coarse, "height", lam_from=split_noise, texel_m=s)
         ca = self._noise(coarse, "albedo", lam_from=split_noise, texel_m=s)
-        ce = torch.zeros_like(ch)
-        self._features(coarse, ch, ce, s, d_from=split_feat)
-        up = F.interpolate(torch.stack([ch, ca, ce])[None], scale_factor=4, mode="bicubic",
+        up = F.interpolate(torch.stack([ch, ca])[None], scale_factor=4, mode="bicubic",
                            align_corners=False)[0, :, 4 * m:4 * m + grid.n_rows, 4 * m:4 * m + grid.n_cols]
         height = height + up[0]
         log_alb = log_alb + up[1]
-        rel_alb = rel_alb + up[2]
         albedo = self.spec.albedo.mean * torch.exp(log_alb) * (1.0 + rel_alb).clamp(min=0.2)
         return height, albedo.clamp(max=1.0)
 

@@ -1,0 +1,148 @@
+"""Levels of detail of one site for the fast renderer: a pyramid of shaded, sun-aligned tiles.
+
+Level k covers a square window around the landing point with ``level_size`` texels of side
+``base_texel_m * 2^k`` (each level twice the extent of the previous, same texel count), plus a
+``gutter`` of real texels on every side so bilinear sampling never bleeds into a neighbour in
+the atlas. Each tile holds the shaded irradiance (lunar-Lambert, cast shadows computed over an
+extra ``shadow_pad`` of the window toward the sun, ambient floor) and the height relative to
+the landing point (for parallax). Tiles are on a sun-aligned grid (columns toward the sun).
+
+Preparation is cached per process and, unless disabled, on disk under
+``$DVSLAND_CACHE_DIR`` (default ``~/.cache/dvsland/levels``), keyed by the site spec hash and
+the level parameters.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Optional
+
+import torch
+
+from dvsland.terrain import Terrain, shaded_sun_grid
+
+#: bump when the terrain or shading algorithm changes (invalidates disk caches)
+ALGO_VERSION = 4
+
+
+@dataclass(frozen=True)
+class LevelParams:
+    level_size: int = 384        # window texels per side
+    gutter: int = 2              # extra real texels on every side
+    base_texel_m: float = 0.09   # texel of level 0, m
+    n_levels: int = 13
+    ambient: float = 0.02        # ambient floor, fraction of full sun
+    shadow_pad: float = 0.35     # heights sampled this fraction of the window further upsun
+
+    @property
+    def tile_size(self) -> int:
+        return self.level_size + 2 * self.gutter
+
+    def texel_m(self, k: int) -> float:
+        return self.base_texel_m * 2.0 ** k
+
+    def key(self) -> str:
+        text = json.dumps({**asdict(self), "algo": ALGO_VERSION}, sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+@dataclass
+class SiteLevels:
+    """Prepared tiles of one site: ``irradiance``, ``height_m`` (K, T, T) float32 CPU (height
+    relative to the landing point ``h0_m``), ``angle_rad`` of the tile column axis (toward the
+    sun, from east counter-clockwise), ``prep_s`` the preparation time (0 when cached)."""
+
+    name: str
+    irradiance: torch.Tensor
+    height_m: torch.Tensor
+    h0_m: float
+    angle_rad: float
+    prep_s: float
+    source: str  # "computed", "memory" or "disk"
+
+
+_MEMORY: dict = {}
+
+
+def cache_dir() -> Optional[Path]:
+    """Disk cache folder, or None when ``DVSLAND_CACHE_DIR`` is "off"."""
+    env = os.environ.get("DVSLAND_CACHE_DIR")
+    if env is not None and env.strip().lower() in ("off", "0", "none", ""):
+        return None
+    return Path(env) if env else Path.home() / ".cache" / "dvsland" / "levels"
+
+
+def prepare_levels(terrain: Terrain, params: LevelParams, disk_cache: bool = True,
+                   progress=None) -> SiteLevels:
+    """Shade every level of ``terrain`` (see module doc). Cached in memory and on disk."""
+    key = f"{terrain.name}-{terrain.spec.digest()}-{params.key()}"
+    if key in _MEMORY:
+        lv = _MEMORY[key]
+        return SiteLevels(lv.name, lv.irradiance, lv.height_m, lv.h0_m, lv.angle_rad, 0.0, "memory")
+    folder = cache_dir() if disk_cache else None
+    path = folder / f"{key}.pt" if folder is not None else None
+    if path is not None and path.is_file():
+        try:
+            d = torch.load(path, map_location="cpu", weights_only=True)
+            lv = SiteLevels(terrain.name, d["irradiance"], d["height_m"], float(d["h0_m"]),
+                            float(d["angle_rad"]), 0.0, "disk")
+            _MEMORY[key] = lv
+            return lv
+        except Exception:  # a broken cache file is recomputed
+            pass
+    t0 = time.perf_counter()
+    n, g, k_max = params.level_size, params.gutter, params.n_levels
+    m = params.tile_size
+    irr = torch.empty(k_max, m, m, dtype=torch.float32)
+    hgt = torch.empty(k_max, m, m, dtype=torch.float32)
+    for k in range(k_max):
+        s = params.texel_m(k)
+        ik, hk, _ = shaded_sun_grid(terrain, (0.0, 0.0), m, s, params.ambient, params.shadow_pad)
+        irr[k] = ik.to(torch.float32)
+        hgt[k] = hk.to(torch.float32)
+        if progress is not None:
+            progress(k)
+    # landing point height from the finest level: (0, 0) is the centre of the even-sized tile
+    c = m // 2
+    h0 = float(hgt[0, c - 1:c + 1, c - 1:c + 1].to(torch.float64).mean())
+    hgt -= h0
+    lv = SiteLevels(terrain.name, irr, hgt, h0, terrain.sun_grid_angle_rad, time.perf_counter() - t0, "computed")
+    _MEMORY[key] = lv
+    if path is not None:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".tmp{os.getpid()}")
+            torch.save({"irradiance": irr, "height_m": hgt, "h0_m": h0, "angle_rad": lv.angle_rad}, tmp)
+            os.replace(tmp, path)
+        except OSError:
+            pass
+    return lv
+
+
+def level_params_for(camera, render_config, level_size: Optional[int] = None, gutter: int = 2,
+                     shadow_pad: float = 0.35) -> LevelParams:
+    """Level parameters that cover the camera's altitude range.
+
+    Level 0's texel equals the ground pixel at ``min_altitude_m``; there are enough levels for
+    ``max_altitude_m`` plus one (the blend needs the next coarser level). The window is wide
+    enough that the finer of the two blended levels (texel >= pixel / 2) holds the rotated
+    footprint (half-diagonal) with 6 % margin for parallax.
+    """
+    w, h = camera.width_px, camera.height_px
+    tan_half = math.tan(math.radians(camera.fov_deg) / 2)
+    pitch = 2 * tan_half / w  # m per m of altitude
+    base = pitch * render_config.min_altitude_m
+    # a planar pinhole sensor parallel to flat ground has the same ground pixel everywhere
+    lam_max = math.log2(render_config.max_altitude_m / render_config.min_altitude_m)
+    n_levels = int(math.ceil(lam_max)) + 2
+    if level_size is None:
+        need = 2 * math.sqrt(1 + (h / w) ** 2) * w * 1.06
+        level_size = int(math.ceil(need / 16) * 16)
+    return LevelParams(level_size=int(level_size), gutter=gutter, base_texel_m=base, n_levels=n_levels,
+                       ambient=float(render_config.ambient), shadow_pad=shadow_pad)
