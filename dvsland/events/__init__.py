@@ -6,10 +6,11 @@ Public names:
     EventEmulator: exact batched DVS emulator (reset(frames, t_us); step(frames, t_us) -> Events).
     LEVEL_TOL: tolerance (in thresholds) when counting level crossings.
     TONIC_DTYPE: numpy dtype of tonic event arrays (x, y int16, t int64, p int8 OFF=0/ON=1).
-    io: save/load of Events as .npz or .h5 (``dvsland.events.io.save_events``/``load_events``).
+    save_events, load_events: .npz / .h5 files, exact round trip (:mod:`dvsland.events.io`).
 """
 
 from .emulator import LEVEL_TOL, EventEmulator
 from .events import TONIC_DTYPE, Events
+from .io import load_events, save_events
 
-__all__ = ["Events", "EventEmulator", "LEVEL_TOL", "TONIC_DTYPE"]
+__all__ = ["Events", "EventEmulator", "LEVEL_TOL", "TONIC_DTYPE", "save_events", "load_events"]

@@ -1,0 +1,151 @@
+"""Save and load :class:`~dvsland.events.Events` as ``.npz`` or ``.h5`` (exact round trip).
+
+Both formats hold one array per field with explicit dtypes: b int64, x int16, y int16, t int64
+(µs), p int8 (+1 ON / -1 OFF), plus metadata: ``sensor_size = (W, H, 2)`` (tonic's order),
+``batch_size``, ``threshold``, ``threshold_off``, ``refractory_us`` and a ``format`` tag. In HDF5
+the fields are datasets under ``/events`` and the metadata are attributes of that group; in npz
+the metadata are 0-d / 1-d arrays named ``meta_<key>``.
+
+x and y are stored as int16 (sensors up to 32767 px, as tonic) and come back as int64.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Dict, Optional, Tuple, Union
+
+import numpy as np
+import torch
+
+from .events import Events
+
+FORMAT_TAG = "dvsland.events/1"
+_STORE_DTYPES = {"b": np.int64, "x": np.int16, "y": np.int16, "t": np.int64, "p": np.int8}
+_META_KEYS = ("sensor_size", "batch_size", "threshold", "threshold_off", "refractory_us")
+
+PathLike = Union[str, Path]
+
+
+def _fmt(path: Path, fmt: Optional[str]) -> str:
+    if fmt is None:
+        suffix = path.suffix.lower()
+        fmt = {".npz": "npz", ".h5": "h5", ".hdf5": "h5"}.get(suffix)
+        if fmt is None:
+            raise ValueError(f"cannot tell the format from {path.name!r}: use .npz, .h5 or .hdf5, "
+                             f"or pass format='npz'|'h5'")
+    if fmt not in ("npz", "h5"):
+        raise ValueError(f"format must be 'npz' or 'h5', got {fmt!r}")
+    return fmt
+
+
+def _arrays(events: Events) -> Dict[str, np.ndarray]:
+    out = {}
+    for k, dt in _STORE_DTYPES.items():
+        a = getattr(events, k).cpu().numpy()
+        if k in ("x", "y") and a.size and (a.min() < 0 or a.max() > np.iinfo(np.int16).max):
+            raise ValueError(f"{k} must be in [0, 32767] to be stored as int16")
+        out[k] = a.astype(dt)
+    return out
+
+
+def save_events(path: PathLike, events: Events, sensor_size: Optional[Tuple[int, int]] = None,
+                batch_size: Optional[int] = None, threshold: Optional[float] = None,
+                threshold_off: Optional[float] = None, refractory_us: Optional[float] = None,
+                format: Optional[str] = None) -> Path:
+    """Write ``events`` to ``path`` (.npz or .h5; ``format`` overrides the suffix).
+
+    Args:
+        events: the events (any device; copied to CPU).
+        sensor_size: (W, H) in pixels; stored as (W, H, 2). Default: max coordinate + 1.
+        batch_size: B; default max b + 1.
+        threshold, threshold_off, refractory_us: emulator settings stored as metadata (NaN if None).
+
+    Returns:
+        The path written.
+    """
+    path = Path(path)
+    fmt = _fmt(path, format)
+    arrs = _arrays(events)
+    n = len(events)
+    if sensor_size is None:
+        sensor_size = (int(arrs["x"].max()) + 1 if n else 0, int(arrs["y"].max()) + 1 if n else 0)
+    if len(sensor_size) not in (2, 3):
+        raise ValueError(f"sensor_size must be (W, H), got {sensor_size}")
+    W, H = int(sensor_size[0]), int(sensor_size[1])
+    if batch_size is None:
+        batch_size = int(arrs["b"].max()) + 1 if n else 0
+    nan = float("nan")
+    meta = {
+        "sensor_size": np.array([W, H, 2], dtype=np.int64),
+        "batch_size": np.int64(batch_size),
+        "threshold": np.float64(nan if threshold is None else threshold),
+        "threshold_off": np.float64(nan if threshold_off is None else threshold_off),
+        "refractory_us": np.float64(nan if refractory_us is None else refractory_us),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if fmt == "npz":
+        with open(path, "wb") as fh:  # keep the exact name (np.savez appends .npz otherwise)
+            np.savez(fh, **arrs, **{f"meta_{k}": v for k, v in meta.items()},
+                     meta_format=np.array(FORMAT_TAG))
+    else:
+        import h5py
+
+        with h5py.File(path, "w") as h5:
+            g = h5.create_group("events")
+            for k, a in arrs.items():
+                g.create_dataset(k, data=a, dtype=a.dtype)
+            for k, v in meta.items():
+                g.attrs[k] = v
+            g.attrs["format"] = FORMAT_TAG
+    return path
+
+
+def load_events(path: PathLike, device=None, format: Optional[str] = None,
+                with_meta: bool = False):
+    """Read events written by :func:`save_events`.
+
+    Returns:
+        :class:`Events` (fields as int64 / int8, on ``device``), or ``(events, meta)`` with
+        ``with_meta=True``; ``meta`` has sensor_size (W, H, 2) tuple, batch_size int, threshold,
+        threshold_off, refractory_us floats (NaN = not stored).
+    """
+    path = Path(path)
+    fmt = _fmt(path, format)
+    if not path.exists():
+        raise FileNotFoundError(path)
+    if fmt == "npz":
+        with np.load(path, allow_pickle=False) as z:
+            missing = [k for k in _STORE_DTYPES if k not in z.files]
+            if missing:
+                raise ValueError(f"{path}: not a dvsland events file (missing {missing})")
+            arrs = {k: z[k] for k in _STORE_DTYPES}
+            raw = {k: z[f"meta_{k}"] for k in _META_KEYS if f"meta_{k}" in z.files}
+    else:
+        import h5py
+
+        with h5py.File(path, "r") as h5:
+            if "events" not in h5:
+                raise ValueError(f"{path}: not a dvsland events file (no /events group)")
+            g = h5["events"]
+            missing = [k for k in _STORE_DTYPES if k not in g]
+            if missing:
+                raise ValueError(f"{path}: not a dvsland events file (missing {missing})")
+            arrs = {k: g[k][()] for k in _STORE_DTYPES}
+            raw = {k: g.attrs[k] for k in _META_KEYS if k in g.attrs}
+    dev = torch.device(device) if device is not None else torch.device("cpu")
+    ev = Events(**{k: torch.as_tensor(a.astype(np.int64) if k != "p" else a.astype(np.int8),
+                                      device=dev) for k, a in arrs.items()})
+    if not with_meta:
+        return ev
+    meta: Dict[str, Any] = {}
+    if "sensor_size" in raw:
+        meta["sensor_size"] = tuple(int(v) for v in np.asarray(raw["sensor_size"]).reshape(-1))
+    if "batch_size" in raw:
+        meta["batch_size"] = int(raw["batch_size"])
+    for k in ("threshold", "threshold_off", "refractory_us"):
+        if k in raw:
+            meta[k] = float(raw[k])
+    return ev, meta
+
+
+__all__ = ["save_events", "load_events", "FORMAT_TAG"]
