@@ -31,13 +31,22 @@ def _run_rows(traces: Dict[str, np.ndarray], b: int) -> np.ndarray:
     return rows
 
 
-def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: float = 0.5):
+def _descent_axes():
+    plt = _plt()
+    fig, ax = plt.subplots(4, 1, figsize=(7, 9), sharex=True)
+    fig.subplots_adjust(left=0.12, right=0.97, top=0.95, bottom=0.06, hspace=0.12)
+    return fig, ax
+
+
+def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: float = 0.5, _fig=None):
     """Four panels for run ``b``: altitude, velocity (with the closed form), D true / estimated /
     filtered, thrust. Saved to ``path``; returns the path."""
     plt = _plt()
     rows = _run_rows(traces, b)
     t = traces["t_s"][rows, b]
-    fig, ax = plt.subplots(4, 1, figsize=(7, 9), sharex=True)
+    fig, ax = _fig if _fig is not None else _descent_axes()
+    for a in ax:
+        a.cla()
     title = f"{run.get('run', b)}  ({run['estimator']}): {run['outcome']} at {run['t_end_s']:.1f} s, " \
             f"lowest {run['lowest_altitude_m']:.0f} m, loop gain {run['loop_gain']:.3g}"
     fig.suptitle(title, fontsize=9)
@@ -62,9 +71,11 @@ def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: f
     ax[3].step(t, traces["thrust_n"][rows, b] / 1e3, where="post", lw=0.8)
     ax[3].set_ylabel("thrust [kN]")
     ax[3].set_xlabel("t [s]")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    for a in ax:
+        a.grid(alpha=0.3)
+    fig.savefig(path, dpi=80)
+    if _fig is None:
+        plt.close(fig)
     return Path(path)
 
 
@@ -103,6 +114,11 @@ def write_figures(run_dir, runs: List[dict], traces: Dict[str, np.ndarray], c2: 
     out = Path(run_dir) / "figures"
     out.mkdir(parents=True, exist_ok=True)
     paths = [lowest_altitude_chart(runs, out / "lowest_altitude.png", success_altitude_m)]
-    for b, run in enumerate(runs[:max_descent_plots] if max_descent_plots else runs):
-        paths.append(descent_figure(traces, b, run, out / f"descent_{run_folder_name(run['run'])}.png", c2))
+    fig = _descent_axes()
+    try:
+        for b, run in enumerate(runs[:max_descent_plots] if max_descent_plots else runs):
+            paths.append(descent_figure(traces, b, run, out / f"descent_{run_folder_name(run['run'])}.png", c2,
+                                        _fig=fig))
+    finally:
+        _plt().close(fig[0])
     return paths

@@ -1,0 +1,72 @@
+"""Run outputs: summary table, results.json, traces.npz, figures, TensorBoard image helpers."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from dvsland.report import format_table, read_results_json, write_results_json, write_traces_npz
+from dvsland.report.tensorboard import counts_to_rgb, draw_centroids, frame_to_rgb, run_folder_name
+
+
+def _run(**kw):
+    r = {"run": "A/Kp5e6-n5", "site": "A", "label": "Kp5e6-n5", "kp": 5e6, "n_bin": 5, "estimator": "oracle",
+         "outcome": "success", "t_end_s": 93.1, "z_end_m": 49.4, "v_end_mps": -11.7, "lowest_altitude_m": 49.4,
+         "fuel_used_kg": 560.0, "max_thrust_n": 4.47e5, "loop_gain": 125.0, "held_steps": 0,
+         "z0_m": 1e4, "v0_mps": -200.0}
+    r.update(kw)
+    return r
+
+
+def test_table_text_and_markdown():
+    runs = [_run(), _run(run="H/Kp4e6-n10", site="H", label="Kp4e6-n10", outcome="crash", lowest_altitude_m=812.3)]
+    text = format_table(runs)
+    lines = text.splitlines()
+    assert lines[0].split()[:3] == ["run", "outcome", "t_end_s"]
+    assert "H/Kp4e6-n10" in lines[3] and "812.3" in lines[3] and "crash" in lines[3]
+    assert lines[-1] == "outcomes: crash 1, success 1"
+    md = format_table(runs, markdown=True)
+    assert md.startswith("| run | outcome") and md.count("\n") == 3
+
+
+def test_results_json_nan_is_null(tmp_path):
+    p = write_results_json(tmp_path / "results.json", [_run(z_end_m=float("nan"))], status="complete",
+                           wall_time_s=np.float64(1.5))
+    d = read_results_json(p)
+    assert d["runs"][0]["z_end_m"] is None and d["wall_time_s"] == 1.5 and d["status"] == "complete"
+    assert not (tmp_path / "results.json.tmp").exists()
+    json.loads(p.read_text())  # strict JSON (no NaN tokens)
+
+
+def test_traces_npz_roundtrip(tmp_path):
+    tr = {"z_m": np.arange(6.0).reshape(3, 2), "run_label": np.asarray(["A/x", "B/y"])}
+    p = write_traces_npz(tmp_path / "traces.npz", tr)
+    back = np.load(p)
+    np.testing.assert_array_equal(back["z_m"], tr["z_m"])
+    assert list(back["run_label"]) == ["A/x", "B/y"]
+
+
+def test_image_helpers():
+    assert run_folder_name("A/Kp5e6-n5/s1") == "A_Kp5e6-n5_s1"
+    rgb = frame_to_rgb(np.random.default_rng(0).random((16, 20)))
+    assert rgb.shape == (16, 20, 3) and rgb.dtype == np.uint8
+    counts = np.zeros((2, 16, 20))
+    counts[1, 3, 4] = 5
+    ev = counts_to_rgb(counts)
+    assert ev[3, 4, 0] == 255 and ev[3, 4, 2] == 0
+    out = draw_centroids(np.zeros((16, 20, 3), np.uint8), np.array([[4.0, 3.0], [np.nan, np.nan], [100.0, 1.0]]))
+    assert tuple(out[3, 4]) == (0, 255, 0) and out.sum() > 0
+
+
+def test_figures_written(tmp_path):
+    from dvsland.sim import simulate
+
+    r = simulate(None, estimator="oracle", sites="D", out=tmp_path / "fig", quiet=True,
+                 overrides=["logging.tensorboard=false", "simulation.t_max_s=10"])
+    figs = sorted(p.name for p in (r.run_dir / "figures").glob("*.png"))
+    assert figs == ["descent_D_Kp4e6-n10.png", "descent_D_Kp5e6-n5.png", "lowest_altitude.png"]
+    assert all((r.run_dir / "figures" / f).stat().st_size > 5000 for f in figs)
+    assert not math.isnan(r.timings_s["figures"])
