@@ -200,6 +200,7 @@ class EventEmulator:
         self._t_last = torch.full(self._shape, -math.inf, dtype=torch.float64, device=self.device)
         self._draw_mismatch(B, H, W)
         self._layout = _KeyLayout(B, H, W, self.device)
+        self._arange = _Arange(self.device)
         self.t_us = t_us
 
     # ------------------------------------------------------------------- step
@@ -249,16 +250,14 @@ class EventEmulator:
         if act.numel() > 0:
             d_a = d.view(-1).index_select(0, act)
             if self._th_scalar and th_on == th_off:
-                q = d_a / th_on
-                n_on = torch.floor(q + LEVEL_TOL).clamp_(min=0)
-                n_off = torch.floor(LEVEL_TOL - q).clamp_(min=0)
-                th_a = torch.sign(d_a) * th_on  # d_a != 0 for candidates
+                n_a = torch.floor((d_a / th_on).abs_().add_(LEVEL_TOL))
+                th_a = torch.sign(d_a).mul_(th_on)  # d_a != 0 for candidates
             else:
                 th_on_a, th_off_a = _take(th_on, act), _take(th_off, act)
                 n_on = torch.floor(d_a / th_on_a + LEVEL_TOL).clamp_(min=0)
                 n_off = torch.floor(-d_a / th_off_a + LEVEL_TOL).clamp_(min=0)
+                n_a = n_on + n_off  # at most one of them > 0
                 th_a = torch.where(d_a > 0, th_on_a, -th_off_a)  # signed step of L_ref
-            n_a = n_on + n_off  # at most one of them > 0
             lref_flat = self._lref.view(-1)
             lref_a = lref_flat.index_select(0, act)
             tl_flat = self._t_last.view(-1)
@@ -267,15 +266,15 @@ class EventEmulator:
             if self.interpolation == "log":
                 seg, tau, cnt, tlast_new = _emitted_log(
                     n_a, th_a, lref_a, self._l_prev.view(-1).index_select(0, act),
-                    l1.view(-1).index_select(0, act), dt, tl_a, r)
+                    l1.view(-1).index_select(0, act), dt, tl_a, r, self._arange)
             else:
                 seg, tau, cnt, tlast_new = _emitted_linear(
                     n_a, th_a, lref_a, self._i_prev.view(-1).index_select(0, act),
                     f1.view(-1).index_select(0, act), dt, tl_a, r, self.log_eps)
             # state: the reference moves by one threshold per crossing (emitted or dropped);
             # the last emitted time where >= 1 event was emitted
-            lref_flat.index_copy_(0, act, lref_a + n_a * th_a)
-            tl_flat.index_copy_(0, act, torch.where(cnt > 0, tlast_new + t0, tl_abs))
+            lref_flat.scatter_(0, act, lref_a.addcmul_(n_a, th_a))
+            tl_flat.scatter_(0, act, torch.where(cnt > 0, tlast_new.add_(t0), tl_abs))
             t_rel = torch.floor(tau.add_(0.5)).clamp_(1.0, dt).to(torch.int64)
             b_a, pc_a = layout.pixel_parts(act, d_a < 0)
             bt = (b_a << tb).index_select(0, seg).add_(t_rel)
@@ -307,12 +306,13 @@ class EventEmulator:
 
 
 # ---------------------------------------------------------------------------- helpers
-def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r):
+def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r, arange=None):
     """Log interpolation: emitted crossings in closed form per pixel.
 
     Args (A candidate pixels, (A,) float64): crossing count n_a (may be 0), signed threshold
     th_a (+θ_on or -θ_off), L_ref, L0, L1; dt step length (µs); tl_a last emitted time relative
-    to the step start (<= 0, -inf = never); r refractory period (µs).
+    to the step start (<= 0, -inf = never); r refractory period (µs); ``arange`` an optional
+    cached ``torch.arange`` provider.
 
     Returns:
         seg (N,) int64 candidate index of each emitted event, tau (N,) float64 its time after
@@ -320,29 +320,28 @@ def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r):
         last emitted crossing (meaningful where cnt > 0).
 
     Crossing j (1..n) is at ``tau_j = base + j * spacing`` (equally spaced). Emitted: the first
-    j0 with tau_j0 >= tl + r, then every m-th, m = ceil(r / spacing).
+    j0 >= 1 with tau_j0 >= tl + r, then every m-th, m = max(1, ceil(r / spacing)); so
+    cnt = max(0, floor((n - j0) / m) + 1). (j0 and m stay float64: no overflow for huge values.)
     """
     # L moves in the direction of th_a whenever n > 0; the clamp only guards 0-crossing candidates
     dl = torch.copysign((l1_a - l0_a).abs_().clamp_(min=1e-15), th_a)
     scale = dt / dl
     spacing = th_a * scale  # µs between crossings, > 0
-    base = (lref_a - l0_a) * scale
+    base = (lref_a - l0_a).mul_(scale)
     if r > 0:
-        j0 = torch.ceil((tl_a + (r - base)) / spacing).clamp_(min=1.0).minimum(n_a + 1)
-        m = torch.ceil(r / spacing).clamp_(min=1.0).minimum(n_a + 1)
-        cnt = torch.floor((n_a - j0) / m).add_(1.0).clamp_(min=0.0)
-        j_last = j0 + (cnt - 1).clamp_(min=0) * m
-        first = base + j0 * spacing
-        step = m * spacing
+        j0 = torch.ceil(tl_a.sub(base).add_(r).div_(spacing)).clamp_(min=1.0)
+        m = torch.ceil(r / spacing).clamp_(min=1.0)
+        cnt = torch.floor((n_a - j0).div_(m)).add_(1.0).clamp_(min=0.0)
+        first = base.addcmul(j0, spacing)
+        step = m.mul_(spacing)
     else:
         cnt = n_a
-        j_last = n_a
         first = base + spacing
         step = spacing
+    tlast = first.addcmul(cnt - 1, step)
     cnti = cnt.to(torch.int64)
-    seg, i = _segments(cnti)
+    seg, i = _segments(cnti, arange)
     tau = first.index_select(0, seg).addcmul_(i.to(torch.float64), step.index_select(0, seg))
-    tlast = base + j_last * spacing
     return seg, tau, cnti, tlast
 
 
@@ -403,12 +402,25 @@ def _take(th, idx):
     return torch.full(idx.shape, th, dtype=torch.float64, device=idx.device)
 
 
-def _segments(cnt: torch.Tensor):
+def _segments(cnt: torch.Tensor, arange=None):
     """For counts (A,) int64: segment id (N,) and index within the segment (N,), N = sum(cnt)."""
     seg = torch.repeat_interleave(cnt)
-    start = torch.cumsum(cnt, 0) - cnt
-    i = torch.arange(seg.numel(), device=cnt.device) - start[seg]
-    return seg, i
+    start = torch.cumsum(cnt, 0).sub_(cnt)
+    n = seg.numel()
+    ar = arange(n) if arange is not None else torch.arange(n, device=cnt.device)
+    return seg, ar - start.index_select(0, seg)
+
+
+class _Arange:
+    """Cached ``torch.arange(n)`` (int64) on one device, grown by doubling."""
+
+    def __init__(self, device):
+        self.buf = torch.arange(0, device=device)
+
+    def __call__(self, n: int) -> torch.Tensor:
+        if n > self.buf.numel():
+            self.buf = torch.arange(max(n, 2 * self.buf.numel()), device=self.buf.device)
+        return self.buf[:n]
 
 
 class _KeyLayout:

@@ -1,0 +1,216 @@
+"""``dvsland events [CONFIG] --site A --from-m 1000 --to-m 800 [--renderer fast|pyrender]
+[--format npz|h5] [--out DIR] [--set key=value ...] [--quiet]``: the events of a descent segment.
+
+Renders one site along the ideal (oracle) descent of DESIGN.md section 2 (s = 1 + c^2 v0 t / z0,
+z = z0 s^(1/c^2)) from ``--from-m`` down to ``--to-m`` at the camera frame rate, emulates the
+event camera (config ``emulator``) and writes into the run folder (``--out`` or
+``logs/<name>-events-<stamp>/``):
+
+- ``events.npz`` or ``events.h5``: all events (b = 0), t in µs of flight time since the start
+  of the descent (z = z0 at t = 0), with sensor size and thresholds as metadata;
+- ``event_frame.png``: the events of the last ``--window-ms`` (default: one frame interval),
+  ON red, OFF blue, on white (as the paper's Figure 1);
+- ``events_xyt.png``: a 3-D x-y-t scatter of the events of the last ``--scatter-ms`` (default
+  500 ms, at most ``--max-points`` points), ON red, OFF blue (as the paper's Figure 3);
+- ``frame_last.png``: the last rendered frame (log irradiance, percentile stretch);
+- ``summary.json``: frames, times, altitudes, event counts.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .common import add_config_args, config_from_args
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("events", help="render a descent segment and write its events and figures",
+                              description=__doc__.split("\n\n")[0])
+    add_config_args(p)
+    p.add_argument("--site", default="A", help="site name A-I (default A)")
+    p.add_argument("--from-m", type=float, default=1000.0, help="start altitude, m (default 1000)")
+    p.add_argument("--to-m", type=float, default=800.0, help="end altitude, m (default 800)")
+    p.add_argument("--renderer", default=None, help="renderer (default: config render.renderer)")
+    p.add_argument("--format", default="npz", choices=("npz", "h5"), help="event file format (default npz)")
+    p.add_argument("--device", default=None, help="torch device (default: config simulation.device)")
+    p.add_argument("--window-ms", type=float, default=None,
+                   help="event frame window, ms (default: one frame interval)")
+    p.add_argument("--scatter-ms", type=float, default=500.0, help="x-y-t scatter window, ms (default 500)")
+    p.add_argument("--max-points", type=int, default=30000, help="most points in the x-y-t scatter")
+    p.set_defaults(func=run_events)
+
+
+def site_initial_conditions(cfg, site: str):
+    """(z0_m, v0_mps) of ``site`` from ``simulation.sites``, else the paper's values."""
+    for s in cfg.simulation.sites:
+        if s.name == site:
+            return float(s.z0_m), float(s.v0_mps)
+    return (10000.0, -200.0) if site in ("A", "B", "C") else (4000.0, -100.0)
+
+
+def descent_schedule(z0_m: float, v0_mps: float, c2: float, from_m: float, to_m: float, dt_s: float):
+    """Frame times (µs, int64 numpy) and altitudes (m) of the ideal descent from ``from_m`` to
+    ``to_m``: the first frame at ``from_m``, then every ``dt_s`` until the altitude is <= ``to_m``."""
+    from dvsland.dynamics import closed_form_state, closed_form_time_to_altitude
+
+    if not (from_m > to_m > 0):
+        raise ValueError(f"--from-m must be > --to-m > 0, got from {from_m} to {to_m}")
+    if from_m > z0_m:
+        raise ValueError(f"--from-m must be <= the site's z0 = {z0_m} m, got {from_m}")
+    t0 = closed_form_time_to_altitude(from_m, z0_m, v0_mps, c2)
+    t1 = closed_form_time_to_altitude(to_m, z0_m, v0_mps, c2)
+    n = int(math.ceil((t1 - t0) / dt_s - 1e-9)) + 1
+    t_us = np.round((t0 + dt_s * np.arange(n)) * 1e6).astype(np.int64)
+    z, _ = closed_form_state(t_us * 1e-6, z0_m, v0_mps, c2)
+    return t_us, z
+
+
+def run_events(args) -> int:
+    from dvsland.events import EventEmulator, Events, save_events
+    from dvsland.render import get_renderer
+    from dvsland.runs import make_run_dir
+
+    extra = []
+    if args.renderer:
+        extra.append(f"render.renderer={args.renderer}")
+    if args.device:
+        extra.append(f"simulation.device={args.device}")
+    cfg = config_from_args(args, extra)
+    quiet = cfg.logging.quiet
+    site = args.site
+    z0, v0 = site_initial_conditions(cfg, site)
+    t_us, z = descent_schedule(z0, v0, cfg.controller.c2, args.from_m, args.to_m, cfg.dt_s)
+    lo, hi = cfg.render.min_altitude_m, cfg.render.max_altitude_m
+    if z.min() < lo or z.max() > hi:
+        raise ValueError(f"altitudes {z.min():.1f}-{z.max():.1f} m are outside the renderer's range "
+                         f"[render.min_altitude_m, render.max_altitude_m] = [{lo}, {hi}] m")
+    run_dir = make_run_dir(cfg, args.out, kind="events")
+    dev = torch.device(cfg.simulation.device)
+    t_start = time.perf_counter()
+    renderer = get_renderer(cfg.render.renderer, [site], cfg.camera, cfg.render, device=dev)
+    emu = EventEmulator.from_config(cfg.emulator, device=dev, seed=cfg.simulation.seed)
+    site_idx = torch.zeros(1, dtype=torch.int64)
+    H, W = cfg.camera.height_px, cfg.camera.width_px
+
+    def render(k):
+        return renderer.render(torch.tensor([z[k]], dtype=torch.float32), site_idx)
+
+    frame = render(0)
+    emu.reset(frame, int(t_us[0]))
+    chunks, per_step = [], []
+    steps = range(1, len(t_us))
+    if not quiet:
+        from tqdm import tqdm
+
+        steps = tqdm(steps, desc=f"events site {site}", unit="frame")
+    for k in steps:
+        frame = render(k)
+        ev = emu.step(frame, int(t_us[k]))
+        chunks.append(ev)
+        per_step.append(len(ev))
+    events = Events.cat(chunks).to("cpu") if chunks else Events.empty()
+    elapsed = time.perf_counter() - t_start
+
+    path = save_events(run_dir / f"events.{args.format}", events, sensor_size=(W, H), batch_size=1,
+                       threshold=emu.threshold, threshold_off=emu.threshold_off,
+                       refractory_us=emu.refractory_us)
+    window_us = int(round((args.window_ms if args.window_ms is not None else cfg.dt_s * 1e3) * 1e3))
+    t_end = int(t_us[-1])
+    draw_event_frame(events, H, W, t_end - window_us, t_end, run_dir / "event_frame.png",
+                     title=f"site {site}, {z[-1]:.0f} m, last {window_us / 1e3:g} ms")
+    draw_xyt_scatter(events, H, W, t_end - int(args.scatter_ms * 1e3), t_end, run_dir / "events_xyt.png",
+                     max_points=args.max_points, seed=cfg.simulation.seed,
+                     title=f"site {site}, events of the last {args.scatter_ms:g} ms")
+    save_frame_png(frame[0], run_dir / "frame_last.png")
+    summary = {
+        "site": site, "z0_m": z0, "v0_mps": v0, "from_m": args.from_m, "to_m": args.to_m,
+        "frames": int(len(t_us)), "t_first_us": int(t_us[0]), "t_last_us": t_end,
+        "altitude_first_m": float(z[0]), "altitude_last_m": float(z[-1]),
+        "events": len(events), "events_on": int((events.p > 0).sum()),
+        "events_per_step": per_step,
+        "events_per_px_step": (len(events) / max(1, len(per_step)) / (H * W)),
+        "renderer": cfg.render.renderer, "seconds": elapsed, "events_file": path.name,
+    }
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    if not quiet:
+        print(f"{len(events)} events from {len(t_us)} frames ({z[0]:.0f} m -> {z[-1]:.0f} m, "
+              f"{summary['events_per_px_step']:.3f} events/pixel/step) in {elapsed:.1f} s -> {run_dir}")
+    return 0
+
+
+# ------------------------------------------------------------------ figures
+def event_frame_rgb(events, H: int, W: int, t0_us: int, t1_us: int) -> np.ndarray:
+    """(H, W, 3) uint8: white, ON-dominated pixels red, OFF-dominated blue (b = 0 events in
+    [t0_us, t1_us))."""
+    ev = events.time_window(t0_us, t1_us).select_batch(0)
+    img = np.full((H, W, 3), 255, np.uint8)
+    if len(ev):
+        cnt = ev.to_count_image(1, H, W)[0].cpu().numpy()  # (2, H, W)
+        net = cnt[0] - cnt[1]
+        img[net > 0] = (220, 30, 30)
+        img[net < 0] = (30, 60, 220)
+    return img
+
+
+def draw_event_frame(events, H, W, t0_us, t1_us, path: Path, title: str = "") -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    img = event_frame_rgb(events, H, W, t0_us, t1_us)
+    fig, ax = plt.subplots(figsize=(5, 5), dpi=120)
+    ax.imshow(img, interpolation="nearest")
+    ax.set_title(title, fontsize=9)
+    ax.set_xlabel("x [px]")
+    ax.set_ylabel("y [px]")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def draw_xyt_scatter(events, H, W, t0_us, t1_us, path: Path, max_points: int = 30000, seed: int = 0,
+                     title: str = "") -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ev = events.time_window(t0_us, t1_us).select_batch(0)
+    n = len(ev)
+    if n > max_points:
+        idx = torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:max_points]
+        ev = ev[torch.sort(idx).values]
+    fig = plt.figure(figsize=(6, 5), dpi=120)
+    ax = fig.add_subplot(projection="3d")
+    if len(ev):
+        t_ms = (ev.t - t0_us).cpu().numpy() * 1e-3
+        x, y, p = ev.x.cpu().numpy(), ev.y.cpu().numpy(), ev.p.cpu().numpy()
+        for pol, color, lab in ((1, "tab:red", "ON"), (-1, "tab:blue", "OFF")):
+            m = p == pol
+            ax.scatter(x[m], t_ms[m], y[m], s=0.3, c=color, label=lab, depthshade=False)
+        ax.legend(loc="upper left", markerscale=15, fontsize=8)
+    ax.set_xlim(0, W)
+    ax.set_zlim(H, 0)
+    ax.set_xlabel("x [px]")
+    ax.set_ylabel("t [ms]")
+    ax.set_zlabel("y [px]")
+    ax.set_title(title + (f" ({len(ev)} of {n} shown)" if n > len(ev) else ""), fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def save_frame_png(frame: torch.Tensor, path: Path) -> None:
+    from PIL import Image
+
+    log = torch.log(frame.detach().float().cpu().clamp(min=1e-12))
+    lo, hi = torch.quantile(log.flatten(), 0.01), torch.quantile(log.flatten(), 0.995)
+    img = ((log - lo) / (hi - lo).clamp(min=1e-6)).clamp(0, 1) * 255
+    Image.fromarray(img.round().to(torch.uint8).numpy()).save(path)
