@@ -68,3 +68,32 @@ class Grid:
 def _axes(angle_rad: float):
     c, s = math.cos(angle_rad), math.sin(angle_rad)
     return (c, s), (s, -c)
+
+
+class compute_threads:
+    """Context manager: torch intra-op threads for terrain computations, restored on exit.
+
+    Terrain sampling is many small float64 CPU ops; on a shared, oversubscribed CPU one thread
+    is 5-10x faster than a thread pool that waits on descheduled workers. Default: 1, or the
+    ``DVSLAND_TERRAIN_THREADS`` environment variable (0 = leave torch's setting alone).
+    """
+
+    def __init__(self, threads=None):
+        import os
+
+        if threads is None:
+            threads = int(os.environ.get("DVSLAND_TERRAIN_THREADS", "1"))
+        self.threads = int(threads)
+        self._old = None
+
+    def __enter__(self):
+        if self.threads > 0:
+            self._old = torch.get_num_threads()
+            if self._old != self.threads:
+                torch.set_num_threads(self.threads)
+        return self
+
+    def __exit__(self, *exc):
+        if self._old is not None and torch.get_num_threads() != self._old:
+            torch.set_num_threads(self._old)
+        return False

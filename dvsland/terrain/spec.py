@@ -86,6 +86,9 @@ class SiteSpec:
     #: octave (the camera only looks near the landing point), capped at ``region_max_m``.
     region_factor: float = 256.0
     region_max_m: float = 120000.0
+    #: A landing site is chosen clear: no crater of diameter >= this (m) has the landing point
+    #: within 0.75 D of its centre (so the landing point is not in a shadowed bowl).
+    landing_clear_d_m: float = 25.0
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -113,7 +116,7 @@ _RANGES = {
     "craters.freshness_min": (0.0, 1.0),
     "boulders.density": (0.0, 10.0), "boulders.exponent": (0.5, 6.0), "boulders.d_min_m": (1e-3, 1e3),
     "boulders.d_max_m": (1e-3, 1e3),
-    "region_factor": (8.0, 4096.0), "region_max_m": (100.0, 1e7), "seed": (0, 2**63 - 1),
+    "region_factor": (8.0, 4096.0), "landing_clear_d_m": (0.0, 1e7), "region_max_m": (100.0, 1e7), "seed": (0, 2**63 - 1),
 }
 
 

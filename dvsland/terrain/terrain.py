@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from .features import Catalogue, boulder_profile, crater_profile, ejecta_albedo, power_law_catalogue
-from .grid import Grid
+from .grid import Grid, compute_threads
 from .noise import band_weight, fbm
 from .spec import SiteSpec, load_spec
 
@@ -28,8 +28,8 @@ from .spec import SiteSpec, load_spec
 FEATURE_FADE_TEXELS = (2.0, 4.0)
 #: noise octaves fade in between these wavelengths in texels
 NOISE_FADE_TEXELS = (4.0, 8.0)
-#: octaves at least this many texels long are evaluated on a 4x coarser grid, bicubic upsampled
-_COARSE_TEXELS = 32.0
+#: octaves at least this many texels long are evaluated on a 4x coarser grid, cubic-upsampled
+_COARSE_TEXELS = 64.0
 _ALBEDO_HURST = 0.2
 _ALBEDO_MAX_WAVELENGTH_M = 20000.0
 
@@ -50,6 +50,11 @@ class Terrain:
         self.craters: Catalogue = power_law_catalogue(
             self.seed, 1, c.density, c.exponent, c.d_min_m, c.d_max_m, spec.region_factor,
             spec.region_max_m, fresh_min=c.freshness_min)
+        cr = self.craters
+        clear = (cr.d_m >= spec.landing_clear_d_m) & (torch.hypot(cr.x_m, cr.y_m) < 0.75 * cr.d_m)
+        if bool(clear.any()):
+            keep = ~clear
+            self.craters = Catalogue(cr.x_m[keep], cr.y_m[keep], cr.d_m[keep], cr.fresh[keep])
         self.boulders: Catalogue = power_law_catalogue(
             self.seed, 2, b.density, b.exponent, b.d_min_m, b.d_max_m, spec.region_factor,
             spec.region_max_m, fresh_min=1.0)
@@ -84,10 +89,15 @@ class Terrain:
 
     # ---------------------------------------------------------------- fields
     def fields(self, grid: Grid) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Height (m) and albedo on a grid, each (n_rows, n_cols) float64 on CPU (see _fields)."""
+        with compute_threads():
+            return self._fields(grid)
+
+    def _fields(self, grid: Grid) -> Tuple[torch.Tensor, torch.Tensor]:
         """Height (m) and albedo on a grid, each (n_rows, n_cols) float64 on CPU.
 
-        Two tiers for the noise: octaves shorter than 32 texels are evaluated at every texel,
-        longer ones on a 4x coarser grid and bicubic-upsampled (8+ samples per wavelength: smooth).
+        Two tiers for the noise: octaves shorter than 64 texels are evaluated at every texel,
+        longer ones on a 4x coarser grid and Catmull-Rom-upsampled (16+ samples per wavelength).
         Craters and boulders are always evaluated at every texel (sharp rims).
         """
         s = grid.spacing_m
@@ -105,8 +115,9 @@ class Terrain:
         coarse = Grid(float(ox), float(oy), grid.angle_rad, nrc, ncc, 4 * s)
         ch = self._noise(coarse, "height", lam_from=split_noise, texel_m=s)
         ca = self._noise(coarse, "albedo", lam_from=split_noise, texel_m=s)
-        up = F.interpolate(torch.stack([ch, ca])[None], scale_factor=4, mode="bicubic",
-                           align_corners=False)[0, :, 4 * m:4 * m + grid.n_rows, 4 * m:4 * m + grid.n_cols]
+        ur = _catmull_rom_up(grid.n_rows, nrc, 4, 1.5 - 4 * m)
+        uc = _catmull_rom_up(grid.n_cols, ncc, 4, 1.5 - 4 * m)
+        up = ur @ torch.stack([ch, ca]) @ uc.T
         height = height + up[0]
         log_alb = log_alb + up[1]
         albedo = self.spec.albedo.mean * torch.exp(log_alb) * (1.0 + rel_alb).clamp(min=0.2)
@@ -188,7 +199,8 @@ class Terrain:
         _check_extent(extent_m, n)
         s = extent_m / n
         m = int(math.ceil(n * math.sqrt(2))) + 4
-        irr, _, sgrid = shaded_sun_grid(self, center_xy_m, m, s, ambient)
+        with compute_threads():
+            irr, _, sgrid = shaded_sun_grid(self, center_xy_m, m, s, ambient)
         # resample onto the map-view grid
         ii, jj = torch.meshgrid(torch.arange(n, dtype=torch.float64), torch.arange(n, dtype=torch.float64),
                                 indexing="ij")
@@ -199,6 +211,24 @@ class Terrain:
         g = torch.stack([gx, gy], dim=-1)[None].to(torch.float64)
         out = F.grid_sample(irr[None, None], g, mode="bilinear", align_corners=False)[0, 0]
         return out.to(device=device, dtype=dtype)
+
+
+def _catmull_rom_up(n_fine: int, n_coarse: int, factor: int, first: float) -> torch.Tensor:
+    """(n_fine, n_coarse) float64 Catmull-Rom interpolation matrix for coarse samples at fine
+    index ``factor * I + first``. Exact for quadratics: no periodic slope ripple (PyTorch's bicubic
+    with a = -0.75 leaves one, visible in the shading of smooth relief)."""
+    c = (torch.arange(n_fine, dtype=torch.float64) - first) / factor
+    i0 = torch.floor(c)
+    t = c - i0
+    t2, t3 = t * t, t * t * t
+    w = torch.stack([(-t3 + 2 * t2 - t) / 2, (3 * t3 - 5 * t2 + 2) / 2, (-3 * t3 + 4 * t2 + t) / 2,
+                     (t3 - t2) / 2], dim=1)
+    idx = i0.to(torch.int64)[:, None] + torch.arange(-1, 3)[None, :]
+    if int(idx.min()) < 0 or int(idx.max()) >= n_coarse:
+        raise RuntimeError("coarse grid margin too small for cubic interpolation")
+    out = torch.zeros(n_fine, n_coarse, dtype=torch.float64)
+    out.scatter_add_(1, idx, w)
+    return out
 
 
 def _check_extent(extent_m: float, n: int) -> None:

@@ -1,0 +1,164 @@
+"""The fast renderer: interface, errors, determinism, features, agreement with the terrain."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from dvsland.config import CameraConfig, RenderConfig
+from dvsland.render import FastRenderer, Renderer, available_renderers, get_renderer
+from dvsland.render import lod as lod_mod
+
+CAM = CameraConfig(width_px=48, height_px=48, fov_deg=60.0)
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    # small sensor: cheap preparation; no disk cache so the test sees a fresh computation
+    return get_renderer("fast", ["A", "E", "G", "H"], CAM, RenderConfig(), disk_cache=False)
+
+
+def test_registry():
+    assert {"fast", "pyrender"} <= set(available_renderers())
+    with pytest.raises(ValueError, match="unknown renderer"):
+        get_renderer("raytracer", ["A"], CAM)
+
+
+def test_smoke_shapes_dtype(renderer):
+    assert isinstance(renderer, Renderer) and isinstance(renderer, FastRenderer)
+    alt = torch.tensor([20000.0, 5000.0, 1000.0, 200.0, 50.0, 10.0])
+    idx = torch.tensor([0, 1, 2, 3, 0, 1])
+    f = renderer.render(alt, idx)
+    assert f.shape == (6, 48, 48) and f.dtype == torch.float32
+    assert torch.isfinite(f).all() and (f > 0).all()
+    assert renderer.render(alt[:0], idx[:0]).shape == (0, 48, 48)
+
+
+def test_levels_cover_range(renderer):
+    p = renderer.levels
+    assert p.level_size >= 2 * math.sqrt(2) * 48
+    lam = renderer.lod(torch.tensor([10.0, 20000.0]))
+    assert float(lam[0]) == 0.0 and float(lam[1]) <= p.n_levels - 1
+
+
+@pytest.mark.parametrize("alt", [9.0, 20001.0, float("nan"), float("inf")])
+def test_altitude_out_of_range(renderer, alt):
+    with pytest.raises(ValueError, match=r"altitude_m .*\[10.0, 20000.0\]"):
+        renderer.render(torch.tensor([100.0, alt]), torch.tensor([0, 0]))
+
+
+def test_bad_site_index_and_shapes(renderer):
+    with pytest.raises(ValueError, match=r"site_idx .*\[0, 3\]"):
+        renderer.render(torch.tensor([100.0]), torch.tensor([4]))
+    with pytest.raises(ValueError, match="site_idx"):
+        renderer.render(torch.tensor([100.0]), torch.tensor([-1]))
+    with pytest.raises(ValueError, match="shape"):
+        renderer.render(torch.tensor([[100.0]]), torch.tensor([[0]]))
+    with pytest.raises(ValueError, match="integer"):
+        renderer.render(torch.tensor([100.0]), torch.tensor([0.0]))
+
+
+def test_unknown_site_name():
+    with pytest.raises(ValueError, match="unknown site 'Q'"):
+        get_renderer("fast", ["A", "Q"], CAM)
+
+
+def test_batch_elements_independent(renderer):
+    alt = torch.tensor([3000.0, 120.0, 15.0])
+    idx = torch.tensor([1, 2, 0])
+    f = renderer.render(alt, idx)
+    for k in range(3):
+        torch.testing.assert_close(renderer.render(alt[k:k + 1], idx[k:k + 1])[0], f[k])
+
+
+def test_preparation_deterministic(monkeypatch):
+    """Same seed -> the same levels bit for bit (fresh computation, no caches)."""
+    from dvsland.terrain import load_site
+
+    params = lod_mod.LevelParams(level_size=32, base_texel_m=1.0, n_levels=3)
+    monkeypatch.setattr(lod_mod, "_MEMORY", {})
+    a = lod_mod.prepare_levels(load_site("D"), params, disk_cache=False)
+    monkeypatch.setattr(lod_mod, "_MEMORY", {})
+    b = lod_mod.prepare_levels(load_site("D"), params, disk_cache=False)
+    assert a.source == b.source == "computed"
+    assert torch.equal(a.irradiance, b.irradiance) and torch.equal(a.height_m, b.height_m)
+
+
+def test_disk_cache_roundtrip(monkeypatch, tmp_path):
+    from dvsland.terrain import load_site
+
+    monkeypatch.setenv("DVSLAND_CACHE_DIR", str(tmp_path))
+    params = lod_mod.LevelParams(level_size=16, base_texel_m=2.0, n_levels=2)
+    monkeypatch.setattr(lod_mod, "_MEMORY", {})
+    a = lod_mod.prepare_levels(load_site("B"), params)
+    monkeypatch.setattr(lod_mod, "_MEMORY", {})
+    b = lod_mod.prepare_levels(load_site("B"), params)
+    assert (a.source, b.source) == ("computed", "disk")
+    assert torch.equal(a.irradiance, b.irradiance)
+
+
+def _log_std(f):
+    return torch.log(f).flatten(1).std(dim=1)
+
+
+def test_features_visible_at_every_altitude(renderer):
+    """Contrast (std of log irradiance) at 5 km, 1 km, 200 m, 50 m: A, E, G well above H."""
+    alts = torch.tensor([5000.0, 1000.0, 200.0, 50.0])
+    s_h = _log_std(renderer.render(alts, torch.full((4,), 3)))
+    assert (s_h < 0.03).all(), s_h  # H: flat and dusty
+    for k, floor in ((0, 0.1), (1, 0.1), (2, 0.04)):  # A, E craters; G rocky with few craters
+        s = _log_std(renderer.render(alts, torch.full((4,), k)))
+        assert (s > floor).all() and (s > 2 * s_h).all(), (k, s)
+
+
+def test_shadows_present(renderer):
+    """Cast shadows: a visible fraction of pixels near the ambient floor on cratered sites."""
+    f = renderer.render(torch.tensor([5000.0, 1000.0]), torch.tensor([0, 1]))
+    med = f.flatten(1).median(dim=1).values[:, None]
+    frac_dark = (f.flatten(1) < 0.25 * med).float().mean(dim=1)
+    assert (frac_dark > 0.002).all(), frac_dark
+
+
+def test_matches_terrain_irradiance(renderer):
+    """A frame (no parallax) matches the terrain's own shaded map of the footprint."""
+    from dvsland.terrain import load_site
+
+    r0 = get_renderer("fast", ["E"], CAM, RenderConfig(), disk_cache=False, parallax_iters=0)
+    for alt in (2000.0, 150.0):
+        f = r0.render(torch.tensor([alt]), torch.tensor([0]))[0]
+        ref = load_site("E").irradiance(r0.footprint_m(alt), 48)
+        a, b = torch.log(f).flatten(), torch.log(ref).flatten()
+        corr = torch.corrcoef(torch.stack([a, b]))[0, 1]
+        assert corr > 0.85, (alt, corr)
+
+
+def test_parallax_moves_low_frames_only(renderer):
+    r0 = get_renderer("fast", ["G"], CAM, RenderConfig(), disk_cache=False, parallax_iters=0)
+    r1 = get_renderer("fast", ["G"], CAM, RenderConfig(), disk_cache=False, parallax_iters=1)
+    lo = torch.tensor([15.0])
+    hi = torch.tensor([8000.0])
+    i0 = torch.tensor([0])
+    d_lo = (torch.log(r0.render(lo, i0)) - torch.log(r1.render(lo, i0))).abs().mean()
+    d_hi = (torch.log(r0.render(hi, i0)) - torch.log(r1.render(hi, i0))).abs().mean()
+    assert d_lo > 0.01 and d_lo > 3 * d_hi
+
+
+def test_zoom_is_smooth(renderer):
+    """Pure zoom: consecutive frame-to-frame log changes rarely reverse sign (no LOD flicker)."""
+    z = torch.tensor([1000.0 * 0.98 ** k for k in range(12)])
+    f = torch.log(renderer.render(z, torch.zeros(12, dtype=torch.long)))
+    d = f[1:] - f[:-1]
+    both = (d[1:].abs() > 1e-3) & (d[:-1].abs() > 1e-3)
+    rev = ((d[1:] * d[:-1]) < 0) & both
+    assert float(rev.sum() / both.sum().clamp(min=1)) < 0.15
+
+
+def test_cuda_matches_cpu():
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    rc = get_renderer("fast", ["A"], CAM, disk_cache=False)
+    rg = get_renderer("fast", ["A"], CAM, disk_cache=False, device="cuda")
+    alt, idx = torch.tensor([4000.0, 60.0]), torch.tensor([0, 0])
+    torch.testing.assert_close(rg.render(alt, idx).cpu(), rc.render(alt, idx), rtol=1e-4, atol=1e-6)
