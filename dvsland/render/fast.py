@@ -42,6 +42,8 @@ class FastRenderer(Renderer):
         parallax_iters: relief-displacement iterations (0 = none, 1 default).
         disk_cache: keep prepared levels on disk (``$DVSLAND_CACHE_DIR``).
         progress: print per-site preparation times.
+        blend_levels: trilinear blend of the two bracketing levels (default); False samples the
+            nearest level only (an ablation: levels then pop during a descent).
 
     Attributes:
         prep_s: {site: seconds spent preparing its levels (0 when cached)}.
@@ -52,12 +54,13 @@ class FastRenderer(Renderer):
 
     def __init__(self, site_names: Sequence[str], camera: CameraConfig, render: Optional[RenderConfig] = None,
                  device="cpu", level_size: Optional[int] = None, parallax_iters: int = 1,
-                 disk_cache: bool = True, progress: bool = False):
+                 disk_cache: bool = True, progress: bool = False, blend_levels: bool = True):
         super().__init__(site_names, camera, render, device)
         rc = self.render_config
         if parallax_iters < 0 or parallax_iters > 8:
             raise ValueError(f"parallax_iters must be in [0, 8], got {parallax_iters}")
         self.parallax_iters = int(parallax_iters)
+        self.blend_levels = bool(blend_levels)
         self.levels: LevelParams = level_params_for(camera, rc, level_size)
         self.prep_s = {}
         self.sources = {}
@@ -125,6 +128,8 @@ class FastRenderer(Renderer):
         lam = self.lod(altitude_m)
         lo = torch.floor(lam).clamp(max=self.levels.n_levels - 2.0)
         frac = (lam - lo)[:, None, None]
+        if not self.blend_levels:
+            frac = torch.round(frac)
         lo = lo[:, None, None]
         row = self._site_row[site_idx][:, None, None]
         c = self._cos[site_idx][:, None, None]

@@ -1,0 +1,143 @@
+#!/usr/bin/env python
+"""Benchmark of the fast renderer: site preparation, throughput, temporal smoothness.
+
+    python scripts/bench_render.py [--sites A,...,I] [--batches 18,256] [--device cpu]
+                                   [--fresh] [--json out.json] [--threads N]
+
+- Preparation: seconds per site to build its levels (``--fresh``: recomputed, no caches).
+- Throughput: ms per ``render`` call and frames/s for each batch size at the camera of
+  ``configs/paper.yaml`` (128x128, 60 deg), altitudes spread over 50 m - 10 km, sites mixed.
+- Temporal smoothness (issue 3): a pure-zoom descent of a static scene on the closed-form
+  trajectory (DESIGN.md section 2) at the frame rate (10 Hz) down to 50 m; d_t = log I_{t+1} -
+  log I_t per pixel; the flicker metric is the fraction of pixels whose change reverses sign
+  between consecutive steps (d_t * d_{t+1} < 0, both |d| > 1e-3), for the fast renderer and for
+  an ablation without the blend between levels (nearest level), which pops.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import time
+
+import torch
+
+
+def _sync(device):
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+
+
+def time_render(renderer, b: int, repeat: int, device) -> float:
+    """Median ms per render call of a batch of b frames."""
+    g = torch.Generator().manual_seed(0)
+    n_sites = len(renderer.site_names)
+    alt = torch.exp(torch.empty(b).uniform_(math.log(50.0), math.log(10000.0), generator=g)).to(device)
+    idx = (torch.arange(b) % n_sites).to(device)
+    for _ in range(3):
+        renderer.render(alt, idx)
+    _sync(device)
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        renderer.render(alt, idx)
+        _sync(device)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times) * 1e3
+
+
+def descent(z0: float, v0: float, rate_hz: float, c2: float = 0.5, z_end: float = 50.0) -> torch.Tensor:
+    """Closed-form altitudes sampled at rate_hz until z_end."""
+    t_end = ((z_end / z0) ** c2 - 1.0) * z0 / (c2 * v0)
+    t = torch.arange(0.0, t_end, 1.0 / rate_hz, dtype=torch.float64)
+    s = 1.0 + c2 * v0 * t / z0
+    return (z0 * s ** (1.0 / c2)).float()
+
+
+def reversal_fraction(renderer, site_i: int, z: torch.Tensor, chunk: int = 64, eps: float = 1e-3) -> float:
+    """Flicker metric of a pure-zoom sequence (see module doc)."""
+    rev = 0
+    both = 0
+    prev_log, prev_d = None, None
+    for start in range(0, len(z), chunk):
+        zz = z[start:start + chunk]
+        logs = torch.log(renderer.render(zz, torch.full((len(zz),), site_i, dtype=torch.long))).cpu()
+        if prev_log is not None:
+            logs = torch.cat([prev_log[None], logs])
+        d = logs[1:] - logs[:-1]
+        if prev_d is not None:
+            d = torch.cat([prev_d[None], d])
+        ok = (d[1:].abs() > eps) & (d[:-1].abs() > eps)
+        rev += int((((d[1:] * d[:-1]) < 0) & ok).sum())
+        both += int(ok.sum())
+        prev_log, prev_d = logs[-1], d[-1]
+    return rev / max(both, 1)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sites", default="A,B,C,D,E,F,G,H,I")
+    ap.add_argument("--batches", default="18,256")
+    ap.add_argument("--repeat", type=int, default=20)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--fresh", action="store_true", help="recompute the levels (no memory/disk cache)")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads for rendering")
+    ap.add_argument("--flicker-sites", default="A,E,H", help="sites of the smoothness test ('' = skip)")
+    ap.add_argument("--json", default=None, help="write the results as JSON to this path")
+    args = ap.parse_args(argv)
+
+    from dvsland.config import load_config
+    from dvsland.render import get_renderer
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    cfg = load_config()
+    sites = [s for s in args.sites.split(",") if s]
+    t0 = time.perf_counter()
+    renderer = get_renderer("fast", sites, cfg.camera, cfg.render, device=args.device,
+                            disk_cache=not args.fresh)
+    if args.fresh:
+        from dvsland.render import lod
+        lod._MEMORY.clear()
+        t0 = time.perf_counter()
+        renderer = get_renderer("fast", sites, cfg.camera, cfg.render, device=args.device, disk_cache=False)
+    total_prep = time.perf_counter() - t0
+    res = {"device": str(renderer.device), "threads": torch.get_num_threads(),
+           "camera": f"{cfg.camera.width_px}x{cfg.camera.height_px} fov {cfg.camera.fov_deg}",
+           "levels": renderer.levels.__dict__, "prep_s_per_site": renderer.prep_s,
+           "prep_total_s": total_prep, "throughput": {}, "flicker": {}}
+    print(f"device {res['device']}, torch threads {res['threads']}, camera {res['camera']}")
+    print(f"levels: {renderer.levels.n_levels} x {renderer.levels.tile_size}^2 texels per site, "
+          f"texel0 {renderer.levels.base_texel_m:.3f} m")
+    print("preparation (s): " + ", ".join(f"{k} {v:.2f} ({renderer.sources[k]})" for k, v in renderer.prep_s.items())
+          + f"; total {total_prep:.2f} s")
+    print(f"\n{'batch':>6} {'ms/call':>9} {'frames/s':>10}")
+    for b in [int(x) for x in args.batches.split(",") if x]:
+        ms = time_render(renderer, b, args.repeat, args.device)
+        res["throughput"][b] = {"ms_per_call": ms, "frames_per_s": b / ms * 1e3}
+        print(f"{b:>6} {ms:>9.2f} {b / ms * 1e3:>10.0f}")
+    fl_sites = [s for s in args.flicker_sites.split(",") if s and s in sites]
+    if fl_sites:
+        nearest = get_renderer("fast", sites, cfg.camera, cfg.render, device=args.device, blend_levels=False)
+        rate = cfg.camera.frame_rate_hz
+        print(f"\nflicker: fraction of sign reversals of d log I between steps, pure zoom at {rate:g} Hz")
+        print(f"{'site':>5} {'frames':>7} {'fast':>8} {'nearest-level':>14}")
+        for s in fl_sites:
+            z0, v0 = (10000.0, -200.0) if s in "ABC" else (4000.0, -100.0)
+            z = descent(z0, v0, rate, cfg.controller.c2)
+            i = sites.index(s)
+            f_fast = reversal_fraction(renderer, i, z)
+            f_near = reversal_fraction(nearest, i, z)
+            res["flicker"][s] = {"frames": len(z), "fast": f_fast, "nearest_level": f_near}
+            print(f"{s:>5} {len(z):>7} {f_fast:>8.4f} {f_near:>14.4f}")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(res, fh, indent=2, default=str)
+        print(f"\nwrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
