@@ -127,9 +127,16 @@ class ClosedLoop:
 
     # ------------------------------------------------------------------ one step
     def _render(self) -> torch.Tensor:
+        """Frames (B, H, W): rendered for active elements; finished ones keep their last frame
+        (so they emit no events and cost no rendering)."""
         r = self.cfg.render
         alt = self.z_m.clamp(r.min_altitude_m, r.max_altitude_m)
-        return self.renderer.render(alt, self.site_idx)
+        if self.last_frames is None or bool(self.active.all()):
+            return self.renderer.render(alt, self.site_idx)
+        idx = self.active.nonzero().squeeze(1)
+        frames = self.last_frames.clone()
+        frames[idx] = self.renderer.render(alt[idx], self.site_idx[idx]).to(frames.dtype)
+        return frames
 
     def step(self) -> None:
         """Fly one control step for all active elements (finished ones stay frozen)."""
