@@ -100,7 +100,8 @@ def heightfield_mesh(height_m, albedo, extent_m: float, center_xy_m: Tuple[float
     return mesh
 
 
-def terrain_mesh(terrain, extent_m: float, n: int, center_xy_m: Tuple[float, float] = (0.0, 0.0)) -> trimesh.Trimesh:
+def terrain_mesh(terrain, extent_m: float, n: int, center_xy_m: Tuple[float, float] = (0.0, 0.0),
+                 upsample: int = 1) -> trimesh.Trimesh:
     """A heightfield mesh of ``terrain`` over the square of side ``extent_m`` around ``center_xy_m``.
 
     Args:
@@ -109,14 +110,27 @@ def terrain_mesh(terrain, extent_m: float, n: int, center_xy_m: Tuple[float, flo
         extent_m: side of the square, metres (> 0).
         n: vertices per side (>= 2); the terrain is band-limited to the spacing ``extent_m / n``.
         center_xy_m: centre of the square, world metres.
+        upsample: >= 1; the ``n x n`` band-limited samples are interpolated (bicubic heights,
+            bilinear albedo) onto ``n * upsample`` texel centres per side, so the triangles are
+            finer than the content: smooth shading without the faceting / diagonal moire of a
+            mesh whose content reaches its own Nyquist limit.
 
     Returns:
-        see :func:`heightfield_mesh` (n*n vertices, 2 (n-1)^2 faces).
+        see :func:`heightfield_mesh` (m*m vertices, 2 (m-1)^2 faces, m = n * upsample).
     """
     if not (extent_m > 0 and np.isfinite(extent_m)):
         raise ValueError(f"extent_m must be a finite number > 0, got {extent_m}")
     if int(n) != n or int(n) < 2:
         raise ValueError(f"n must be an integer >= 2, got {n}")
+    if int(upsample) != upsample or int(upsample) < 1:
+        raise ValueError(f"upsample must be an integer >= 1, got {upsample}")
     height_m, albedo = terrain.heightmap(float(extent_m), int(n), center_xy_m=(float(center_xy_m[0]), float(center_xy_m[1])),
                                          device="cpu", dtype=torch.float64)
+    u = int(upsample)
+    if u > 1:
+        # align_corners=False: output samples are the texel centres of the u-times finer grid
+        height_m = torch.nn.functional.interpolate(height_m[None, None], scale_factor=u, mode="bicubic",
+                                                   align_corners=False)[0, 0]
+        albedo = torch.nn.functional.interpolate(albedo[None, None], scale_factor=u, mode="bilinear",
+                                                 align_corners=False)[0, 0].clamp(min=1e-6)
     return heightfield_mesh(height_m, albedo, extent_m, center_xy_m)
