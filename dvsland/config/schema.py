@@ -104,18 +104,28 @@ class DPRConfig:
     merge_px: float = opt(1.0, "centroids closer than this merge, the lower-ranked is dropped, px (not in paper)",
                           rng=(0.0, 64.0))
     nms_px: int = opt(3, "odd max-pool window of the DPR local maxima, px (not in paper)", rng=(1, 63))
+    pair_weighting: str = opt("none", "Eq. 8 average over pairs: none = the paper's plain mean, length = "
+                              "weighted by pair length (not in paper)", choices=("none", "length"))
 
 
 @dataclass
 class CMaxConfig:
-    """Contrast-maximisation divergence estimator (after McLeod et al. 2022)."""
+    """Contrast-maximisation divergence estimator (after McLeod et al. 2022; not in the paper).
 
-    window_ms: float = opt(100.0, "event window warped per estimate, ms", rng=(1.0, 10000.0))
-    d_min: float = opt(-2.0, "lowest divergence searched, 1/s", rng=(-100.0, 0.0))
+    Defaults chosen on the open-loop evaluation (docs/estimators.md): a window of several frames
+    so that features move by pixels, dithered event positions, a capped event count."""
+
+    window_ms: float = opt(1000.0, "event window warped per estimate, ms", rng=(1.0, 10000.0))
+    d_min: float = opt(-1.0, "lowest divergence searched, 1/s", rng=(-100.0, 0.0))
     d_max: float = opt(0.5, "highest divergence searched, 1/s", rng=(0.0, 100.0))
-    n_grid: int = opt(41, "coarse grid size of the D search", rng=(3, 10000))
+    n_grid: int = opt(21, "coarse grid size of the D search", rng=(3, 10000))
     n_refine: int = opt(2, "refinement rounds around the best grid value", rng=(0, 20))
     min_events: int = opt(50, "fewer events in the window than this gives NaN", rng=(1, 10**9))
+    refine_points: int = opt(9, "odd number of candidates per refinement round", rng=(3, 1001))
+    max_events: int = opt(3000, "events warped per element (evenly strided subsample); 0 = all", rng=(0, 10**9))
+    dither: bool = opt(True, "spread events uniformly within their pixel before warping")
+    blur_sigma_px: float = opt(0.0, "Gaussian blur of the warped image before the variance, px (0 = none)",
+                               rng=(0.0, 16.0))
 
 
 @dataclass

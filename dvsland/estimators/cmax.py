@@ -49,10 +49,10 @@ class CMaxEstimator(DivergenceEstimator):
         seed: seed of the dither generator (drawn on CPU, then moved).
     """
 
-    def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, window_ms: float = 100.0,
-                 d_min: float = -2.0, d_max: float = 0.5, n_grid: int = 41, n_refine: int = 2,
+    def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, window_ms: float = 1000.0,
+                 d_min: float = -1.0, d_max: float = 0.5, n_grid: int = 21, n_refine: int = 2,
                  min_events: int = 50, refine_points: int = 9, blur_sigma_px: float = 0.0,
-                 max_events: int = 0, dither: bool = True, seed: int = 0, **unused):
+                 max_events: int = 3000, dither: bool = True, seed: int = 0, **unused):
         super().__init__(batch_size, sensor_size, device, dt_s)
         if not window_ms > 0:
             raise ValueError(f"window_ms must be > 0, got {window_ms}")

@@ -8,7 +8,7 @@ import torch
 
 
 def pairwise_divergence(prev_xy: torch.Tensor, cur_xy: torch.Tensor, valid: torch.Tensor, dt_s: float,
-                        min_length_px: float = 1e-6) -> Tuple[torch.Tensor, torch.Tensor]:
+                        min_length_px: float = 1e-6, weighting: str = "none") -> Tuple[torch.Tensor, torch.Tensor]:
     """D = mean over tracked pairs (i < j) of (1 - l_t / l_{t-dt}) / dt   (paper Eq. 8).
 
     ``l`` is the distance between two centroids. Features spread apart while descending
@@ -20,6 +20,8 @@ def pairwise_divergence(prev_xy: torch.Tensor, cur_xy: torch.Tensor, valid: torc
         valid: (B, N) bool, centroids tracked at both times.
         dt_s: time between the two, s (> 0).
         min_length_px: pairs shorter than this at t - dt are skipped (no division by ~0).
+        weighting: "none" (the paper: plain mean) or "length" (weights l_{t-dt}: long pairs, whose
+            ratio is least disturbed by centroid jitter, count more; not in paper).
 
     Returns:
         d: (B,) float32 divergence, 1/s; NaN where fewer than one pair.
@@ -32,6 +34,8 @@ def pairwise_divergence(prev_xy: torch.Tensor, cur_xy: torch.Tensor, valid: torc
         raise ValueError(f"valid must be (B, N) = {tuple(prev_xy.shape[:2])}, got {tuple(valid.shape)}")
     if not dt_s > 0:
         raise ValueError(f"dt_s must be > 0, got {dt_s}")
+    if weighting not in ("none", "length"):
+        raise ValueError(f"weighting must be 'none' or 'length', got {weighting!r}")
     N = prev_xy.shape[1]
     p = prev_xy.to(torch.float64)
     c = cur_xy.to(torch.float64)
@@ -44,6 +48,10 @@ def pairwise_divergence(prev_xy: torch.Tensor, cur_xy: torch.Tensor, valid: torc
     term = torch.where(use, (1.0 - l1 / l0.clamp_min(min_length_px)) / dt_s, torch.zeros((), dtype=torch.float64,
                                                                                          device=valid.device))
     n = use.sum((-1, -2))
-    d = term.sum((-1, -2)) / n.clamp_min(1)
+    if weighting == "length":
+        w = torch.where(use, l0, torch.zeros_like(l0))
+        d = (term * w).sum((-1, -2)) / w.sum((-1, -2)).clamp_min(1e-12)
+    else:
+        d = term.sum((-1, -2)) / n.clamp_min(1)
     d = torch.where(n > 0, d, torch.full_like(d, float("nan")))
     return d.to(torch.float32), n

@@ -57,12 +57,15 @@ class DPREstimator(DivergenceEstimator):
         meanshift_tol_px: mean-shift convergence tolerance, px.
         merge_px: two centroids closer than this merge (the lower-ranked one is dropped), px.
         nms_px: odd max-pool window of the DPR local maxima, px.
+        pair_weighting: Eq. 8 average: "none" (the paper's plain mean over pairs) or "length"
+            (pairs weighted by their length; not in paper).
     """
 
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, n_max: int = 15,
                  n_min: int = 15, radius_px: float = 4.0, c_min: int = 3, r_min_px: float = 3.0,
                  memory_ms: float = 500.0, blur_sigma_px: float = 2.0, meanshift_iters: int = 20,
-                 meanshift_tol_px: float = 0.01, merge_px: float = 1.0, nms_px: int = 3, **unused):
+                 meanshift_tol_px: float = 0.01, merge_px: float = 1.0, nms_px: int = 3,
+                 pair_weighting: str = "none", **unused):
         super().__init__(batch_size, sensor_size, device, dt_s)
         _check("n_max", int(n_max), 1)
         _check("n_min", int(n_min), 1)
@@ -81,6 +84,9 @@ class DPREstimator(DivergenceEstimator):
         self.memory_ms, self.blur_sigma_px = float(memory_ms), float(blur_sigma_px)
         self.meanshift_iters, self.meanshift_tol_px = int(meanshift_iters), float(meanshift_tol_px)
         self.merge_px, self.nms_px = float(merge_px), int(nms_px)
+        if pair_weighting not in ("none", "length"):
+            raise ValueError(f"pair_weighting must be 'none' or 'length', got {pair_weighting!r}")
+        self.pair_weighting = pair_weighting
         #: number of per-step count images in the ring (T / dt, at least 1)
         self.n_ring = max(1, int(round(self.memory_ms / (1000.0 * self.dt_s))))
         B, N = self.batch_size, self.n_max
@@ -170,7 +176,7 @@ class DPREstimator(DivergenceEstimator):
         # While the ring fills after a reset the window's mean event time advances by dt / 2 per
         # step instead of dt: Eq. 8 then uses dt / 2 (not in paper; removes a x2 bias at start).
         self._age += 1
-        d, n_pairs = pairwise_divergence(prev, c, keep, dt)
+        d, n_pairs = pairwise_divergence(prev, c, keep, dt, weighting=self.pair_weighting)
         d = d * torch.where(self._age <= self.n_ring, 2.0, 1.0)
         nan = torch.full_like(c, float("nan"))
         self._centroids = torch.where(keep.unsqueeze(-1), c, nan)

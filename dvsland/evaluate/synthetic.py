@@ -62,3 +62,53 @@ def zoom_blob_events(offsets: torch.Tensor, divergence: torch.Tensor, t0_us: int
     p = torch.where(torch.arange(n) % 2 == 0, 1, -1).to(torch.int8).expand(B, n)
     ev = Events(b[ok], xy[..., 0][ok], xy[..., 1][ok], t_us[ok], p[ok], sort=True)
     return ev.to(device)
+
+
+class ZoomTextureFrames:
+    """A stand-in renderer: a seeded random texture per site seen from a nadir camera.
+
+    The ground texture is smooth noise blobs; at altitude z the image shows a footprint of width
+    ``2 z tan(fov/2)`` about the landing point, so frames zoom exactly as in a vertical descent
+    (features in px scale as 1/z). For tests and development without the terrain renderer.
+
+    Args:
+        n_sites: number of textures.
+        sensor_size: (W, H).
+        fov_deg: field of view across the width.
+        texture_px: texture side, texels; ``ground_m``: its ground width, m.
+        seed: texture seed.
+
+    Call with (altitude_m (B,), site_idx (B,)) -> (B, H, W) float32 irradiance in [0.05, 1.05].
+    """
+
+    def __init__(self, n_sites: int, sensor_size=(128, 128), fov_deg: float = 60.0, texture_px: int = 1024,
+                 ground_m: float = 12000.0, seed: int = 0, device="cpu"):
+        import math
+
+        import torch.nn.functional as F
+
+        g = torch.Generator().manual_seed(int(seed))
+        tex = torch.rand(n_sites, 1, texture_px // 8, texture_px // 8, generator=g)
+        tex = F.interpolate(tex, size=(texture_px, texture_px), mode="bicubic", align_corners=False)
+        fine = torch.rand(n_sites, 1, texture_px // 2, texture_px // 2, generator=g)
+        tex = tex + 0.5 * F.interpolate(fine, size=(texture_px, texture_px), mode="bilinear", align_corners=False)
+        tex = (tex - tex.amin((2, 3), keepdim=True)) / (tex.amax((2, 3), keepdim=True)
+                                                         - tex.amin((2, 3), keepdim=True))
+        self.texture = (0.05 + tex).to(device)
+        self.W, self.H = int(sensor_size[0]), int(sensor_size[1])
+        self.tan_half = math.tan(math.radians(fov_deg) / 2)
+        self.ground_m = float(ground_m)
+        self.device = torch.device(device)
+
+    def __call__(self, altitude_m: torch.Tensor, site_idx: torch.Tensor) -> torch.Tensor:
+        import torch.nn.functional as F
+
+        B = altitude_m.shape[0]
+        half_w = altitude_m.to(torch.float32).to(self.device) * self.tan_half  # m
+        u = (torch.arange(self.W, device=self.device, dtype=torch.float32) + 0.5) / self.W * 2 - 1
+        v = (torch.arange(self.H, device=self.device, dtype=torch.float32) + 0.5) / self.H * 2 - 1
+        vv, uu = torch.meshgrid(v * self.H / self.W, u, indexing="ij")
+        s = (half_w / (self.ground_m / 2)).view(B, 1, 1)
+        grid = torch.stack([uu.unsqueeze(0) * s, vv.unsqueeze(0) * s], -1)
+        tex = self.texture[site_idx.to(self.device)]
+        return F.grid_sample(tex, grid, mode="bilinear", padding_mode="reflection", align_corners=False)[:, 0]

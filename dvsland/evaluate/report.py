@@ -1,0 +1,138 @@
+"""Evaluation output: printed table, JSON, traces (npz) and figures in the run folder."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from .metrics import BANDS
+from .run import EvaluationResult
+
+
+def _f(x, pct=False, nd=3):
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "-"
+    return f"{100 * x:.1f}%" if pct else f"{x:.{nd}f}"
+
+
+def format_table(summary: dict) -> str:
+    """Plain-text tables: per estimator and site, then per altitude band (sites A-G), then speed."""
+    ests = summary["estimators"]
+    sites = summary["sites"]
+    lines = []
+    head = f"{'estimator':<10} {'site':<5} {'steps':>6} {'cover':>7} {'med|rel|':>9} {'RMSE':>8} {'<10%':>7} {'<20%':>7} {'bias':>8}"
+    lines.append("Open-loop divergence error per site (closed-form oracle descents; med|rel| and RMSE over "
+                 "steps with an estimate, <10%/<20% over all steps)")
+    lines.append(head)
+    lines.append("-" * len(head))
+
+    def row(name, label, m):
+        return (f"{name:<10} {label:<5} {m['n_steps']:>6d} {_f(m['coverage'], True):>7} "
+                f"{_f(m['median_abs_rel_err'], True):>9} {_f(m['rmse'], nd=4):>8} {_f(m['within_10'], True):>7} "
+                f"{_f(m['within_20'], True):>7} {_f(m['bias_rel'], True):>8}")
+
+    for name, e in ests.items():
+        for s in sites:
+            lines.append(row(name, s, e["sites"][s]))
+        lines.append(row(name, "A-G", e["sites_A_G"]))
+        lines.append(row(name, "all", e["all_sites"]))
+        lines.append("")
+    lines.append("By altitude band (sites A-G): med|rel| / <10% / coverage")
+    lines.append(f"{'estimator':<10} " + " ".join(f"{b[0]:>26}" for b in BANDS))
+    for name, e in ests.items():
+        cells = []
+        for b in BANDS:
+            m = e["bands_A_G"][b[0]]
+            cells.append(f"{_f(m['median_abs_rel_err'], True)} / {_f(m['within_10'], True)} / "
+                         f"{_f(m['coverage'], True)}")
+        lines.append(f"{name:<10} " + " ".join(f"{c:>26}" for c in cells))
+    lines.append("")
+    lines.append(f"Time per update for the batch of B = {len(sites)} on {summary.get('device', '?')} "
+                 f"({summary.get('torch_threads', '?')} torch threads): "
+                 + ", ".join(f"{n} {_f(e['ms_per_step_median'], nd=2)} ms (median) / "
+                             f"{_f(e['ms_per_step_mean'], nd=2)} ms (mean)" for n, e in ests.items()))
+    return "\n".join(lines)
+
+
+def plot_speed_vs_error(summary: dict, path: Path) -> None:
+    """Scatter: median ms per step vs median |relative error| (sites A-G), one point per estimator."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 4))
+    for name, e in summary["estimators"].items():
+        x = e["ms_per_step_median"]
+        y = e["sites_A_G"]["median_abs_rel_err"]
+        if x is None or y is None or not math.isfinite(y):
+            continue
+        ax.scatter([max(x, 1e-3)], [100 * y], s=50)
+        ax.annotate(name, (max(x, 1e-3), 100 * y), textcoords="offset points", xytext=(5, 5))
+    ax.set_xscale("log")
+    ax.set_xlabel(f"time per update, ms (B = {len(summary['sites'])}, {summary.get('device', '')})")
+    ax.set_ylabel("median |relative error|, % (sites A-G)")
+    ax.axhline(10, color="grey", lw=0.8, ls="--")
+    ax.set_title("Divergence estimators: speed vs error")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_traces(res: EvaluationResult, path: Path) -> None:
+    """Per site: true D and each estimator's D_hat over time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    desc = res.descents
+    B = len(desc.sites)
+    cols = min(3, B)
+    rows = int(math.ceil(B / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 2.8 * rows), squeeze=False)
+    d_true = desc.divergence
+    for i, s in enumerate(desc.sites):
+        ax = axes[i // cols][i % cols]
+        v = desc.valid[i]
+        for name, dh in res.d_hat.items():
+            ax.plot(desc.t_s[v], dh[i][v], lw=0.7, label=name)
+        ax.plot(desc.t_s[v], d_true[i][v], "k", lw=1.2, label="truth")
+        lo = np.nanmin(d_true[i][v]) if v.any() else -1.0
+        ax.set_ylim(1.6 * lo, 0.3 * abs(lo))
+        ax.set_title(f"site {s}")
+        ax.set_xlabel("t, s")
+        ax.set_ylabel("D, 1/s")
+    for j in range(B, rows * cols):
+        axes[j // cols][j % cols].axis("off")
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_outputs(res: EvaluationResult, run_dir: Path, figures: bool = True) -> dict:
+    """Write evaluation.json, table.txt, traces.npz and (figures) speed_vs_error.png, traces.png.
+
+    Returns {kind: path}.
+    """
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    paths = {"json": run_dir / "evaluation.json", "table": run_dir / "table.txt",
+             "traces": run_dir / "traces.npz"}
+    paths["json"].write_text(json.dumps(res.summary, indent=2, allow_nan=True))
+    paths["table"].write_text(format_table(res.summary) + "\n")
+    np.savez_compressed(paths["traces"], t_s=res.descents.t_s, altitude_m=res.descents.altitude_m,
+                        d_true=res.descents.divergence, scored=res.scored, n_events=res.n_events,
+                        sites=np.array(res.descents.sites),
+                        **{f"d_hat_{n}": v for n, v in res.d_hat.items()})
+    if figures:
+        paths["speed_vs_error"] = run_dir / "speed_vs_error.png"
+        plot_speed_vs_error(res.summary, paths["speed_vs_error"])
+        paths["traces_png"] = run_dir / "traces.png"
+        plot_traces(res, paths["traces_png"])
+    return paths
