@@ -30,8 +30,10 @@ def _sync(device):
         torch.cuda.synchronize()
 
 
-def time_render(renderer, b: int, repeat: int, device) -> float:
-    """Median ms per render call of a batch of b frames."""
+def time_render(renderer, b: int, repeat: int, device):
+    """Median wall ms and median process-CPU ms per render call of a batch of b frames (the CPU
+    time excludes time the process waited for a core: on a shared machine, with one torch
+    thread, it is the better estimate of the uncontended cost)."""
     g = torch.Generator().manual_seed(0)
     n_sites = len(renderer.site_names)
     alt = torch.exp(torch.empty(b).uniform_(math.log(50.0), math.log(10000.0), generator=g)).to(device)
@@ -39,13 +41,14 @@ def time_render(renderer, b: int, repeat: int, device) -> float:
     for _ in range(3):
         renderer.render(alt, idx)
     _sync(device)
-    times = []
+    times, cpu = [], []
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         renderer.render(alt, idx)
         _sync(device)
         times.append(time.perf_counter() - t0)
-    return statistics.median(times) * 1e3
+        cpu.append(time.process_time() - c0)
+    return statistics.median(times) * 1e3, statistics.median(cpu) * 1e3
 
 
 def descent(z0: float, v0: float, rate_hz: float, c2: float = 0.5, z_end: float = 50.0) -> torch.Tensor:
@@ -56,10 +59,12 @@ def descent(z0: float, v0: float, rate_hz: float, c2: float = 0.5, z_end: float 
     return (z0 * s ** (1.0 / c2)).float()
 
 
-def reversal_fraction(renderer, site_i: int, z: torch.Tensor, chunk: int = 64, eps: float = 1e-3) -> float:
-    """Flicker metric of a pure-zoom sequence (see module doc)."""
+def reversal_fraction(renderer, site_i: int, z: torch.Tensor, chunk: int = 64, eps: float = 1e-3):
+    """Flicker metric of a pure-zoom sequence (see module doc): (overall fraction, largest
+    per-step fraction); a level pop shows as a large per-step fraction."""
     rev = 0
     both = 0
+    worst = 0.0
     prev_log, prev_d = None, None
     for start in range(0, len(z), chunk):
         zz = z[start:start + chunk]
@@ -70,10 +75,14 @@ def reversal_fraction(renderer, site_i: int, z: torch.Tensor, chunk: int = 64, e
         if prev_d is not None:
             d = torch.cat([prev_d[None], d])
         ok = (d[1:].abs() > eps) & (d[:-1].abs() > eps)
-        rev += int((((d[1:] * d[:-1]) < 0) & ok).sum())
+        r = ((d[1:] * d[:-1]) < 0) & ok
+        rev += int(r.sum())
         both += int(ok.sum())
+        per_step = r.flatten(1).sum(1).float() / ok.flatten(1).sum(1).clamp(min=1).float()
+        if per_step.numel():
+            worst = max(worst, float(per_step.max()))
         prev_log, prev_d = logs[-1], d[-1]
-    return rev / max(both, 1)
+    return rev / max(both, 1), worst
 
 
 def main(argv=None) -> int:
@@ -113,25 +122,26 @@ def main(argv=None) -> int:
           f"texel0 {renderer.levels.base_texel_m:.3f} m")
     print("preparation (s): " + ", ".join(f"{k} {v:.2f} ({renderer.sources[k]})" for k, v in renderer.prep_s.items())
           + f"; total {total_prep:.2f} s")
-    print(f"\n{'batch':>6} {'ms/call':>9} {'frames/s':>10}")
+    print(f"\n{'batch':>6} {'ms/call':>9} {'cpu ms':>8} {'frames/s':>10}")
     for b in [int(x) for x in args.batches.split(",") if x]:
-        ms = time_render(renderer, b, args.repeat, args.device)
-        res["throughput"][b] = {"ms_per_call": ms, "frames_per_s": b / ms * 1e3}
-        print(f"{b:>6} {ms:>9.2f} {b / ms * 1e3:>10.0f}")
+        ms, cpu_ms = time_render(renderer, b, args.repeat, args.device)
+        res["throughput"][b] = {"ms_per_call": ms, "cpu_ms_per_call": cpu_ms, "frames_per_s": b / ms * 1e3}
+        print(f"{b:>6} {ms:>9.2f} {cpu_ms:>8.2f} {b / ms * 1e3:>10.0f}")
     fl_sites = [s for s in args.flicker_sites.split(",") if s and s in sites]
     if fl_sites:
         nearest = get_renderer("fast", sites, cfg.camera, cfg.render, device=args.device, blend_levels=False)
         rate = cfg.camera.frame_rate_hz
         print(f"\nflicker: fraction of sign reversals of d log I between steps, pure zoom at {rate:g} Hz")
-        print(f"{'site':>5} {'frames':>7} {'fast':>8} {'nearest-level':>14}")
+        print(f"{'site':>5} {'frames':>7} {'fast':>8} {'worst step':>11} {'nearest-level':>14} {'worst step':>11}")
         for s in fl_sites:
             z0, v0 = (10000.0, -200.0) if s in "ABC" else (4000.0, -100.0)
             z = descent(z0, v0, rate, cfg.controller.c2)
             i = sites.index(s)
-            f_fast = reversal_fraction(renderer, i, z)
-            f_near = reversal_fraction(nearest, i, z)
-            res["flicker"][s] = {"frames": len(z), "fast": f_fast, "nearest_level": f_near}
-            print(f"{s:>5} {len(z):>7} {f_fast:>8.4f} {f_near:>14.4f}")
+            f_fast, w_fast = reversal_fraction(renderer, i, z)
+            f_near, w_near = reversal_fraction(nearest, i, z)
+            res["flicker"][s] = {"frames": len(z), "fast": f_fast, "fast_worst_step": w_fast,
+                                 "nearest_level": f_near, "nearest_level_worst_step": w_near}
+            print(f"{s:>5} {len(z):>7} {f_fast:>8.4f} {w_fast:>11.4f} {f_near:>14.4f} {w_near:>11.4f}")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(res, fh, indent=2, default=str)

@@ -97,23 +97,34 @@ class FastRenderer(Renderer):
         self._cos = torch.cos(ang).to(device=dev, dtype=torch.float32)
         self._sin = torch.sin(ang).to(device=dev, dtype=torch.float32)
         self.h0_m = {lv.name: lv.h0_m for lv in tiles}
-        self._tx, self._ty = self.ray_tangents(torch.float32)  # (H, W)
         self._pitch = self.pixel_m_per_m()
+        # per-site ray slopes in the sun frame, (S, H, W, 2): u along (c, s) toward the sun,
+        # v along (s, -c); full resolution and 2x2-block resolution (for the parallax pass)
+        self._tuv = self._sun_frame_slopes(*self.ray_tangents(torch.float32))
+        tx, ty = self.ray_tangents(torch.float64)
+        h2, w2 = self.height_px // 2, self.width_px // 2
+        if self.parallax_iters and h2 >= 2 and w2 >= 2 and self.height_px % 2 == 0 and self.width_px % 2 == 0:
+            blk = lambda t: t.reshape(h2, 2, w2, 2).mean(dim=(1, 3)).to(torch.float32)  # noqa: E731
+            self._tuv_half = self._sun_frame_slopes(blk(tx), blk(ty))
+        else:
+            self._tuv_half = None
 
-    # ------------------------------------------------------------ per frame
-    def _coords(self, u: torch.Tensor, v: torch.Tensor, level: torch.Tensor, row: torch.Tensor) -> torch.Tensor:
-        """Normalised atlas coordinates of sun-frame points (u toward the sun, v its right), m.
+    def _sun_frame_slopes(self, tx: torch.Tensor, ty: torch.Tensor) -> torch.Tensor:
+        c = self._cos[:, None, None]
+        s = self._sin[:, None, None]
+        return torch.stack([tx * c + ty * s, tx * s - ty * c], dim=-1).contiguous()
 
-        u, v: (B, H, W); level, row: (B, 1, 1) float (level index, site row). Returns (B, H, W, 2).
-        """
-        p = self.levels
-        t = p.tile_size
+    def _affine(self, level: torch.Tensor, row: torch.Tensor):
+        """Scale and offset (..., 2) that map sun-frame metres (u, v) to normalised atlas
+        coordinates of tile (row, level): g = (u, v) * scale + offset (align_corners=False)."""
+        t = self.levels.tile_size
         c0 = (t - 1) / 2.0
-        inv_s = torch.exp2(-level) / p.base_texel_m
         ha, wa = self.atlas_irradiance.shape[-2:]
-        gx = (2.0 * (level * t + u * inv_s + c0) + 1.0) / wa - 1.0
-        gy = (2.0 * (row * t + v * inv_s + c0) + 1.0) / ha - 1.0
-        return torch.stack([gx, gy], dim=-1)
+        inv_s = torch.exp2(-level) / self.levels.base_texel_m
+        scale = torch.stack([2.0 * inv_s / wa, 2.0 * inv_s / ha], dim=-1)
+        off = torch.stack([(2.0 * (level * t + c0) + 1.0) / wa - 1.0,
+                           (2.0 * (row * t + c0) + 1.0) / ha - 1.0], dim=-1)
+        return scale, off
 
     def lod(self, altitude_m: torch.Tensor) -> torch.Tensor:
         """Continuous level of detail lambda (B,) for altitudes (B,) m."""
@@ -125,27 +136,40 @@ class FastRenderer(Renderer):
         h, w = self.height_px, self.width_px
         if b == 0:
             return torch.empty(0, h, w, device=self.device)
+        k_max = self.levels.n_levels
         lam = self.lod(altitude_m)
-        lo = torch.floor(lam).clamp(max=self.levels.n_levels - 2.0)
+        lo = torch.floor(lam).clamp(max=k_max - 2.0)
         frac = (lam - lo)[:, None, None]
         if not self.blend_levels:
             frac = torch.round(frac)
-        lo = lo[:, None, None]
-        row = self._site_row[site_idx][:, None, None]
-        c = self._cos[site_idx][:, None, None]
-        s = self._sin[site_idx][:, None, None]
-        # ray slopes in the sun frame: u along (c, s) (toward the sun), v along (s, -c)
-        tu = self._tx * c + self._ty * s
-        tv = self._tx * s - self._ty * c
+        row = self._site_row[site_idx]
         z = altitude_m[:, None, None]
-        rng = z.expand(b, h, w)
-        for _ in range(self.parallax_iters):
-            g = self._coords(tu * rng, tv * rng, lo, row)
-            hgt = F.grid_sample(self.atlas_height, g.reshape(1, b * h, w, 2), mode="bilinear",
-                                padding_mode="border", align_corners=False).reshape(b, h, w)
-            rng = (z - hgt).clamp(min=0.05 * z)
-        u, v = tu * rng, tv * rng
-        g = torch.cat([self._coords(u, v, lo, row), self._coords(u, v, lo + 1.0, row)], dim=0)
-        out = F.grid_sample(self.atlas_irradiance, g.reshape(1, 2 * b * h, w, 2), mode="bilinear",
-                            padding_mode="border", align_corners=False).reshape(2, b, h, w)
+        rng = z
+        if self.parallax_iters:
+            # relief displacement: the ray meets the ground at slope * (z - h); heights from the
+            # next coarser level on 2x2 pixel blocks (a smooth field), upsampled bilinearly
+            half = self._tuv_half is not None
+            tuv = self._tuv_half[site_idx] if half else self._tuv[site_idx]
+            scale, off = self._affine(torch.clamp(lo + (1.0 if half else 0.0), max=k_max - 1.0), row)
+            rng = z.expand(b, *tuv.shape[1:3])
+            hh, ww = tuv.shape[1:3]
+            sc, of = _interleave(scale, ww), _interleave(off, ww)  # (B, 1, 2 W)
+            for _ in range(self.parallax_iters):
+                g = torch.addcmul(of, (tuv * rng[..., None]).view(b, hh, 2 * ww), sc)
+                hgt = F.grid_sample(self.atlas_height, g.view(1, b * hh, ww, 2), mode="bilinear",
+                                    padding_mode="border", align_corners=False).view(b, hh, ww)
+                rng = (z - hgt).clamp(min=0.05 * z)
+            if half:
+                rng = F.interpolate(rng[:, None], size=(h, w), mode="bilinear", align_corners=False)[:, 0]
+        pts = (self._tuv[site_idx] * rng[..., None]).view(1, b, h, 2 * w)  # sun-frame metres (u, v)
+        scale, off = self._affine(torch.stack([lo, lo + 1.0]), row.expand(2, b))  # (2, B, 2)
+        # grid (2, B, H, W, 2) as (2, B, H, 2 W): the broadcast runs over H only (fast path)
+        g = torch.addcmul(_interleave(off, w), pts, _interleave(scale, w))
+        out = F.grid_sample(self.atlas_irradiance, g.view(1, 2 * b * h, w, 2), mode="bilinear",
+                            padding_mode="border", align_corners=False).view(2, b, h, w)
         return torch.lerp(out[0], out[1], frac)
+
+
+def _interleave(x: torch.Tensor, w: int) -> torch.Tensor:
+    """(..., 2) per-element (x, y) values -> (..., 1, 2 w) repeated along a row of w pixels."""
+    return x[..., None, :].expand(*x.shape[:-1], w, 2).reshape(*x.shape[:-1], 1, 2 * w)
