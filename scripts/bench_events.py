@@ -65,12 +65,13 @@ def synthetic_frames(B, H, W, n, omega, device, seed=0):
 def calibrated_frames(B, H, W, n, target, device):
     """Synthetic frames whose emulated event rate is about ``target`` events/pixel/step."""
     omega = 0.1
-    for _ in range(3):
-        f = synthetic_frames(min(B, 4), H, W, 4, omega, "cpu")
+    for _ in range(4):
+        f = synthetic_frames(B, H, W, 6, omega, "cpu")
         emu = EventEmulator()
         emu.reset(f[0], 0)
-        ev = sum(len(emu.step(f[k], k * DT_US)) for k in range(1, 4))
-        rate = ev / (3 * f.shape[1] * H * W)
+        emu.step(f[1], DT_US)
+        ev = sum(len(emu.step(f[k], k * DT_US)) for k in range(2, 6))  # steady state
+        rate = ev / (4 * B * H * W)
         omega *= target / max(rate, 1e-6)
     return synthetic_frames(B, H, W, n, omega, device)
 
@@ -102,7 +103,7 @@ def descent_frames(B, n, device, camera=None):
 
 
 # ----------------------------------------------------------------------------- timing
-def time_steps(frames, device, warmup=2):
+def time_steps(frames, device, warmup=2, clock=time.perf_counter):
     """Interleaved timing of emulator steps and torch.log passes over the same frames."""
     n, B, H, W = frames.shape
     emu = EventEmulator(device=device)
@@ -111,13 +112,13 @@ def time_steps(frames, device, warmup=2):
     for k in range(1, n):
         f = frames[k]
         _sync(device)
-        t0 = time.perf_counter()
+        t0 = clock()
         torch.log(f)
         _sync(device)
-        t1 = time.perf_counter()
+        t1 = clock()
         ev = emu.step(f, k * DT_US)
         _sync(device)
-        t2 = time.perf_counter()
+        t2 = clock()
         if k > warmup:
             t_log.append(t1 - t0)
             t_step.append(t2 - t1)
@@ -181,6 +182,9 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=12, help="frames per run (first 2 steps are warm-up)")
     ap.add_argument("--device", default="all", help="cpu, cuda, or all (cpu + cuda if available)")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = torch default)")
+    ap.add_argument("--cpu-time", action="store_true",
+                    help="time with process CPU time instead of wall clock (use with --threads 1 on a "
+                         "loaded machine: waiting for a core is then not counted)")
     ap.add_argument("--no-real", action="store_true", help="skip rendered descent frames")
     ap.add_argument("--no-memory", action="store_true", help="skip the burst memory measurement")
     ap.add_argument("--json", default=None, help="also write the results to this JSON file")
@@ -191,13 +195,19 @@ def main(argv=None):
     devices = [d for d in devices if d == "cpu" or torch.cuda.is_available()]
     H = W = args.size
     rows, mem = [], []
+    clock = time.perf_counter
+    if args.cpu_time:
+        if "cuda" in devices:
+            raise SystemExit("--cpu-time is for CPU runs only (--device cpu)")
+        clock = time.process_time
     print(f"# torch {torch.__version__}, CPU threads {torch.get_num_threads()}, "
+          f"clock {'process CPU time' if args.cpu_time else 'wall'}, "
           f"load avg {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     for dev in devices:
         for B in args.batch:
             for rate in args.rates:
                 frames = calibrated_frames(B, H, W, args.steps, rate, dev)
-                r = time_steps(frames, dev)
+                r = time_steps(frames, dev, clock=clock)
                 r.update(device=dev, frames=f"synthetic ~{rate:g} ev/px")
                 rows.append(r)
                 _print_row(r)
@@ -205,7 +215,7 @@ def main(argv=None):
                 t0 = time.perf_counter()
                 frames = descent_frames(B, args.steps, dev)
                 if frames is not None:
-                    r = time_steps(frames, dev)
+                    r = time_steps(frames, dev, clock=clock)
                     r.update(device=dev, frames="descent (fast renderer, A-I)",
                              render_s=time.perf_counter() - t0)
                     rows.append(r)

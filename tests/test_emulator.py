@@ -233,13 +233,15 @@ def test_no_change_no_events_and_empty():
     assert len(ev) == 0 and isinstance(ev, Events)
 
 
-def test_int64_key_path_long_interval():
-    """Steps too long for the int32 (b, t) key use the int64 key: same events as the reference."""
+@pytest.mark.parametrize("refractory_us", [15.0, 3e9])
+def test_int64_key_path_long_interval(refractory_us):
+    """Steps too long for the int32 (b, t) key use the int64 key: same events as the reference
+    (with r = 3e9 µs most crossings are dropped)."""
     rng = np.random.default_rng(5)
     f0 = rng.uniform(0.0, 1.0, (2, 3, 3)).astype(np.float32)
     f1 = (f0 * np.exp(rng.normal(0, 1.0, f0.shape))).astype(np.float32)
-    emu = EventEmulator(refractory_us=15.0)
-    ref = ReferencePixelModel(0.1, 0.1, 15.0, 1e-4, "log")
+    emu = EventEmulator(refractory_us=refractory_us)
+    ref = ReferencePixelModel(0.1, 0.1, refractory_us, 1e-4, "log")
     emu.reset(torch.from_numpy(f0), 0)
     ref.reset(f0, 0)
     dt = 2 ** 33  # > 31 bits with b
