@@ -87,15 +87,26 @@ def lowest_altitude_chart(runs: List[dict], path, success_altitude_m: float = 50
     labels = list(dict.fromkeys(r["label"] for r in runs))
     fig, ax = plt.subplots(figsize=(8, 4))
     width = 0.8 / max(len(labels), 1)
+    lowest = []
     for j, lab in enumerate(labels):
         vals = []
         for s in sites:
             sel = [r["lowest_altitude_m"] for r in runs if r["site"] == s and r["label"] == lab]
             vals.append(np.mean(sel) if sel else np.nan)
+        vals = np.maximum(np.asarray(vals, dtype=float), 1.0)
+        lowest.append(np.nanmin(vals) if np.isfinite(vals).any() else success_altitude_m)
         x = np.arange(len(sites)) + (j - (len(labels) - 1) / 2) * width
-        ax.bar(x, np.maximum(vals, 1.0), width, label=lab)
+        ax.bar(x, vals, width, label=lab)
     ax.axhline(success_altitude_m, color="k", ls="--", lw=0.8, label=f"success ({success_altitude_m:g} m)")
     ax.set_yscale("log")
+    top = max([r.get("z0_m", 1e4) for r in runs] + [success_altitude_m * 2])
+    bottom = max(1.0, min(lowest + [success_altitude_m]) / 2)
+    ax.set_ylim(bottom, top * 1.2)
+    ticks = [t for t in (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000, 10000, 20000, 50000, 100000)
+             if bottom <= t <= top * 1.2]
+    ax.set_yticks(ticks)
+    ax.set_yticklabels([f"{t:g}" for t in ticks])
+    ax.minorticks_off()  # log minor ticks are most of this chart's drawing time
     ax.set_xticks(np.arange(len(sites)))
     ax.set_xticklabels(sites)
     ax.set_xlabel("site")
