@@ -145,6 +145,7 @@ class EventEmulator:
     def _check_frames(self, frames, reset: bool) -> torch.Tensor:
         if not isinstance(frames, torch.Tensor):
             frames = torch.as_tensor(frames)
+        frames = frames.detach()
         if not frames.is_floating_point():
             raise ValueError(f"frames must be a floating-point tensor (linear irradiance), got {frames.dtype}")
         if frames.dim() != 3:
@@ -201,7 +202,6 @@ class EventEmulator:
         self._t_last = torch.full(self._shape, -math.inf, dtype=torch.float64, device=self.device)
         self._draw_mismatch(B, H, W)
         self._layout = _KeyLayout(B, H, W, self.device)
-        self._arange = _Arange(self.device)
         self.t_us = t_us
 
     # ------------------------------------------------------------------- step
@@ -237,60 +237,9 @@ class EventEmulator:
         # candidate pixels (A,): a superset of those with >= 1 crossing (exact counts follow)
         act = _candidates(d, th_on, th_off, 1.0 - 2 * LEVEL_TOL)  # sync
 
-        keys = None  # per event int64 sort key (see _KeyLayout)
-        if act.numel() > 0:
-            lref_flat = self._lref.view(-1)
-            lref_a = lref_flat.index_select(0, act)
-            l1_a = l1.view(-1).index_select(0, act)
-            d_a = l1_a - lref_a  # bit-identical to d[act], cheaper than a gather
-            if self._th_scalar and th_on == th_off:
-                n_a = torch.floor((d_a / th_on).abs_().add_(LEVEL_TOL))
-                th_a = torch.sign(d_a).mul_(th_on)  # d_a != 0 for candidates
-            else:
-                th_on_a, th_off_a = _take(th_on, act), _take(th_off, act)
-                n_on = torch.floor(d_a / th_on_a + LEVEL_TOL).clamp_(min=0)
-                n_off = torch.floor(-d_a / th_off_a + LEVEL_TOL).clamp_(min=0)
-                n_a = n_on + n_off  # at most one of them > 0
-                th_a = torch.where(d_a > 0, th_on_a, -th_off_a)  # signed step of L_ref
-            tl_flat = self._t_last.view(-1)
-            tl_a = tl_flat.index_select(0, act).sub_(t0)  # relative, <= 0 or -inf
-            code_a = layout.pixel_key(act, torch.signbit(th_a), b_shift)
-            t_shift = layout.t_shift
-            if self.interpolation == "log":
-                cnt, first, step_us, tlast_new = _emitted_log(
-                    n_a, th_a, lref_a, self._l_prev.view(-1).index_select(0, act), l1_a, dt, tl_a, r)
-                cnti = cnt.to(torch.int64)
-                sel = _nonzero_1d(cnti > 0)  # pixels with >= 1 emitted event (sync)
-                all_sel = sel.numel() == act.numel()
-                # the first event of every pixel with cnt >= 1 (no per-event gather) ...
-                f_sel = first if all_sel else first.index_select(0, sel)
-                t_first = torch.floor(f_sel.add(0.5)).clamp_(1.0, dt).to(torch.int64)
-                parts = [(code_a if all_sel else code_a.index_select(0, sel)).add(t_first << t_shift)]
-                # ... then the further events of the pixels with cnt >= 2
-                multi = _nonzero_1d(cnti > 1)
-                if multi.numel() > 0:
-                    seg, i = _segments(cnti.index_select(0, multi).sub_(1), self._arange)
-                    seg = multi.index_select(0, seg)
-                    tau = first.index_select(0, seg).addcmul_(i.add_(1).to(torch.float64),
-                                                              step_us.index_select(0, seg))
-                    t_rel = torch.floor(tau.add_(0.5)).clamp_(1.0, dt).to(torch.int64)
-                    parts.append(code_a.index_select(0, seg).add_(t_rel << t_shift))
-                keys = torch.cat(parts) if len(parts) > 1 else parts[0]
-            else:
-                seg, tau, cnti, tlast_new = _emitted_linear(
-                    n_a, th_a, lref_a, self._i_prev.view(-1).index_select(0, act),
-                    f1.view(-1).index_select(0, act), dt, tl_a, r, self.log_eps)
-                sel = _nonzero_1d(cnti > 0)
-                all_sel = sel.numel() == act.numel()
-                t_rel = torch.floor(tau.add_(0.5)).clamp_(1.0, dt).to(torch.int64)
-                keys = code_a.index_select(0, seg).add_(t_rel << t_shift)
-            # state: the reference moves by one threshold per crossing (emitted or dropped);
-            # the last emitted time where >= 1 event was emitted
-            lref_flat.scatter_(0, act, lref_a.addcmul_(n_a, th_a))
-            if all_sel:
-                tl_flat.scatter_(0, act, tlast_new.add_(t0))
-            else:
-                tl_flat.scatter_(0, act.index_select(0, sel), tlast_new.index_select(0, sel).add_(t0))
+        del d
+        # per event int64 sort keys (see _KeyLayout); updates L_ref and t_last
+        keys = self._pixel_events(act, l1, f1, t0, dt, b_shift) if act.numel() > 0 else None
 
         self._l_prev = l1
         if self.interpolation == "linear":
@@ -303,6 +252,61 @@ class EventEmulator:
         if keys is None or keys.numel() == 0:
             return Events.empty(dev)
         return layout.sort_decode(keys, b_shift, t0)
+
+    def _pixel_events(self, act, l1, f1, t0: int, dt: float, b_shift: int) -> torch.Tensor:
+        """Events of the candidate pixels ``act`` (A,) as sort keys; moves L_ref and t_last.
+        A method of its own so that its (A,)- and (N,)-sized temporaries die on return."""
+        layout = self._layout
+        th_on, th_off = self._th_on, self._th_off
+        r = self.refractory_us
+        lref_flat = self._lref.view(-1)
+        lref_a = lref_flat.index_select(0, act)
+        l1_a = l1.view(-1).index_select(0, act)
+        d_a = l1_a - lref_a  # bit-identical to d[act], cheaper than a gather
+        if self._th_scalar and th_on == th_off:
+            n_a = torch.floor((d_a / th_on).abs_().add_(LEVEL_TOL))
+            th_a = torch.sign(d_a).mul_(th_on)  # d_a != 0 for candidates
+        else:
+            th_on_a, th_off_a = _take(th_on, act), _take(th_off, act)
+            n_on = torch.floor(d_a / th_on_a + LEVEL_TOL).clamp_(min=0)
+            n_off = torch.floor(-d_a / th_off_a + LEVEL_TOL).clamp_(min=0)
+            n_a = n_on + n_off  # at most one of them > 0
+            th_a = torch.where(d_a > 0, th_on_a, -th_off_a)  # signed step of L_ref
+        tl_flat = self._t_last.view(-1)
+        tl_a = tl_flat.index_select(0, act).sub_(t0)  # relative, <= 0 or -inf
+        code_a = layout.pixel_key(act, torch.signbit(th_a), b_shift)
+        t_shift = layout.t_shift
+        if self.interpolation == "log":
+            cnt, first, step_us, tlast_new = _emitted_log(
+                n_a, th_a, lref_a, self._l_prev.view(-1).index_select(0, act), l1_a, dt, tl_a, r)
+            cnti = cnt.to(torch.int64)
+            sel = _nonzero_1d(cnti > 0)  # pixels with >= 1 emitted event (sync)
+            all_sel = sel.numel() == act.numel()
+            # the first event of every pixel with cnt >= 1 (no per-event gather) ...
+            f_sel = first if all_sel else first.index_select(0, sel)
+            t_first = torch.floor(f_sel.add(0.5)).clamp_(1.0, dt).to(torch.int64)
+            parts = [(code_a if all_sel else code_a.index_select(0, sel)).add(t_first << t_shift)]
+            # ... then the further events of the pixels with cnt >= 2
+            multi = _nonzero_1d(cnti > 1)
+            if multi.numel() > 0:
+                parts.append(_extra_keys(multi, cnti, first, step_us, code_a, dt, t_shift))
+            keys = torch.cat(parts) if len(parts) > 1 else parts[0]
+        else:
+            seg, tau, cnti, tlast_new = _emitted_linear(
+                n_a, th_a, lref_a, self._i_prev.view(-1).index_select(0, act),
+                f1.view(-1).index_select(0, act), dt, tl_a, r, self.log_eps)
+            sel = _nonzero_1d(cnti > 0)
+            all_sel = sel.numel() == act.numel()
+            t_rel = torch.floor(tau.add_(0.5)).clamp_(1.0, dt).to(torch.int64)
+            keys = code_a.index_select(0, seg).add_(t_rel << t_shift)
+        # state: the reference moves by one threshold per crossing (emitted or dropped);
+        # the last emitted time where >= 1 event was emitted
+        lref_flat.scatter_(0, act, lref_a.addcmul_(n_a, th_a))
+        if all_sel:
+            tl_flat.scatter_(0, act, tlast_new.add_(t0))
+        else:
+            tl_flat.scatter_(0, act.index_select(0, sel), tlast_new.index_select(0, sel).add_(t0))
+        return keys
 
     def _background(self, b_shift: int, dt: float) -> torch.Tensor:
         """Sort keys of background events: Poisson count over all pixels, uniform pixel, time
@@ -418,6 +422,19 @@ def _take(th, idx):
     return torch.full(idx.shape, th, dtype=torch.float64, device=idx.device)
 
 
+def _extra_keys(multi, cnti, first, step_us, code_a, dt: float, t_shift: int) -> torch.Tensor:
+    """Keys of the 2nd, 3rd, ... events of the pixels ``multi`` (indices into the candidates):
+    event i of pixel a is at first[a] + i * step_us[a], i = 1..cnt[a]-1. A function of its own
+    so that its per-event temporaries are freed on return."""
+    seg, i = _segments(cnti.index_select(0, multi).sub_(1))
+    seg = multi.index_select(0, seg)
+    tau = first.index_select(0, seg).addcmul_(i.add_(1).to(torch.float64), step_us.index_select(0, seg))
+    del i
+    t_rel = torch.floor(tau.add_(0.5)).clamp_(1.0, dt).to(torch.int64)
+    del tau
+    return code_a.index_select(0, seg).add_(t_rel.bitwise_left_shift_(t_shift))
+
+
 def _candidates(d: torch.Tensor, th_on, th_off, shrink: float) -> torch.Tensor:
     """Flat indices (int64) of pixels with d >= th_on * shrink or d <= -th_off * shrink.
 
@@ -445,25 +462,11 @@ def _nonzero_1d(mask: torch.Tensor) -> torch.Tensor:
     return torch.nonzero(mask).squeeze(1)
 
 
-def _segments(cnt: torch.Tensor, arange=None):
+def _segments(cnt: torch.Tensor):
     """For counts (A,) int64: segment id (N,) and index within the segment (N,), N = sum(cnt)."""
     seg = torch.repeat_interleave(cnt)
     start = torch.cumsum(cnt, 0).sub_(cnt)
-    n = seg.numel()
-    ar = arange(n) if arange is not None else torch.arange(n, device=cnt.device)
-    return seg, ar - start.index_select(0, seg)
-
-
-class _Arange:
-    """Cached ``torch.arange(n)`` (int64) on one device, grown by doubling."""
-
-    def __init__(self, device):
-        self.buf = torch.arange(0, device=device)
-
-    def __call__(self, n: int) -> torch.Tensor:
-        if n > self.buf.numel():
-            self.buf = torch.arange(max(n, 2 * self.buf.numel()), device=self.buf.device)
-        return self.buf[:n]
+    return seg, torch.arange(seg.numel(), device=cnt.device).sub_(start.index_select(0, seg))
 
 
 class _KeyLayout:
