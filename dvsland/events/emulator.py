@@ -213,7 +213,8 @@ class EventEmulator:
             t_us: int µs, > the previous time.
 
         Returns:
-            :class:`Events` on the emulator's device, sorted by (b, t), ties by row-major pixel.
+            :class:`Events` on the emulator's device, sorted by (b, t), ties by row-major pixel
+            (exact ties of background events with pixel events: by pixel, then OFF after ON).
         """
         if self._shape is None:
             raise RuntimeError("EventEmulator.step called before reset(frames, t_us)")
@@ -226,8 +227,6 @@ class EventEmulator:
         layout = self._layout
         b_shift = layout.b_shift(t1 - t0)  # ValueError if the key would overflow
         dev = self.device
-        th_on, th_off = self._th_on, self._th_off
-        r = self.refractory_us
 
         if self.interpolation == "log":
             l1 = f1.add_(self.log_eps).log_()  # f1 is a private copy
@@ -235,8 +234,7 @@ class EventEmulator:
             l1 = torch.log(f1 + self.log_eps)
         d = l1 - self._lref
         # candidate pixels (A,): a superset of those with >= 1 crossing (exact counts follow)
-        act = _candidates(d, th_on, th_off, 1.0 - 2 * LEVEL_TOL)  # sync
-
+        act = _candidates(d, self._th_on, self._th_off, 1.0 - 2 * LEVEL_TOL)  # sync
         del d
         # per event int64 sort keys (see _KeyLayout); updates L_ref and t_last
         keys = self._pixel_events(act, l1, f1, t0, dt, b_shift) if act.numel() > 0 else None
