@@ -104,23 +104,23 @@ def main(argv=None) -> int:
         torch.set_num_threads(args.threads)
     cfg = load_config()
     sites = [s for s in args.sites.split(",") if s]
-    t0 = time.perf_counter()
-    renderer = get_renderer("fast", sites, cfg.camera, cfg.render, device=args.device,
-                            disk_cache=not args.fresh)
     if args.fresh:
         from dvsland.render import lod
         lod._MEMORY.clear()
-        t0 = time.perf_counter()
-        renderer = get_renderer("fast", sites, cfg.camera, cfg.render, device=args.device, disk_cache=False)
+    t0 = time.perf_counter()
+    renderer = get_renderer("fast", sites, cfg.camera, cfg.render, device=args.device,
+                            disk_cache=not args.fresh)
     total_prep = time.perf_counter() - t0
     res = {"device": str(renderer.device), "threads": torch.get_num_threads(),
            "camera": f"{cfg.camera.width_px}x{cfg.camera.height_px} fov {cfg.camera.fov_deg}",
            "levels": renderer.levels.__dict__, "prep_s_per_site": renderer.prep_s,
+           "prep_cpu_s_per_site": renderer.prep_cpu_s,
            "prep_total_s": total_prep, "throughput": {}, "flicker": {}}
     print(f"device {res['device']}, torch threads {res['threads']}, camera {res['camera']}")
     print(f"levels: {renderer.levels.n_levels} x {renderer.levels.tile_size}^2 texels per site, "
           f"texel0 {renderer.levels.base_texel_m:.3f} m")
-    print("preparation (s): " + ", ".join(f"{k} {v:.2f} ({renderer.sources[k]})" for k, v in renderer.prep_s.items())
+    print("preparation (wall s / cpu s): " + ", ".join(
+        f"{k} {v:.2f}/{renderer.prep_cpu_s[k]:.2f} ({renderer.sources[k]})" for k, v in renderer.prep_s.items())
           + f"; total {total_prep:.2f} s")
     print(f"\n{'batch':>6} {'ms/call':>9} {'cpu ms':>8} {'frames/s':>10}")
     for b in [int(x) for x in args.batches.split(",") if x]:

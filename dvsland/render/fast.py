@@ -48,7 +48,8 @@ class FastRenderer(Renderer):
             nearest level only (an ablation: levels then pop during a descent).
 
     Attributes:
-        prep_s: {site: seconds spent preparing its levels (0 when cached)}.
+        prep_s: {site: wall seconds spent preparing its levels (0 when cached)}; prep_cpu_s the
+            process CPU seconds (the uncontended cost on a shared machine).
         levels: the :class:`LevelParams`.
     """
 
@@ -65,6 +66,7 @@ class FastRenderer(Renderer):
         self.blend_levels = bool(blend_levels)
         self.levels: LevelParams = level_params_for(camera, rc, level_size)
         self.prep_s = {}
+        self.prep_cpu_s = {}
         self.sources = {}
         tiles = []
         for name in dict.fromkeys(self.site_names):
@@ -72,6 +74,7 @@ class FastRenderer(Renderer):
             t0 = time.perf_counter()
             lv = prepare_levels(terrain, self.levels, disk_cache=disk_cache)
             self.prep_s[name] = lv.prep_s
+            self.prep_cpu_s[name] = lv.prep_cpu_s
             self.sources[name] = lv.source
             if progress:
                 print(f"fast renderer: site {name} levels {lv.source} in {time.perf_counter() - t0:.2f} s")

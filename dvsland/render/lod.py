@@ -66,6 +66,7 @@ class SiteLevels:
     angle_rad: float
     prep_s: float
     source: str  # "computed", "memory" or "disk"
+    prep_cpu_s: float = 0.0  # process CPU time of the preparation (excludes waiting for a core)
 
 
 _MEMORY: dict = {}
@@ -104,14 +105,15 @@ def prepare_levels(terrain: Terrain, params: LevelParams, disk_cache: bool = Tru
             return lv
         except Exception:  # a broken cache file is recomputed
             pass
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     with compute_threads(threads if threads is not None else 0):
         irr, hgt = _compute(terrain, params, progress)
     # landing point height from the finest level: (0, 0) is the centre of the even-sized tile
     c = params.tile_size // 2
     h0 = float(hgt[0, c - 1:c + 1, c - 1:c + 1].to(torch.float64).mean())
     hgt -= h0
-    lv = SiteLevels(terrain.name, irr, hgt, h0, terrain.sun_grid_angle_rad, time.perf_counter() - t0, "computed")
+    lv = SiteLevels(terrain.name, irr, hgt, h0, terrain.sun_grid_angle_rad, time.perf_counter() - t0, "computed",
+                    time.process_time() - c0)
     _MEMORY[key] = lv
     if path is not None:
         try:
