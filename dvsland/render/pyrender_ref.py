@@ -305,7 +305,7 @@ class PyrenderRenderer(Renderer):
                  device="cpu", *, shadows: bool = True, lunar_l: Optional[float] = None, oversample: float = 1.0,
                  lod_step: float = 2 ** 0.25, supersample: int = 2, edge_margin: float = 0.05,
                  sun_margin: float = 0.5, far_field: float = 3.0, far_field_n: int = 160,
-                 cache_size: int = 6, view: str = "camera", mesh_upsample: int = 2,
+                 cache_size: int = 6, view: str = "camera", mesh_upsample: int = 1,
                  terrains: Optional[Sequence] = None):
         super().__init__(site_names, camera, render, device=device)
         if not gl_env.egl_available():
