@@ -67,6 +67,12 @@ def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: f
     ax[2].plot(t, traces["d_est"][rows, b], ".", ms=2, label="D estimated")
     ax[2].plot(t, traces["d_filtered"][rows, b], lw=0.8, label="D filtered")
     ax[2].set_ylabel("D [1/s]")
+    d_true = traces["d_true"][rows, b]
+    d_true = d_true[np.isfinite(d_true)]
+    if d_true.size:  # outlying estimates must not flatten the true curve
+        lo, hi = float(d_true.min()), float(d_true.max())
+        pad = 0.25 * max(hi - lo, abs(lo), 0.02)
+        ax[2].set_ylim(lo - pad, max(hi, 0.0) + pad)
     ax[2].legend(fontsize=7)
     ax[3].step(t, traces["thrust_n"][rows, b] / 1e3, where="post", lw=0.8)
     ax[3].set_ylabel("thrust [kN]")
