@@ -165,14 +165,14 @@ class FastRenderer(Renderer):
         frac = (lam - lo)[:, None, None]
         if not self.blend_levels:
             frac = torch.round(frac)
-        row = self._site_row[site_idx]
+        row = self._site_row.index_select(0, site_idx)  # index_select: ~5x faster than [idx]
         z = altitude_m[:, None, None]
         rng = z
         if self.parallax_iters:
             # relief displacement: the ray meets the ground at slope * (z - h); heights from the
             # next coarser level on 2x2 pixel blocks (a smooth field), upsampled bilinearly
             half = self._tuv_half is not None
-            tuv = self._tuv_half[site_idx] if half else self._tuv[site_idx]
+            tuv = (self._tuv_half if half else self._tuv).index_select(0, site_idx)
             scale, off = self._affine(torch.clamp(lo + (1.0 if half else 0.0), max=k_max - 1.0), row)
             rng = z.expand(b, *tuv.shape[1:3])
             hh, ww = tuv.shape[1:3]
@@ -184,13 +184,13 @@ class FastRenderer(Renderer):
                 rng = (z - hgt).clamp(min=0.05 * z)
             if half:
                 rng = F.interpolate(rng[:, None], size=(h, w), mode="bilinear", align_corners=False)[:, 0]
-        pts = (self._tuv[site_idx] * rng[..., None]).view(1, b, h, 2 * w)  # sun-frame metres (u, v)
+        pts = (self._tuv.index_select(0, site_idx) * rng[..., None]).view(1, b, h, 2 * w)  # sun-frame metres (u, v)
         scale, off = self._affine(torch.stack([lo, lo + 1.0]), row.expand(2, b))  # (2, B, 2)
         # grid (2, B, H, W, 2) as (2, B, H, 2 W): the broadcast runs over H only (fast path)
         g = torch.addcmul(_interleave(off, w), pts, _interleave(scale, w))
         out = F.grid_sample(self.atlas_irradiance, g.view(1, 2 * b * h, w, 2), mode="bilinear",
                             padding_mode="border", align_corners=False).view(2, b, h, w)
-        return torch.lerp(out[0], out[1], frac) * self._gain[site_idx]
+        return torch.lerp(out[0], out[1], frac).mul_(self._gain.index_select(0, site_idx))
 
 
 def _interleave(x: torch.Tensor, w: int) -> torch.Tensor:
