@@ -223,3 +223,25 @@ def test_cuda_matches_cpu(tmp_path):
     a = _sim(tmp_path, ["simulation.t_max_s=20"], sites="A,D", name="cpu")
     b = _sim(tmp_path, ["simulation.t_max_s=20"], sites="A,D", name="cuda", device="cuda")
     np.testing.assert_allclose(a.traces["z_m"], b.traces["z_m"], rtol=1e-9)
+
+
+def test_ctrl_c_writes_results_and_cli_returns_130(tmp_path, monkeypatch):
+    def on_step(loop):
+        if loop.step_index == 7:
+            raise KeyboardInterrupt
+
+    out = tmp_path / "ctrlc"
+    with pytest.raises(KeyboardInterrupt):
+        _sim(tmp_path, sites="D", name="ctrlc", on_step=on_step)
+    res = json.loads((out / "results.json").read_text())
+    assert res["status"] == "interrupted" and res["error"].startswith("KeyboardInterrupt")
+    assert all(r["outcome"] == "interrupted" and r["t_end_s"] == pytest.approx(0.7) for r in res["runs"])
+
+    import dvsland.sim as sim_pkg
+    from dvsland.cli.main import main
+
+    def fake_simulate(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sim_pkg, "simulate", fake_simulate)
+    assert main(["simulate", "--estimator", "oracle", "--out", str(tmp_path / "c2"), "--quiet"]) == 130
