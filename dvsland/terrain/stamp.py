@@ -7,7 +7,6 @@ float64: the summation order is fixed, so the result is reproducible bit for bit
 
 from __future__ import annotations
 
-import math
 from typing import Callable, Sequence
 
 import torch
