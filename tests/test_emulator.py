@@ -368,3 +368,24 @@ def test_cuda_matches_cpu():
         emu.reset(f0, 0)
         out[dev] = Events.cat([emu.step(f, 1000 * (k + 1)) for k, f in enumerate(frames)])
     assert out["cpu"] == out["cuda"].to("cpu")
+
+
+@pytest.mark.parametrize("interpolation", ["log", "linear"])
+def test_cpu_blocking_does_not_change_events(monkeypatch, interpolation):
+    """Candidates processed in small blocks (cache blocking) give the same events and state."""
+    import dvsland.events.emulator as emulator_mod
+
+    rng = np.random.default_rng(11)
+    frames = [torch.from_numpy(rng.uniform(0, 1, (3, 6, 7)).astype(np.float32))]
+    for _ in range(4):
+        frames.append(frames[-1] * torch.from_numpy(np.exp(rng.normal(0, 0.8, (3, 6, 7))).astype(np.float32)))
+    out = {}
+    for block in (1 << 17, 5):
+        monkeypatch.setattr(emulator_mod, "_CPU_BLOCK", block)
+        emu = EventEmulator(refractory_us=300.0, interpolation=interpolation)
+        emu.reset(frames[0], 0)
+        out[block] = [emu.step(f, 1000 * (k + 1)) for k, f in enumerate(frames[1:])]
+        out[block].append(emu.reference.clone())
+    for a, b in zip(out[1 << 17][:-1], out[5][:-1]):
+        assert a == b and len(a) > 0
+    assert torch.equal(out[1 << 17][-1], out[5][-1])

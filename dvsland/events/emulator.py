@@ -50,6 +50,9 @@ LEVEL_TOL = 1e-9
 
 _INTERPOLATIONS = ("log", "linear")
 
+#: Candidate pixels processed per block on CPU (cache blocking; the result does not depend on it).
+_CPU_BLOCK = 1 << 17
+
 
 def _check_t_us(t_us, name: str = "t_us") -> int:
     if isinstance(t_us, torch.Tensor):
@@ -237,7 +240,15 @@ class EventEmulator:
         act = _candidates(d, self._th_on, self._th_off, 1.0 - 2 * LEVEL_TOL)  # sync
         del d
         # per event int64 sort keys (see _KeyLayout); updates L_ref and t_last
-        keys = self._pixel_events(act, l1, f1, t0, dt, b_shift) if act.numel() > 0 else None
+        keys = None
+        if act.numel() > 0:
+            # on CPU, blocks of candidates small enough to keep the ~40 per-pixel temporaries in
+            # cache (faster at large B); one block on other devices
+            block = _CPU_BLOCK if act.device.type == "cpu" else act.numel()
+            parts = [self._pixel_events(act[i:i + block], l1, f1, t0, dt, b_shift)
+                     for i in range(0, act.numel(), block)]
+            keys = parts[0] if len(parts) == 1 else torch.cat(parts)
+            del parts
 
         self._l_prev = l1
         if self.interpolation == "linear":
