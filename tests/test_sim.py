@@ -245,3 +245,19 @@ def test_ctrl_c_writes_results_and_cli_returns_130(tmp_path, monkeypatch):
 
     monkeypatch.setattr(sim_pkg, "simulate", fake_simulate)
     assert main(["simulate", "--estimator", "oracle", "--out", str(tmp_path / "c2"), "--quiet"]) == 130
+
+
+def test_custom_controller_plugs_in(tmp_path):
+    from dvsland.control import ControlOutput, Controller
+
+    class ConstantThrust(Controller):
+        def reset(self, mask=None):
+            pass
+
+        def __call__(self, t_s, d_filtered, mass_kg, active=None):
+            u = torch.full_like(mass_kg, 1e6)
+            nan = torch.full_like(mass_kg, float("nan"))
+            return ControlOutput(thrust_n=u, tau_hat_s=nan, tau_target_s=nan, held=torch.zeros_like(active))
+
+    r = _sim(tmp_path, sites="D", controller=ConstantThrust())
+    assert {x["outcome"] for x in r.runs} == {"ascent"} and r.runs[0]["max_thrust_n"] == 1e6

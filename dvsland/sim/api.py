@@ -71,7 +71,7 @@ def build_event_stages(cfg: Config, site_names: Sequence[str], device, renderer=
 def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, renderer=None,
              sites: Optional[Union[str, Sequence[str]]] = None, device=None, out: Optional[PathLike] = None,
              quiet: Optional[bool] = None, overrides: Sequence[str] = (), on_step=None,
-             sync_timers: bool = False) -> SimulationResult:
+             sync_timers: bool = False, controller=None) -> SimulationResult:
     """Fly every site x controller setting x seed of ``config`` as one batch.
 
     Args:
@@ -85,6 +85,8 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
         overrides: ``section.key=value`` strings applied to a config file.
         on_step: optional callable ``f(loop)`` after every step (tests, custom logging).
         sync_timers: synchronise CUDA around the per-stage timers (profiling).
+        controller: optional :class:`dvsland.control.Controller` instance for the B elements
+            (element order: see :func:`dvsland.sim.build_layout`), replacing the Eq. 2 law.
 
     Returns:
         :class:`SimulationResult`. On an exception or Ctrl-C the outputs gathered so far are
@@ -110,7 +112,7 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
     if getattr(est, "needs_events", True):
         rend, emu = build_event_stages(cfg, layout.site_names, dev, renderer)
     run_dir = make_run_dir(cfg, out)
-    loop = ClosedLoop(cfg, layout, est, rend, emu, dev, sync_timers=sync_timers)
+    loop = ClosedLoop(cfg, layout, est, rend, emu, dev, sync_timers=sync_timers, controller=controller)
     quiet_ = cfg.logging.quiet
     tb = None
     if cfg.logging.tensorboard:
@@ -188,6 +190,12 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
             write_results_json(run_dir / "results.json", runs, **meta)
         if not quiet_:
             print(table)
+            held = [r for r in runs if r["held_steps"]]
+            if held:
+                policy = cfg.controller.missing_policy
+                print(f"note: the filtered estimate was missing or non-negative on {sum(r['held_steps'] for r in held)} "
+                      f"steps in {len(held)} of {len(runs)} runs; the controller applied missing_policy={policy!r} "
+                      f"(column 'held')")
             print(f"{status}: {B} descents, {loop.step_index} steps, wall {wall:.2f} s "
                   f"(loop {loop_s:.2f} s), real-time factor {result.real_time_factor:.1f}; output in {run_dir}")
     finally:

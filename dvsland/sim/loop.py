@@ -60,10 +60,12 @@ class ClosedLoop:
             needed only when ``estimator.needs_events``.
         device: torch device of the state.
         sync_timers: synchronise CUDA around stage timers (profiling only).
+        controller: optional :class:`dvsland.control.Controller` for the B elements, replacing
+            the configured Eq. 2 law (it gets the filtered divergence, see ``Controller``).
     """
 
     def __init__(self, cfg: Config, layout: BatchLayout, estimator, renderer=None, emulator=None,
-                 device="cpu", sync_timers: bool = False):
+                 device="cpu", sync_timers: bool = False, controller=None):
         self.cfg = cfg
         self.layout = layout
         self.device = torch.device(device)
@@ -86,8 +88,10 @@ class ClosedLoop:
         self.dynamics = LanderDynamics.from_config(cfg.dynamics)
         self.filter = MovingAverageFilter(layout.tensor("n_bin", dev, torch.int64), device=dev)
         c = cfg.controller
-        self.controller = TauPController(self.kp, initial_ttc(self.z0_m, self.v0_mps), c.c2, cfg.dynamics.g_mps2,
-                                         c.thrust_min_n, c.thrust_max_n, c.missing_policy)
+        if controller is None:
+            controller = TauPController(self.kp, initial_ttc(self.z0_m, self.v0_mps), c.c2, cfg.dynamics.g_mps2,
+                                        c.thrust_min_n, c.thrust_max_n, c.missing_policy)
+        self.controller = controller
         sim = cfg.simulation
         self.n_steps_max = int(math.ceil(sim.t_max_s / self.dt_s - 1e-9))
         self.traces = TraceRecorder(self.n_steps_max + 1, B, dev)
