@@ -389,3 +389,25 @@ def test_cpu_blocking_does_not_change_events(monkeypatch, interpolation):
     for a, b in zip(out[1 << 17][:-1], out[5][:-1]):
         assert a == b and len(a) > 0
     assert torch.equal(out[1 << 17][-1], out[5][-1])
+
+
+@pytest.mark.parametrize("interpolation", ["log", "linear"])
+@pytest.mark.parametrize("th_off", [None, 0.15])
+def test_generic_torch_paths_match_cpu_fast_paths(monkeypatch, interpolation, th_off):
+    """The device-generic paths (torch.nonzero, torch.sort; used on CUDA) give the same events
+    as the CPU fast paths (numpy scan and sort, blocking)."""
+    import dvsland.events.emulator as emulator_mod
+
+    rng = np.random.default_rng(12)
+    frames = [torch.from_numpy(rng.uniform(0, 1, (3, 9, 8)).astype(np.float32))]
+    for _ in range(3):
+        frames.append(frames[-1] * torch.from_numpy(np.exp(rng.normal(0, 0.8, (3, 9, 8))).astype(np.float32)))
+    out = {}
+    for fast in (True, False):
+        monkeypatch.setattr(emulator_mod, "CPU_FAST_PATHS", fast)
+        emu = EventEmulator(threshold_off=th_off, refractory_us=200.0, interpolation=interpolation,
+                            background_rate_hz=100.0, seed=3)
+        emu.reset(frames[0], 0)
+        out[fast] = [emu.step(f, 5000 * (k + 1)) for k, f in enumerate(frames[1:])]
+    for a, b in zip(out[True], out[False]):
+        assert a == b and len(a) > 0
