@@ -73,6 +73,17 @@ def test_batch_elements_independent(renderer):
         torch.testing.assert_close(renderer.render(alt[k:k + 1], idx[k:k + 1])[0], f[k])
 
 
+def test_chunking_is_invisible(renderer):
+    alt = torch.tensor([3000.0, 120.0, 15.0, 800.0, 60.0])
+    idx = torch.tensor([1, 2, 0, 3, 1])
+    whole = renderer.render(alt, idx)
+    renderer.chunk, old = 2, renderer.chunk
+    try:
+        torch.testing.assert_close(renderer.render(alt, idx), whole)
+    finally:
+        renderer.chunk = old
+
+
 def test_preparation_deterministic(monkeypatch):
     """Same seed -> the same levels bit for bit (fresh computation, no caches)."""
     from dvsland.terrain import load_site

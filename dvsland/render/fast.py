@@ -44,6 +44,7 @@ class FastRenderer(Renderer):
         parallax_iters: relief-displacement iterations (0 = none, 1 default).
         disk_cache: keep prepared levels on disk (``$DVSLAND_CACHE_DIR``).
         progress: print per-site preparation times.
+        chunk: frames per internal sub-batch (default 32 on CPU, 1024 on CUDA).
         blend_levels: trilinear blend of the two bracketing levels (default); False samples the
             nearest level only (an ablation: levels then pop during a descent).
 
@@ -57,13 +58,19 @@ class FastRenderer(Renderer):
 
     def __init__(self, site_names: Sequence[str], camera: CameraConfig, render: Optional[RenderConfig] = None,
                  device="cpu", level_size: Optional[int] = None, parallax_iters: int = 1,
-                 disk_cache: bool = True, progress: bool = False, blend_levels: bool = True):
+                 disk_cache: bool = True, progress: bool = False, blend_levels: bool = True,
+                 chunk: Optional[int] = None):
         super().__init__(site_names, camera, render, device)
         rc = self.render_config
         if parallax_iters < 0 or parallax_iters > 8:
             raise ValueError(f"parallax_iters must be in [0, 8], got {parallax_iters}")
         self.parallax_iters = int(parallax_iters)
         self.blend_levels = bool(blend_levels)
+        if chunk is None:
+            chunk = 1024 if self.device.type == "cuda" else 32
+        if chunk < 1:
+            raise ValueError(f"chunk must be >= 1, got {chunk}")
+        self.chunk = int(chunk)
         self.levels: LevelParams = level_params_for(camera, rc, level_size)
         self.prep_s = {}
         self.prep_cpu_s = {}
@@ -155,6 +162,18 @@ class FastRenderer(Renderer):
         return lam.clamp(0.0, self.levels.n_levels - 1.0)
 
     def _render(self, altitude_m: torch.Tensor, site_idx: torch.Tensor) -> torch.Tensor:
+        b = altitude_m.shape[0]
+        h, w = self.height_px, self.width_px
+        if b <= self.chunk:
+            return self._render_chunk(altitude_m, site_idx)
+        # large batches in sub-batches: the sampling grids stay cache-sized (B = 256 on CPU:
+        # 349 -> 200 ms with chunks of 32)
+        out = torch.empty(b, h, w, device=self.device)
+        for i in range(0, b, self.chunk):
+            out[i:i + self.chunk] = self._render_chunk(altitude_m[i:i + self.chunk], site_idx[i:i + self.chunk])
+        return out
+
+    def _render_chunk(self, altitude_m: torch.Tensor, site_idx: torch.Tensor) -> torch.Tensor:
         b = altitude_m.shape[0]
         h, w = self.height_px, self.width_px
         if b == 0:
