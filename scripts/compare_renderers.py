@@ -98,8 +98,11 @@ def _montage(pairs, path: Path, labels):
     img.save(path)
 
 
-def _events(fast, pyr, site: int, z0_m: float, divergence: float, steps: int, dt_s: float, emu_kwargs):
-    """Event counts per step for both renderers over z(t) = z0 exp(D t)."""
+def _events(fast, pyr, site: int, z0_m: float, divergence: float, steps: int, dt_s: float, emu_kwargs,
+            fixed_mesh: bool = False):
+    """Event counts per step for both renderers over z(t) = z0 exp(D t).
+
+    ``fixed_mesh``: the reference renders the whole segment from one mesh (no level switches)."""
     from dvsland.events import EventEmulator
 
     t = np.arange(steps + 1) * dt_s
@@ -107,7 +110,12 @@ def _events(fast, pyr, site: int, z0_m: float, divergence: float, steps: int, dt
     alt = torch.tensor(z, dtype=torch.float32)
     idx = torch.full((steps + 1,), site, dtype=torch.long)
     frames_fast = fast.render(alt, idx)
-    frames_pyr = pyr.render(alt, idx)
+    if fixed_mesh:
+        pyr.fix_mesh_range(float(z.max()), float(z.min()))
+    try:
+        frames_pyr = pyr.render(alt, idx)
+    finally:
+        pyr.fix_mesh_range()
     emu = EventEmulator(**emu_kwargs)
     emu.reset(torch.stack([frames_fast[0], frames_pyr[0]]), t_us=0)
     n_fast, n_pyr = [], []
@@ -230,14 +238,17 @@ def main(argv=None) -> int:
         emu_kwargs = dict(threshold=ec.threshold, refractory_us=ec.refractory_us, log_eps=ec.log_eps,
                           interpolation=ec.interpolation)
         ev_rows = []
-        say(f"\n{'site':>4} {'z0_m':>8} {'events_fast':>12} {'events_pyr':>11} {'rel_total':>9} {'rel_med|.|':>10}")
+        say(f"\n{'site':>4} {'z0_m':>8} {'mesh':>7} {'events_fast':>12} {'events_pyr':>11} {'rel_total':>9} {'rel_med|.|':>10}")
         for si, s in enumerate(args.sites):
             for z0 in args.segments:
-                r = _events(fast, pyr, si, z0, args.divergence, args.segment_steps, args.dt, emu_kwargs)
-                r.update(site=s, z0_m=z0, divergence=args.divergence, dt_s=args.dt)
-                ev_rows.append(r)
-                say(f"{s:>4} {z0:8.1f} {sum(r['events_fast']):12d} {sum(r['events_pyrender']):11d} "
-                    f"{r['rel_diff_total']:9.3f} {r['rel_diff_median_abs']:10.3f}")
+                for fixed in (False, True):
+                    r = _events(fast, pyr, si, z0, args.divergence, args.segment_steps, args.dt, emu_kwargs,
+                                fixed_mesh=fixed)
+                    r.update(site=s, z0_m=z0, divergence=args.divergence, dt_s=args.dt,
+                             pyrender_mesh="one mesh for the segment" if fixed else "levels")
+                    ev_rows.append(r)
+                    say(f"{s:>4} {z0:8.1f} {'fixed' if fixed else 'levels':>7} {sum(r['events_fast']):12d} "
+                        f"{sum(r['events_pyrender']):11d} {r['rel_diff_total']:9.3f} {r['rel_diff_median_abs']:10.3f}")
         result["events"] = ev_rows
     elif args.segments:
         result["events"] = "dvsland.events.EventEmulator not available"

@@ -151,6 +151,27 @@ def test_no_shadow_acne_on_bumpy_lit_ground():
     torch.testing.assert_close(a, b, rtol=1e-5, atol=0.0)
 
 
+def test_fixed_mesh_range_uses_one_mesh(renderer):
+    renderer.fix_mesh_range(130.0, 100.0)
+    try:
+        keys = set()
+        frames = []
+        for alt in (130.0, 118.0, 109.0, 100.0):
+            frames.append(renderer.render(torch.tensor([alt]), torch.tensor([3])))
+            keys.add(renderer._scene_key)
+        assert len(keys) == 1 and next(iter(keys))[1][0] == "fixed"
+        assert all(torch.isfinite(f).all() and (f > 0).all() for f in frames)
+        # same scene as with levels (the step's shadow), up to the band limit of the sampling
+        renderer.fix_mesh_range()
+        lv = renderer.render(torch.tensor([109.0]), torch.tensor([3]))
+        assert renderer._scene_key[1] != keys.pop()[1]
+        assert (torch.log(lv) - torch.log(frames[2])).abs().mean() < 0.05
+    finally:
+        renderer.fix_mesh_range()
+    with pytest.raises(ValueError, match="bottom_m"):
+        renderer.fix_mesh_range(100.0, 130.0)
+
+
 def test_errors(renderer):
     with pytest.raises(ValueError, match="altitude_m"):
         renderer.render(torch.tensor([5.0]), torch.tensor([0]))  # below min_altitude_m = 10

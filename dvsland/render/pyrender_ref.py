@@ -356,6 +356,7 @@ class PyrenderRenderer(Renderer):
         self._scene_key = None
         self._cache: "OrderedDict[tuple, tuple]" = OrderedDict()
         self._h0: dict = {}
+        self._fixed = None
 
     # ---------------------------------------------------------------- geometry of a level
     @property
@@ -370,9 +371,14 @@ class PyrenderRenderer(Renderer):
         """Mesh level k with ``lod_step^(k-1) < altitude_m <= lod_step^k``."""
         return int(math.ceil(math.log(altitude_m) / math.log(self.lod_step) - 1e-9))
 
-    def level_patch(self, site: int, level: int):
-        """(extent_m, n, center_xy_m) of the fine mesh of a level."""
-        h_top = self.lod_step ** level
+    def level_patch(self, site: int, level):
+        """(extent_m, n, center_xy_m) of the fine mesh of a level (an int k, or a fixed range
+        ``("fixed", h_top_m, h_bottom_m)``, see :meth:`fix_mesh_range`)."""
+        if isinstance(level, tuple):
+            h_top, h_bottom = float(level[1]), float(level[2])
+        else:
+            h_top = self.lod_step ** level
+            h_bottom = h_top / self.lod_step
         fp = self.square_footprint_m(h_top)
         extent = fp * (1.0 + 2.0 * self.edge_margin + self.sun_margin)
         sun = np.asarray(self.terrains[site].sun_direction, np.float64)
@@ -380,7 +386,7 @@ class PyrenderRenderer(Renderer):
         if np.linalg.norm(sun[:2]) < 1e-9:
             horiz = np.zeros(2)
         center = horiz * fp * self.sun_margin / 2.0
-        px_bottom = self.square_footprint_m(h_top / self.lod_step) / max(self.camera.width_px, self.camera.height_px)
+        px_bottom = self.square_footprint_m(h_bottom) / max(self.camera.width_px, self.camera.height_px)
         n = int(math.ceil(extent / (px_bottom / self.oversample)))
         return extent, n, (float(center[0]), float(center[1]))
 
@@ -447,7 +453,19 @@ class PyrenderRenderer(Renderer):
                                   indices=np.asarray(tm.faces, np.uint32), color_0=col, material=mat)
         return pyrender.Mesh(primitives=[prim])
 
-    def level_meshes(self, site: int, level: int):
+    def fix_mesh_range(self, top_m: Optional[float] = None, bottom_m: Optional[float] = None) -> None:
+        """Use ONE mesh for every frame with ``bottom_m <= altitude <= top_m`` (covering the view at
+        ``top_m``, sampled for ``bottom_m``): no level switches inside a short descent segment, e.g.
+        to count events without the reference's own level pops. ``fix_mesh_range()`` restores levels.
+        """
+        if top_m is None:
+            self._fixed = None
+            return
+        if not (0 < bottom_m <= top_m):
+            raise ValueError(f"need 0 < bottom_m <= top_m, got bottom_m={bottom_m}, top_m={top_m}")
+        self._fixed = (float(top_m), float(bottom_m))
+
+    def level_meshes(self, site: int, level):
         """The trimesh meshes of a level: [fine] or [fine, far-field ring] (cached)."""
         key = (site, level)
         if key in self._cache:
@@ -485,8 +503,11 @@ class PyrenderRenderer(Renderer):
         self._ensure_gl()
         pyrender = self._pyrender
         terrain = self.terrains[site]
-        level = self.level_of(altitude_m)
-        key = (site, level)
+        fx = self._fixed
+        if fx is not None and fx[1] * (1 - 1e-9) <= altitude_m <= fx[0] * (1 + 1e-9):
+            level = ("fixed", fx[0], fx[1])
+        else:
+            level = self.level_of(altitude_m)
         meshes, pmeshes, box, serial = self.level_meshes(site, level)
         key = (site, level, serial)
         if self._scene_key != key:
