@@ -6,13 +6,16 @@ photometry. It exists to check :mod:`dvsland.render.fast`; see docs/render_refer
 
 How a frame is made (``render_one``):
 
-1. Mesh. The camera sits at (0, 0, altitude) looking straight down. Altitudes are grouped in
-   levels ``h_k = lod_step^k`` (k integer); a frame at altitude h uses the level with
+1. Mesh. The camera sits at (0, 0, h0 + altitude) looking straight down (h0: height of the
+   landing point, as the fast renderer). Altitudes are grouped in levels ``h_k = lod_step^k``
+   (k integer, default step 2^(1/4)); a frame at altitude h uses the level with
    ``h_k / lod_step < h <= h_k``. The level's mesh is the terrain cropped to the footprint at
    ``h_k`` plus ``edge_margin`` on every side and ``sun_margin`` toward the sun (so that shadows
-   cast from outside the view still fall in), sampled finer than a pixel at the bottom of the
-   level by ``oversample``; around it a coarse "far field" ring (``far_field`` times wider,
-   without its centre) casts the shadows of larger relief. Meshes are cached (LRU).
+   cast from outside the view still fall in), sampled ``oversample`` times per sensor pixel at
+   the bottom of the level (default 1: the terrain is band-limited to that sampling); around it
+   a coarse "far field" ring (``far_field`` times wider, without its centre) casts the shadows
+   of larger relief and catches rays leaving the fine patch. Meshes are cached (LRU);
+   :meth:`PyrenderRenderer.fix_mesh_range` pins one mesh over a descent segment.
 2. Photometry, in a fragment shader of our own (pyrender's PBR shader adds a specular lobe and
    gamma-encodes to 8 bits, neither of which belongs in a linear irradiance): per fragment
 
@@ -20,9 +23,11 @@ How a frame is made (``render_one``):
        F = (1 - L) cos i + 2 L cos i / (cos i + cos e)         (lunar-Lambert, McEwen 1991)
 
    with i the incidence angle (sun, smooth vertex normal), e the emission angle (toward the
-   camera centre; ``view="nadir"``: from straight up, as the fast renderer), ``L = lunar_l`` (0 gives Lambert), ``lit`` in [0, 1] from the shadow map
-   (3x3 percentage-closer filter, receiver-plane slope-scaled depth bias from the face normal,
-   so flat ground at a 15 deg sun shows no acne) and ``ambient`` = ``RenderConfig.ambient``.
+   camera; ``view="nadir"``: from straight up), ``L`` as the fast renderer (McEwen's L at phase
+   90 deg - sun elevation) unless ``lunar_l`` is given (0 gives Lambert), ``lit`` in [0, 1] from
+   the shadow map (2x2 bilinear percentage-closer filter, receiver-plane slope-scaled depth bias
+   from the face normal in light space, so flat ground at a 15 deg sun shows no acne; the sun's
+   orthographic box is fitted tightly to the meshes) and ``ambient`` = ``RenderConfig.ambient``.
 3. Read-back. Colour is rendered to a 32-bit float framebuffer (pyrender's is 8-bit RGBA; our
    subclass swaps it), with 4x MSAA, at ``supersample`` times the sensor resolution, then
    box-averaged to the sensor pixels: each pixel averages ``4 supersample^2`` samples.
@@ -417,7 +422,8 @@ class PyrenderRenderer(Renderer):
         self._osr._renderer.__class__ = cls
         self._osr._renderer.shading_uniforms = {}
         self._osr._renderer.light_box = None
-        self._osr._renderer._program_cache = pyrender.shader_program.ShaderProgramCache(shader_dir=_write_shader_dir())
+        self._shader_dir = _write_shader_dir()
+        self._osr._renderer._program_cache = pyrender.shader_program.ShaderProgramCache(shader_dir=self._shader_dir)
         self._scene = pyrender.Scene(bg_color=np.zeros(4), ambient_light=np.zeros(3))
         ss = self.supersample
         fx = (self.camera.width_px * ss / 2.0) / self.half_fov_tan
@@ -435,6 +441,11 @@ class PyrenderRenderer(Renderer):
             except Exception:
                 pass
         self._osr = None
+        if getattr(self, "_shader_dir", None):
+            import shutil
+
+            shutil.rmtree(self._shader_dir, ignore_errors=True)
+            self._shader_dir = None
         if hasattr(self, "_cache"):
             self._cache.clear()
 
