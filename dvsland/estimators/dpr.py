@@ -94,7 +94,11 @@ class DPREstimator(DivergenceEstimator):
         dev = self.device
         self._ring = torch.zeros(self.n_ring, B, H, W, dtype=torch.float32, device=dev)
         self._slot = 0
-        self._window = torch.zeros(B, H, W, dtype=torch.float32, device=dev)  # running ring sum
+        # running ring sum, stored with a zero border so mean-shift patches never leave it
+        self._pad = int(math.ceil(self.radius_px)) + 1
+        q = self._pad
+        self._window_padded = torch.zeros(B, H + 2 * q, W + 2 * q, dtype=torch.float32, device=dev)
+        self._window = self._window_padded[:, q:q + H, q:q + W]  # a view
         self._centroids = torch.full((B, N, 2), float("nan"), dtype=torch.float32, device=dev)
         self._valid = torch.zeros(B, N, dtype=torch.bool, device=dev)
         self._counts = torch.zeros(B, N, dtype=torch.float32, device=dev)
@@ -140,11 +144,14 @@ class DPREstimator(DivergenceEstimator):
             keep = keep & ~close.any(1)  # j merged into a better-ranked i < j
         return keep
 
-    def _initialise(self, image: torch.Tensor):
-        """DPR + mean-shift to convergence on ``image`` (B', H, W); returns (c, counts, keep)."""
-        peaks, _, ok = density_peaks(image, self.n_max, self.blur_sigma_px, self.nms_px)
-        c, counts, _ = meanshift_flat(image, peaks, ok, self.radius_px, self.meanshift_iters,
-                                      self.meanshift_tol_px)
+    def _initialise(self, padded: torch.Tensor):
+        """DPR + mean-shift to convergence on the windowed image, given with its zero border
+        (B', H + 2q, W + 2q); returns (c, counts, keep)."""
+        q = self._pad
+        W, H = self.sensor_size
+        peaks, _, ok = density_peaks(padded[:, q:q + H, q:q + W], self.n_max, self.blur_sigma_px, self.nms_px)
+        c, counts, _ = meanshift_flat(padded, peaks, ok, self.radius_px, self.meanshift_iters,
+                                      self.meanshift_tol_px, image_pad_px=q)
         keep = self._keep(c, counts, ok & ~torch.isnan(c[..., 0]))
         # compact: kept centroids first, in rank order
         order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)
@@ -169,8 +176,8 @@ class DPREstimator(DivergenceEstimator):
 
         # 1. track: mean-shift from last step's centroids
         prev = self._centroids
-        c, counts, _ = meanshift_flat(image, prev, self._valid, self.radius_px, self.meanshift_iters,
-                                      self.meanshift_tol_px)
+        c, counts, _ = meanshift_flat(self._window_padded, prev, self._valid, self.radius_px, self.meanshift_iters,
+                                      self.meanshift_tol_px, image_pad_px=self._pad)
         keep = self._keep(c, counts, self._valid & ~torch.isnan(c[..., 0]))
         # 2. Eq. 8 over the pairs tracked at both steps (computed before any re-initialisation).
         # While the ring fills after a reset the window's mean event time advances by dt / 2 per
@@ -187,7 +194,7 @@ class DPREstimator(DivergenceEstimator):
         self._reinit = need
         if bool(need.any()):
             idx = need.nonzero().squeeze(1)
-            ci, ni, ki = self._initialise(image[idx])
+            ci, ni, ki = self._initialise(self._window_padded[idx])
             self._centroids[idx] = torch.where(ki.unsqueeze(-1), ci, torch.full_like(ci, float("nan")))
             self._valid[idx] = ki
             self._counts[idx] = torch.where(ki, ni, torch.zeros_like(ni))

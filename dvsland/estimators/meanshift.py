@@ -11,22 +11,27 @@ import math
 from typing import Tuple
 
 import torch
+import torch.nn.functional as F
 
 
 def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor, radius_px: float,
-                   iters: int = 20, tol_px: float = 0.01) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   iters: int = 20, tol_px: float = 0.01,
+                   image_pad_px: int = 0) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Mean-shift with a flat (uniform disk) kernel, seeded at ``seeds``.
 
     Pixel (x, y) has its centre at integer coordinates; the kernel covers the pixels whose centre
-    lies within ``radius_px`` (inclusive) of the current centroid.
+    lies within ``radius_px`` (inclusive) of the current centroid. Pixels off the sensor count 0.
 
     Args:
-        image: (B, H, W) float, event counts per pixel.
+        image: (B, H, W) float, event counts per pixel; or, with ``image_pad_px`` = q > 0, the
+            counts already surrounded by q zero pixels on every side, (B, H + 2q, W + 2q)
+            (saves a padding copy per call; coordinates stay those of the sensor).
         seeds: (B, N, 2) float, start positions (x, y) in pixels; ignored where not ``valid``.
         valid: (B, N) bool, which seeds exist.
         radius_px: kernel radius R, px (> 0).
         iters: maximum iterations (>= 1).
         tol_px: a seed that moves less than this is converged (frozen).
+        image_pad_px: zero border already around ``image``, px.
 
     Returns:
         centroids: (B, N, 2) float32 (x, y); NaN where not valid or where the kernel held no
@@ -36,7 +41,9 @@ def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor
     """
     if image.dim() != 3:
         raise ValueError(f"image must be (B, H, W), got {tuple(image.shape)}")
-    B, H, W = image.shape
+    if int(image_pad_px) < 0:
+        raise ValueError(f"image_pad_px must be >= 0, got {image_pad_px}")
+    B = image.shape[0]
     if seeds.shape[:2] != valid.shape or seeds.shape[0] != B or seeds.shape[-1] != 2:
         raise ValueError(f"seeds must be (B, N, 2) = ({B}, N, 2) and valid (B, N), got "
                          f"{tuple(seeds.shape)} and {tuple(valid.shape)}")
@@ -48,46 +55,55 @@ def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor
     dev = image.device
     r_int = int(math.ceil(radius_px))
     P = 2 * r_int + 2  # patch side: covers [floor(c) - r_int, floor(c) + r_int + 1]
-    flat = image.to(torch.float32).reshape(B, H * W)
+    q = r_int + 1  # zero border needed so that every patch lies inside the padded image
+    img = image.to(torch.float32)
+    have = int(image_pad_px)
+    H, W = img.shape[1] - 2 * have, img.shape[2] - 2 * have
+    if have < q:
+        img = F.pad(img, (q - have,) * 4)
+        have = q
+    Hp, Wp = img.shape[1], img.shape[2]
+    flat = img.reshape(B, Hp * Wp)
     off = torch.arange(P, device=dev, dtype=torch.float32) - r_int  # -r .. r+1
     oy, ox = torch.meshgrid(off, off, indexing="ij")
     ox = ox.reshape(1, 1, P * P)
     oy = oy.reshape(1, 1, P * P)
+    off_lin = (oy * Wp + ox).to(torch.int64)  # (1, 1, K) offsets from the patch's base pixel
+    moments = torch.stack([torch.ones(P * P, device=dev), ox.reshape(-1), oy.reshape(-1)], 1)  # (K, 3)
     r2 = float(radius_px) ** 2
+    hi = torch.tensor([W - 1.0, H - 1.0], device=dev)
 
     c = torch.where(valid.unsqueeze(-1), seeds.to(torch.float32), torch.zeros((), device=dev))
-    c = c.clamp(min=torch.zeros(2, device=dev), max=torch.tensor([W - 1.0, H - 1.0], device=dev))
+    c = torch.minimum(c.clamp_min(0.0), hi)
     alive = valid.clone()
     active = valid.clone()
-    counts = torch.zeros(B, N, dtype=torch.float32, device=dev)
     n_iter = 0
 
     def window(cc):
+        """Kernel weights around cc: (w (B, N, K), base (B, N, 2))."""
         base = cc.floor()
-        px = base[..., :1] + ox  # (B, N, P*P) pixel x
-        py = base[..., 1:] + oy
-        # in the kernel and on the sensor (outside the sensor counts are zero)
-        inside = (((px - cc[..., :1]) ** 2 + (py - cc[..., 1:]) ** 2) <= r2) & \
-            (px >= 0) & (px <= W - 1) & (py >= 0) & (py <= H - 1)
-        lin = (py.clamp(0, H - 1) * W + px.clamp(0, W - 1)).long()
-        w = torch.gather(flat, 1, lin.reshape(B, N * P * P)).reshape(B, N, P * P)
-        w = w * inside
-        return px, py, w
+        f = cc - base  # in [0, 1)
+        lin0 = ((base[..., 1] + have) * Wp + (base[..., 0] + have)).to(torch.int64)  # (B, N)
+        idx = (lin0.unsqueeze(-1) + off_lin).reshape(B, N * P * P)
+        w = torch.gather(flat, 1, idx).reshape(B, N, P * P)
+        inside = ((ox - f[..., :1]) ** 2 + (oy - f[..., 1:]) ** 2) <= r2
+        return w * inside, base
 
     for _ in range(int(iters)):
         n_iter += 1
-        px, py, w = window(c)
-        s = w.sum(-1)
+        w, base = window(c)
+        m = w @ moments  # (B, N, 3): sum, sum dx, sum dy
+        s = m[..., 0]
         empty = s <= 0
-        mean = torch.stack([(w * px).sum(-1), (w * py).sum(-1)], -1) / s.clamp_min(1e-12).unsqueeze(-1)
-        new = torch.where((active & ~empty).unsqueeze(-1), mean, c)
+        mean = base + m[..., 1:] / s.clamp_min(1e-12).unsqueeze(-1)
+        new = torch.where((active & ~empty).unsqueeze(-1), torch.minimum(mean.clamp_min(0.0), hi), c)
         shift = (new - c).norm(dim=-1)
         alive = alive & ~(active & empty)
         c = new
         active = active & ~empty & (shift >= tol_px)
         if not bool(active.any()):
             break
-    _, _, w = window(c)
+    w, _ = window(c)
     counts = torch.where(alive, w.sum(-1), torch.zeros((), device=dev))
     alive = alive & (counts > 0)
     c = torch.where(alive.unsqueeze(-1), c, torch.full_like(c, float("nan")))
