@@ -178,6 +178,7 @@ class EventEmulator:
             if hi == math.inf or lo == math.inf:
                 raise ValueError("frames contain inf; irradiance must be finite and >= 0")
             raise ValueError(f"frames contain negative irradiance (min {lo}); irradiance must be >= 0")
+        self._range_new = (lo, hi)
         # always a private float64 copy: it becomes state, and may be modified in place
         return frames.to(device=self.device, dtype=torch.float64, copy=True)
 
@@ -186,6 +187,7 @@ class EventEmulator:
             self._th_scalar = True
             self._th_on = self.threshold
             self._th_off = self.threshold_off
+            self._th_min = min(self.threshold, self.threshold_off)
             return
         maps = torch.empty(B, 2, H, W, dtype=torch.float64)
         for b in range(B):  # per-element seeds: element b's draw does not depend on B (reset only)
@@ -195,6 +197,7 @@ class EventEmulator:
         self._th_scalar = False
         self._th_on = self.threshold * maps[:, 0]
         self._th_off = self.threshold_off * maps[:, 1]
+        self._th_min = min(float(self._th_on.min()), float(self._th_off.min()))
 
     def reset(self, frames: torch.Tensor, t_us: int) -> None:
         """Start (or restart) all pixels: L_ref = log(frames + eps) at time ``t_us``; no events.
@@ -206,6 +209,7 @@ class EventEmulator:
         t_us = _check_t_us(t_us)
         f = self._check_frames(frames, reset=True)
         self._shape = tuple(int(s) for s in f.shape)
+        self._range = self._range_new  # (min, max) irradiance of the previous frame
         B, H, W = self._shape
         self._lref = torch.log(f + self.log_eps)
         self._l_prev = self._lref.clone()
@@ -238,6 +242,13 @@ class EventEmulator:
         layout = self._layout
         b_shift = layout.b_shift(t1 - t0)  # ValueError if the key would overflow
         dev = self.device
+        # crossings are spaced dt θ / |L1 - L0| apart; |L1 - L0| is at most the log range of
+        # both frames, so when dt θ_min / r exceeds it the spacing alone never drops a crossing
+        lo = min(self._range[0], self._range_new[0])
+        hi = max(self._range[1], self._range_new[1])
+        l_span = math.log(hi + self.log_eps) - math.log(lo + self.log_eps)
+        r = self.refractory_us
+        self._spacing_may_bind = r > 0 and dt * self._th_min <= r * l_span * (1 + 1e-6)
 
         if self.interpolation == "log":
             l1 = f1.add_(self.log_eps).log_()  # f1 is a private copy
@@ -259,6 +270,7 @@ class EventEmulator:
             del parts
 
         self._l_prev = l1
+        self._range = self._range_new
         if self.interpolation == "linear":
             self._i_prev = f1
         self.t_us = t1
@@ -295,7 +307,8 @@ class EventEmulator:
         t_shift = layout.t_shift
         if self.interpolation == "log":
             cnt, first, step_us, tlast_new = _emitted_log(
-                n_a, th_a, lref_a, self._l_prev.view(-1).index_select(0, act), l1_a, dt, tl_a, r)
+                n_a, th_a, lref_a, self._l_prev.view(-1).index_select(0, act), l1_a, dt, tl_a, r,
+                self._spacing_may_bind)
             cnti = cnt.to(torch.int64)
             sel = _nonzero_1d(cnti > 0)  # pixels with >= 1 emitted event (sync)
             all_sel = sel.numel() == act.numel()
@@ -339,12 +352,13 @@ class EventEmulator:
 
 
 # ---------------------------------------------------------------------------- helpers
-def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r):
+def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r, spacing_may_bind: bool = True):
     """Log interpolation: the emitted crossings of each pixel in closed form.
 
     Args (A candidate pixels, (A,) float64): crossing count n_a (may be 0), signed threshold
     th_a (+θ_on or -θ_off), L_ref, L0, L1; dt step length (µs); tl_a last emitted time relative
-    to the step start (<= 0, -inf = never); r refractory period (µs).
+    to the step start (<= 0, -inf = never); r refractory period (µs); ``spacing_may_bind``
+    False when the caller knows every spacing is >= r (skips that test).
 
     Returns (A,) float64: cnt emitted events, first the time of the first one and step the
     time between consecutive ones (µs after the step start), tlast the time of the last one
@@ -367,7 +381,8 @@ def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r):
     if r > 0:
         # the refractory rule can only bind where crossings are closer than r, or the first
         # one is within r of the last emitted event: apply the closed form there only
-        need = _nonzero_1d((spacing < r) | (first < tl_a + r))
+        near = first < tl_a + r
+        need = _nonzero_1d((spacing < r) | near if spacing_may_bind else near)
         if need.numel() > 0:
             cnt, first, step = cnt.clone(), first.clone(), step.clone()
             sp, bs = spacing.index_select(0, need), base.index_select(0, need)
