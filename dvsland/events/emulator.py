@@ -550,9 +550,13 @@ class _KeyLayout:
             keys.numpy().sort()
         else:
             keys = torch.sort(keys).values
-        p = (keys & 1).to(torch.int8).mul_(-2).add_(1)
-        x = (keys >> 1) & self.x_mask
-        y = (keys >> self.y_shift) & self.y_mask
-        t = ((keys >> self.t_shift) & ((1 << (b_shift - self.t_shift)) - 1)).add_(t0)
-        b = keys >> b_shift
+        # in-place where possible: every field is one fresh allocation, b reuses the keys
+        if _cpu_fast_path(keys):  # the int64 -> int8 cast keeps the low byte (with the OFF bit)
+            p = keys.to(torch.int8).bitwise_and_(1).mul_(-2).add_(1)
+        else:
+            p = (keys & 1).to(torch.int8).mul_(-2).add_(1)
+        x = (keys >> 1).bitwise_and_(self.x_mask)
+        y = (keys >> self.y_shift).bitwise_and_(self.y_mask)
+        t = (keys >> self.t_shift).bitwise_and_((1 << (b_shift - self.t_shift)) - 1).add_(t0)
+        b = keys.bitwise_right_shift_(b_shift)
         return Events(b=b, x=x, y=y, t=t, p=p)
