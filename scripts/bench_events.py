@@ -164,7 +164,12 @@ else:
         base = status_kib("VmRSS") * 1024
     except OSError:
         base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+import time
+t_wall, t_cpu = time.perf_counter(), time.process_time()
 ev = emu.step(f1, 100_000)
+if dev.startswith("cuda"):
+    torch.cuda.synchronize()
+t_wall, t_cpu = time.perf_counter() - t_wall, time.process_time() - t_cpu
 if dev.startswith("cuda"):
     torch.cuda.synchronize(); peak = torch.cuda.max_memory_allocated() - base; method = "cuda.max_memory_allocated"
 elif hwm_reset:
@@ -174,7 +179,7 @@ else:
 out_bytes = sum(getattr(ev, k).numel() * getattr(ev, k).element_size() for k in "bxytp")
 print(json.dumps({"B": B, "H": H, "W": W, "events": len(ev), "events_per_px": len(ev) / (B * H * W),
                   "peak_step_bytes": peak, "output_bytes": out_bytes, "state_bytes": state_bytes,
-                  "method": method}))
+                  "method": method, "step_wall_s": t_wall, "step_cpu_s": t_cpu}))
 """
 
 
@@ -245,7 +250,8 @@ def main(argv=None):
                 print(f"burst memory {dev}: B={m['B']} {m['H']}x{m['W']}, {m['events']} events "
                       f"({m['events_per_px']:.1f}/px): peak {m['peak_step_bytes'] / 2**30:.2f} GiB during "
                       f"the step ({m['method']}), output {m['output_bytes'] / 2**30:.2f} GiB, "
-                      f"state {m['state_bytes'] / 2**20:.0f} MiB")
+                      f"state {m['state_bytes'] / 2**20:.0f} MiB; step {m['step_wall_s']:.2f} s wall, "
+                      f"{m['step_cpu_s']:.2f} s CPU")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump({"steps": rows, "burst_memory": mem, "torch": torch.__version__,

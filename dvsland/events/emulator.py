@@ -314,8 +314,8 @@ class EventEmulator:
             all_sel = sel.numel() == act.numel()
             # the first event of every pixel with cnt >= 1 (no per-event gather) ...
             f_sel = first if all_sel else first.index_select(0, sel)
-            t_first = torch.floor(f_sel.add(0.5)).clamp_(1.0, dt).to(torch.int64)
-            parts = [(code_a if all_sel else code_a.index_select(0, sel)).add(t_first << t_shift)]
+            t_first = f_sel.add(0.5).floor_().clamp_(1.0, dt).to(torch.int64)
+            parts = [t_first.bitwise_left_shift_(t_shift).add_(code_a if all_sel else code_a.index_select(0, sel))]
             # ... then the further events of the pixels with cnt >= 2
             multi = _nonzero_1d(cnti > 1)
             if multi.numel() > 0:
@@ -457,14 +457,18 @@ def _take(th, idx):
 def _extra_keys(multi, cnti, first, step_us, code_a, dt: float, t_shift: int) -> torch.Tensor:
     """Keys of the 2nd, 3rd, ... events of the pixels ``multi`` (indices into the candidates):
     event i of pixel a is at first[a] + i * step_us[a], i = 1..cnt[a]-1. A function of its own
-    so that its per-event temporaries are freed on return."""
-    seg, i = _segments(cnti.index_select(0, multi).sub_(1))
-    seg = multi.index_select(0, seg)
-    tau = first.index_select(0, seg).addcmul_(i.add_(1).to(torch.float64), step_us.index_select(0, seg))
+    so that its per-event temporaries are freed on return; in-place ops keep the number of
+    fresh (N,) allocations (page faults dominate at tens of millions of events) low."""
+    reps = cnti.index_select(0, multi).sub_(1)
+    seg = multi.repeat_interleave(reps)  # candidate index per event
+    start = torch.cumsum(reps, 0).sub_(reps)
+    i = torch.arange(1, seg.numel() + 1, device=seg.device).sub_(start.repeat_interleave(reps))
+    del start, reps
+    tau = step_us.index_select(0, seg).mul_(i)
     del i
-    t_rel = torch.floor(tau.add_(0.5)).clamp_(1.0, dt).to(torch.int64)
+    t_rel = tau.add_(first.index_select(0, seg)).add_(0.5).floor_().clamp_(1.0, dt).to(torch.int64)
     del tau
-    return code_a.index_select(0, seg).add_(t_rel.bitwise_left_shift_(t_shift))
+    return t_rel.bitwise_left_shift_(t_shift).add_(code_a.index_select(0, seg))
 
 
 def _candidates(d: torch.Tensor, th_on, th_off, shrink: float) -> torch.Tensor:
