@@ -90,3 +90,12 @@ def test_cmax_bad_params():
         get_estimator("cmax", 1, (W, H), n_grid=2)
     with pytest.raises(ValueError, match="refine_points"):
         get_estimator("cmax", 1, (W, H), refine_points=4)
+
+
+def test_cmax_waits_for_half_window_after_reset():
+    est = get_estimator("cmax", 2, (W, H), "cpu", dt_s=0.1, window_ms=400.0, min_events=20)
+    d = _run(est, torch.tensor([-0.5, -0.5]), 3)
+    assert torch.isnan(d[0]).all() and torch.isfinite(d[1]).all()  # 0.1 s < 0.2 s <= 0.2 s
+    est.reset(torch.tensor([True, False]))
+    d = _run(est, torch.tensor([-0.5, -0.5]), 1, start=3)[0]
+    assert torch.isnan(d[0]) and torch.isfinite(d[1])

@@ -7,7 +7,7 @@ makes the warped count image sharpest (highest variance) is the estimate. The se
 batched grid over [d_min, d_max] followed by ``n_refine`` rounds of ``refine_points`` candidates
 within one grid step of the best, and a parabolic fit through the best three; every element and
 every candidate is scored at once (chunked only to bound memory). The returned D refers to the
-middle of the window. See :mod:`dvsland.estimators.contrast` for the warp.
+middle of the window. After a reset an element gives NaN until its window is at least half full. See :mod:`dvsland.estimators.contrast` for the warp.
 """
 
 from __future__ import annotations
@@ -87,6 +87,9 @@ class CMaxEstimator(DivergenceEstimator):
         self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=self.device)
         self._n_events = torch.zeros(B, dtype=torch.int64, device=self.device)
         self._contrast = torch.zeros(B, dtype=torch.float32, device=self.device)
+        # time of the first update after a reset (-1 = none yet): no estimate until the window
+        # is at least half full (a 0.1 s window holds sub-pixel motion only)
+        self._t_start_us = torch.full((B,), -1, dtype=torch.int64, device=self.device)
 
     def reset(self, mask: Optional[torch.Tensor] = None) -> None:
         mask = self._mask(mask)
@@ -94,6 +97,7 @@ class CMaxEstimator(DivergenceEstimator):
         self._d[mask] = float("nan")
         self._n_events[mask] = 0
         self._contrast[mask] = 0.0
+        self._t_start_us[mask] = -1
 
     def _window_events(self, events, t_us: int):
         if events is not None and events.b.numel() > 0:
@@ -126,7 +130,12 @@ class CMaxEstimator(DivergenceEstimator):
         b, x, y, t = self._window_events(events, t_us)
         n_per = torch.bincount(b, minlength=B)[:B]
         self._n_events = n_per
-        ok = n_per >= self.min_events
+        # the interval of this update began at the previous update (about t_us - dt)
+        t_begin = t_us - int(round(self.dt_s * 1e6))
+        self._t_start_us = torch.where(self._t_start_us < 0, torch.full_like(self._t_start_us, t_begin),
+                                       self._t_start_us)
+        filled = (t_us - self._t_start_us) * 2 >= self.window_us
+        ok = (n_per >= self.min_events) & filled
         if not bool(ok.any()):
             self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
             return self._d.clone()

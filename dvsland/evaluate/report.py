@@ -74,6 +74,9 @@ def plot_speed_vs_error(summary: dict, path: Path) -> None:
         ax.scatter([max(x, 1e-3)], [100 * y], s=50)
         ax.annotate(name, (max(x, 1e-3), 100 * y), textcoords="offset points", xytext=(5, 5))
     ax.set_xscale("log")
+    from matplotlib.ticker import NullFormatter
+
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel(f"time per update, ms (B = {len(summary['sites'])}, {summary.get('device', '')})")
     ax.set_ylabel("median |relative error|, % (sites A-G)")
     ax.axhline(10, color="grey", lw=0.8, ls="--")
