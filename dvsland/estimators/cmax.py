@@ -42,7 +42,8 @@ class CMaxEstimator(DivergenceEstimator):
         min_events: an element with fewer events in the window gets NaN.
         refine_points: candidates per refinement round (odd, >= 3; not in paper).
         blur_sigma_px: Gaussian blur of the warped image before the variance, px (0 = none).
-        max_events: per element at most this many events (evenly strided) are warped; 0 = all.
+        max_events: per element at most about this many events are warped (each step's events
+            are thinned to max_events / (window / dt) by an even stride when stored); 0 = all.
         dither: spread each event uniformly within its pixel (seeded) before warping. Without it
             the un-warped D = 0 lands every event of a pixel on the same spot and wins whenever
             the motion in the window is sub-pixel (high altitude).
@@ -101,7 +102,8 @@ class CMaxEstimator(DivergenceEstimator):
 
     def _window_events(self, events, t_us: int):
         if events is not None and events.b.numel() > 0:
-            self._store.append(tuple(getattr(events, f).to(self.device) for f in ("b", "x", "y", "t")))
+            fields = tuple(getattr(events, f).to(self.device) for f in ("b", "x", "y", "t"))
+            self._store.append(self._cap_step(*fields))
         t0 = t_us - self.window_us
         self._store = [s for s in self._store if s[3].numel() > 0 and bool(s[3].max() > t0)]
         if not self._store:
@@ -109,6 +111,26 @@ class CMaxEstimator(DivergenceEstimator):
             return z, z, z, z
         b, x, y, t = (torch.cat(f) for f in zip(*self._store))
         keep = (t > t0) & (t <= t_us) & (b >= 0) & (b < self.batch_size)
+        return b[keep], x[keep], y[keep], t[keep]
+
+    def _cap_step(self, b, x, y, t):
+        """Keep an even stride of at most max_events / (steps per window) events per element of
+        one step's events, so the window never holds much more than max_events per element."""
+        if self.max_events <= 0:
+            return b, x, y, t
+        steps = max(1, int(round(self.window_us / (self.dt_s * 1e6))))
+        cap = max(1, self.max_events // steps)
+        b_ok = b.clamp(0, self.batch_size - 1)
+        n_per = torch.bincount(b_ok, minlength=self.batch_size)[: self.batch_size]
+        if not bool((n_per > cap).any()):
+            return b, x, y, t
+        if b.numel() > 1 and not bool((b[1:] >= b[:-1]).all()):  # Events are sorted by (b, t); be safe
+            order = torch.argsort(b, stable=True)
+            b, x, y, t, b_ok = b[order], x[order], y[order], t[order], b_ok[order]
+        start = torch.cumsum(n_per, 0) - n_per
+        rank = torch.arange(b.numel(), device=b.device) - start[b_ok]
+        stride = (n_per + cap - 1) // cap
+        keep = (rank % stride[b_ok]) == 0
         return b[keep], x[keep], y[keep], t[keep]
 
     def _subsample(self, b, x, y, t, n_per):
