@@ -26,6 +26,17 @@ def paper_yaml_module():
     return Path(__file__).resolve().parents[1] / "configs" / "paper.yaml"
 
 
+@pytest.fixture
+def one_thread():
+    """Small tensors on a shared 2-core machine run far faster on one torch thread."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def test_closed_form_descents_paper_times(cfg):
     d = closed_form_descents(cfg)
     assert d.sites == list("ABCDEFGHI")
@@ -75,17 +86,17 @@ def test_parse_estimator_spec():
         parse_estimator_spec("cmax[window_ms]")
 
 
-def test_evaluate_small_run_and_outputs(cfg, tmp_path):
+def test_evaluate_small_run_and_outputs(cfg, tmp_path, one_thread):
     frames = ZoomTextureFrames(2, (128, 128), cfg.camera.fov_deg, texture_px=512, seed=3)
-    res = evaluate(cfg, ["oracle", "dpr", "cmax[window_ms=300;n_grid=11;n_refine=1]"], sites=["A", "D"],
-                   max_steps=12, warmup_steps=2, frame_source=frames, progress=False)
+    res = evaluate(cfg, ["oracle", "dpr", "cmax[window_ms=300;n_grid=7;n_refine=1;max_events=1000]"],
+                   sites=["A", "D"], max_steps=10, warmup_steps=2, frame_source=frames, progress=False)
     s = res.summary
     assert s["sites"] == ["A", "D"] and s["trajectory"] == "closed_form"
-    assert res.scored.sum() == 2 * 10
+    assert res.scored.sum() == 2 * 8
     o = s["estimators"]["oracle"]["all_sites"]
     assert o["median_abs_rel_err"] < 1e-6 and o["within_10"] == 1 and o["coverage"] == 1
     for name in res.d_hat:
-        assert len(res.ms_per_step[name]) == 12
+        assert len(res.ms_per_step[name]) == 10
         assert not np.isinf(res.d_hat[name]).any()
     assert (res.n_events[:, 1:] > 0).all()
     table = format_table(s)
@@ -95,7 +106,7 @@ def test_evaluate_small_run_and_outputs(cfg, tmp_path):
     assert set(data["estimators"]) == set(res.d_hat)
     assert paths["speed_vs_error"].stat().st_size > 1000 and paths["traces_png"].exists()
     npz = np.load(paths["traces"])
-    assert npz["d_hat_dpr"].shape == (2, 13)
+    assert npz["d_hat_dpr"].shape == (2, 11)
 
 
 def test_evaluate_bad_args(cfg):
