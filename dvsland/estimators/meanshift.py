@@ -74,37 +74,41 @@ def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor
     hi = torch.tensor([W - 1.0, H - 1.0], device=dev)
 
     c = torch.where(valid.unsqueeze(-1), seeds.to(torch.float32), torch.zeros((), device=dev))
-    c = torch.minimum(c.clamp_min(0.0), hi)
-    alive = valid.clone()
-    active = valid.clone()
+    c = torch.minimum(c.clamp_min(0.0), hi).reshape(B * N, 2)
+    flat_all = img.reshape(-1)
+    row_base = (torch.arange(B, device=dev) * (Hp * Wp)).repeat_interleave(N)  # (B*N,) image offsets
+    alive = valid.reshape(-1).clone()
+    active = alive.clone()
     n_iter = 0
 
-    def window(cc):
-        """Kernel weights around cc: (w (B, N, K), base (B, N, 2))."""
+    def window(cc, rb):
+        """Kernel weights around cc (A, 2) in images at offsets rb (A,): (w (A, K), base (A, 2))."""
         base = cc.floor()
         f = cc - base  # in [0, 1)
-        lin0 = ((base[..., 1] + have) * Wp + (base[..., 0] + have)).to(torch.int64)  # (B, N)
-        idx = (lin0.unsqueeze(-1) + off_lin).reshape(B, N * P * P)
-        w = torch.gather(flat, 1, idx).reshape(B, N, P * P)
-        inside = ((ox - f[..., :1]) ** 2 + (oy - f[..., 1:]) ** 2) <= r2
+        lin0 = rb + ((base[:, 1] + have) * Wp + (base[:, 0] + have)).to(torch.int64)  # (A,)
+        w = flat_all[lin0.unsqueeze(-1) + off_lin[0]]  # (A, K)
+        inside = ((ox[0] - f[:, :1]) ** 2 + (oy[0] - f[:, 1:]) ** 2) <= r2
         return w * inside, base
 
+    # iterate only the centroids still moving (compacted each iteration)
     for _ in range(int(iters)):
-        n_iter += 1
-        w, base = window(c)
-        m = w @ moments  # (B, N, 3): sum, sum dx, sum dy
-        s = m[..., 0]
-        empty = s <= 0
-        mean = base + m[..., 1:] / s.clamp_min(1e-12).unsqueeze(-1)
-        new = torch.where((active & ~empty).unsqueeze(-1), torch.minimum(mean.clamp_min(0.0), hi), c)
-        shift = (new - c).norm(dim=-1)
-        alive = alive & ~(active & empty)
-        c = new
-        active = active & ~empty & (shift >= tol_px)
-        if not bool(active.any()):
+        ia = active.nonzero().squeeze(1)
+        if ia.numel() == 0:
             break
-    w, _ = window(c)
+        n_iter += 1
+        ca = c[ia]
+        w, base = window(ca, row_base[ia])
+        m = w @ moments  # (A, 3): sum, sum dx, sum dy
+        s = m[:, 0]
+        empty = s <= 0
+        mean = torch.minimum((base + m[:, 1:] / s.clamp_min(1e-12).unsqueeze(-1)).clamp_min(0.0), hi)
+        new = torch.where(empty.unsqueeze(-1), ca, mean)
+        shift = (new - ca).norm(dim=-1)
+        c[ia] = new
+        alive[ia] = ~empty
+        active[ia] = ~empty & (shift >= tol_px)
+    w, _ = window(c, row_base)
     counts = torch.where(alive, w.sum(-1), torch.zeros((), device=dev))
     alive = alive & (counts > 0)
     c = torch.where(alive.unsqueeze(-1), c, torch.full_like(c, float("nan")))
-    return c, counts, torch.tensor(n_iter)
+    return c.reshape(B, N, 2), counts.reshape(B, N), torch.tensor(n_iter)
