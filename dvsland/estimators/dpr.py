@@ -4,7 +4,9 @@ Per step:
 
 1. The interval's events become a count image (ON + OFF summed: shadows and lit rims both mark a
    feature, and the clustering only needs where events are). A ring of the last
-   ``K = round(memory_ms / dt)`` count images gives the windowed count image over T = memory_ms.
+   ``K = round(memory_ms / dt)`` steps gives the windowed count image over T = memory_ms; the ring
+   holds each step's events as pixel indices and the window is a running sum (add the new step,
+   subtract the oldest: two ``index_add_`` calls, no dense image per step).
 2. Mean-shift (flat kernel R = ``radius_px``) seeded with last step's centroids, iterated to
    convergence on the windowed image, batched over (B, N_max).
 3. A centroid is dropped when fewer than ``n_min`` events lie within R of it, when it is closer
@@ -26,7 +28,6 @@ from typing import Optional
 
 import torch
 
-from ._counts import count_image
 from .base import DivergenceEstimator, Truth
 from .density_peaks import density_peaks
 from .divergence import pairwise_divergence
@@ -92,7 +93,9 @@ class DPREstimator(DivergenceEstimator):
         B, N = self.batch_size, self.n_max
         W, H = self.sensor_size
         dev = self.device
-        self._ring = torch.zeros(self.n_ring, B, H, W, dtype=torch.float32, device=dev)
+        # ring of the last K steps' events as flat indices into the padded window (sparse: the
+        # window is updated by adding the new step's events and removing the oldest step's)
+        self._ring = [torch.zeros(0, dtype=torch.int64, device=dev) for _ in range(self.n_ring)]
         self._slot = 0
         # running ring sum, stored with a zero border so mean-shift patches never leave it
         self._pad = int(math.ceil(self.radius_px)) + 1
@@ -111,8 +114,9 @@ class DPREstimator(DivergenceEstimator):
     # ------------------------------------------------------------------ state
     def reset(self, mask: Optional[torch.Tensor] = None) -> None:
         mask = self._mask(mask)
-        self._ring[:, mask] = 0.0
-        self._window[mask] = 0.0
+        plane = self._window_padded.shape[1] * self._window_padded.shape[2]
+        self._ring = [r[~mask[r // plane]] for r in self._ring]
+        self._window_padded[mask] = 0.0
         self._centroids[mask] = float("nan")
         self._valid[mask] = False
         self._counts[mask] = 0.0
@@ -126,6 +130,21 @@ class DPREstimator(DivergenceEstimator):
 
         Kept as a running sum of the ring (counts are integers: float32 adds them exactly)."""
         return self._window.clone()
+
+    def _event_index(self, events) -> torch.Tensor:
+        """Flat indices of the events into the padded window, (E,) int64 (off-sensor dropped)."""
+        if events is None or events.b.numel() == 0:
+            return torch.zeros(0, dtype=torch.int64, device=self.device)
+        W, H = self.sensor_size
+        q = self._pad
+        b = events.b.to(self.device)
+        x = events.x.to(self.device)
+        y = events.y.to(self.device)
+        ok = (b >= 0) & (b < self.batch_size) & (x >= 0) & (x < W) & (y >= 0) & (y < H)
+        lin = (b * (H + 2 * q) + (y + q)) * (W + 2 * q) + (x + q)
+        if not bool(ok.all()):
+            lin = lin[ok]
+        return lin
 
     # ------------------------------------------------------------------ rules
     def _keep(self, c: torch.Tensor, counts: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -168,11 +187,15 @@ class DPREstimator(DivergenceEstimator):
         if self._last_t_us is not None and t_us > self._last_t_us:
             dt = (t_us - self._last_t_us) * 1e-6
         self._last_t_us = t_us
-        new = count_image(events, self.batch_size, H, W, self.device)
-        self._window += new - self._ring[self._slot]
+        new = self._event_index(events)
+        flat = self._window_padded.view(-1)
+        old = self._ring[self._slot]
+        if old.numel():
+            flat.index_add_(0, old, torch.full((old.numel(),), -1.0, device=self.device))
+        if new.numel():
+            flat.index_add_(0, new, torch.ones(new.numel(), device=self.device))
         self._ring[self._slot] = new
         self._slot = (self._slot + 1) % self.n_ring
-        image = self._window
 
         # 1. track: mean-shift from last step's centroids
         prev = self._centroids
