@@ -108,6 +108,13 @@ def test_dpr_drops_thin_and_edge_clusters():
     assert near(20, 20) and near(40, 40)
     assert not near(20, 45)  # thin cluster: 8 < n_min events
     assert not near(1, 30)  # edge cluster: closer than r_min to the edge
+    # the same clusters are kept once the rules allow them (so the drops above are the rules' doing)
+    est2 = _estimator(n_min=5, r_min_px=0.5, c_min=2)
+    est2.update(_events_from_points(pts), 100_000)
+    c2 = est2.diagnostics()["centroids"][0]
+    kept2 = c2[~torch.isnan(c2[:, 0])]
+    near2 = lambda x, y: ((kept2 - torch.tensor([x, y], dtype=torch.float32)).norm(dim=1) < 1.0).any()  # noqa: E731
+    assert near2(20, 45) and near2(1, 30)
     assert dg["centroids"].shape == (1, 15, 2) and dg["centroids"].dtype == torch.float32
 
 
