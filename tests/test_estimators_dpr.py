@@ -231,3 +231,37 @@ def test_dpr_cpu_cuda_agree():
     est = DPREstimator(2, (W, H), device="cuda", dt_s=0.1, n_min=10, radius_px=3.0)
     b = _run_zoom(est, D.cuda(), 8, n_blobs=12).cpu()
     assert torch.allclose(a.nan_to_num(9), b.nan_to_num(9), atol=1e-4)
+
+
+# ---------------------------------------------------------------- properties
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=40, deadline=None)
+@given(scale=st.floats(0.8, 1.25), n=st.integers(2, 15), seed=st.integers(0, 10_000),
+       cx=st.floats(0, 127), cy=st.floats(0, 127))
+def test_eq8_any_pure_zoom_property(scale, n, seed, cx, cy):
+    g = torch.Generator().manual_seed(seed)
+    prev = torch.rand(1, n, 2, generator=g, dtype=torch.float64) * 128
+    cur = torch.tensor([cx, cy], dtype=torch.float64) + (prev - torch.tensor([cx, cy], dtype=torch.float64)) * scale
+    for weighting in ("none", "length"):
+        d, k = pairwise_divergence(prev, cur, torch.ones(1, n, dtype=torch.bool), 0.1, weighting=weighting)
+        assert k.item() == n * (n - 1) // 2
+        assert d.item() == pytest.approx((1 - scale) / 0.1, rel=1e-4, abs=1e-4)
+
+
+@settings(max_examples=25, deadline=None)
+@given(dx=st.integers(-20, 20), dy=st.integers(-20, 20), seed=st.integers(0, 1000))
+def test_meanshift_translation_equivariant(dx, dy, seed):
+    g = torch.Generator().manual_seed(seed)
+    img = torch.zeros(1, 96, 96)
+    pts = torch.randint(0, 7, (40, 2), generator=g) + 40
+    img[0].index_put_((pts[:, 1], pts[:, 0]), torch.ones(40), accumulate=True)
+    seeds = torch.tensor([[[43.3, 42.7]]])
+    ok = torch.tensor([[True]])
+    c1, n1, _ = meanshift_flat(img, seeds, ok, 4.0, 50, 1e-4)
+    shifted = torch.roll(img, shifts=(dy, dx), dims=(1, 2))
+    c2, n2, _ = meanshift_flat(shifted, seeds + torch.tensor([dx, dy], dtype=torch.float32), ok, 4.0, 50, 1e-4)
+    assert torch.allclose(c2, c1 + torch.tensor([dx, dy], dtype=torch.float32), atol=1e-4)
+    assert torch.equal(n1, n2)
