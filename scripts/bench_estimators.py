@@ -106,7 +106,8 @@ def main() -> int:
                 r = time_estimator(cfg, name, B, dev, steps, args.warmup, args.events_per_element)
                 rows.append(r)
                 print(f"{name:<9} {B:>4} {dev:<6} {r['events_per_step']:>11d} {r['ms_median']:>10.2f} "
-                      f"{r['ms_p10']:>7.2f}-{r['ms_p90']:<8.2f} {r['cpu_ms_median']:>8.2f} {r['reinit_elements']:>6d} {r['finite_fraction']:>6.2f}",
+                      f"{r['ms_p10']:>7.2f}-{r['ms_p90']:<8.2f} {r['cpu_ms_median']:>8.2f} "
+                      f"{r['reinit_elements']:>6d} {r['finite_fraction']:>6.2f}",
                       flush=True)
     out = {"timings": rows, "torch_threads": torch.get_num_threads(), "torch": torch.__version__}
     if args.eval:

@@ -7,7 +7,8 @@ makes the warped count image sharpest (highest variance) is the estimate. The se
 batched grid over [d_min, d_max] followed by ``n_refine`` rounds of ``refine_points`` candidates
 within one grid step of the best, and a parabolic fit through the best three; every element and
 every candidate is scored at once (chunked only to bound memory). The returned D refers to the
-middle of the window. After a reset an element gives NaN until its window is at least half full. See :mod:`dvsland.estimators.contrast` for the warp.
+middle of the window. After a reset an element gives NaN until its window is at least half
+full. See :mod:`dvsland.estimators.contrast` for the warp.
 """
 
 from __future__ import annotations

@@ -24,7 +24,8 @@ def format_table(summary: dict) -> str:
     ests = summary["estimators"]
     sites = summary["sites"]
     lines = []
-    head = f"{'estimator':<10} {'site':<5} {'steps':>6} {'cover':>7} {'med|rel|':>9} {'RMSE':>8} {'<10%':>7} {'<20%':>7} {'bias':>8}"
+    head = (f"{'estimator':<10} {'site':<5} {'steps':>6} {'cover':>7} {'med|rel|':>9} {'RMSE':>8} "
+            f"{'<10%':>7} {'<20%':>7} {'bias':>8}")
     lines.append("Open-loop divergence error per site (closed-form oracle descents; med|rel| and RMSE over "
                  "steps with an estimate, <10%/<20% over all steps)")
     lines.append(head)
