@@ -201,3 +201,16 @@ class TestOverrides:
         d = config_to_dict(load_config(paper_yaml))
         yaml.safe_dump(d)  # only plain types
         assert d["simulation"]["sites"][0]["name"] == "A"
+
+
+def test_realistic_preset_is_paper_with_100kN(paper_yaml):
+    paper = load_config(paper_yaml)
+    real = load_config(paper_yaml.parent / "realistic.yaml")
+    assert real.controller.thrust_max_n == 1e5 and paper.controller.thrust_max_n is None
+    real.controller.thrust_max_n, real.name = None, paper.name
+    assert real == paper
+
+
+def test_torch_threads_range(tmp_path):
+    with pytest.raises(ConfigError, match=r"simulation\.torch_threads.*out of range"):
+        load_config(write(tmp_path, {"simulation": {"torch_threads": -1}}))

@@ -16,9 +16,13 @@ from dvsland.runs import utc_stamp
 
 #: name -> (script, default args, quick args); "{json}" is replaced by the output path.
 BENCHES = {
-    "render": ("bench_render.py", ["--json", "{json}"], ["--batches", "18", "--repeat", "5", "--json", "{json}"]),
-    "events": ("bench_events.py", ["--json", "{json}"], ["--batch", "18", "--no-memory", "--json", "{json}"]),
-    "estimators": ("bench_estimators.py", ["--json", "{json}"], ["--quick", "--json", "{json}"]),
+    "render": ("bench_render.py", ["--threads", "1", "--json", "{json}"],
+               ["--threads", "1", "--batches", "18", "--repeat", "5", "--json", "{json}"]),
+    "events": ("bench_events.py", ["--threads", "1", "--json", "{json}"],
+               ["--threads", "1", "--batch", "18", "--no-memory", "--json", "{json}"]),
+    "estimators": ("bench_estimators.py", ["--threads", "1", "--json", "{json}"],
+                   ["--threads", "1", "--batch", "18", "--steps", "10", "--estimators", "dpr,oracle",
+                    "--json", "{json}"]),
     "renderers": ("compare_renderers.py", ["--out", "{json}"], ["--n-alt", "4", "--segments", "--out", "{json}"]),
     "sim": ("profile_sim.py", ["--json", "{json}"], ["--sites", "A,D,H", "--json", "{json}"]),
 }

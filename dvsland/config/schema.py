@@ -209,6 +209,8 @@ class SimulationConfig:
     success_altitude_m: float = opt(50.0, "success when altitude <= this, m", rng=(0.0, 1e5))
     crash_divergence: float = opt(0.5, "crash when |D| = -v/z >= this, 1/s", rng=(0.0, 1e3), open_lo=True)
     device: str = opt("cpu", "torch device ('cpu', 'cuda', 'cuda:0', ...)")
+    torch_threads: int = opt(1, "torch CPU threads set for the run; 0 = leave torch's default (1 measured "
+                             "fastest on 2 cores: the per-step ops are small)", rng=(0, 1024))
 
 
 @dataclass

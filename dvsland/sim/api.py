@@ -97,7 +97,10 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
     if isinstance(sites, str):
         sites = sites.split(",")
     dev = _device(cfg.simulation.device)
+    if cfg.simulation.torch_threads > 0:
+        torch.set_num_threads(cfg.simulation.torch_threads)
     layout = build_layout(cfg, sites)
+    run_dir = make_run_dir(cfg, out)  # config.yaml first: a failing set-up still leaves it
     B = layout.batch_size
     if estimator is not None and not isinstance(estimator, str):
         est = estimator
@@ -111,7 +114,6 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
     rend = emu = None
     if getattr(est, "needs_events", True):
         rend, emu = build_event_stages(cfg, layout.site_names, dev, renderer)
-    run_dir = make_run_dir(cfg, out)
     loop = ClosedLoop(cfg, layout, est, rend, emu, dev, sync_timers=sync_timers, controller=controller)
     quiet_ = cfg.logging.quiet
     tb = None
