@@ -9,6 +9,10 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 
+# One intra-op thread: the tests' tensors are small, and on 2 shared cores torch's default of 2
+# threads made small ops 10-400x slower (measured); the simulator's default is 1 thread too.
+torch.set_num_threads(1)
+
 
 def _devices():
     devs = ["cpu"]

@@ -76,12 +76,7 @@ def run_events(args) -> int:
     from dvsland.render import get_renderer
     from dvsland.runs import make_run_dir
 
-    extra = []
-    if args.renderer:
-        extra.append(f"render.renderer={args.renderer}")
-    if args.device:
-        extra.append(f"simulation.device={args.device}")
-    cfg = config_from_args(args, extra)
+    cfg = config_from_args(args)
     quiet = cfg.logging.quiet
     site = args.site
     z0, v0 = site_initial_conditions(cfg, site)

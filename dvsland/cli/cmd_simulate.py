@@ -22,14 +22,7 @@ def register(subparsers) -> None:
 def run_simulate(args) -> int:
     from dvsland.sim import simulate
 
-    extra = []
-    if args.estimator:
-        extra.append(f"estimator.name={args.estimator}")
-    if args.renderer:
-        extra.append(f"render.renderer={args.renderer}")
-    if args.device:
-        extra.append(f"simulation.device={args.device}")
-    cfg = config_from_args(args, extra)
+    cfg = config_from_args(args)
     try:
         result = simulate(cfg, sites=args.sites, out=args.out)
     except KeyboardInterrupt:

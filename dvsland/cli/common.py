@@ -19,9 +19,16 @@ def add_config_args(parser: argparse.ArgumentParser, out: bool = True) -> None:
         parser.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
 
+#: sub-command flags that are shortcuts for a config value (applied before ``--set``)
+FLAG_KEYS = {"estimator": "estimator.name", "renderer": "render.renderer", "device": "simulation.device"}
+
+
 def config_from_args(args: argparse.Namespace, extra_overrides=()) -> Config:
-    """Load the config named by ``args.config`` with ``--set`` and command-specific overrides."""
-    overrides = list(extra_overrides) + list(getattr(args, "overrides", []) or [])
+    """Load the config named by ``args.config`` with the shortcut flags (``--estimator``,
+    ``--renderer``, ``--device``, ``--quiet``), ``extra_overrides`` and ``--set`` applied, so the
+    run folder's config.yaml records what actually ran."""
+    overrides = [f"{key}={getattr(args, flag)}" for flag, key in FLAG_KEYS.items() if getattr(args, flag, None)]
+    overrides += list(extra_overrides) + list(getattr(args, "overrides", []) or [])
     if getattr(args, "quiet", False):
         overrides.append("logging.quiet=true")
     return load_config(args.config, overrides)
