@@ -7,6 +7,7 @@ patches of all (B, N) seeds are gathered at once.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Tuple
 
@@ -62,53 +63,70 @@ def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor
     if have < q:
         img = F.pad(img, (q - have,) * 4)
         have = q
+    img = img.contiguous()
     Hp, Wp = img.shape[1], img.shape[2]
-    flat = img.reshape(B, Hp * Wp)
-    off = torch.arange(P, device=dev, dtype=torch.float32) - r_int  # -r .. r+1
-    oy, ox = torch.meshgrid(off, off, indexing="ij")
-    ox = ox.reshape(1, 1, P * P)
-    oy = oy.reshape(1, 1, P * P)
-    off_lin = (oy * Wp + ox).to(torch.int64)  # (1, 1, K) offsets from the patch's base pixel
-    moments = torch.stack([torch.ones(P * P, device=dev), ox.reshape(-1), oy.reshape(-1)], 1)  # (K, 3)
+    off, moments_t, hi, zero = _constants(str(dev), P, r_int, W, H)
     r2 = float(radius_px) ** 2
-    hi = torch.tensor([W - 1.0, H - 1.0], device=dev)
+    # patches[i] = the P x P patch whose top-left pixel is flat index i of the padded images: an
+    # overlapping strided view (one index_select per gather, no (A, P*P) index arithmetic)
+    n_flat = B * Hp * Wp
+    patches = img.reshape(-1).as_strided((n_flat - (P - 1) * (Wp + 1), P, P), (1, Wp, 1))
+    # flat index of the patch of a seed = lin_b + Wp * floor(y) + floor(x), computed by one addmv
+    # in float (exact: integers below 2**24, else float64)
+    ldt = torch.float32 if n_flat < 2 ** 24 else torch.float64
+    wv = torch.tensor([1.0, float(Wp)], dtype=ldt, device=dev)
+    s0 = have - r_int
+    lin_all = torch.arange(B, device=dev, dtype=ldt).mul_(Hp * Wp).add_(s0 * Wp + s0).repeat_interleave(N)
 
-    c = torch.where(valid.unsqueeze(-1), seeds.to(torch.float32), torch.zeros((), device=dev))
-    c = torch.minimum(c.clamp_min(0.0), hi).reshape(B * N, 2)
-    flat_all = img.reshape(-1)
-    row_base = (torch.arange(B, device=dev) * (Hp * Wp)).repeat_interleave(N)  # (B*N,) image offsets
-    alive = valid.reshape(-1).clone()
-    active = alive.clone()
-    n_iter = 0
-
-    def window(cc, rb):
-        """Kernel weights around cc (A, 2) in images at offsets rb (A,): (w (A, K), base (A, 2))."""
+    def window(cc, lb):
+        """Kernel weights around cc (A, 2) with patch offsets lb (A,): (w (A, P*P), base (A, 2))."""
         base = cc.floor()
-        f = cc - base  # in [0, 1)
-        lin0 = rb + ((base[:, 1] + have) * Wp + (base[:, 0] + have)).to(torch.int64)  # (A,)
-        w = flat_all[lin0.unsqueeze(-1) + off_lin[0]]  # (A, K)
-        inside = ((ox[0] - f[:, :1]) ** 2 + (oy[0] - f[:, 1:]) ** 2) <= r2
-        return w * inside, base
+        lin = torch.addmv(lb, base.to(ldt), wv).to(torch.int64)
+        w = patches.index_select(0, lin)  # (A, P, P) copy
+        d2 = (off - (cc - base).unsqueeze(-1)).pow(2)  # (A, 2, P): (dx^2, dy^2) per column / row
+        inside = (d2[:, 0].unsqueeze(1) + d2[:, 1].unsqueeze(2)) <= r2
+        return torch.where(inside, w, zero).reshape(-1, P * P), base
 
-    # iterate only the centroids still moving (compacted each iteration)
+    c = torch.where(valid.unsqueeze(-1), seeds.to(torch.float32), zero)
+    c = torch.clamp(c, zero, hi).reshape(B * N, 2)
+    valid_f = valid.reshape(-1)
+    # iterate only the centroids still moving (compacted whenever some froze). A seed whose
+    # kernel holds no counts stops (it does not move) and is found lost by the final count.
+    ia = valid_f.nonzero().squeeze(1)
+    ca, la = c.index_select(0, ia), lin_all.index_select(0, ia)
+    n_iter = 0
     for _ in range(int(iters)):
-        ia = active.nonzero().squeeze(1)
         if ia.numel() == 0:
             break
         n_iter += 1
-        ca = c[ia]
-        w, base = window(ca, row_base[ia])
-        m = w @ moments  # (A, 3): sum, sum dx, sum dy
-        s = m[:, 0]
+        w, base = window(ca, la)
+        m = moments_t @ w.t()  # (3, A): sum, sum dx, sum dy
+        s = m[0]
         empty = s <= 0
-        mean = torch.minimum((base + m[:, 1:] / s.clamp_min(1e-12).unsqueeze(-1)).clamp_min(0.0), hi)
+        mean = torch.clamp(base + m[1:].t() / s.clamp_min(1e-12).unsqueeze(-1), zero, hi)
         new = torch.where(empty.unsqueeze(-1), ca, mean)
-        shift = (new - ca).norm(dim=-1)
-        c[ia] = new
-        alive[ia] = ~empty
-        active[ia] = ~empty & (shift >= tol_px)
-    w, _ = window(c, row_base)
-    counts = torch.where(alive, w.sum(-1), torch.zeros((), device=dev))
-    alive = alive & (counts > 0)
-    c = torch.where(alive.unsqueeze(-1), c, torch.full_like(c, float("nan")))
+        still = (new - ca).norm(dim=-1) >= tol_px
+        if not tol_px > 0:
+            still = still & ~empty
+        c.index_copy_(0, ia, new)
+        sel = still.nonzero().squeeze(1)
+        if sel.numel() < ia.numel():
+            ia, ca, la = ia.index_select(0, sel), new.index_select(0, sel), la.index_select(0, sel)
+        else:
+            ca = new
+    w, _ = window(c, lin_all)
+    counts = torch.where(valid_f, w.sum(-1), zero)
+    alive = valid_f & (counts > 0)
+    c = torch.where(alive.unsqueeze(-1), c, torch.full((), float("nan"), device=dev))
     return c.reshape(B, N, 2), counts.reshape(B, N), torch.tensor(n_iter)
+
+
+@functools.lru_cache(maxsize=32)
+def _constants(device: str, P: int, r_int: int, W: int, H: int):
+    """Cached per-shape constants: pixel offsets (P,) -r..r+1, moments (3, P*P) = (1, dx, dy)
+    per patch pixel (row-major, y outer), the upper clamp (W-1, H-1) and a zero, all float32."""
+    off = torch.arange(P, device=device, dtype=torch.float32) - r_int
+    oy, ox = torch.meshgrid(off, off, indexing="ij")
+    moments = torch.stack([torch.ones(P * P, device=device), ox.reshape(-1), oy.reshape(-1)], 0)
+    hi = torch.tensor([W - 1.0, H - 1.0], device=device)
+    return off, moments, hi, torch.zeros((), device=device)
