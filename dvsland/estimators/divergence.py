@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from typing import Tuple
 
 import torch
@@ -37,16 +38,14 @@ def pairwise_divergence(prev_xy: torch.Tensor, cur_xy: torch.Tensor, valid: torc
     if weighting not in ("none", "length"):
         raise ValueError(f"weighting must be 'none' or 'length', got {weighting!r}")
     N = prev_xy.shape[1]
-    p = prev_xy.to(torch.float64)
-    c = cur_xy.to(torch.float64)
-    p = p.nan_to_num(0.0)
-    c = c.nan_to_num(0.0)
-    l0 = (p.unsqueeze(2) - p.unsqueeze(1)).norm(dim=-1)  # (B, N, N), exact (no cdist mm shortcut)
-    l1 = (c.unsqueeze(2) - c.unsqueeze(1)).norm(dim=-1)
-    upper = torch.ones(N, N, dtype=torch.bool, device=valid.device).triu(1)
-    use = upper & valid.unsqueeze(-1) & valid.unsqueeze(-2) & (l0 > min_length_px)
-    term = torch.where(use, (1.0 - l1 / l0.clamp_min(min_length_px)) / dt_s, torch.zeros((), dtype=torch.float64,
-                                                                                         device=valid.device))
+    # both steps at once: (2, B, N, 2) float64
+    pc = torch.stack([prev_xy, cur_xy]).to(torch.float64).nan_to_num_(0.0)
+    ll = (pc.unsqueeze(3) - pc.unsqueeze(2)).norm(dim=-1)  # (2, B, N, N), exact (no cdist mm shortcut)
+    l0, l1 = ll[0], ll[1]
+    use = valid.unsqueeze(-1) & valid.unsqueeze(-2)
+    use &= _upper(N, str(valid.device))
+    use &= l0 > min_length_px
+    term = torch.where(use, (1.0 - l1 / l0.clamp_min(min_length_px)) / dt_s, _zero64(str(valid.device)))
     n = use.sum((-1, -2))
     if weighting == "length":
         w = torch.where(use, l0, torch.zeros_like(l0))
@@ -55,3 +54,14 @@ def pairwise_divergence(prev_xy: torch.Tensor, cur_xy: torch.Tensor, valid: torc
         d = term.sum((-1, -2)) / n.clamp_min(1)
     d = torch.where(n > 0, d, torch.full_like(d, float("nan")))
     return d.to(torch.float32), n
+
+
+@functools.lru_cache(maxsize=16)
+def _upper(n: int, device: str) -> torch.Tensor:
+    """(n, n) bool, True above the diagonal (pairs i < j); cached."""
+    return torch.ones(n, n, dtype=torch.bool, device=device).triu(1)
+
+
+@functools.lru_cache(maxsize=16)
+def _zero64(device: str) -> torch.Tensor:
+    return torch.zeros((), dtype=torch.float64, device=device)

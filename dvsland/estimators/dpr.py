@@ -110,6 +110,15 @@ class DPREstimator(DivergenceEstimator):
         self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
         self._last_t_us: Optional[int] = None
         self._age = torch.zeros(B, dtype=torch.int64, device=dev)  # steps since reset
+        # per-step constants, made once: +1 sources of index_add_ (grown on demand), scalars,
+        # the edge bounds of the r_min rule and the strict upper triangle of the merge rule
+        self._ones = torch.ones(4096, dtype=torch.float32, device=dev)
+        self._nan = torch.full((), float("nan"), dtype=torch.float32, device=dev)
+        self._zero = torch.zeros((), dtype=torch.float32, device=dev)
+        r = self.r_min_px
+        self._lo_xy = torch.tensor([r, r], dtype=torch.float32, device=dev)
+        self._hi_xy = torch.tensor([W - 1 - r, H - 1 - r], dtype=torch.float32, device=dev)
+        self._upper = torch.ones(N, N, dtype=torch.bool, device=dev).triu(1)
 
     # ------------------------------------------------------------------ state
     def reset(self, mask: Optional[torch.Tensor] = None) -> None:
@@ -137,29 +146,38 @@ class DPREstimator(DivergenceEstimator):
             return torch.zeros(0, dtype=torch.int64, device=self.device)
         W, H = self.sensor_size
         q = self._pad
+        Hp, Wp = H + 2 * q, W + 2 * q
         b = events.b.to(self.device)
         x = events.x.to(self.device)
         y = events.y.to(self.device)
-        ok = (b >= 0) & (b < self.batch_size) & (x >= 0) & (x < W) & (y >= 0) & (y < H)
-        lin = (b * (H + 2 * q) + (y + q)) * (W + 2 * q) + (x + q)
-        if not bool(ok.all()):
+        # lin = (b * Hp + y + q) * Wp + x + q, in three integer ops
+        lin = torch.add(x, y, alpha=Wp).add_(b, alpha=Hp * Wp).add_(q * Wp + q)
+        # range check from the extremes (one sync); the mask is built only when needed
+        lo_hi = torch.stack([*torch.aminmax(b), *torch.aminmax(x), *torch.aminmax(y)]).tolist()
+        if (lo_hi[0] < 0 or lo_hi[1] >= self.batch_size or lo_hi[2] < 0 or lo_hi[3] >= W or lo_hi[4] < 0
+                or lo_hi[5] >= H):
+            ok = (b >= 0) & (b < self.batch_size) & (x >= 0) & (x < W) & (y >= 0) & (y < H)
             lin = lin[ok]
         return lin
 
+    def _plus_ones(self, n: int) -> torch.Tensor:
+        """A view of n ones (float32), for index_add_ (no allocation per step)."""
+        if self._ones.numel() < n:
+            self._ones = torch.ones(2 * n, dtype=torch.float32, device=self.device)
+        return self._ones[:n]
+
     # ------------------------------------------------------------------ rules
-    def _keep(self, c: torch.Tensor, counts: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-        """Apply n_min, r_min and merge rules; returns the kept mask (B', N) bool."""
-        W, H = self.sensor_size
-        r = self.r_min_px
-        x, y = c[..., 0], c[..., 1]
-        inside = (x >= r) & (x <= W - 1 - r) & (y >= r) & (y <= H - 1 - r)
-        keep = valid & (counts >= self.n_min) & inside  # NaN compares False
+    def _keep(self, c: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+        """Apply n_min, r_min and merge rules to mean-shift's output; returns the kept mask
+        (B', N) bool. (counts >= n_min >= 1 implies a valid seed that was not lost: mean-shift
+        gives 0 counts otherwise, and NaN centroids fail the edge rule.)"""
+        inside = ((c >= self._lo_xy) & (c <= self._hi_xy)).all(-1)  # NaN compares False
+        keep = (counts >= self.n_min) & inside
         if self.merge_px > 0 and keep.shape[1] > 1:
-            cc = c.nan_to_num(0.0)
+            # pairs with a dropped centroid get a NaN distance (never close)
+            cc = torch.where(keep.unsqueeze(-1), c, self._nan)
             dist = (cc.unsqueeze(2) - cc.unsqueeze(1)).norm(dim=-1)  # (B', N, N)
-            N = keep.shape[1]
-            upper = torch.ones(N, N, dtype=torch.bool, device=c.device).triu(1)
-            close = upper & keep.unsqueeze(-1) & keep.unsqueeze(-2) & (dist < self.merge_px)
+            close = (dist < self.merge_px) & self._upper
             keep = keep & ~close.any(1)  # j merged into a better-ranked i < j
         return keep
 
@@ -171,7 +189,7 @@ class DPREstimator(DivergenceEstimator):
         peaks, _, ok = density_peaks(padded[:, q:q + H, q:q + W], self.n_max, self.blur_sigma_px, self.nms_px)
         c, counts, _ = meanshift_flat(padded, peaks, ok, self.radius_px, self.meanshift_iters,
                                       self.meanshift_tol_px, image_pad_px=q)
-        keep = self._keep(c, counts, ok & ~torch.isnan(c[..., 0]))
+        keep = self._keep(c, counts)
         # compact: kept centroids first, in rank order
         order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)
         c = torch.gather(c, 1, order.unsqueeze(-1).expand(-1, -1, 2))
@@ -191,9 +209,9 @@ class DPREstimator(DivergenceEstimator):
         flat = self._window_padded.view(-1)
         old = self._ring[self._slot]
         if old.numel():
-            flat.index_add_(0, old, torch.full((old.numel(),), -1.0, device=self.device))
+            flat.index_add_(0, old, self._plus_ones(old.numel()), alpha=-1)
         if new.numel():
-            flat.index_add_(0, new, torch.ones(new.numel(), device=self.device))
+            flat.index_add_(0, new, self._plus_ones(new.numel()))
         self._ring[self._slot] = new
         self._slot = (self._slot + 1) % self.n_ring
 
@@ -201,26 +219,25 @@ class DPREstimator(DivergenceEstimator):
         prev = self._centroids
         c, counts, _ = meanshift_flat(self._window_padded, prev, self._valid, self.radius_px, self.meanshift_iters,
                                       self.meanshift_tol_px, image_pad_px=self._pad)
-        keep = self._keep(c, counts, self._valid & ~torch.isnan(c[..., 0]))
+        keep = self._keep(c, counts)
         # 2. Eq. 8 over the pairs tracked at both steps (computed before any re-initialisation).
         # While the ring fills after a reset the window's mean event time advances by dt / 2 per
         # step instead of dt: Eq. 8 then uses dt / 2 (not in paper; removes a x2 bias at start).
         self._age += 1
         d, n_pairs = pairwise_divergence(prev, c, keep, dt, weighting=self.pair_weighting)
         d = d * torch.where(self._age <= self.n_ring, 2.0, 1.0)
-        nan = torch.full_like(c, float("nan"))
-        self._centroids = torch.where(keep.unsqueeze(-1), c, nan)
+        self._centroids = torch.where(keep.unsqueeze(-1), c, self._nan)
         self._valid = keep
-        self._counts = torch.where(keep, counts, torch.zeros_like(counts))
+        self._counts = torch.where(keep, counts, self._zero)
         # 3. re-initialise (DPR) the elements below C_min, only those
         need = keep.sum(1) < self.c_min
         self._reinit = need
         if bool(need.any()):
             idx = need.nonzero().squeeze(1)
             ci, ni, ki = self._initialise(self._window_padded[idx])
-            self._centroids[idx] = torch.where(ki.unsqueeze(-1), ci, torch.full_like(ci, float("nan")))
+            self._centroids[idx] = torch.where(ki.unsqueeze(-1), ci, self._nan)
             self._valid[idx] = ki
-            self._counts[idx] = torch.where(ki, ni, torch.zeros_like(ni))
+            self._counts[idx] = torch.where(ki, ni, self._zero)
         self._n_pairs = n_pairs
         self._d = d
         return d.clone()
