@@ -6,7 +6,7 @@ Per step:
    feature, and the clustering only needs where events are). A ring of the last
    ``K = round(memory_ms / dt)`` steps gives the windowed count image over T = memory_ms; the ring
    holds each step's events as pixel indices and the window is a running sum (add the new step,
-   subtract the oldest: two ``index_add_`` calls, no dense image per step).
+   subtract the oldest: two ``scatter_add_`` calls, no dense image per step).
 2. Mean-shift (flat kernel R = ``radius_px``) seeded with last step's centroids, iterated to
    convergence on the windowed image, batched over (B, N_max).
 3. A centroid is dropped when fewer than ``n_min`` events lie within R of it, when it is closer
@@ -110,9 +110,9 @@ class DPREstimator(DivergenceEstimator):
         self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
         self._last_t_us: Optional[int] = None
         self._age = torch.zeros(B, dtype=torch.int64, device=dev)  # steps since reset
-        # per-step constants, made once: +1 sources of index_add_ (grown on demand), scalars,
+        # per-step constants, made once: +-1 sources of scatter_add_ (grown on demand), scalars,
         # the edge bounds of the r_min rule and the strict upper triangle of the merge rule
-        self._ones = torch.ones(4096, dtype=torch.float32, device=dev)
+        self._ones = torch.tensor([[1.0], [-1.0]], device=dev).repeat(1, 4096)
         self._nan = torch.full((), float("nan"), dtype=torch.float32, device=dev)
         self._zero = torch.zeros((), dtype=torch.float32, device=dev)
         r = self.r_min_px
@@ -160,11 +160,12 @@ class DPREstimator(DivergenceEstimator):
             lin = lin[ok]
         return lin
 
-    def _plus_ones(self, n: int) -> torch.Tensor:
-        """A view of n ones (float32), for index_add_ (no allocation per step)."""
-        if self._ones.numel() < n:
-            self._ones = torch.ones(2 * n, dtype=torch.float32, device=self.device)
-        return self._ones[:n]
+    def _unit(self, n: int) -> torch.Tensor:
+        """(2, n) float32 view: row 0 = +1, row 1 = -1, the window's scatter sources (kept
+        between steps, grown on demand)."""
+        if self._ones.shape[1] < n:
+            self._ones = torch.tensor([[1.0], [-1.0]], device=self.device).repeat(1, 2 * n)
+        return self._ones[:, :n]
 
     # ------------------------------------------------------------------ rules
     def _keep(self, c: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
@@ -208,10 +209,11 @@ class DPREstimator(DivergenceEstimator):
         new = self._event_index(events)
         flat = self._window_padded.view(-1)
         old = self._ring[self._slot]
+        # scatter_add_ (about 2x faster than index_add_ on CPU for these scattered indices)
         if old.numel():
-            flat.index_add_(0, old, self._plus_ones(old.numel()), alpha=-1)
+            flat.scatter_add_(0, old, self._unit(old.numel())[1])
         if new.numel():
-            flat.index_add_(0, new, self._plus_ones(new.numel()))
+            flat.scatter_add_(0, new, self._unit(new.numel())[0])
         self._ring[self._slot] = new
         self._slot = (self._slot + 1) % self.n_ring
 
