@@ -119,6 +119,9 @@ class DPREstimator(DivergenceEstimator):
         self._lo_xy = torch.tensor([r, r], dtype=torch.float32, device=dev)
         self._hi_xy = torch.tensor([W - 1 - r, H - 1 - r], dtype=torch.float32, device=dev)
         self._upper = torch.ones(N, N, dtype=torch.bool, device=dev).triu(1)
+        self._n_min_t = torch.tensor(float(self.n_min), dtype=torch.float32, device=dev)
+        self._merge_t = torch.tensor(self.merge_px, dtype=torch.float32, device=dev)
+        self._two_one = torch.tensor([2.0, 1.0], dtype=torch.float32, device=dev)
 
     # ------------------------------------------------------------------ state
     def reset(self, mask: Optional[torch.Tensor] = None) -> None:
@@ -173,12 +176,12 @@ class DPREstimator(DivergenceEstimator):
         (B', N) bool. (counts >= n_min >= 1 implies a valid seed that was not lost: mean-shift
         gives 0 counts otherwise, and NaN centroids fail the edge rule.)"""
         inside = ((c >= self._lo_xy) & (c <= self._hi_xy)).all(-1)  # NaN compares False
-        keep = (counts >= self.n_min) & inside
+        keep = (counts >= self._n_min_t) & inside
         if self.merge_px > 0 and keep.shape[1] > 1:
             # pairs with a dropped centroid get a NaN distance (never close)
             cc = torch.where(keep.unsqueeze(-1), c, self._nan)
             dist = (cc.unsqueeze(2) - cc.unsqueeze(1)).norm(dim=-1)  # (B', N, N)
-            close = (dist < self.merge_px) & self._upper
+            close = (dist < self._merge_t) & self._upper
             keep = keep & ~close.any(1)  # j merged into a better-ranked i < j
         return keep
 
@@ -227,7 +230,7 @@ class DPREstimator(DivergenceEstimator):
         # step instead of dt: Eq. 8 then uses dt / 2 (not in paper; removes a x2 bias at start).
         self._age += 1
         d, n_pairs = pairwise_divergence(prev, c, keep, dt, weighting=self.pair_weighting)
-        d = d * torch.where(self._age <= self.n_ring, 2.0, 1.0)
+        d = d * torch.where(self._age <= self.n_ring, self._two_one[0], self._two_one[1])
         self._centroids = torch.where(keep.unsqueeze(-1), c, self._nan)
         self._valid = keep
         self._counts = torch.where(keep, counts, self._zero)

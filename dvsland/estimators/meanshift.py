@@ -66,7 +66,10 @@ def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor
     img = img.contiguous()
     Hp, Wp = img.shape[1], img.shape[2]
     off, moments_t, hi, zero = _constants(str(dev), P, r_int, W, H)
-    r2 = float(radius_px) ** 2
+    # thresholds as float32 0-dim tensors (a Python scalar is cast to float32 all the same, but
+    # costs a tensor conversion per op)
+    r2 = torch.tensor(float(radius_px) ** 2, dtype=torch.float32, device=dev)
+    tol = torch.tensor(float(tol_px), dtype=torch.float32, device=dev)
     # patches[i] = the P x P patch whose top-left pixel is flat index i of the padded images: an
     # overlapping strided view (one index_select per gather, no (A, P*P) index arithmetic)
     n_flat = B * Hp * Wp
@@ -102,10 +105,10 @@ def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor
         w, base = window(ca, la)
         m = moments_t @ w.t()  # (3, A): sum, sum dx, sum dy
         s = m[0]
-        empty = s <= 0
+        empty = s <= zero
         mean = torch.clamp(base + m[1:].t() / s.clamp_min(1e-12).unsqueeze(-1), zero, hi)
         new = torch.where(empty.unsqueeze(-1), ca, mean)
-        still = (new - ca).norm(dim=-1) >= tol_px
+        still = (new - ca).norm(dim=-1) >= tol
         if not tol_px > 0:
             still = still & ~empty
         c.index_copy_(0, ia, new)
