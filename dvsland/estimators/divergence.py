@@ -40,7 +40,7 @@ def pairwise_divergence(prev_xy: torch.Tensor, cur_xy: torch.Tensor, valid: torc
     N = prev_xy.shape[1]
     # both steps at once: (2, B, N, 2) float64
     pc = torch.stack([prev_xy, cur_xy]).to(torch.float64).nan_to_num_(0.0)
-    ll = (pc.unsqueeze(3) - pc.unsqueeze(2)).norm(dim=-1)  # (2, B, N, N), exact (no cdist mm shortcut)
+    ll = torch.linalg.vector_norm(pc.unsqueeze(3) - pc.unsqueeze(2), dim=-1)  # (2, B, N, N), exact (no cdist)
     l0, l1 = ll[0], ll[1]
     use = valid.unsqueeze(-1) & valid.unsqueeze(-2)
     use &= _upper(N, str(valid.device))

@@ -180,7 +180,7 @@ class DPREstimator(DivergenceEstimator):
         if self.merge_px > 0 and keep.shape[1] > 1:
             # pairs with a dropped centroid get a NaN distance (never close)
             cc = torch.where(keep.unsqueeze(-1), c, self._nan)
-            dist = (cc.unsqueeze(2) - cc.unsqueeze(1)).norm(dim=-1)  # (B', N, N)
+            dist = torch.linalg.vector_norm(cc.unsqueeze(2) - cc.unsqueeze(1), dim=-1)  # (B', N, N)
             close = (dist < self._merge_t) & self._upper
             keep = keep & ~close.any(1)  # j merged into a better-ranked i < j
         return keep

@@ -108,7 +108,7 @@ def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor
         empty = s <= zero
         mean = torch.clamp(base + m[1:].t() / s.clamp_min(1e-12).unsqueeze(-1), zero, hi)
         new = torch.where(empty.unsqueeze(-1), ca, mean)
-        still = (new - ca).norm(dim=-1) >= tol
+        still = torch.linalg.vector_norm(new - ca, dim=-1) >= tol  # = Tensor.norm, less Python
         if not tol_px > 0:
             still = still & ~empty
         c.index_copy_(0, ia, new)
