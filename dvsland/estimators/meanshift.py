@@ -73,7 +73,7 @@ def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor
     # patches[i] = the P x P patch whose top-left pixel is flat index i of the padded images: an
     # overlapping strided view (one index_select per gather, no (A, P*P) index arithmetic)
     n_flat = B * Hp * Wp
-    patches = img.reshape(-1).as_strided((n_flat - (P - 1) * (Wp + 1), P, P), (1, Wp, 1))
+    patches = img.reshape(-1).as_strided((max(n_flat - (P - 1) * (Wp + 1), 0), P, P), (1, Wp, 1))
     # flat index of the patch of a seed = lin_b + Wp * floor(y) + floor(x), computed by one addmv
     # in float (exact: integers below 2**24, else float64)
     ldt = torch.float32 if n_flat < 2 ** 24 else torch.float64
