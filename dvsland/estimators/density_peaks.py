@@ -20,6 +20,24 @@ def _check_image(image: torch.Tensor) -> None:
                          f"{getattr(image, 'shape', type(image))}")
 
 
+def _max_filter(x: torch.Tensor, k: int) -> torch.Tensor:
+    """k x k running maximum of x (B, H, W), -inf outside: the same values as
+    ``F.max_pool2d(x, k, stride=1, padding=k // 2)`` (max is exact), as separable shifted
+    maxima (10-20x faster than max_pool2d on CPU for 128 x 128 images)."""
+    if k == 1:
+        return x
+    B, H, W = x.shape
+    r = k // 2
+    xp = F.pad(x, (r, r, r, r), value=float("-inf"))
+    m = xp[:, :, 0:W]
+    for i in range(1, k):
+        m = torch.maximum(m, xp[:, :, i:i + W])
+    out = m[:, 0:H]
+    for i in range(1, k):
+        out = torch.maximum(out, m[:, i:i + H])
+    return out
+
+
 def density_peaks(image: torch.Tensor, n_max: int, sigma_px: float = 2.0, nms_px: int = 3,
                   min_density: float = 0.0) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Top ``n_max`` local maxima of the blurred event count image, ranked by density.
@@ -49,7 +67,7 @@ def density_peaks(image: torch.Tensor, n_max: int, sigma_px: float = 2.0, nms_px
     k = 2 * int(math.ceil(3.0 * sigma_px)) + 1
     blurred = kornia.filters.gaussian_blur2d(img, (k, k), (float(sigma_px), float(sigma_px)),
                                              border_type="constant")[:, 0]
-    pooled = F.max_pool2d(blurred.unsqueeze(1), int(nms_px), stride=1, padding=int(nms_px) // 2)[:, 0]
+    pooled = _max_filter(blurred, int(nms_px))
     is_peak = (blurred >= pooled) & (blurred > min_density)
     score = torch.where(is_peak, blurred, torch.full_like(blurred, -1.0)).reshape(B, H * W)
     n = min(int(n_max), H * W)
