@@ -6,6 +6,7 @@ blurred density -> top ``n_max``. Pure functions, batched over B.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Tuple
 
@@ -18,6 +19,14 @@ def _check_image(image: torch.Tensor) -> None:
     if not isinstance(image, torch.Tensor) or image.dim() != 3:
         raise ValueError(f"image must be a (B, H, W) tensor, got "
                          f"{getattr(image, 'shape', type(image))}")
+
+
+@functools.lru_cache(maxsize=8)
+def _gaussian_kernels(k: int, sigma_px: float, device: str, dtype: torch.dtype):
+    """(kernel_x, kernel_y), each (1, k): the kernels kornia's gaussian_blur2d makes per call."""
+    sigma = torch.tensor([[sigma_px, sigma_px]], dtype=dtype, device=device)
+    return (kornia.filters.get_gaussian_kernel1d(k, sigma[:, 1].view(1, 1)),
+            kornia.filters.get_gaussian_kernel1d(k, sigma[:, 0].view(1, 1)))
 
 
 def _max_filter(x: torch.Tensor, k: int) -> torch.Tensor:
@@ -65,8 +74,14 @@ def density_peaks(image: torch.Tensor, n_max: int, sigma_px: float = 2.0, nms_px
     B, H, W = image.shape
     img = image.to(torch.float32).unsqueeze(1)
     k = 2 * int(math.ceil(3.0 * sigma_px)) + 1
-    blurred = kornia.filters.gaussian_blur2d(img, (k, k), (float(sigma_px), float(sigma_px)),
-                                             border_type="constant")[:, 0]
+    if H * W < 256 * 256:
+        # what gaussian_blur2d runs for such images (filter2d_separable), with the 1-d kernels
+        # made once: same values, ~0.7 ms less per call on CPU
+        kx, ky = _gaussian_kernels(k, float(sigma_px), str(img.device), img.dtype)
+        blurred = kornia.filters.filter2d_separable(img, kx, ky, "constant")[:, 0]
+    else:
+        blurred = kornia.filters.gaussian_blur2d(img, (k, k), (float(sigma_px), float(sigma_px)),
+                                                 border_type="constant")[:, 0]
     pooled = _max_filter(blurred, int(nms_px))
     is_peak = (blurred >= pooled) & (blurred > min_density)
     score = torch.where(is_peak, blurred, torch.full_like(blurred, -1.0)).reshape(B, H * W)
