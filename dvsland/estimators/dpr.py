@@ -239,10 +239,19 @@ class DPREstimator(DivergenceEstimator):
         self._reinit = need
         if bool(need.any()):
             idx = need.nonzero().squeeze(1)
-            ci, ni, ki = self._initialise(self._window_padded[idx])
-            self._centroids[idx] = torch.where(ki.unsqueeze(-1), ci, self._nan)
-            self._valid[idx] = ki
-            self._counts[idx] = torch.where(ki, ni, self._zero)
+            padded = self._window_padded[idx]
+            # an element with an empty window (e.g. a finished descent) has no density peak, so
+            # DPR would give it no centroid; its state already says so (a kept centroid needs
+            # n_min >= 1 events within R): skip it
+            busy = padded.sum((1, 2)) > 0
+            if not bool(busy.all()):
+                sel = busy.nonzero().squeeze(1)
+                idx, padded = idx[sel], padded[sel]
+            if idx.numel():
+                ci, ni, ki = self._initialise(padded)
+                self._centroids[idx] = torch.where(ki.unsqueeze(-1), ci, self._nan)
+                self._valid[idx] = ki
+                self._counts[idx] = torch.where(ki, ni, self._zero)
         self._n_pairs = n_pairs
         self._d = d
         return d.clone()
