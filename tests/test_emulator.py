@@ -154,14 +154,22 @@ def test_exact_theta_change_emits():
     assert len(ev) == 1 and ev.t.item() == 200 and ev.p.item() == -1
 
 
+RAMP_TH = 0.1
+RAMP_L0 = math.log(0.2 + 1e-4)
+
+
+def _log_ramp(refractory_us: float, t0_us: int = 0):
+    """One pixel whose L rises linearly from RAMP_L0 by 10.5 θ (θ = RAMP_TH) over 1000 µs from
+    ``t0_us``; returns (emulator, events)."""
+    i1 = math.exp(RAMP_L0 + 10.5 * RAMP_TH) - 1e-4
+    emu = EventEmulator(threshold=RAMP_TH, refractory_us=refractory_us)
+    emu.reset(torch.tensor([[[0.2]]]), t0_us)
+    return emu, emu.step(torch.tensor([[[i1]]], dtype=torch.float64), t0_us + 1000)
+
+
 def test_log_ramp_times_closed_form():
     """L rising linearly by 10.5 θ over 1000 µs: events at 1000 k / 10.5 µs, k = 1..10."""
-    th = 0.1
-    l0 = math.log(0.2 + 1e-4)
-    i1 = math.exp(l0 + 10.5 * th) - 1e-4
-    emu = EventEmulator(threshold=th, refractory_us=0.0)
-    emu.reset(torch.tensor([[[0.2]]]), 0)
-    ev = emu.step(torch.tensor([[[i1]]], dtype=torch.float64), 1000)
+    _, ev = _log_ramp(0.0)
     want = [math.floor(1000 * k / 10.5 + 0.5) for k in range(1, 11)]
     assert ev.t.tolist() == want
     assert ev.p.tolist() == [1] * 10
@@ -169,27 +177,17 @@ def test_log_ramp_times_closed_form():
 
 def test_refractory_closed_form():
     """Crossings every 95.2 µs with r = 200 µs: every third crossing is emitted."""
-    th = 0.1
-    l0 = math.log(0.2 + 1e-4)
-    i1 = math.exp(l0 + 10.5 * th) - 1e-4
-    emu = EventEmulator(threshold=th, refractory_us=200.0)
-    emu.reset(torch.tensor([[[0.2]]]), 0)
-    ev = emu.step(torch.tensor([[[i1]]], dtype=torch.float64), 1000)
+    emu, ev = _log_ramp(200.0)
     want = [math.floor(1000 * k / 10.5 + 0.5) for k in (1, 4, 7, 10)]
     assert ev.t.tolist() == want
     # the reference moved by all 10 crossings: a small drop now gives OFF events
-    assert torch.allclose(emu.reference, torch.tensor([[[l0 + 10 * th]]], dtype=torch.float64))
+    assert torch.allclose(emu.reference, torch.tensor([[[RAMP_L0 + 10 * RAMP_TH]]], dtype=torch.float64))
 
 
 def test_precision_at_1e4_seconds():
     """t = 1e4 s = 1e10 µs: timestamps stay µs-exact (float32 would be off by ~500 µs)."""
-    th = 0.1
-    l0 = math.log(0.2 + 1e-4)
-    i1 = math.exp(l0 + 10.5 * th) - 1e-4
     t0 = 10_000 * 1_000_000
-    emu = EventEmulator(threshold=th, refractory_us=0.0)
-    emu.reset(torch.tensor([[[0.2]]]), t0)
-    ev = emu.step(torch.tensor([[[i1]]], dtype=torch.float64), t0 + 1000)
+    _, ev = _log_ramp(0.0, t0)
     want = [t0 + math.floor(1000 * k / 10.5 + 0.5) for k in range(1, 11)]
     assert ev.t.dtype == torch.int64
     assert ev.t.tolist() == want
