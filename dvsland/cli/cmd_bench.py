@@ -30,15 +30,19 @@ BENCHES = {
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("bench", help="run the benchmarks (speed and error) of each stage")
-    p.add_argument("what", nargs="*", default=["all"], choices=["all", *BENCHES],
-                   help="which benchmarks (default: all)")
+    p.add_argument("what", nargs="*", metavar="WHAT",
+                   help=f"which benchmarks: all (default), {', '.join(BENCHES)}")
     p.add_argument("--quick", action="store_true", help="smaller, faster settings")
     p.add_argument("--out", default=None, metavar="DIR", help="folder for the JSON results")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    names = list(BENCHES) if "all" in args.what else list(dict.fromkeys(args.what))
+    what = args.what or ["all"]
+    unknown = [w for w in what if w != "all" and w not in BENCHES]
+    if unknown:
+        raise ValueError(f"unknown benchmark {unknown[0]!r}; choose from all, {', '.join(BENCHES)}")
+    names = list(BENCHES) if "all" in what else list(dict.fromkeys(what))
     out = Path(args.out) if args.out else Path("logs") / f"bench-{utc_stamp()}"
     out.mkdir(parents=True, exist_ok=True)
     scripts = repo_root() / "scripts"
