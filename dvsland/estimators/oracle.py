@@ -37,6 +37,7 @@ class OracleEstimator(DivergenceEstimator):
         # ring of past estimates, (delay + 1, B); NaN = not yet available
         self._ring = torch.full((self.delay_steps + 1, self.batch_size), float("nan"),
                                 dtype=torch.float32, device=self.device)
+        self._k = 0  # updates so far (ring write position)
 
     def reset(self, mask: Optional[torch.Tensor] = None) -> None:
         mask = self._mask(mask)
@@ -49,9 +50,11 @@ class OracleEstimator(DivergenceEstimator):
         if self.noise_abs > 0 or self.noise_rel > 0:
             n = torch.randn(self.batch_size, generator=self._gen, dtype=torch.float64).to(self.device)
             d = d + n * (self.noise_abs + self.noise_rel * d.abs())
-        self._ring = torch.roll(self._ring, 1, dims=0)
-        self._ring[0] = d.to(torch.float32)
-        return self._ring[self.delay_steps].clone()
+        # slot k mod (delay + 1) takes this step; the one written delay steps ago is next in line
+        n_slots = self.delay_steps + 1
+        self._ring[self._k % n_slots] = d
+        self._k += 1
+        return self._ring[self._k % n_slots].clone()
 
     def diagnostics(self):
-        return {"d_oracle": self._ring[0].clone()}
+        return {"d_oracle": self._ring[(self._k - 1) % (self.delay_steps + 1)].clone()}
