@@ -54,9 +54,11 @@ def test_image_helpers():
     rgb = frame_to_rgb(np.random.default_rng(0).random((16, 20)))
     assert rgb.shape == (16, 20, 3) and rgb.dtype == np.uint8
     counts = np.zeros((2, 16, 20))
-    counts[1, 3, 4] = 5
+    counts[0, 3, 4] = 5  # ON (Events.to_count_image channel 0) -> red
+    counts[1, 7, 8] = 5  # OFF (channel 1) -> blue
     ev = counts_to_rgb(counts)
     assert ev[3, 4, 0] == 255 and ev[3, 4, 2] == 0
+    assert ev[7, 8, 2] == 255 and ev[7, 8, 0] == 0
     out = draw_centroids(np.zeros((16, 20, 3), np.uint8), np.array([[4.0, 3.0], [np.nan, np.nan], [100.0, 1.0]]))
     assert tuple(out[3, 4]) == (0, 255, 0) and out.sum() > 0
 

@@ -59,12 +59,13 @@ def frame_to_rgb(frame: np.ndarray) -> np.ndarray:
 
 
 def counts_to_rgb(counts: np.ndarray) -> np.ndarray:
-    """(2, H, W) event counts (channel 0 OFF, 1 ON... either order works) -> (H, W, 3) uint8: red = channel 1, blue = channel 0."""
+    """(2, H, W) event counts in the layout of :meth:`dvsland.events.Events.to_count_image`
+    (channel 0 = ON, 1 = OFF) -> (H, W, 3) uint8: ON red, OFF blue (sqrt-scaled by the max count)."""
     c = np.asarray(counts, dtype=np.float64)
     hi = max(float(c.max()), 1.0)
     rgb = np.zeros(c.shape[1:] + (3,), dtype=np.uint8)
-    rgb[..., 0] = (np.clip(c[1] / hi, 0, 1) ** 0.5 * 255).astype(np.uint8)
-    rgb[..., 2] = (np.clip(c[0] / hi, 0, 1) ** 0.5 * 255).astype(np.uint8)
+    rgb[..., 0] = (np.clip(c[0] / hi, 0, 1) ** 0.5 * 255).astype(np.uint8)
+    rgb[..., 2] = (np.clip(c[1] / hi, 0, 1) ** 0.5 * 255).astype(np.uint8)
     return rgb
 
 
