@@ -53,10 +53,10 @@ def time_render(renderer, b: int, repeat: int, device):
 
 def descent(z0: float, v0: float, rate_hz: float, c2: float = 0.5, z_end: float = 50.0) -> torch.Tensor:
     """Closed-form altitudes sampled at rate_hz until z_end."""
-    t_end = ((z_end / z0) ** c2 - 1.0) * z0 / (c2 * v0)
-    t = torch.arange(0.0, t_end, 1.0 / rate_hz, dtype=torch.float64)
-    s = 1.0 + c2 * v0 * t / z0
-    return (z0 * s ** (1.0 / c2)).float()
+    from dvsland.dynamics import closed_form_state, closed_form_time_to_altitude
+
+    t = torch.arange(0.0, closed_form_time_to_altitude(z_end, z0, v0, c2), 1.0 / rate_hz, dtype=torch.float64)
+    return torch.from_numpy(closed_form_state(t.numpy(), z0, v0, c2)[0]).float()
 
 
 def reversal_fraction(renderer, site_i: int, z: torch.Tensor, chunk: int = 64, eps: float = 1e-3):

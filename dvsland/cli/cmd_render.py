@@ -85,11 +85,10 @@ def montage(tiles: np.ndarray, row_labels: Sequence[str], col_labels: Sequence[s
 
 def descent_altitudes(z0_m: float, v0_mps: float, n: int, c2: float = 0.5, z_end_m: float = 50.0) -> np.ndarray:
     """n altitudes of the closed-form ideal descent from z0 to ``z_end_m``, uniform in time."""
-    s_end = (z_end_m / z0_m) ** c2
-    t_end = (s_end - 1.0) * z0_m / (c2 * v0_mps)
-    t = np.linspace(0.0, t_end, n)
-    s = 1.0 + c2 * v0_mps * t / z0_m
-    return z0_m * s ** (1.0 / c2)
+    from dvsland.dynamics import closed_form_state, closed_form_time_to_altitude
+
+    t = np.linspace(0.0, closed_form_time_to_altitude(z_end_m, z0_m, v0_mps, c2), n)
+    return closed_form_state(t, z0_m, v0_mps, c2)[0]
 
 
 def _parse_list(text: str, what: str, cast=float) -> list:
