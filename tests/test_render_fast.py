@@ -203,3 +203,22 @@ def test_all_sites_full_camera_contrast():
     assert (s[:, :7] > 0.08).all(), s
     assert (s[:, 7] < 0.03).all(), s
     assert (s[:, 7] < s[:, :7].min(dim=1).values / 2).all(), s
+
+
+def test_threads_split_is_exact_and_restores_torch_threads(renderer):
+    """Sampling split over threads gives the same frames bit for bit, and a render call leaves
+    the caller's torch thread count as it was."""
+    r1 = get_renderer("fast", ["A", "E", "G", "H"], CAM, RenderConfig(threads=1), disk_cache=False)
+    r3 = get_renderer("fast", ["A", "E", "G", "H"], CAM, RenderConfig(), disk_cache=False, threads=3)
+    assert r1.threads == 1 and r3.threads == 3
+    alt = torch.tensor([60.0, 900.0, 4000.0, 9000.0, 300.0, 75.0])
+    idx = torch.tensor([0, 1, 2, 3, 1, 0])
+    before = torch.get_num_threads()
+    a, b = r1.render(alt, idx), r3.render(alt, idx)
+    assert torch.get_num_threads() == before
+    assert torch.equal(a, b)
+
+
+def test_threads_bad_value():
+    with pytest.raises(ValueError, match="threads"):
+        get_renderer("fast", ["A"], CAM, disk_cache=False, threads=-1)

@@ -17,11 +17,19 @@ all sites sit side by side in two atlas textures (rows = sites, columns = levels
 
 Everything per frame is elementwise on (B, H, W) plus two ``grid_sample`` calls: no Python loop
 over the batch, no host sync besides the input checks.
+
+CPU threads: torch's CPU ``grid_sample`` runs its batch dimension in parallel and nothing else, and
+the atlas is one texture (batch 1), so a plain call uses one core. The sampling grid is split into
+``threads`` equal parts over an ``expand``-ed (not copied) atlas, and a render call runs with that
+many torch threads, then restores the caller's setting (``render.threads``, 0 = all cores). The
+closed loop keeps one torch thread for its many small ops (``simulation.torch_threads``) and still
+renders on every core.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import time
 from typing import Optional, Sequence
 
@@ -47,6 +55,8 @@ class FastRenderer(Renderer):
         chunk: frames per internal sub-batch (default 32 on CPU, 1024 on CUDA).
         blend_levels: trilinear blend of the two bracketing levels (default); False samples the
             nearest level only (an ablation: levels then pop during a descent).
+        threads: CPU threads used inside a render call (default ``render.threads``; 0 = all
+            cores). Ignored on CUDA.
 
     Attributes:
         prep_s: {site: wall seconds spent preparing its levels (0 when cached)}; prep_cpu_s the
@@ -59,9 +69,13 @@ class FastRenderer(Renderer):
     def __init__(self, site_names: Sequence[str], camera: CameraConfig, render: Optional[RenderConfig] = None,
                  device="cpu", level_size: Optional[int] = None, parallax_iters: int = 1,
                  disk_cache: bool = True, progress: bool = False, blend_levels: bool = True,
-                 chunk: Optional[int] = None):
+                 chunk: Optional[int] = None, threads: Optional[int] = None):
         super().__init__(site_names, camera, render, device)
         rc = self.render_config
+        threads = rc.threads if threads is None else threads
+        if threads < 0:
+            raise ValueError(f"threads must be >= 0 (0 = all cores), got {threads}")
+        self.threads = 1 if self.device.type != "cpu" else (threads or os.cpu_count() or 1)
         if parallax_iters < 0 or parallax_iters > 8:
             raise ValueError(f"parallax_iters must be in [0, 8], got {parallax_iters}")
         self.parallax_iters = int(parallax_iters)
@@ -165,6 +179,25 @@ class FastRenderer(Renderer):
         return lam.clamp(0.0, self.levels.n_levels - 1.0)
 
     def _render(self, altitude_m: torch.Tensor, site_idx: torch.Tensor) -> torch.Tensor:
+        prev = torch.get_num_threads()
+        if self.threads == prev:
+            return self._render_batches(altitude_m, site_idx)
+        torch.set_num_threads(self.threads)
+        try:
+            return self._render_batches(altitude_m, site_idx)
+        finally:
+            torch.set_num_threads(prev)
+
+    def _sample(self, texture: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+        """Bilinear, border-clamped ``grid_sample`` of a (1, 1, Ha, Wa) texture at grid (R, W, 2)
+        (normalised x, y; align_corners=False) -> (R, W), the grid rows split over the threads."""
+        r, w = grid.shape[:2]
+        n = self.threads if (self.threads > 1 and r % self.threads == 0) else 1
+        out = F.grid_sample(texture.expand(n, -1, -1, -1), grid.reshape(n, r // n, w, 2), mode="bilinear",
+                            padding_mode="border", align_corners=False)
+        return out.view(r, w)
+
+    def _render_batches(self, altitude_m: torch.Tensor, site_idx: torch.Tensor) -> torch.Tensor:
         b = altitude_m.shape[0]
         h, w = self.height_px, self.width_px
         if b <= self.chunk:
@@ -206,8 +239,7 @@ class FastRenderer(Renderer):
             g = torch.empty_like(sl)
             for _ in range(self.parallax_iters):
                 torch.addcmul(off, sl, rng * inv, out=g)  # (2, B, h', w') normalised atlas coordinates
-                hgt = F.grid_sample(self.atlas_height, g.view(2, b * hh, ww).permute(1, 2, 0)[None],
-                                    mode="bilinear", padding_mode="border", align_corners=False).view(b, hh, ww)
+                hgt = self._sample(self.atlas_height, g.view(2, b * hh, ww).permute(1, 2, 0)).view(b, hh, ww)
                 rng = (z - hgt).clamp(min=0.05 * z)
             rng_n = rng * inv_lo
             if half:
@@ -220,8 +252,7 @@ class FastRenderer(Renderer):
         g = torch.empty(2, 2, b, h, w, device=self.device)
         torch.addcmul(off[:2, :, None, None], self._slopes.index_select(1, site_idx), rng_n, out=g[:, 0])
         torch.add(off[2:, :, None, None], g[:, 0], alpha=0.5, out=g[:, 1])
-        out = F.grid_sample(self.atlas_irradiance, g.view(2, 2 * b * h, w).permute(1, 2, 0)[None], mode="bilinear",
-                            padding_mode="border", align_corners=False).view(2, b, h, w)
+        out = self._sample(self.atlas_irradiance, g.view(2, 2 * b * h, w).permute(1, 2, 0)).view(2, b, h, w)
         gain = self._gain_shared if self._gain_shared is not None else self._gain.index_select(0, site_idx)
         return torch.lerp(out[0], out[1], frac).mul_(gain)
 
