@@ -3,6 +3,7 @@
 
     python scripts/bench_render.py [--sites A,...,I] [--batches 18,256] [--device cpu]
                                    [--fresh] [--json out.json] [--threads N]
+                                   [--render-threads N]
 
 - Preparation: seconds per site to build its levels (``--fresh``: recomputed, no caches).
 - Throughput: ms per ``render`` call and frames/s for each batch size at the camera of
@@ -92,7 +93,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=20)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--fresh", action="store_true", help="recompute the levels (no memory/disk cache)")
-    ap.add_argument("--threads", type=int, default=None, help="torch threads for rendering")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads of the process (the closed loop uses 1)")
+    ap.add_argument("--render-threads", type=int, default=None,
+                    help="threads inside a render call (render.threads; default 0 = all cores)")
     ap.add_argument("--flicker-sites", default="A,E,H", help="sites of the smoothness test ('' = skip)")
     ap.add_argument("--json", default=None, help="write the results as JSON to this path")
     args = ap.parse_args(argv)
@@ -108,15 +111,18 @@ def main(argv=None) -> int:
         from dvsland.render import lod
         lod._MEMORY.clear()
     t0 = time.perf_counter()
+    if args.render_threads is not None:
+        cfg.render.threads = args.render_threads
     renderer = get_renderer("fast", sites, cfg.camera, cfg.render, device=args.device,
                             disk_cache=not args.fresh)
     total_prep = time.perf_counter() - t0
-    res = {"device": str(renderer.device), "threads": torch.get_num_threads(),
+    res = {"device": str(renderer.device), "threads": torch.get_num_threads(), "render_threads": renderer.threads,
            "camera": f"{cfg.camera.width_px}x{cfg.camera.height_px} fov {cfg.camera.fov_deg}",
            "levels": renderer.levels.__dict__, "prep_s_per_site": renderer.prep_s,
            "prep_cpu_s_per_site": renderer.prep_cpu_s,
            "prep_total_s": total_prep, "throughput": {}, "flicker": {}}
-    print(f"device {res['device']}, torch threads {res['threads']}, camera {res['camera']}")
+    print(f"device {res['device']}, torch threads {res['threads']}, render threads {res['render_threads']}, "
+          f"camera {res['camera']}")
     print(f"levels: {renderer.levels.n_levels} x {renderer.levels.tile_size}^2 texels per site, "
           f"texel0 {renderer.levels.base_texel_m:.3f} m")
     print("preparation (wall s / cpu s): " + ", ".join(
