@@ -160,3 +160,28 @@ def test_extent_errors():
         t.heightmap(-1.0, 16)
     with pytest.raises(ValueError, match="n must"):
         t.heightmap(10.0, 1)
+
+
+def test_site_variants_are_new_terrain_of_the_same_kind():
+    from dvsland.terrain import is_site_name, load_spec, split_site_name
+    from dvsland.terrain.spec import VARIANT_SEED_STEP
+
+    a, a1, a2 = load_spec("A"), load_spec("A~1"), load_spec("A~2")
+    assert split_site_name("A~2") == ("A", 2) and split_site_name("H") == ("H", 0)
+    assert a1.seed == a.seed + VARIANT_SEED_STEP and a2.seed == a.seed + 2 * VARIANT_SEED_STEP
+    assert a1.name == "A~1" and a1.craters == a.craters and a1.sun == a.sun
+    assert is_site_name("I~7") and not is_site_name("J~1") and not is_site_name("A~0")
+    for bad in ("A~", "A~x", "A~-1", "A~0", "Z~1", "A1", 3):
+        with pytest.raises(ValueError, match="variant"):
+            split_site_name(bad)
+
+
+def test_site_variant_renders_differently():
+    from dvsland.config import CameraConfig, RenderConfig
+    from dvsland.render import get_renderer
+
+    cam = CameraConfig(width_px=32, height_px=32, fov_deg=60.0)
+    r = get_renderer("fast", ["E", "E~1"], cam, RenderConfig(), disk_cache=False)
+    f = r.render(torch.tensor([300.0, 300.0]), torch.tensor([0, 1]))
+    assert torch.isfinite(f).all() and (f > 0).all()
+    assert not torch.allclose(f[0], f[1])

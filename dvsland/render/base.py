@@ -17,7 +17,8 @@ from typing import Optional, Sequence
 
 import torch
 
-from dvsland.config import SITE_NAMES, CameraConfig, RenderConfig
+from dvsland.config import CameraConfig, RenderConfig
+from dvsland.terrain.spec import split_site_name
 
 
 class Renderer:
@@ -31,8 +32,7 @@ class Renderer:
         if not site_names:
             raise ValueError("site_names must name at least one site (A-I)")
         for s in site_names:
-            if s not in SITE_NAMES:
-                raise ValueError(f"unknown site {s!r}: expected one of {', '.join(SITE_NAMES)}")
+            split_site_name(s)  # A-I or a variant such as "A~1"; ValueError naming the forms
         self.site_names = site_names
         self.camera = camera
         self.render_config = render if render is not None else RenderConfig()

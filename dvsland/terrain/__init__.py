@@ -11,8 +11,9 @@ row 0 is the north edge (row i -> y decreasing), column j -> x increasing (east 
 
 from .grid import Grid
 from .photometry import cast_shadow, lunar_lambert_l, shade, shaded_sun_grid
-from .spec import SiteSpec, available_sites, load_spec, spec_from_dict
+from .spec import SiteSpec, available_sites, is_site_name, load_spec, spec_from_dict, split_site_name
 from .terrain import Terrain, load_site
 
 __all__ = ["load_site", "Terrain", "SiteSpec", "load_spec", "spec_from_dict", "available_sites", "Grid",
+           "split_site_name", "is_site_name",
            "shade", "cast_shadow", "shaded_sun_grid", "lunar_lambert_l"]

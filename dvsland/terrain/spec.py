@@ -171,11 +171,42 @@ def available_sites() -> list:
     return sorted(p.stem for p in sites_dir().glob("*.yaml"))
 
 
+#: seed offset between consecutive variants of a site (a prime far above the shipped seeds)
+VARIANT_SEED_STEP = 1_000_003
+
+
+def split_site_name(name) -> tuple:
+    """``"A"`` -> ("A", 0); ``"A~3"`` -> ("A", 3): site ``A``'s spec with its seed moved by
+    3 * VARIANT_SEED_STEP, the same kind of terrain drawn anew (held-out terrain for training
+    learned estimators). ValueError for anything else, naming the allowed forms."""
+    if isinstance(name, str):
+        base, sep, k = name.partition("~")
+        if base in SITE_NAMES and (not sep or (k.isdigit() and 1 <= int(k) <= 10**6)):
+            return base, int(k) if sep else 0
+    raise ValueError(f"unknown site {name!r}: expected one of {', '.join(SITE_NAMES)}, or a variant "
+                     f"'<site>~<k>' with k in [1, 1000000] (e.g. 'A~1')")
+
+
+def is_site_name(name) -> bool:
+    """True for a shipped site (A-I) or a variant ``<site>~<k>`` (see :func:`split_site_name`)."""
+    try:
+        split_site_name(name)
+    except ValueError:
+        return False
+    return True
+
+
 def load_spec(name: str) -> SiteSpec:
-    """Read ``configs/sites/<name>.yaml``; an unknown name is a ValueError listing A-I."""
-    path = sites_dir() / f"{name}.yaml"
-    if not isinstance(name, str) or not path.is_file():
-        raise ValueError(f"unknown site {name!r}: expected one of {', '.join(SITE_NAMES)}")
+    """Read ``configs/sites/<name>.yaml``; ``<site>~<k>`` is variant k of a site (new seed, same
+    parameters; see :func:`split_site_name`). An unknown name is a ValueError listing A-I."""
+    base, variant = split_site_name(name)
+    path = sites_dir() / f"{base}.yaml"
+    if not path.is_file():
+        raise ValueError(f"unknown site {name!r}: no spec file {path}")
     data = yaml.safe_load(path.read_text()) or {}
-    data.setdefault("name", name)
-    return spec_from_dict(data, source=str(path))
+    data.setdefault("name", base)
+    spec = spec_from_dict(data, source=str(path))
+    if variant:
+        spec = dataclasses.replace(spec, name=name, seed=spec.seed + variant * VARIANT_SEED_STEP,
+                                   description=f"{spec.description} (variant {variant})")
+    return spec
