@@ -153,13 +153,14 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
     for label, name, over in specs:
         if label in ests:
             raise ValueError(f"estimator label {label!r} given twice")
-        est = make_estimator(cfg, B, device, name=name)
-        if over:
+        if over:  # built once, with the overrides (the plain config may not even construct)
             params = estimator_params(cfg, name)
             params.update(over)
             params.setdefault("dt_s", cfg.dt_s)
             params.setdefault("seed", cfg.simulation.seed)
             est = get_estimator(name, B, (cfg.camera.width_px, cfg.camera.height_px), device, **params)
+        else:
+            est = make_estimator(cfg, B, device, name=name)
         ests[label] = est
     estimators = list(ests)
     emu = EventEmulator.from_config(cfg.emulator, device=device, seed=cfg.simulation.seed)
