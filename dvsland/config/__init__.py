@@ -7,12 +7,12 @@ Public names: :class:`Config` and its sections, :func:`load_config`, :func:`appl
 from .loader import apply_overrides, config_to_dict, configs_dir, dump_config, load_config, read_yaml, repo_root
 from .schema import (SITE_NAMES, CameraConfig, CMaxConfig, Config, ControllerConfig, ControllerSetting,
                      DPRConfig, DynamicsConfig, EmulatorConfig, EstimatorConfig, LoggingConfig,
-                     OracleConfig, RenderConfig, SimulationConfig, SiteConfig)
+                     OracleConfig, RenderConfig, SimulationConfig, SiteConfig, SNNConfig)
 from .validate import ConfigError, build
 
 __all__ = [
     "Config", "CameraConfig", "RenderConfig", "EmulatorConfig", "EstimatorConfig", "DPRConfig",
-    "CMaxConfig", "OracleConfig", "ControllerConfig", "ControllerSetting", "DynamicsConfig",
+    "CMaxConfig", "OracleConfig", "SNNConfig", "ControllerConfig", "ControllerSetting", "DynamicsConfig",
     "SimulationConfig", "SiteConfig", "LoggingConfig", "SITE_NAMES", "ConfigError", "load_config",
     "apply_overrides", "dump_config", "config_to_dict", "configs_dir", "repo_root", "read_yaml", "build",
 ]

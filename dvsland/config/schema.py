@@ -140,6 +140,14 @@ class OracleConfig:
 
 
 @dataclass
+class SNNConfig:
+    """The trained spiking estimator 'snn' (DESIGN.md section 5; docs/estimators_snn.md)."""
+
+    checkpoint: str = opt("", "checkpoint from scripts/train_snn.py; empty = the one shipped with dvsland")
+    warmup_steps: int = opt(5, "updates after a reset that return NaN while the read-out charges", rng=(0, 10000))
+
+
+@dataclass
 class EstimatorConfig:
     """Which divergence estimator runs, and its parameters."""
 
@@ -147,6 +155,7 @@ class EstimatorConfig:
     dpr: DPRConfig = opt(None, "parameters of 'dpr'", factory=DPRConfig)
     cmax: CMaxConfig = opt(None, "parameters of 'cmax'", factory=CMaxConfig)
     oracle: OracleConfig = opt(None, "parameters of 'oracle'", factory=OracleConfig)
+    snn: SNNConfig = opt(None, "parameters of 'snn'", factory=SNNConfig)
     params: dict = opt(None, "free-form keyword parameters for other (third-party) estimators",
                        factory=dict)
 

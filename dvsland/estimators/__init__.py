@@ -1,7 +1,8 @@
 """Divergence estimators behind one interface (DESIGN.md section 5).
 
 Public names: :class:`DivergenceEstimator`, :class:`Truth`, :func:`get_estimator`,
-:func:`register_estimator`, :func:`available_estimators`, and the built-in estimators.
+:func:`register_estimator`, :func:`available_estimators`, and the built-in estimators
+(``dpr``, ``cmax``, ``oracle``, ``snn``).
 """
 
 from .base import DivergenceEstimator, Truth
@@ -9,6 +10,7 @@ from .registry import available_estimators, get_estimator, refresh_entry_points,
 from . import oracle  # noqa: F401  (registers 'oracle')
 from . import dpr  # noqa: F401  (registers 'dpr')
 from . import cmax  # noqa: F401  (registers 'cmax')
+from . import snn  # noqa: F401  (registers 'snn')
 from .factory import estimator_params, make_estimator
 
 __all__ = ["DivergenceEstimator", "Truth", "get_estimator", "register_estimator", "available_estimators",

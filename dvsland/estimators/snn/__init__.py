@@ -1,0 +1,15 @@
+"""``snn``: a trained spiking divergence estimator (DESIGN.md section 5).
+
+Public names: :class:`SpikingEstimator` (registered as "snn"), :class:`SpikingDivergenceNet`,
+:class:`LogPolarEncoder`, the LIF primitives (:mod:`.lif`), :func:`load_checkpoint`,
+:func:`save_checkpoint`, ``DEFAULT_CHECKPOINT``. Training: :mod:`.data`, :mod:`.train`,
+``scripts/train_snn.py``.
+"""
+
+from .encoding import LogPolarEncoder
+from .estimator import DEFAULT_CHECKPOINT, SpikingEstimator, load_checkpoint, save_checkpoint
+from .lif import LIFParameters, LIFState, LIState, li_step, lif_step, spike
+from .model import SpikingDivergenceNet
+
+__all__ = ["SpikingEstimator", "SpikingDivergenceNet", "LogPolarEncoder", "LIFParameters", "LIFState", "LIState",
+           "lif_step", "li_step", "spike", "load_checkpoint", "save_checkpoint", "DEFAULT_CHECKPOINT"]

@@ -1,0 +1,178 @@
+"""The spiking estimator 'snn': LIF primitives, log-polar encoding, the network, the estimator
+with the shipped checkpoint, and a training smoke test."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from dvsland.events import Events
+from dvsland.estimators import available_estimators, get_estimator
+from dvsland.estimators.snn import (DEFAULT_CHECKPOINT, LIFParameters, LogPolarEncoder, SpikingDivergenceNet,
+                                    lif_step, spike)
+from dvsland.estimators.snn.lif import lif_state, reset_state
+
+SENSOR = (128, 128)
+
+
+# ---------------------------------------------------------------- LIF
+def test_lif_spikes_above_threshold_and_resets():
+    p = LIFParameters(tau_mem_s=0.1, tau_syn_s=0.05, v_th=1.0)
+    st = lif_state((2, 3))
+    x = torch.tensor([[0.0, 0.0, 0.0], [5.0, 5.0, 5.0]])
+    spikes = []
+    for _ in range(20):
+        z, st = lif_step(x, st, p, 0.025)
+        spikes.append(z)
+        x = torch.zeros_like(x) if len(spikes) == 1 else x
+    z = torch.stack(spikes)
+    assert z[:, 0].sum() == 0  # no input, no spike
+    assert z[:, 1].sum() > 0
+    assert set(z.unique().tolist()) <= {0.0, 1.0}
+    # after a spike the membrane is reset to 0
+    assert torch.all(st.v[1][z[-1, 1] > 0] == 0)
+
+
+def test_surrogate_gradient_is_nonzero_and_bounded():
+    v = torch.linspace(-2, 2, 41, requires_grad=True)
+    spike(v, 10.0).sum().backward()
+    assert torch.all(v.grad > 0) and float(v.grad.max()) <= 1.0 and float(v.grad[20]) == pytest.approx(1.0, abs=1e-5)
+    assert float(v.grad[0]) == pytest.approx(1 / 21 ** 2)
+
+
+def test_lif_parameter_errors():
+    with pytest.raises(ValueError, match="tau_mem_s"):
+        LIFParameters(tau_mem_s=0.0)
+    with pytest.raises(ValueError, match="dt_s"):
+        LIFParameters(tau_mem_s=0.1, tau_syn_s=0.05).check_dt(0.05)
+
+
+def test_reset_state_touches_only_masked():
+    st = lif_state((3, 2))
+    st = type(st)(st.v + 1, st.i + 2)
+    out = reset_state(st, torch.tensor([True, False, True]))
+    assert out.v[1].eq(1).all() and out.v[0].eq(0).all() and out.i[2].eq(0).all() and out.i[1].eq(2).all()
+
+
+# ---------------------------------------------------------------- encoding
+def _events(b, x, y, t, p):
+    t = torch.as_tensor(t, dtype=torch.int64)
+    return Events(torch.as_tensor(b), torch.as_tensor(x), torch.as_tensor(y), t, torch.as_tensor(p, dtype=torch.int8),
+                  sort=True)
+
+
+def test_log_polar_encoding_conserves_events_in_the_annulus():
+    enc = LogPolarEncoder(SENSOR)
+    g = torch.Generator().manual_seed(0)
+    n = 5000
+    x = torch.randint(0, 128, (n,), generator=g)
+    y = torch.randint(0, 128, (n,), generator=g)
+    t = torch.randint(1, 100_001, (n,), generator=g)
+    b = torch.randint(0, 3, (n,), generator=g)
+    p = torch.where(torch.rand(n, generator=g) < 0.5, 1, -1)
+    ev = _events(b, x, y, t, p)
+    out = enc.encode(ev, 0, 100_000, 3)
+    assert out.shape == (3, enc.n_sub, 2, enc.n_rho, enc.n_phi) and out.dtype == torch.float32
+    inside = enc.bin_of_pixel[y * 128 + x] >= 0
+    counts = out * enc.pixels_per_bin
+    assert torch.allclose(counts.sum(), torch.tensor(float(inside.sum())))
+    for bb in range(3):  # per batch element and polarity
+        m = inside & (b == bb) & (p > 0)
+        assert int(round(float(counts[bb, :, 0].sum()))) == int(m.sum())
+    # time slices: quarter of the interval each
+    first = inside & (t <= 25_000)
+    assert int(round(float(counts[:, 0].sum()))) == int(first.sum())
+
+
+def test_log_polar_empty_and_errors():
+    enc = LogPolarEncoder(SENSOR)
+    assert enc.encode(Events.empty(), 0, 100_000, 2).abs().sum() == 0
+    assert enc.encode(None, 0, 100_000, 2).shape[0] == 2
+    with pytest.raises(ValueError, match="r_min_px"):
+        LogPolarEncoder(SENSOR, r_min_px=70.0, r_max_px=64.0)
+    with pytest.raises(ValueError, match="without a pixel"):
+        LogPolarEncoder(SENSOR, n_rho=64, n_phi=64, r_min_px=2.0)
+
+
+def test_log_polar_zoom_moves_pattern_along_rho():
+    """A ring of events at radius r lands in the rho bin of log r: a zoom by e^0.3 moves it by
+    0.3 / (log(r_max / r_min) / n_rho) bins."""
+    enc = LogPolarEncoder(SENSOR)
+    drho = math.log(enc.r_max_px / enc.r_min_px) / enc.n_rho
+
+    def ring(r):
+        a = torch.linspace(0, 2 * math.pi, 400)[:-1]
+        x = (64 + r * torch.cos(a)).long().clamp(0, 127)
+        y = (64 + r * torch.sin(a)).long().clamp(0, 127)
+        ev = _events(torch.zeros_like(x), x, y, torch.full_like(x, 50_000), torch.ones_like(x))
+        c = (enc.encode(ev, 0, 100_000, 1) * enc.pixels_per_bin)[0].sum(dim=(0, 1, 3))
+        return float((c * torch.arange(enc.n_rho)).sum() / c.sum())
+
+    shift = ring(20.0 * math.exp(0.3)) - ring(20.0)
+    assert abs(shift - 0.3 / drho) < 0.6
+
+
+# ---------------------------------------------------------------- network
+def test_network_shapes_state_and_reset():
+    net = SpikingDivergenceNet(24, 24, dt_s=0.025)
+    st = net.initial_state(3)
+    x = torch.rand(3, 4, 2, 24, 24)
+    d, st, rates = net.run_step(x, st)
+    assert d.shape == (3,) and torch.isfinite(d).all()
+    assert set(rates) == {"rate1", "rate2"}
+    st2 = net.reset(st, torch.tensor([False, True, False]))
+    assert torch.equal(st2.l1.v[0], st.l1.v[0]) and st2.l1.v[1].abs().sum() == 0 and st2.out.v[1].abs().sum() == 0
+    with pytest.raises(ValueError, match="dt_s"):
+        SpikingDivergenceNet(24, 24, dt_s=0.2)
+
+
+def test_training_smoke_reduces_loss():
+    from dvsland.estimators.snn.train import sequence_loss, train
+
+    torch.manual_seed(0)
+    net = SpikingDivergenceNet(24, 24, dt_s=0.025)
+    n, k = 24, 6
+    d = -torch.rand(n, 1).expand(n, k).contiguous() * 0.3 - 0.05
+    x = (torch.rand(n, k, 4, 2, 24, 24) * (-d)[..., None, None, None, None] * 4).half()
+    before = float(sequence_loss(net, x.float(), d, 2)[0].detach())
+    hist = train(net, {"x": x, "d": d}, epochs=3, batch=8, lr=1e-2, warmup_steps=2, log=lambda *a: None)
+    after = float(sequence_loss(net, x.float(), d, 2)[0].detach())
+    assert len(hist["epoch"]) == 3 and math.isfinite(after) and after < before
+
+
+# ---------------------------------------------------------------- estimator
+def test_snn_registered_and_checkpoint_shipped():
+    assert "snn" in available_estimators()
+    assert DEFAULT_CHECKPOINT.is_file()
+
+
+def test_snn_estimator_empty_windows_give_nan_then_finite_and_reset_by_mask():
+    est = get_estimator("snn", 3, SENSOR, warmup_steps=2)
+    outs = [est.update(Events.empty(), 100_000 * (k + 1)) for k in range(4)]
+    assert torch.isnan(outs[0]).all() and torch.isnan(outs[1]).all()
+    assert torch.isfinite(outs[2]).all() and not torch.isinf(outs[3]).any()
+    est.reset(torch.tensor([True, False, False]))
+    d = est.update(Events.empty(), 500_000)
+    assert torch.isnan(d[0]) and torch.isfinite(d[1:]).all()
+    diag = est.diagnostics()
+    assert diag["steps_since_reset"].tolist() == [1, 5, 5]
+
+
+def test_snn_estimator_errors(tmp_path):
+    with pytest.raises(ValueError, match="checkpoint"):
+        get_estimator("snn", 2, SENSOR, checkpoint=str(tmp_path / "missing.pt"))
+    with pytest.raises(ValueError, match="sensor"):
+        get_estimator("snn", 2, (64, 64))
+    with pytest.raises(ValueError, match="warmup_steps"):
+        get_estimator("snn", 2, SENSOR, warmup_steps=-1)
+
+
+def test_snn_from_config():
+    from dvsland.config import load_config
+    from dvsland.estimators import make_estimator
+
+    cfg = load_config(overrides=["estimator.name=snn", "estimator.snn.warmup_steps=3"])
+    est = make_estimator(cfg, 2)
+    assert est.warmup_steps == 3 and type(est).__name__ == "SpikingEstimator"
