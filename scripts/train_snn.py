@@ -29,6 +29,8 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default=None, help="config YAML (default configs/paper.yaml)")
     ap.add_argument("--n-seq", type=int, default=1280)
     ap.add_argument("--steps", type=int, default=20, help="control steps per sequence")
+    ap.add_argument("--c2-max", type=float, default=0.0,
+                    help="descents follow tau = tau0 - c2 t with c2 in [0, C2_MAX] (0 = constant D)")
     ap.add_argument("--epochs", type=int, default=14)
     ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--lr", type=float, default=3e-3)
@@ -45,7 +47,7 @@ def main(argv=None) -> int:
     enc = LogPolarEncoder((cfg.camera.width_px, cfg.camera.height_px))
     sites = training_sites()
     t0 = time.perf_counter()
-    data = make_sequences(cfg, enc, sites, args.n_seq, args.steps, seed=args.seed)
+    data = make_sequences(cfg, enc, sites, args.n_seq, args.steps, seed=args.seed, c2_max=args.c2_max)
     t_data = time.perf_counter() - t0
     print(f"data: {args.n_seq} sequences x {args.steps} steps on {', '.join(sites)} in {t_data:.0f} s; "
           f"mean events/px/step {float(data['x'].float().mean()) * enc.n_sub:.3f}")
@@ -58,7 +60,7 @@ def main(argv=None) -> int:
         print(f"starting from {args.init} ({prior.get('epochs_run', '?')} epochs)")
     hist = train(model, data, epochs=args.epochs, batch=args.batch, lr=args.lr, warmup_steps=args.warmup_steps,
                  seed=args.seed, max_minutes=args.max_minutes)
-    meta = {"sites": sites, "n_seq": args.n_seq, "steps": args.steps, "epochs_run": len(hist["epoch"]),
+    meta = {"sites": sites, "n_seq": args.n_seq, "steps": args.steps, "c2_max": args.c2_max, "epochs_run": len(hist["epoch"]),
             "batch": args.batch, "lr": args.lr, "warmup_steps": args.warmup_steps, "seed": args.seed,
             "data_seconds": t_data, "train_seconds": hist["seconds"][-1] if hist["seconds"] else 0.0,
             "history": hist, "init": args.init, "prior": {k: v for k, v in prior.items() if k != "prior"}}

@@ -176,3 +176,23 @@ def test_snn_from_config():
     cfg = load_config(overrides=["estimator.name=snn", "estimator.snn.warmup_steps=3"])
     est = make_estimator(cfg, 2)
     assert est.warmup_steps == 3 and type(est).__name__ == "SpikingEstimator"
+
+
+def test_training_sequences_follow_the_descent_law_on_held_out_terrain():
+    from dvsland.config import load_config
+    from dvsland.estimators.snn.data import make_sequences, training_sites
+
+    assert training_sites((1,), "AE") == ["A~1", "E~1"]
+    cfg = load_config(overrides=["camera.width_px=48", "camera.height_px=48"])
+    enc = LogPolarEncoder((48, 48), n_rho=6, n_phi=8, r_min_px=6.0, r_max_px=24.0)
+    data = make_sequences(cfg, enc, ["E~1"], 6, 8, seed=4, c2_max=0.6, ascent_fraction=0.3, progress=False)
+    x, d, z = data["x"], data["d"].double(), data["z"].double()
+    assert x.shape == (6, 8, enc.n_sub, 2, 6, 8) and x.dtype == torch.float16 and (x >= 0).all()
+    assert d.shape == z.shape == (6, 8) and (z >= 60).all() and (z <= 9000).all()
+    # log z changes by the integral of D: trapezoid over each step within 1 %
+    dlogz = torch.log(z[:, 1:] / z[:, :-1])
+    trap = 0.5 * (d[:, 1:] + d[:, :-1]) * cfg.dt_s
+    assert torch.allclose(dlogz, trap, rtol=0.01, atol=1e-6)
+    desc = d[:, 0] < 0
+    assert (d[desc, -1] <= d[desc, 0]).all()  # |D| grows while descending
+    assert (d[~desc] == d[~desc, :1]).all()  # climbs keep D

@@ -2,9 +2,11 @@
 held-out terrain (site variants ``<site>~<k>``, never the nine evaluation sites), turned into
 events by the configured emulator and encoded in log-polar slices.
 
-A sequence has ``n_steps`` control steps of ``cfg.dt_s``: z_k = z0 exp(D t_k), D constant,
-|D| log-uniform in [d_min, d_max], a fraction ``ascent_fraction`` of them with D > 0 (the loop
-can climb), z0 log-uniform so that the sequence stays within [z_min_m, z_max_m].
+A sequence has ``n_steps`` control steps of ``cfg.dt_s``. Its initial |D| is log-uniform in
+[d_min, d_max]; a fraction ``ascent_fraction`` climb at constant D > 0 (the loop can climb); the
+others descend on the paper's law tau(t) = tau0 - c2 t with c2 uniform in [0, c2_max] (0 =
+constant D), so |D| grows as in a real descent. z0 is log-uniform so that the sequence stays
+within [z_min_m, z_max_m].
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ def training_sites(variants: Sequence[int] = (1, 2), sites: str = "ABCDEFGHI") -
 
 def make_sequences(cfg: Config, encoder: LogPolarEncoder, sites: Sequence[str], n_seq: int, n_steps: int,
                    seed: int = 0, d_min: float = 0.01, d_max: float = 0.5, ascent_fraction: float = 0.15,
+                   c2_max: float = 0.0,
                    z_min_m: float = 60.0, z_max_m: float = 9000.0, batch: int = 64, device="cpu",
                    progress: bool = True) -> dict:
     """Render, emulate and encode ``n_seq`` sequences (see module doc).
@@ -48,14 +51,25 @@ def make_sequences(cfg: Config, encoder: LogPolarEncoder, sites: Sequence[str], 
     span_s = n_steps * dt
     d_abs = np.exp(rng.uniform(math.log(d_min), math.log(d_max), n_seq))
     sign = np.where(rng.uniform(size=n_seq) < ascent_fraction, 1.0, -1.0)
-    d = sign * d_abs
-    # z stays in [z_min, z_max] over the sequence: z0 in [z_min e^{|D| T}, z_max] when descending
-    lo = np.where(d < 0, z_min_m * np.exp(d_abs * span_s), z_min_m)
-    hi = np.where(d < 0, z_max_m, z_max_m * np.exp(-d_abs * span_s))
+    t = np.arange(n_steps + 1) * dt
+    # descents follow the paper's law tau(t) = tau0 - c2 t (D = -1 / tau: |D| grows), c2 drawn in
+    # [0, c2_max] and capped so that tau halves at most; climbs keep D constant
+    tau0 = 1.0 / d_abs
+    c2 = np.where(sign < 0, np.minimum(rng.uniform(0.0, c2_max, n_seq), 0.5 * tau0 / span_s), 0.0)
+    tau = tau0[:, None] - c2[:, None] * t[None, :]
+    d_t = np.where(sign[:, None] < 0, -1.0 / tau, d_abs[:, None] * np.ones_like(tau))  # (N, n_steps + 1)
+    safe_c2 = np.where(c2 > 0, c2, 1.0)
+    log_ratio = np.where(sign[:, None] < 0,
+                         np.where(c2[:, None] > 0, np.log(tau / tau0[:, None]) / safe_c2[:, None],
+                                  -t[None, :] / tau0[:, None]),
+                         d_abs[:, None] * t[None, :])  # log z(t) - log z0
+    # z stays in [z_min, z_max] over the sequence
+    lo = np.maximum(z_min_m * np.exp(-log_ratio.min(axis=1)), z_min_m)
+    hi = np.minimum(z_max_m * np.exp(-log_ratio.max(axis=1)), z_max_m)
     z0 = np.exp(rng.uniform(np.log(lo), np.log(np.maximum(hi, lo * 1.01))))
     site = rng.integers(0, len(sites), n_seq)
-    t = np.arange(n_steps + 1) * dt
-    z = z0[:, None] * np.exp(d[:, None] * t[None, :])  # (N, n_steps + 1)
+    z = z0[:, None] * np.exp(log_ratio)  # (N, n_steps + 1)
+    d = d_t
     x_all = torch.empty((n_seq, n_steps, encoder.n_sub, 2, encoder.n_rho, encoder.n_phi), dtype=torch.float16)
     emu = EventEmulator.from_config(cfg.emulator, device=device, seed=seed)
     t_us = np.round(t * 1e6).astype(np.int64)
@@ -77,6 +91,7 @@ def make_sequences(cfg: Config, encoder: LogPolarEncoder, sites: Sequence[str], 
             bar.update(b)
     if bar is not None:
         bar.close()
-    d_t = torch.as_tensor(np.repeat(d[:, None], n_steps, axis=1), dtype=torch.float32)
-    return {"x": x_all, "d": d_t, "z": torch.as_tensor(z[:, 1:], dtype=torch.float32),
+    # the truth of a step is D at the end of its interval (as in dvsland.evaluate)
+    return {"x": x_all, "d": torch.as_tensor(d[:, 1:], dtype=torch.float32),
+            "z": torch.as_tensor(z[:, 1:], dtype=torch.float32),
             "site": torch.as_tensor(site), "sites": list(sites)}
