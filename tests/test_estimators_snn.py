@@ -196,3 +196,20 @@ def test_training_sequences_follow_the_descent_law_on_held_out_terrain():
     desc = d[:, 0] < 0
     assert (d[desc, -1] <= d[desc, 0]).all()  # |D| grows while descending
     assert (d[~desc] == d[~desc, :1]).all()  # climbs keep D
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_snn_cuda_matches_cpu():
+    g = torch.Generator().manual_seed(1)
+    n = 3000
+    ev = _events(torch.randint(0, 2, (n,), generator=g), torch.randint(0, 128, (n,), generator=g),
+                 torch.randint(0, 128, (n,), generator=g), torch.randint(1, 100_001, (n,), generator=g),
+                 torch.where(torch.rand(n, generator=g) < 0.5, 1, -1))
+    outs = {}
+    for dev in ("cpu", "cuda"):
+        est = get_estimator("snn", 2, SENSOR, device=dev, warmup_steps=0)
+        for k in range(3):
+            d = est.update(ev.to(dev), 100_000 * (k + 1))
+        outs[dev] = d.cpu()
+    assert torch.allclose(outs["cpu"], outs["cuda"], rtol=1e-3, atol=1e-5)

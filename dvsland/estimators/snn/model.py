@@ -87,16 +87,25 @@ class SpikingDivergenceNet(nn.Module):
     def reset(state: SNNState, mask: torch.Tensor) -> SNNState:
         return SNNState(reset_state(state.l1, mask), reset_state(state.l2, mask), reset_state(state.out, mask))
 
-    def forward(self, x: torch.Tensor, state: SNNState):
-        """x: (B, 2, n_rho, n_phi) events per pixel of one slice. Returns (d_hat (B,) 1/s, new
-        state, {"rate1": (B,), "rate2": (B,)} mean spike rates per slice)."""
+    def _time_constants(self) -> dict:
+        if not self.learn_tau:
+            return {}
+        return {n: (_K_MAX * torch.sigmoid(getattr(self, "raw_" + n)))[:, None, None]
+                for n in ("mem1", "syn1", "mem2", "syn2")}
+
+    def input_current(self, x: torch.Tensor) -> torch.Tensor:
+        """Layer-1 input current of slices x (N, 2, n_rho, n_phi) -> (N, c1, n_rho, n_phi). It does
+        not depend on the state, so a step's slices go through it as one batch."""
+        return self.conv1(self._pad(torch.log1p(x * self.log_in_gain.exp())))
+
+    def forward(self, x: torch.Tensor, state: SNNState, current: torch.Tensor = None, k: dict = None):
+        """x: (B, 2, n_rho, n_phi) events per pixel of one slice (or ``current``, its
+        :meth:`input_current`). Returns (d_hat (B,) 1/s, new state, {"rate1": (B,), "rate2": (B,)}
+        mean spike rates of the slice)."""
         dt = self.dt_s
-        k = {}
-        if self.learn_tau:
-            k = {n: (_K_MAX * torch.sigmoid(getattr(self, "raw_" + n)))[:, None, None]
-                 for n in ("mem1", "syn1", "mem2", "syn2")}
-        z1, s1 = lif_step(self.conv1(self._pad(torch.log1p(x * self.log_in_gain.exp()))), state.l1, self.p1, dt,
-                          k.get("mem1"), k.get("syn1"))
+        k = self._time_constants() if k is None else k
+        current = self.input_current(x) if current is None else current
+        z1, s1 = lif_step(current, state.l1, self.p1, dt, k.get("mem1"), k.get("syn1"))
         z2, s2 = lif_step(self.conv2(self._pad(z1)), state.l2, self.p2, dt, k.get("mem2"), k.get("syn2"))
         feat = z2.mean(dim=-1).flatten(1)  # (B, c2 * n_rho2)
         v, so = li_step(self.readout(feat), state.out, self.po, dt)
@@ -106,10 +115,13 @@ class SpikingDivergenceNet(nn.Module):
     def run_step(self, x: torch.Tensor, state: SNNState):
         """All slices of one control step: x (B, n_sub, 2, n_rho, n_phi). Returns (d_hat (B,) after
         the last slice, state, mean rates)."""
+        b, n_sub = x.shape[:2]
+        cur = self.input_current(x.flatten(0, 1)).unflatten(0, (b, n_sub))
+        k = self._time_constants()
         rates = {}
         d = None
-        for k in range(x.shape[1]):
-            d, state, r = self(x[:, k], state)
+        for j in range(n_sub):
+            d, state, r = self(None, state, cur[:, j], k)
             for n, v in r.items():
-                rates[n] = rates.get(n, 0) + v / x.shape[1]
+                rates[n] = rates.get(n, 0) + v / n_sub
         return d, state, rates
