@@ -64,7 +64,8 @@ class SpikingDivergenceNet(nn.Module):
         if self.learn_tau:
             # per-channel membrane / synaptic time constants, learned (heterogeneous time constants
             # give neurons different delays, which motion detection needs); initialised log-spaced,
-            # layer 1 over [0.05, 0.5] s, layer 2 over [0.1, 2] s, synapses at half the membrane
+            # membranes over [0.05, 0.5] s (layer 1) and [0.1, 2] s (layer 2); synapses over
+            # [0.025 s + dt, 0.25 s] and [0.05 s + dt, 1 s] (about half, and always longer than dt)
             def raw(lo, hi, n):
                 k = self.dt_s / torch.logspace(math.log10(lo), math.log10(hi), n)
                 return nn.Parameter(torch.logit(k / _K_MAX))

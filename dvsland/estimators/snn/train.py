@@ -13,23 +13,24 @@ from typing import Optional
 
 import torch
 
+from dvsland.evaluate.metrics import divergence_metrics
+
 from .model import SpikingDivergenceNet
 
 
 def sequence_loss(model: SpikingDivergenceNet, x: torch.Tensor, d: torch.Tensor, warmup_steps: int,
                   d_floor: float = 0.02):
-    """x (B, K, n_sub, 2, n_rho, n_phi), d (B, K). Returns (loss, d_hat (B, K), mean rates)."""
+    """x (B, K, n_sub, 2, n_rho, n_phi) events per pixel, d (B, K) true D, 1/s. Returns (loss,
+    d_hat (B, K) float32 1/s)."""
     b, k = d.shape
     state = model.initial_state(b, x.device)
     outs = []
-    rate = 0.0
     for s in range(k):
-        dh, state, r = model.run_step(x[:, s].float(), state)
+        dh, state, _ = model.run_step(x[:, s].float(), state)
         outs.append(dh)
-        rate = rate + r["rate2"].mean() / k
     d_hat = torch.stack(outs, 1)
     rel = (d_hat - d)[:, warmup_steps:] / d[:, warmup_steps:].abs().clamp(min=d_floor)
-    return (rel ** 2).mean(), d_hat, rate
+    return (rel ** 2).mean(), d_hat
 
 
 def train(model: SpikingDivergenceNet, data: dict, epochs: int = 10, batch: int = 32, lr: float = 3e-3,
@@ -54,7 +55,7 @@ def train(model: SpikingDivergenceNet, data: dict, epochs: int = 10, batch: int 
         tot, nb = 0.0, 0
         for a in range(0, len(perm), batch):
             idx = perm[a:a + batch]
-            loss, _, _ = sequence_loss(model, x[idx], d[idx], warmup_steps)
+            loss, _ = sequence_loss(model, x[idx], d[idx], warmup_steps)
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -79,12 +80,10 @@ def train(model: SpikingDivergenceNet, data: dict, epochs: int = 10, batch: int 
 @torch.no_grad()
 def evaluate(model: SpikingDivergenceNet, x: torch.Tensor, d: torch.Tensor, warmup_steps: int,
              batch: int = 64):
-    """(median |relative error|, fraction within 20 %) over steps after the warm-up."""
+    """(median |relative error|, fraction within 20 %) over the steps after the warm-up, by
+    :func:`dvsland.evaluate.metrics.divergence_metrics` (the open-loop evaluation's metrics)."""
     model.eval()
-    errs = []
-    for a in range(0, x.shape[0], batch):
-        _, dh, _ = sequence_loss(model, x[a:a + batch], d[a:a + batch], warmup_steps)
-        dd = d[a:a + batch]
-        errs.append(((dh - dd).abs() / dd.abs())[:, warmup_steps:].flatten())
-    e = torch.cat(errs)
-    return float(e.median()), float((e <= 0.2).float().mean())
+    d_hat = torch.cat([sequence_loss(model, x[a:a + batch], d[a:a + batch], warmup_steps)[1]
+                       for a in range(0, x.shape[0], batch)])
+    m = divergence_metrics(d_hat[:, warmup_steps:].numpy(), d[:, warmup_steps:].numpy())
+    return m["median_abs_rel_err"], m["within_20"]
