@@ -124,7 +124,8 @@ class FastRenderer(Renderer):
         self._sin = torch.sin(ang).to(device=dev, dtype=torch.float32)
         self.h0_m = {lv.name: lv.h0_m for lv in tiles}
         self._pitch = self.pixel_m_per_m()
-        self._gain = self._emission_gain(tiles, row_of_site)
+        tx, ty = self.ray_tangents(torch.float64)  # (H, W)
+        self._gain = self._emission_gain(tiles, row_of_site, tx, ty)
         # one (H, W) gain when all sites share it (same sun elevation): no per-frame gather
         self._gain_shared = self._gain[0] if bool((self._gain == self._gain[:1]).all()) else None
         # normalised atlas coordinates of tile centres (align_corners=False), float32 with
@@ -137,9 +138,7 @@ class FastRenderer(Renderer):
         # every per-frame op is then a plain broadcast over (H, W) (an interleaved (..., 2) layout
         # times a (..., 1) range ran 12x slower), and the grid for grid_sample is a permuted view.
         # Full resolution and 2x2-block resolution (for the parallax pass).
-        ha, wa = self.atlas_irradiance.shape[-2:]
         nrm = torch.tensor([2.0 / (wa * p.base_texel_m), 2.0 / (ha * p.base_texel_m)], dtype=torch.float64)
-        tx, ty = self.ray_tangents(torch.float64)
         self._slopes = self._sun_frame_slopes(tx, ty, nrm)
         h2, w2 = self.height_px // 2, self.width_px // 2
         if self.parallax_iters and h2 >= 2 and w2 >= 2 and self.height_px % 2 == 0 and self.width_px % 2 == 0:
@@ -148,13 +147,13 @@ class FastRenderer(Renderer):
         else:
             self._slopes_half = None
 
-    def _emission_gain(self, tiles, row_of_site) -> torch.Tensor:
+    def _emission_gain(self, tiles, row_of_site, tx: torch.Tensor, ty: torch.Tensor) -> torch.Tensor:
         """(S, H, W) per-pixel gain for the view direction: the tiles are shaded for a nadir view
         (cos e = n_z); a pixel off the axis sees flat ground at cos e = 1 / sqrt(1 + t^2), which
-        lunar-Lambert brightens. gain = R(mu0, cos e_pixel) / R(mu0, 1) for flat ground."""
+        lunar-Lambert brightens. gain = R(mu0, cos e_pixel) / R(mu0, 1) for flat ground. tx, ty:
+        (H, W) float64 ray tangents."""
         from dvsland.terrain import load_site, lunar_lambert_l
 
-        tx, ty = self.ray_tangents(torch.float64)
         mu = 1.0 / torch.sqrt(1.0 + tx * tx + ty * ty)
         out = []
         for r in row_of_site:
@@ -260,8 +259,8 @@ class FastRenderer(Renderer):
 def _upsample2x(x: torch.Tensor) -> torch.Tensor:
     """(B, h, w) -> (B, 2 h, 2 w): bilinear 2x upsampling with align_corners=False and edge
     clamping, equal to ``F.interpolate(mode="bilinear")`` up to float rounding. Separable fixed
-    weights (3/4, 1/4), columns first, so the row pass writes whole rows (3x faster than
-    ``F.interpolate`` on one CPU thread for 18 x 64 x 64)."""
+    weights (3/4, 1/4), columns first, so the row pass writes whole rows (about 2x faster than
+    ``F.interpolate`` on one CPU thread for 18 x 64 x 64: 0.40 against 0.84 ms)."""
     b, h, w = x.shape
     xp = torch.cat([x[..., :1], x, x[..., -1:]], dim=2)  # (B, h, w + 2)
     y = torch.empty(b, h, w, 2, dtype=x.dtype, device=x.device)
