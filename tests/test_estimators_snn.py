@@ -213,3 +213,16 @@ def test_snn_cuda_matches_cpu():
             d = est.update(ev.to(dev), 100_000 * (k + 1))
         outs[dev] = d.cpu()
     assert torch.allclose(outs["cpu"], outs["cuda"], rtol=1e-3, atol=1e-5)
+
+
+def test_training_sequence_errors():
+    from dvsland.config import load_config
+    from dvsland.estimators.snn.data import make_sequences
+
+    cfg = load_config()
+    enc = LogPolarEncoder(SENSOR)
+    for kw, name in (({"n_seq": 0}, "n_seq"), ({"d_min": 0.0}, "d_min"), ({"c2_max": 1.0}, "c2_max"),
+                     ({"ascent_fraction": 1.5}, "ascent_fraction"), ({"z_min_m": 9000.0}, "z_min_m")):
+        args = {"n_seq": 2, **kw}
+        with pytest.raises(ValueError, match=name):
+            make_sequences(cfg, enc, ["E~1"], args.pop("n_seq"), 3, progress=False, **args)

@@ -45,6 +45,12 @@ def make_sequences(cfg: Config, encoder: LogPolarEncoder, sites: Sequence[str], 
         raise ValueError(f"n_seq and n_steps must be >= 1, got {n_seq}, {n_steps}")
     if not 0 < d_min < d_max:
         raise ValueError(f"need 0 < d_min < d_max, got {d_min}, {d_max}")
+    if not 0.0 <= c2_max < 1.0:
+        raise ValueError(f"c2_max must be in [0, 1), got {c2_max}")
+    if not 0.0 <= ascent_fraction <= 1.0:
+        raise ValueError(f"ascent_fraction must be in [0, 1], got {ascent_fraction}")
+    if not 0 < z_min_m < z_max_m:
+        raise ValueError(f"need 0 < z_min_m < z_max_m, got {z_min_m}, {z_max_m}")
     rng = np.random.default_rng(seed)
     renderer = get_renderer("fast", list(sites), cfg.camera, cfg.render, device=device)
     dt = cfg.dt_s
@@ -57,7 +63,7 @@ def make_sequences(cfg: Config, encoder: LogPolarEncoder, sites: Sequence[str], 
     tau0 = 1.0 / d_abs
     c2 = np.where(sign < 0, np.minimum(rng.uniform(0.0, c2_max, n_seq), 0.5 * tau0 / span_s), 0.0)
     tau = tau0[:, None] - c2[:, None] * t[None, :]
-    d_t = np.where(sign[:, None] < 0, -1.0 / tau, d_abs[:, None] * np.ones_like(tau))  # (N, n_steps + 1)
+    d = np.where(sign[:, None] < 0, -1.0 / tau, d_abs[:, None] * np.ones_like(tau))  # (N, n_steps + 1)
     safe_c2 = np.where(c2 > 0, c2, 1.0)
     log_ratio = np.where(sign[:, None] < 0,
                          np.where(c2[:, None] > 0, np.log(tau / tau0[:, None]) / safe_c2[:, None],
@@ -69,7 +75,6 @@ def make_sequences(cfg: Config, encoder: LogPolarEncoder, sites: Sequence[str], 
     z0 = np.exp(rng.uniform(np.log(lo), np.log(np.maximum(hi, lo * 1.01))))
     site = rng.integers(0, len(sites), n_seq)
     z = z0[:, None] * np.exp(log_ratio)  # (N, n_steps + 1)
-    d = d_t
     x_all = torch.empty((n_seq, n_steps, encoder.n_sub, 2, encoder.n_rho, encoder.n_phi), dtype=torch.float16)
     emu = EventEmulator.from_config(cfg.emulator, device=device, seed=seed)
     t_us = np.round(t * 1e6).astype(np.int64)
