@@ -4,7 +4,8 @@ Public names: :class:`Config` and its sections, :func:`load_config`, :func:`appl
 :func:`dump_config`, :func:`config_to_dict`, :class:`ConfigError`, :func:`configs_dir`.
 """
 
-from .loader import apply_overrides, config_to_dict, configs_dir, dump_config, load_config, read_yaml, repo_root
+from .loader import (apply_overrides, config_to_dict, configs_dir, dump_config, load_config, read_yaml,
+                     repo_root, resolve_config_path)
 from .schema import (SITE_NAMES, CameraConfig, CMaxConfig, Config, ControllerConfig, ControllerSetting,
                      DPRConfig, DynamicsConfig, EmulatorConfig, EstimatorConfig, LoggingConfig,
                      OracleConfig, RenderConfig, SimulationConfig, SiteConfig, SNNConfig)
@@ -15,4 +16,5 @@ __all__ = [
     "CMaxConfig", "OracleConfig", "SNNConfig", "ControllerConfig", "ControllerSetting", "DynamicsConfig",
     "SimulationConfig", "SiteConfig", "LoggingConfig", "SITE_NAMES", "ConfigError", "load_config",
     "apply_overrides", "dump_config", "config_to_dict", "configs_dir", "repo_root", "read_yaml", "build",
+    "resolve_config_path",
 ]

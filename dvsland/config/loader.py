@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import typing
+from importlib import resources
 from pathlib import Path
 from typing import Iterable, Optional, Union
 
@@ -17,13 +18,31 @@ PathLike = Union[str, Path]
 
 
 def repo_root() -> Path:
-    """The source checkout holding ``configs/`` (the package is installed editable)."""
+    """The folder above the package (the source checkout when installed editable; in an installed
+    wheel, site-packages). Use :func:`configs_dir` for the shipped configs."""
     return Path(__file__).resolve().parents[2]
 
 
 def configs_dir() -> Path:
-    """Folder of the shipped YAML configs (``configs/``)."""
-    return repo_root() / "configs"
+    """Folder of the YAML configs shipped inside the package (``dvsland/configs``; the source
+    checkout's ``configs/`` is a link to it), found through importlib.resources so that an
+    installed wheel finds them too."""
+    return Path(str(resources.files("dvsland") / "configs"))
+
+
+def resolve_config_path(path: PathLike) -> Path:
+    """``path`` if it is a file; otherwise a shipped config of that name: ``paper``,
+    ``paper.yaml`` and ``configs/paper.yaml`` all name ``dvsland/configs/paper.yaml``. A name
+    found nowhere is a ConfigError listing the shipped configs."""
+    p = Path(path)
+    if p.is_file():
+        return p
+    name = p.name if p.suffix in (".yaml", ".yml") else p.name + ".yaml"
+    shipped = configs_dir() / name
+    if (len(p.parts) == 1 or p.parent.name == "configs") and shipped.is_file():
+        return shipped
+    known = sorted(q.stem for q in configs_dir().glob("*.yaml"))
+    raise ConfigError(f"config file not found: {path} (shipped configs, usable by name: {', '.join(known)})")
 
 
 def read_yaml(path: PathLike) -> dict:
@@ -116,6 +135,8 @@ def load_config(path: Optional[PathLike] = None, overrides: Iterable[str] = ()) 
     if path is None:
         default = configs_dir() / "paper.yaml"
         path = default if default.is_file() else None
+    if path is not None:
+        path = resolve_config_path(path)
     data = read_yaml(path) if path is not None else {}
     overrides = list(overrides or ())
     source = str(path) if path is not None else "defaults"
