@@ -16,6 +16,9 @@ def register(subparsers) -> None:
 
 
 def run_show(args) -> int:
+    from dvsland.stages import check_names
+
     cfg = config_from_args(args)
+    check_names(cfg)  # stage names are checked against the registries, where stages are built
     print(dump_config(cfg), end="")
     return 0

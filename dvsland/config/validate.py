@@ -165,7 +165,12 @@ def convert(value: Any, tp, path: str, source: Optional[str], owner=None, name: 
 
 
 def check_config(cfg: Config, source: Optional[str] = None) -> Config:
-    """Cross-field checks that no single field can make. Returns ``cfg``."""
+    """Cross-field checks that no single field can make. Returns ``cfg``.
+
+    Names of stage implementations (``estimator.name``, ``render.renderer``,
+    ``controller.name``) are checked where the stages are built, against their registries
+    (:func:`dvsland.stages.check_names`), so that loading a config imports no stage.
+    """
     if cfg.dynamics.dry_mass_kg >= cfg.dynamics.mass_kg:
         raise ConfigError(f"dynamics.dry_mass_kg{_where(source)}: {cfg.dynamics.dry_mass_kg} must be "
                           f"below dynamics.mass_kg = {cfg.dynamics.mass_kg}")
@@ -183,12 +188,6 @@ def check_config(cfg: Config, source: Optional[str] = None) -> Config:
         if s.z0_m > cfg.render.max_altitude_m:
             raise ConfigError(f"simulation.sites[{i}].z0_m{_where(source)}: {s.z0_m} is above "
                               f"render.max_altitude_m = {cfg.render.max_altitude_m}")
-    from dvsland.estimators import available_estimators  # late: the registry imports config
-
-    known = available_estimators()
-    if cfg.estimator.name not in known:
-        raise ConfigError(f"estimator.name{_where(source)}: unknown estimator {cfg.estimator.name!r}; "
-                          f"known: {known}")
     if not cfg.simulation.device.startswith(("cpu", "cuda", "mps")):
         raise ConfigError(f"simulation.device{_where(source)}: {cfg.simulation.device!r} is not a torch "
                           f"device; use 'cpu' or 'cuda[:N]'")

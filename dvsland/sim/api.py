@@ -11,11 +11,12 @@ from typing import Optional, Sequence, Union
 
 import torch
 
-from dvsland import __version__
+from dvsland._version import __version__
 from dvsland.config import Config, dump_config, load_config
 from dvsland.estimators import make_estimator
 from dvsland.report import format_table, write_results_json, write_traces_npz
 from dvsland.runs import make_run_dir
+from dvsland.stages import check_names
 
 from .batch import build_layout
 from .loop import ClosedLoop
@@ -100,6 +101,8 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
     if cfg.simulation.torch_threads > 0:
         torch.set_num_threads(cfg.simulation.torch_threads)
     layout = build_layout(cfg, sites)
+    if estimator is None or isinstance(estimator, str):
+        check_names(cfg)
     run_dir = make_run_dir(cfg, out)  # config.yaml first: a failing set-up still leaves it
     B = layout.batch_size
     if estimator is not None and not isinstance(estimator, str):

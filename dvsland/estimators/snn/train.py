@@ -13,7 +13,7 @@ from typing import Optional
 
 import torch
 
-from dvsland.evaluate.metrics import divergence_metrics
+from ..metrics import divergence_metrics
 
 from .model import SpikingDivergenceNet
 
@@ -81,7 +81,7 @@ def train(model: SpikingDivergenceNet, data: dict, epochs: int = 10, batch: int 
 def evaluate(model: SpikingDivergenceNet, x: torch.Tensor, d: torch.Tensor, warmup_steps: int,
              batch: int = 64):
     """(median |relative error|, fraction within 20 %) over the steps after the warm-up, by
-    :func:`dvsland.evaluate.metrics.divergence_metrics` (the open-loop evaluation's metrics)."""
+    :func:`dvsland.estimators.metrics.divergence_metrics` (the open-loop evaluation's metrics)."""
     model.eval()
     d_hat = torch.cat([sequence_loss(model, x[a:a + batch], d[a:a + batch], warmup_steps)[1]
                        for a in range(0, x.shape[0], batch)])

@@ -1,0 +1,206 @@
+"""The stages of the loop, built from a config: the one place that wires them.
+
+Every command that needs stages builds them here (``simulate``, ``evaluate``, ``events``, the
+spiking estimator's training data), so a new renderer, estimator or controller plugs in once:
+
+- the **event source**: a renderer (``render.renderer``, from :func:`dvsland.render.get_renderer`)
+  and the event emulator (``emulator``), paired as :class:`EventSource`;
+- the **estimator** (``estimator.name`` and its section, from :mod:`dvsland.estimators`);
+- the **controller** (``controller``; one per batch element's setting).
+
+Names are checked here, against the registries (:func:`check_names`), not when a config is
+loaded: ``dvsland.config`` imports no stage. Stage modules are imported inside the functions,
+so importing this module is cheap.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, Optional, Sequence, Union
+
+import torch
+
+from dvsland.config import Config, ConfigError
+
+
+# ------------------------------------------------------------------ names
+def check_names(cfg: Config, source: str = "") -> None:
+    """Check the stage names of ``cfg`` against their registries.
+
+    Raises:
+        ConfigError: ``estimator.name``, ``render.renderer`` or ``controller.name`` names nothing
+            registered; the message lists the known names.
+    """
+    from dvsland.estimators import available_estimators
+    from dvsland.render import available_renderers
+
+    where = f" (in {source})" if source else ""
+    known = available_estimators()
+    if cfg.estimator.name not in known:
+        raise ConfigError(f"estimator.name{where}: unknown estimator {cfg.estimator.name!r}; known: {known}")
+    known = available_renderers()
+    if cfg.render.renderer not in known:
+        raise ConfigError(f"render.renderer{where}: unknown renderer {cfg.render.renderer!r}; known: {known}")
+    known = available_controllers()
+    if cfg.controller.name not in known:
+        raise ConfigError(f"controller.name{where}: unknown controller {cfg.controller.name!r}; known: {known}")
+
+
+# ------------------------------------------------------------------ event source
+@dataclass
+class EventSource:
+    """A renderer and an event emulator: altitudes in, events out.
+
+    Attributes:
+        renderer: object with ``render(altitude_m (B,), site_idx (B,) int64) -> (B, H, W)`` float32
+            linear irradiance, or such a callable.
+        emulator: :class:`dvsland.events.EventEmulator`.
+    """
+
+    renderer: Any
+    emulator: Any
+
+    def render(self, altitude_m: torch.Tensor, site_idx: torch.Tensor) -> torch.Tensor:
+        """Frames (B, H, W) float32 at ``altitude_m`` (B,) m of sites ``site_idx`` (B,) int64."""
+        r = self.renderer
+        return r.render(altitude_m, site_idx) if hasattr(r, "render") else r(altitude_m, site_idx)
+
+    def reset(self, altitude_m: torch.Tensor, site_idx: torch.Tensor, t_us: int) -> torch.Tensor:
+        """Render the first frame and start the emulator on it at ``t_us``; returns the frames."""
+        frames = self.render(altitude_m, site_idx)
+        self.emulator.reset(frames, int(t_us))
+        return frames
+
+    def step(self, altitude_m: torch.Tensor, site_idx: torch.Tensor, t_us: int):
+        """Render the next frame and emulate the events up to ``t_us``; returns (frames, Events)."""
+        frames = self.render(altitude_m, site_idx)
+        return frames, self.emulator.step(frames, int(t_us))
+
+
+def build_event_source(cfg: Config, site_names: Sequence[str], device: Any = "cpu", renderer: Any = None,
+                       seed: Optional[int] = None, **renderer_kwargs) -> EventSource:
+    """The configured renderer for ``site_names`` and the configured emulator.
+
+    Args:
+        cfg: config (``camera``, ``render``, ``emulator``, ``simulation.seed``).
+        site_names: the renderer's sites (``site_idx`` indexes them).
+        device: torch device.
+        renderer: ``None`` (``render.renderer``), a registered renderer name, or a ready renderer
+            object / frame callable (used as is).
+        seed: emulator seed (default ``simulation.seed``).
+        renderer_kwargs: extra arguments of the renderer class (e.g. ``progress`` for "fast").
+    """
+    from dvsland.events import EventEmulator
+
+    if renderer is None or isinstance(renderer, str):
+        from dvsland.render import get_renderer
+
+        renderer = get_renderer(renderer or cfg.render.renderer, list(site_names), cfg.camera, cfg.render,
+                                device=device, **renderer_kwargs)
+    seed = cfg.simulation.seed if seed is None else int(seed)
+    return EventSource(renderer, EventEmulator.from_config(cfg.emulator, device, seed=seed))
+
+
+# ------------------------------------------------------------------ estimator
+def build_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: Optional[str] = None,
+                    overrides: Optional[dict] = None, seed: Optional[int] = None):
+    """Estimator ``name`` (default ``estimator.name``) for ``batch_size`` descents, with its config
+    section updated by ``overrides``; see :func:`dvsland.estimators.make_estimator`."""
+    from dvsland.estimators import make_estimator
+
+    return make_estimator(cfg, batch_size, device, name=name, seed=seed, overrides=overrides)
+
+
+# ------------------------------------------------------------------ controller
+def available_controllers() -> list:
+    """Names accepted by ``controller.name``."""
+    return ["tau_p"]
+
+
+def build_controller(cfg: Config, layout, device: Any = "cpu"):
+    """The configured controller for the elements of ``layout`` (a :class:`dvsland.sim.BatchLayout`:
+    per-element Kp and initial conditions). This is where a controller registry plugs in."""
+    from dvsland.control import TauPController, initial_ttc
+
+    if cfg.controller.name not in available_controllers():
+        raise ConfigError(f"controller.name: unknown controller {cfg.controller.name!r}; "
+                          f"known: {available_controllers()}")
+    f64 = torch.float64
+    c = cfg.controller
+    z0 = layout.tensor("z0_m", device, f64)
+    v0 = layout.tensor("v0_mps", device, f64)
+    return TauPController(layout.tensor("kp", device, f64), initial_ttc(z0, v0), c.c2, cfg.dynamics.g_mps2,
+                          c.thrust_min_n, c.thrust_max_n, c.missing_policy)
+
+
+# ------------------------------------------------------------------ all of them
+@dataclass
+class Stages:
+    """What :func:`build_stages` returns.
+
+    Attributes:
+        layout: the batch layout (B elements).
+        estimator: divergence estimator for B elements.
+        events: :class:`EventSource`, or None when the estimator needs no events (``oracle``).
+        controller: controller for the B elements.
+    """
+
+    layout: Any
+    estimator: Any
+    events: Optional[EventSource]
+    controller: Any
+
+    @property
+    def renderer(self):
+        return self.events.renderer if self.events is not None else None
+
+    @property
+    def emulator(self):
+        return self.events.emulator if self.events is not None else None
+
+
+def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None, device: Any = "cpu", *,
+                 estimator: Any = None, renderer: Any = None, controller: Any = None) -> Stages:
+    """Build the closed loop's stages for ``cfg``.
+
+    Args:
+        cfg: the resolved config.
+        sites: a :class:`dvsland.sim.BatchLayout`, or a subset of the configured sites (``"A,B"``
+            or a list; None = all), expanded by :func:`dvsland.sim.build_layout`.
+        device: torch device.
+        estimator: None (the configured one) or a ready estimator for B elements.
+        renderer: None (``render.renderer``), a renderer name, or a renderer object; built only
+            when the estimator needs events.
+        controller: None (the configured one) or a ready controller for B elements.
+
+    Raises:
+        ConfigError: a stage name is not registered (see :func:`check_names`).
+        ValueError: an estimator instance built for another batch size.
+    """
+    from dvsland.sim.batch import BatchLayout, build_layout
+
+    if isinstance(sites, BatchLayout):
+        layout = sites
+    else:
+        if isinstance(sites, str):
+            sites = sites.split(",")
+        layout = build_layout(cfg, sites)
+    B = layout.batch_size
+    if estimator is None:
+        est = build_estimator(cfg, B, device)
+    else:
+        est = estimator
+        if getattr(est, "batch_size", B) != B:
+            raise ValueError(f"estimator instance is for batch_size={est.batch_size}, the batch has B={B}")
+    events = None
+    if getattr(est, "needs_events", True):
+        events = build_event_source(cfg, layout.site_names, device, renderer)
+    if controller is None:
+        controller = build_controller(cfg, layout, device)
+    return Stages(layout, est, events, controller)
+
+
+FrameSource = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+__all__ = ["Stages", "EventSource", "build_stages", "build_event_source", "build_estimator", "build_controller",
+           "available_controllers", "check_names", "FrameSource"]

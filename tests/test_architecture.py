@@ -1,0 +1,53 @@
+"""The package's layering: loading a config imports no stage; lower layers never import upper ones."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+HEAVY = ("torch", "kornia", "dvsland.estimators", "dvsland.render", "dvsland.events", "dvsland.sim",
+         "dvsland.evaluate", "dvsland.terrain", "dvsland.control", "dvsland.dynamics", "dvsland.report")
+
+
+def _modules_after(code: str) -> set:
+    out = subprocess.run([sys.executable, "-c", code + "\nimport sys, json; print(json.dumps(sorted(sys.modules)))"],
+                         capture_output=True, text=True, check=True)
+    return set(json.loads(out.stdout.strip().splitlines()[-1]))
+
+
+def _loaded(mods: set, prefixes) -> list:
+    return sorted(m for m in mods if any(m == p or m.startswith(p + ".") for p in prefixes))
+
+
+def test_config_imports_no_stage():
+    mods = _modules_after("import dvsland.config as c; c.load_config('paper', ['estimator.name=oracle'])")
+    assert "dvsland.config" in mods
+    assert _loaded(mods, HEAVY) == []
+
+
+def test_package_root_and_stages_layer_are_cheap():
+    mods = _modules_after("import dvsland, dvsland.stages")
+    assert _loaded(mods, HEAVY[1:]) == []
+
+
+@pytest.mark.parametrize("module,forbidden", [
+    ("dvsland.estimators.snn.train", ("dvsland.evaluate", "dvsland.sim")),
+    ("dvsland.estimators", ("dvsland.evaluate", "dvsland.sim", "dvsland.stages")),
+    ("dvsland.render", ("dvsland.estimators", "dvsland.sim", "dvsland.evaluate")),
+    ("dvsland.sim.api", ("dvsland.evaluate",)),
+])
+def test_lower_layers_do_not_import_upper_ones(module, forbidden):
+    mods = _modules_after(f"import {module}")
+    assert _loaded(mods, forbidden) == []
+
+
+def test_config_validation_does_not_check_stage_names():
+    from dvsland.config import ConfigError, load_config
+    from dvsland.stages import check_names
+
+    cfg = load_config("paper", ["estimator.name=nope"])  # loads: the name is checked where it is built
+    with pytest.raises(ConfigError, match=r"estimator.name: unknown estimator 'nope'; known: \[.*'dpr'"):
+        check_names(cfg)
