@@ -72,9 +72,9 @@ def descent_schedule(z0_m: float, v0_mps: float, c2: float, from_m: float, to_m:
 
 
 def run_events(args) -> int:
-    from dvsland.events import EventEmulator, Events, save_events
-    from dvsland.render import get_renderer
+    from dvsland.events import Events, save_events
     from dvsland.runs import make_run_dir
+    from dvsland.stages import build_event_source
 
     cfg = config_from_args(args)
     quiet = cfg.logging.quiet
@@ -88,16 +88,15 @@ def run_events(args) -> int:
     run_dir = make_run_dir(cfg, args.out, kind="events")
     dev = torch.device(cfg.simulation.device)
     t_start = time.perf_counter()
-    renderer = get_renderer(cfg.render.renderer, [site], cfg.camera, cfg.render, device=dev)
-    emu = EventEmulator.from_config(cfg.emulator, device=dev, seed=cfg.simulation.seed)
+    source = build_event_source(cfg, [site], dev)
+    emu = source.emulator
     site_idx = torch.zeros(1, dtype=torch.int64)
     H, W = cfg.camera.height_px, cfg.camera.width_px
 
-    def render(k):
-        return renderer.render(torch.tensor([z[k]], dtype=torch.float32), site_idx)
+    def alt(k):
+        return torch.tensor([z[k]], dtype=torch.float32)
 
-    frame = render(0)
-    emu.reset(frame, int(t_us[0]))
+    frame = source.reset(alt(0), site_idx, int(t_us[0]))
     chunks, per_step = [], []
     steps = range(1, len(t_us))
     if not quiet:
@@ -105,8 +104,7 @@ def run_events(args) -> int:
 
         steps = tqdm(steps, desc=f"events site {site}", unit="frame")
     for k in steps:
-        frame = render(k)
-        ev = emu.step(frame, int(t_us[k]))
+        frame, ev = source.step(alt(k), site_idx, int(t_us[k]))
         chunks.append(ev)
         per_step.append(len(ev))
     events = Events.cat(chunks).to("cpu") if chunks else Events.empty()

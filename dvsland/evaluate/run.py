@@ -11,23 +11,20 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 import torch
 
 from dvsland.config import Config
-from dvsland.estimators import Truth, estimator_params, get_estimator, make_estimator
-from dvsland.events import EventEmulator
+from dvsland.estimators import Truth
+from dvsland.stages import FrameSource, build_estimator, build_event_source
 
 from .metrics import band_metrics, divergence_metrics
 from .trajectory import Descents, closed_form_descents, segment_schedule
 
 #: the sites the issue's accuracy target applies to (H and I are nearly featureless)
 TARGET_SITES = ("A", "B", "C", "D", "E", "F", "G")
-
-FrameSource = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
-
 
 @dataclass
 class EvaluationResult:
@@ -142,28 +139,16 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
         raise ValueError(f"warmup_steps must be >= 0, got {warmup_steps}")
     desc = closed_form_descents(cfg, sites, max_steps=max_steps)
     B, K = len(desc.sites), desc.n_steps
-    if frame_source is None:
-        from dvsland.render import get_renderer
-
-        renderer = get_renderer(cfg.render.renderer, desc.sites, cfg.camera, cfg.render, device=device)
-        frame_source = renderer.render
+    source = build_event_source(cfg, desc.sites, device, renderer=frame_source)
     site_idx = torch.arange(B, device=device)
     specs = [parse_estimator_spec(e) for e in estimators]
     ests = {}
     for label, name, over in specs:
         if label in ests:
             raise ValueError(f"estimator label {label!r} given twice")
-        if over:  # built once, with the overrides (the plain config may not even construct)
-            params = estimator_params(cfg, name)
-            params.update(over)
-            params.setdefault("dt_s", cfg.dt_s)
-            params.setdefault("seed", cfg.simulation.seed)
-            est = get_estimator(name, B, (cfg.camera.width_px, cfg.camera.height_px), device, **params)
-        else:
-            est = make_estimator(cfg, B, device, name=name)
-        ests[label] = est
+        # built once, with its overrides (the plain config may not even construct)
+        ests[label] = build_estimator(cfg, B, device, name=name, overrides=over)
     estimators = list(ests)
-    emu = EventEmulator.from_config(cfg.emulator, device=device, seed=cfg.simulation.seed)
     d_hat = {n: np.full((B, K + 1), np.nan) for n in estimators}
     times: Dict[str, List[float]] = {n: [] for n in estimators}
     scored = np.zeros((B, K + 1), dtype=bool)
@@ -178,11 +163,11 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
         bar = tqdm(total=sum(len(s) for s in segs), desc="evaluate", unit="step")
     for seg in segs:
         k0 = seg.start - 1
-        emu.reset(frame_source(alt[:, k0].to(device), site_idx), int(t_us[k0]))
+        source.reset(alt[:, k0].to(device), site_idx, int(t_us[k0]))
         for est in ests.values():
             est.reset()
         for k in seg:
-            ev = emu.step(frame_source(alt[:, k].to(device), site_idx), int(t_us[k]))
+            _, ev = source.step(alt[:, k].to(device), site_idx, int(t_us[k]))
             n_events[:, k] = ev.batch_counts(B).cpu().numpy()
             truth = Truth(torch.as_tensor(desc.altitude_m[:, k], device=device),
                           torch.as_tensor(desc.velocity_mps[:, k], device=device))

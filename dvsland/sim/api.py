@@ -13,10 +13,9 @@ import torch
 
 from dvsland._version import __version__
 from dvsland.config import Config, dump_config, load_config
-from dvsland.estimators import make_estimator
 from dvsland.report import format_table, write_results_json, write_traces_npz
 from dvsland.runs import make_run_dir
-from dvsland.stages import check_names
+from dvsland.stages import build_stages, check_names
 
 from .batch import build_layout
 from .loop import ClosedLoop
@@ -57,18 +56,6 @@ def _device(name: str) -> torch.device:
     return dev
 
 
-def build_event_stages(cfg: Config, site_names: Sequence[str], device, renderer=None):
-    """The renderer and event emulator of the configured scene (imported only when needed)."""
-    if renderer is None or isinstance(renderer, str):
-        from dvsland.render import get_renderer
-
-        renderer = get_renderer(cfg.render.renderer, list(site_names), cfg.camera, cfg.render, device)
-    from dvsland.events import EventEmulator
-
-    emulator = EventEmulator.from_config(cfg.emulator, device, seed=cfg.simulation.seed)
-    return renderer, emulator
-
-
 def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, renderer=None,
              sites: Optional[Union[str, Sequence[str]]] = None, device=None, out: Optional[PathLike] = None,
              quiet: Optional[bool] = None, overrides: Sequence[str] = (), on_step=None,
@@ -105,19 +92,17 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
         check_names(cfg)
     run_dir = make_run_dir(cfg, out)  # config.yaml first: a failing set-up still leaves it
     B = layout.batch_size
+    stages = build_stages(cfg, layout, dev, estimator=None if isinstance(estimator, str) else estimator,
+                          renderer=renderer, controller=controller)
+    est = stages.estimator
     if estimator is not None and not isinstance(estimator, str):
-        est = estimator
-        if getattr(est, "batch_size", B) != B:
-            raise ValueError(f"estimator instance is for batch_size={est.batch_size}, the batch has B={B}")
         est_name = type(est).__name__
         cfg.estimator.name = getattr(est, "name", cfg.estimator.name)
     else:
-        est = make_estimator(cfg, B, dev)
         est_name = cfg.estimator.name
-    rend = emu = None
-    if getattr(est, "needs_events", True):
-        rend, emu = build_event_stages(cfg, layout.site_names, dev, renderer)
-    loop = ClosedLoop(cfg, layout, est, rend, emu, dev, sync_timers=sync_timers, controller=controller)
+    rend = stages.renderer
+    loop = ClosedLoop(cfg, layout, est, rend, stages.emulator, dev, sync_timers=sync_timers,
+                      controller=stages.controller)
     quiet_ = cfg.logging.quiet
     tb = None
     if cfg.logging.tensorboard:

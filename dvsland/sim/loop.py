@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from dvsland.config import Config
-from dvsland.control import MovingAverageFilter, TauPController, initial_ttc
+from dvsland.control import MovingAverageFilter
 from dvsland.dynamics import LanderDynamics
 from dvsland.estimators import Truth
 
@@ -87,10 +87,10 @@ class ClosedLoop:
         self.kp = layout.tensor("kp", dev, f64)
         self.dynamics = LanderDynamics.from_config(cfg.dynamics)
         self.filter = MovingAverageFilter(layout.tensor("n_bin", dev, torch.int64), device=dev)
-        c = cfg.controller
         if controller is None:
-            controller = TauPController(self.kp, initial_ttc(self.z0_m, self.v0_mps), c.c2, cfg.dynamics.g_mps2,
-                                        c.thrust_min_n, c.thrust_max_n, c.missing_policy)
+            from dvsland.stages import build_controller
+
+            controller = build_controller(cfg, layout, dev)
         self.controller = controller
         sim = cfg.simulation
         self.n_steps_max = int(math.ceil(sim.t_max_s / self.dt_s - 1e-9))

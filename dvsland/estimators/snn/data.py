@@ -18,7 +18,6 @@ import numpy as np
 import torch
 
 from dvsland.config import Config
-from dvsland.events import EventEmulator
 
 from .encoding import LogPolarEncoder
 
@@ -39,7 +38,7 @@ def make_sequences(cfg: Config, encoder: LogPolarEncoder, sites: Sequence[str], 
     pixel; ``d`` (N, n_steps) float32 true D, 1/s; ``z`` (N, n_steps) float32 altitude, m;
     ``site`` (N,) int64 index into ``sites``; and ``sites``.
     """
-    from dvsland.render import get_renderer
+    from dvsland.stages import build_event_source
 
     if n_seq < 1 or n_steps < 1:
         raise ValueError(f"n_seq and n_steps must be >= 1, got {n_seq}, {n_steps}")
@@ -52,7 +51,7 @@ def make_sequences(cfg: Config, encoder: LogPolarEncoder, sites: Sequence[str], 
     if not 0 < z_min_m < z_max_m:
         raise ValueError(f"need 0 < z_min_m < z_max_m, got {z_min_m}, {z_max_m}")
     rng = np.random.default_rng(seed)
-    renderer = get_renderer("fast", list(sites), cfg.camera, cfg.render, device=device)
+    source = build_event_source(cfg, list(sites), device, renderer="fast", seed=seed)
     dt = cfg.dt_s
     span_s = n_steps * dt
     d_abs = np.exp(rng.uniform(math.log(d_min), math.log(d_max), n_seq))
@@ -76,7 +75,6 @@ def make_sequences(cfg: Config, encoder: LogPolarEncoder, sites: Sequence[str], 
     site = rng.integers(0, len(sites), n_seq)
     z = z0[:, None] * np.exp(log_ratio)  # (N, n_steps + 1)
     x_all = torch.empty((n_seq, n_steps, encoder.n_sub, 2, encoder.n_rho, encoder.n_phi), dtype=torch.float16)
-    emu = EventEmulator.from_config(cfg.emulator, device=device, seed=seed)
     t_us = np.round(t * 1e6).astype(np.int64)
     bar = None
     if progress:
@@ -88,9 +86,9 @@ def make_sequences(cfg: Config, encoder: LogPolarEncoder, sites: Sequence[str], 
         b = sl.stop - sl.start
         idx = torch.as_tensor(site[sl], device=device)
         zz = torch.as_tensor(z[sl], dtype=torch.float32, device=device)
-        emu.reset(renderer.render(zz[:, 0], idx), int(t_us[0]))
+        source.reset(zz[:, 0], idx, int(t_us[0]))
         for k in range(n_steps):
-            ev = emu.step(renderer.render(zz[:, k + 1], idx), int(t_us[k + 1]))
+            _, ev = source.step(zz[:, k + 1], idx, int(t_us[k + 1]))
             x_all[sl, k] = encoder.encode(ev, int(t_us[k]), int(t_us[k + 1]), b).to("cpu", torch.float16)
         if bar is not None:
             bar.update(b)
