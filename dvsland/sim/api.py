@@ -12,12 +12,13 @@ from typing import Optional, Sequence, Union
 import torch
 
 from dvsland._version import __version__
-from dvsland.config import Config, dump_config, load_config
-from dvsland.report import format_table, write_results_json, write_traces_npz
+from dvsland.config import Config, load_config
+from dvsland.report import write_results_json, write_traces_npz
 from dvsland.runs import make_run_dir
 from dvsland.stages import build_stages, check_names
 
 from .batch import build_layout
+from .callbacks import CallbackList, default_callbacks
 from .loop import ClosedLoop
 from .result import SimulationResult
 
@@ -56,16 +57,27 @@ def _device(name: str) -> torch.device:
     return dev
 
 
+def _run_meta(cfg: Config, estimator_name: str, device, batch_size: int, rendered: bool) -> dict:
+    """The header fields of results.json."""
+    return {"status": "running", "estimator": estimator_name, "device": str(device), "dt_s": cfg.dt_s,
+            "batch_size": batch_size, "dvsland_version": __version__, "torch_version": torch.__version__,
+            "python": sys.version.split()[0], "machine": platform.machine(),
+            "renderer": cfg.render.renderer if rendered else None}
+
+
 def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, renderer=None,
              sites: Optional[Union[str, Sequence[str]]] = None, device=None, out: Optional[PathLike] = None,
              quiet: Optional[bool] = None, overrides: Sequence[str] = (), on_step=None,
-             sync_timers: bool = False, controller=None) -> SimulationResult:
+             sync_timers: bool = False, controller=None, callbacks: Sequence = ()) -> SimulationResult:
     """Fly every site x controller setting x seed of ``config`` as one batch.
 
+    Build (config, run folder, stages) -> run (the loop, with callbacks) -> write (results.json,
+    traces.npz), then the callbacks' ``on_end`` (TensorBoard summary, figures, printed table).
+
     Args:
-        config: a :class:`Config`, a YAML path, or None (``configs/paper.yaml``).
+        config: a :class:`Config`, a YAML path or shipped config name, or None (``configs/paper.yaml``).
         estimator: estimator name (overrides ``estimator.name``) or a ready estimator instance for B elements.
-        renderer: ``"fast"`` / ``"pyrender"`` or a renderer object (used only if the estimator needs events).
+        renderer: a renderer name or a renderer object (used only if the estimator needs events).
         sites: subset of the configured sites (``"A,B"`` or a list).
         device: torch device (overrides ``simulation.device``).
         out: run folder (default ``<logging.root>/<name>-<UTC stamp>/``).
@@ -74,13 +86,15 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
         on_step: optional callable ``f(loop)`` after every step (tests, custom logging).
         sync_timers: synchronise CUDA around the per-stage timers (profiling).
         controller: optional :class:`dvsland.control.Controller` instance for the B elements
-            (element order: see :func:`dvsland.sim.build_layout`), replacing the Eq. 2 law.
+            (element order: see :func:`dvsland.sim.build_layout`), replacing the configured law.
+        callbacks: more callbacks (:mod:`dvsland.sim.callbacks`), called after the built-in ones.
 
     Returns:
         :class:`SimulationResult`. On an exception or Ctrl-C the outputs gathered so far are
         written (results.json ``status: "interrupted"``) and the exception is re-raised.
     """
     t_start = time.perf_counter()
+    # ---- build
     cfg = _resolve_config(config, estimator, renderer, device, quiet, overrides)
     if isinstance(sites, str):
         sites = sites.split(",")
@@ -91,106 +105,63 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
     if estimator is None or isinstance(estimator, str):
         check_names(cfg)
     run_dir = make_run_dir(cfg, out)  # config.yaml first: a failing set-up still leaves it
-    B = layout.batch_size
-    stages = build_stages(cfg, layout, dev, estimator=None if isinstance(estimator, str) else estimator,
-                          renderer=renderer, controller=controller)
-    est = stages.estimator
-    if estimator is not None and not isinstance(estimator, str):
-        est_name = type(est).__name__
-        cfg.estimator.name = getattr(est, "name", cfg.estimator.name)
-    else:
-        est_name = cfg.estimator.name
-    rend = stages.renderer
-    loop = ClosedLoop(cfg, layout, est, rend, stages.emulator, dev, sync_timers=sync_timers,
-                      controller=stages.controller)
-    quiet_ = cfg.logging.quiet
-    tb = None
-    if cfg.logging.tensorboard:
-        from dvsland.report.tensorboard import TensorBoardLogger
-
-        tb = TensorBoardLogger(run_dir / "tb", layout.run_label, cfg.dt_s,
-                               scalar_every_s=cfg.logging.scalar_every_s,
-                               image_every_s=cfg.logging.image_every_s)
-        tb.add_config(dump_config(cfg))
-    meta = {"status": "running", "estimator": est_name, "device": str(dev), "dt_s": cfg.dt_s,
-            "batch_size": B, "dvsland_version": __version__, "torch_version": torch.__version__,
-            "python": sys.version.split()[0], "machine": platform.machine(),
-            "renderer": cfg.render.renderer if rend is not None else None}
-    write_results_json(run_dir / "results.json", loop.summaries(), **meta)
-    setup_s = time.perf_counter() - t_start
-
-    pbar = None
-    if not quiet_:
-        from tqdm.auto import tqdm
-
-        pbar = tqdm(total=loop.n_steps_max, unit="step", desc=f"simulate B={B}", leave=False, file=sys.stderr)
-
-    def _on_step(lp):
-        if tb is not None:
-            tb.on_step(lp)
-        if on_step is not None:
-            on_step(lp)
-        if pbar is not None:
-            pbar.update(1)
-            if lp.step_index % 10 == 0:
-                pbar.set_postfix(t=f"{lp.t_s:.1f}s", active=int(lp.active.sum()))
-
-    status, error, exc_to_raise = "complete", None, None
-    t_loop = time.perf_counter()
+    instance = estimator is not None and not isinstance(estimator, str)
+    stages = build_stages(cfg, layout, dev, estimator=estimator if instance else None, renderer=renderer,
+                          controller=controller)
+    est_name = cfg.estimator.name
+    if instance:
+        est_name = type(stages.estimator).__name__
+        cfg.estimator.name = getattr(stages.estimator, "name", cfg.estimator.name)
+    loop = ClosedLoop(cfg, layout, stages.estimator, stages.renderer, stages.emulator, dev,
+                      sync_timers=sync_timers, controller=stages.controller)
+    meta = _run_meta(cfg, est_name, dev, layout.batch_size, stages.events is not None)
+    cbs = CallbackList([])
     try:
-        loop.run(_on_step)
-    except BaseException as exc:  # noqa: BLE001 - Ctrl-C too: write what we have, then re-raise
-        status = "interrupted"
-        error = f"{type(exc).__name__}: {exc}"
-        exc_to_raise = exc
-    loop_s = time.perf_counter() - t_loop
-    if pbar is not None:
-        pbar.close()
-    t_out = time.perf_counter()
-    try:
-        if status != "complete":
-            loop.mark_interrupted()
-            loop.record_final()
-        runs = loop.summaries()
-        traces = loop.traces_numpy()
-        table = format_table(runs)
-        if tb is not None:
-            tb.close(loop, format_table(runs, markdown=True))
-        write_traces_npz(run_dir / "traces.npz", traces)
-        sim_time_s = float(sum(r["t_end_s"] for r in runs))
-        outputs_s = time.perf_counter() - t_out
-        wall = time.perf_counter() - t_start
-        timings = dict(loop.timer.seconds)
-        timings.update(setup=setup_s, loop=loop_s, outputs=outputs_s)
-        counts = {}
-        for r in runs:
-            counts[r["outcome"]] = counts.get(r["outcome"], 0) + 1
-        meta.update(status=status, error=error, wall_time_s=wall, sim_time_s=sim_time_s,
-                    real_time_factor=sim_time_s / wall if wall > 0 else None, n_steps=loop.step_index,
-                    timings_s=timings, outcomes=counts)
-        write_results_json(run_dir / "results.json", runs, **meta)
-        result = SimulationResult(runs=runs, traces=traces, run_dir=run_dir, wall_time_s=wall, status=status,
-                                  timings_s=timings, n_steps=loop.step_index, sim_time_s=sim_time_s, error=error)
-        if cfg.logging.figures and status == "complete":
-            from dvsland.report.figures import write_figures
-
-            t_fig = time.perf_counter()
-            write_figures(run_dir, runs, traces, cfg.controller.c2, cfg.simulation.success_altitude_m)
-            timings["figures"] = time.perf_counter() - t_fig
-            write_results_json(run_dir / "results.json", runs, **meta)
-        if not quiet_:
-            print(table)
-            held = [r for r in runs if r["held_steps"]]
-            if held:
-                policy = cfg.controller.missing_policy
-                print(f"note: the filtered estimate was missing or non-negative on {sum(r['held_steps'] for r in held)} "
-                      f"steps in {len(held)} of {len(runs)} runs; the controller applied missing_policy={policy!r} "
-                      f"(column 'held')")
-            print(f"{status}: {B} descents, {loop.step_index} steps, wall {wall:.2f} s "
-                  f"(loop {loop_s:.2f} s), real-time factor {result.real_time_factor:.1f}; output in {run_dir}")
+        cbs = CallbackList(default_callbacks(cfg, run_dir, loop, on_step) + list(callbacks))
+        write_results_json(run_dir / "results.json", loop.summaries(), **meta)
+        setup_s = time.perf_counter() - t_start
+        # ---- run
+        status, error, exc_to_raise = "complete", None, None
+        t_loop = time.perf_counter()
+        try:
+            cbs.on_start(loop)
+            loop.run(cbs.on_step)
+        except BaseException as exc:  # noqa: BLE001 - Ctrl-C too: write what we have, then re-raise
+            status, error, exc_to_raise = "interrupted", f"{type(exc).__name__}: {exc}", exc
+        loop_s = time.perf_counter() - t_loop
+        # ---- write
+        result = _write_outputs(loop, run_dir, meta, status, error, t_start,
+                                dict(setup=setup_s, loop=loop_s))
+        cbs.on_end(loop, result)
+        write_results_json(run_dir / "results.json", result.runs, **meta)  # with the callbacks' timings
     finally:
-        if tb is not None:
-            tb.close()
+        cbs.close()
     if exc_to_raise is not None:
         raise exc_to_raise
     return result
+
+
+def _write_outputs(loop: ClosedLoop, run_dir: Path, meta: dict, status: str, error, t_start: float,
+                   timings: dict) -> SimulationResult:
+    """Final summaries and traces of ``loop`` into results.json and traces.npz; ``meta`` is updated
+    in place (status, times, outcomes) and the :class:`SimulationResult` returned."""
+    t_out = time.perf_counter()
+    if status != "complete":
+        loop.mark_interrupted()
+        loop.record_final()
+    runs = loop.summaries()
+    traces = loop.traces_numpy()
+    write_traces_npz(run_dir / "traces.npz", traces)
+    sim_time_s = float(sum(r["t_end_s"] for r in runs))
+    wall = time.perf_counter() - t_start
+    all_timings = dict(loop.timer.seconds)
+    all_timings.update(timings, outputs=time.perf_counter() - t_out)
+    counts = {}
+    for r in runs:
+        counts[r["outcome"]] = counts.get(r["outcome"], 0) + 1
+    meta.update(status=status, error=error, wall_time_s=wall, sim_time_s=sim_time_s,
+                real_time_factor=sim_time_s / wall if wall > 0 else None, n_steps=loop.step_index,
+                timings_s=all_timings, outcomes=counts)
+    write_results_json(run_dir / "results.json", runs, **meta)
+    return SimulationResult(runs=runs, traces=traces, run_dir=run_dir, wall_time_s=wall, status=status,
+                            timings_s=all_timings, n_steps=loop.step_index, sim_time_s=sim_time_s, error=error)

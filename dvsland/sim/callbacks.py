@@ -1,0 +1,197 @@
+"""Callbacks around the closed loop: what :func:`dvsland.simulate` does besides flying.
+
+A callback is any object with some of these methods (all optional, see :class:`Callback`):
+
+- ``on_start(loop)``: once, before the first step (the run folder and config.yaml exist);
+- ``on_step(loop)``: after every step (timed as the loop's ``logging`` stage);
+- ``on_end(loop, result)``: once, after results.json and traces.npz are written, also when the
+  run was interrupted (``result.status``); it may add entries to ``result.timings_s``;
+- ``close()``: always, last (also after an exception), to release files.
+
+The built-in ones are TensorBoard (:class:`TensorBoardCallback`), the progress bar
+(:class:`ProgressCallback`), the figures (:class:`FiguresCallback`) and the printed summary
+(:class:`SummaryCallback`); :func:`default_callbacks` picks them from ``logging``. Pass your own
+to ``simulate(callbacks=[...])``.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Callable, List, Optional, Sequence
+
+from dvsland.config import Config, dump_config
+
+
+class Callback:
+    """Base class with no-op hooks (subclassing it is optional)."""
+
+    def on_start(self, loop) -> None:
+        pass
+
+    def on_step(self, loop) -> None:
+        pass
+
+    def on_end(self, loop, result) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class StepFunction(Callback):
+    """Calls ``fn(loop)`` after every step (``simulate(on_step=fn)``)."""
+
+    def __init__(self, fn: Callable):
+        self.fn = fn
+
+    def on_step(self, loop) -> None:
+        self.fn(loop)
+
+
+class TensorBoardCallback(Callback):
+    """TensorBoard event files under ``run_dir/tb``: the config at the start, scalars and images
+    while flying (``logging.scalar_every_s``, ``logging.image_every_s``), the summary table at the end."""
+
+    def __init__(self, cfg: Config, run_dir: Path, run_labels: Sequence[str]):
+        from dvsland.report.tensorboard import TensorBoardLogger
+
+        lg = cfg.logging
+        self.tb = TensorBoardLogger(Path(run_dir) / "tb", run_labels, cfg.dt_s, scalar_every_s=lg.scalar_every_s,
+                                    image_every_s=lg.image_every_s)
+        self.tb.add_config(dump_config(cfg))
+
+    def on_step(self, loop) -> None:
+        self.tb.on_step(loop)
+
+    def on_end(self, loop, result) -> None:
+        from dvsland.report import format_table
+
+        self.tb.close(loop, format_table(result.runs, markdown=True))
+
+    def close(self) -> None:
+        self.tb.close()
+
+
+class ProgressCallback(Callback):
+    """A tqdm progress bar on stderr (steps, flight time, active descents)."""
+
+    def __init__(self, total_steps: int, batch_size: int):
+        self.total, self.batch_size = int(total_steps), int(batch_size)
+        self.bar = None
+
+    def on_start(self, loop) -> None:
+        from tqdm.auto import tqdm
+
+        self.bar = tqdm(total=self.total, unit="step", desc=f"simulate B={self.batch_size}", leave=False,
+                        file=sys.stderr)
+
+    def on_step(self, loop) -> None:
+        self.bar.update(1)
+        if loop.step_index % 10 == 0:
+            self.bar.set_postfix(t=f"{loop.t_s:.1f}s", active=int(loop.active.sum()))
+
+    def on_end(self, loop, result) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+class FiguresCallback(Callback):
+    """Fig. 6-style plots per descent and the Fig. 7-style lowest-altitude chart under
+    ``run_dir/figures`` after a complete run (time in ``timings_s["figures"]``)."""
+
+    def __init__(self, cfg: Config, run_dir: Path):
+        self.cfg, self.run_dir = cfg, Path(run_dir)
+
+    def on_end(self, loop, result) -> None:
+        if result.status != "complete":
+            return
+        from dvsland.report.figures import write_figures
+
+        t0 = time.perf_counter()
+        write_figures(self.run_dir, result.runs, result.traces, self.cfg.controller.c2,
+                      self.cfg.simulation.success_altitude_m)
+        result.timings_s["figures"] = time.perf_counter() - t0
+
+
+class SummaryCallback(Callback):
+    """Prints the summary table, the held-step note and the wall time at the end."""
+
+    def __init__(self, cfg: Config):
+        self.cfg = cfg
+
+    def on_end(self, loop, result) -> None:
+        from dvsland.report import format_table
+
+        runs = result.runs
+        print(format_table(runs))
+        held = [r for r in runs if r["held_steps"]]
+        if held:
+            policy = self.cfg.controller.missing_policy
+            print(f"note: the filtered estimate was missing or non-negative on {sum(r['held_steps'] for r in held)} "
+                  f"steps in {len(held)} of {len(runs)} runs; the controller applied missing_policy={policy!r} "
+                  f"(column 'held')")
+        print(f"{result.status}: {loop.B} descents, {result.n_steps} steps, wall {result.wall_time_s:.2f} s "
+              f"(loop {result.timings_s.get('loop', 0.0):.2f} s), real-time factor {result.real_time_factor:.1f}; "
+              f"output in {result.run_dir}")
+
+
+def default_callbacks(cfg: Config, run_dir: Path, loop, on_step: Optional[Callable] = None) -> List[Callback]:
+    """The callbacks ``logging`` asks for, in their order: TensorBoard, ``on_step``, progress bar,
+    figures, summary printout (the last two only when not quiet / figures on)."""
+    cbs: List[Callback] = []
+    if cfg.logging.tensorboard:
+        cbs.append(TensorBoardCallback(cfg, run_dir, loop.layout.run_label))
+    if on_step is not None:
+        cbs.append(StepFunction(on_step))
+    if not cfg.logging.quiet:
+        cbs.append(ProgressCallback(loop.n_steps_max, loop.B))
+    if cfg.logging.figures:
+        cbs.append(FiguresCallback(cfg, run_dir))
+    if not cfg.logging.quiet:
+        cbs.append(SummaryCallback(cfg))
+    return cbs
+
+
+class CallbackList(Callback):
+    """Calls the hooks of several callbacks in order (missing hooks are skipped)."""
+
+    def __init__(self, callbacks: Sequence):
+        self.callbacks = list(callbacks)
+
+    def _call(self, hook: str, *args) -> None:
+        for cb in self.callbacks:
+            fn = getattr(cb, hook, None)
+            if fn is not None:
+                fn(*args)
+
+    def on_start(self, loop) -> None:
+        self._call("on_start", loop)
+
+    def on_step(self, loop) -> None:
+        self._call("on_step", loop)
+
+    def on_end(self, loop, result) -> None:
+        self._call("on_end", loop, result)
+
+    def close(self) -> None:
+        errors = []
+        for cb in self.callbacks:
+            fn = getattr(cb, "close", None)
+            if fn is None:
+                continue
+            try:
+                fn()
+            except Exception as exc:  # noqa: BLE001 - close them all, then report
+                errors.append(exc)
+        if errors:
+            raise errors[0]
+
+
+__all__ = ["Callback", "CallbackList", "StepFunction", "TensorBoardCallback", "ProgressCallback",
+           "FiguresCallback", "SummaryCallback", "default_callbacks"]
