@@ -113,8 +113,12 @@ def build_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: Opt
 
 # ------------------------------------------------------------------ controller
 def available_controllers() -> list:
-    """Names accepted by ``controller.name``."""
-    return ["tau_p"]
+    """Names accepted by ``controller.name`` (the controller registry's, where
+    :mod:`dvsland.control` has one)."""
+    import dvsland.control as control
+
+    registry = getattr(control, "available_controllers", None)
+    return sorted(registry()) if registry is not None else ["tau_p"]
 
 
 def build_controller(cfg: Config, layout, device: Any = "cpu"):

@@ -88,17 +88,18 @@ def descent_frames(B, n, device, camera=None):
     camera = camera or CameraConfig()
     r = get_renderer("fast", list(SITE_NAMES), camera, device=device)
     site_idx = torch.arange(B) % len(SITE_NAMES)
-    # oracle closed form (DESIGN section 2): s = 1 + c2 v0 t / z0, z = z0 s^(1/c2)
-    z0 = torch.where(site_idx < 3, 10_000.0, 4_000.0).double()
-    v0 = torch.where(site_idx < 3, -200.0, -100.0).double()
+    # the oracle's closed-form descent of each element's site (dvsland.dynamics.closed_form)
+    from dvsland.config import PAPER_INITIAL_CONDITIONS
+    from dvsland.dynamics import closed_form_state, closed_form_time_to_altitude
+
     c2 = 0.5
-    t_end = (1 - (50.0 / z0) ** c2) * z0 / (-c2 * v0)  # time to 50 m
+    ics = [PAPER_INITIAL_CONDITIONS[SITE_NAMES[i]] for i in site_idx.tolist()]
+    t_end = torch.tensor([closed_form_time_to_altitude(50.0, z0, v0, c2) for z0, v0 in ics])  # time to 50 m
     t_start = (torch.arange(B, dtype=torch.float64) / B) * (t_end - n * DT_US * 1e-6).clamp(min=0)
     frames = []
     for k in range(n):
-        t = t_start + k * DT_US * 1e-6
-        s = 1 + c2 * v0 * t / z0
-        z = z0 * s ** (1 / c2)
+        t = (t_start + k * DT_US * 1e-6).tolist()
+        z = torch.tensor([float(closed_form_state(tb, z0, v0, c2)[0]) for tb, (z0, v0) in zip(t, ics)])
         frames.append(r.render(z.float(), site_idx))
     return torch.stack(frames).to(device)
 

@@ -140,7 +140,7 @@ def main(argv=None) -> int:
         print(f"\nflicker: fraction of sign reversals of d log I between steps, pure zoom at {rate:g} Hz")
         print(f"{'site':>5} {'frames':>7} {'fast':>8} {'worst step':>11} {'nearest-level':>14} {'worst step':>11}")
         for s in fl_sites:
-            z0, v0 = (10000.0, -200.0) if s in "ABC" else (4000.0, -100.0)
+            z0, v0 = cfg.initial_conditions(s)
             z = descent(z0, v0, rate, cfg.controller.c2)
             i = sites.index(s)
             f_fast, w_fast = reversal_fraction(renderer, i, z)

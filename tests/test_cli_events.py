@@ -7,7 +7,9 @@ import pytest
 import torch
 
 import dvsland.render as render_pkg
-from dvsland.cli.cmd_events import descent_schedule, event_frame_rgb
+from dvsland.cli.cmd_events import frame_schedule
+from dvsland.config import load_config
+from dvsland.report.images import event_frame_rgb
 from dvsland.cli.main import main
 from dvsland.events import Events, load_events
 from dvsland.render import Renderer
@@ -60,8 +62,8 @@ def test_cli_events_bad_range(tmp_path, zoom_renderer, capsys):
     assert "--from-m" in capsys.readouterr().err
 
 
-def test_descent_schedule_closed_form():
-    t_us, z = descent_schedule(10000.0, -200.0, 0.5, 1000.0, 800.0, 0.1)
+def test_frame_schedule_closed_form():
+    t_us, z = frame_schedule(load_config("paper"), "A", 1000.0, 800.0)  # z0 10 km, v0 -200 m/s, c2 0.5
     # s = (z / z0)^c2, t = (s - 1) z0 / (c2 v0)
     t0 = ((1000 / 10000) ** 0.5 - 1) * 10000 / (0.5 * -200)
     assert t_us[0] == round(t0 * 1e6) and np.all(np.diff(t_us) == 100_000)

@@ -66,13 +66,19 @@ class TestErrors:
         ("controller", "c2", 1.5, "controller.c2"),
         ("simulation", "t_max_s", 0, "simulation.t_max_s"),
         ("emulator", "interpolation", "cubic", "choose one of"),
-        ("render", "renderer", "raytracer", "render.renderer"),
     ])
     def test_out_of_range(self, tmp_path, section, key, value, needle):
         with pytest.raises(ConfigError, match="out of range|not allowed") as exc:
             load_config(write(tmp_path, {section: {key: value}}))
         assert needle in str(exc.value)
         assert "c.yaml" in str(exc.value)
+
+    def test_unknown_renderer_checked_where_built(self, tmp_path):
+        from dvsland.stages import check_names
+
+        cfg = load_config(write(tmp_path, {"render": {"renderer": "raytracer"}}))  # the registry decides
+        with pytest.raises(ConfigError, match=r"render\.renderer.*'raytracer'.*known: \['fast', 'pyrender'"):
+            check_names(cfg, source="c.yaml")
 
     def test_negative_altitude(self, tmp_path):
         with pytest.raises(ConfigError, match=r"simulation\.sites\[0\]\.z0_m.*out of range"):

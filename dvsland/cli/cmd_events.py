@@ -1,8 +1,8 @@
 """``dvsland events [CONFIG] --site A --from-m 1000 --to-m 800 [--renderer fast|pyrender]
 [--format npz|h5] [--out DIR] [--set key=value ...] [--quiet]``: the events of a descent segment.
 
-Renders one site along the ideal (oracle) descent of DESIGN.md section 2 (s = 1 + c^2 v0 t / z0,
-z = z0 s^(1/c^2)) from ``--from-m`` down to ``--to-m`` at the camera frame rate, emulates the
+Renders one site along the ideal (oracle) descent (:func:`dvsland.dynamics.closed_form_descent`:
+s = 1 + c^2 v0 t / z0, z = z0 s^(1/c^2)) from ``--from-m`` down to ``--to-m`` at the camera frame rate, emulates the
 event camera (config ``emulator``) and writes into the run folder (``--out`` or
 ``logs/<name>-events-<stamp>/``):
 
@@ -19,9 +19,7 @@ event camera (config ``emulator``) and writes into the run folder (``--out`` or
 from __future__ import annotations
 
 import json
-import math
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -46,41 +44,33 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_events)
 
 
-def site_initial_conditions(cfg, site: str):
-    """(z0_m, v0_mps) of ``site`` from ``simulation.sites``, else the paper's values."""
-    for s in cfg.simulation.sites:
-        if s.name == site:
-            return float(s.z0_m), float(s.v0_mps)
-    return (10000.0, -200.0) if site in ("A", "B", "C") else (4000.0, -100.0)
+def frame_schedule(cfg, site: str, from_m: float, to_m: float):
+    """Frame times (µs, int64 numpy) and altitudes (m) of ``site``'s ideal descent from ``from_m``
+    to ``to_m`` (:func:`dvsland.dynamics.closed_form_descent` at the frame interval; the altitude is
+    taken at the frame time rounded to the µs event clock)."""
+    from dvsland.dynamics import closed_form_descent, closed_form_state
 
-
-def descent_schedule(z0_m: float, v0_mps: float, c2: float, from_m: float, to_m: float, dt_s: float):
-    """Frame times (µs, int64 numpy) and altitudes (m) of the ideal descent from ``from_m`` to
-    ``to_m``: the first frame at ``from_m``, then every ``dt_s`` until the altitude is <= ``to_m``."""
-    from dvsland.dynamics import closed_form_state, closed_form_time_to_altitude
-
+    z0, v0 = cfg.initial_conditions(site)
     if not (from_m > to_m > 0):
         raise ValueError(f"--from-m must be > --to-m > 0, got from {from_m} to {to_m}")
-    if from_m > z0_m:
-        raise ValueError(f"--from-m must be <= the site's z0 = {z0_m} m, got {from_m}")
-    t0 = closed_form_time_to_altitude(from_m, z0_m, v0_mps, c2)
-    t1 = closed_form_time_to_altitude(to_m, z0_m, v0_mps, c2)
-    n = int(math.ceil((t1 - t0) / dt_s - 1e-9)) + 1
-    t_us = np.round((t0 + dt_s * np.arange(n)) * 1e6).astype(np.int64)
-    z, _ = closed_form_state(t_us * 1e-6, z0_m, v0_mps, c2)
-    return t_us, z
+    if from_m > z0:
+        raise ValueError(f"--from-m must be <= the site's z0 = {z0} m, got {from_m}")
+    t_s, _, _ = closed_form_descent(z0, v0, cfg.controller.c2, from_m=from_m, to_m=to_m, dt_s=cfg.dt_s)
+    t_us = np.round(t_s * 1e6).astype(np.int64)
+    return t_us, closed_form_state(t_us * 1e-6, z0, v0, cfg.controller.c2)[0]
 
 
 def run_events(args) -> int:
     from dvsland.events import Events, save_events
+    from dvsland.report.images import draw_event_frame, draw_xyt_scatter, save_frame_png
     from dvsland.runs import make_run_dir
     from dvsland.stages import build_event_source
 
     cfg = config_from_args(args)
     quiet = cfg.logging.quiet
     site = args.site
-    z0, v0 = site_initial_conditions(cfg, site)
-    t_us, z = descent_schedule(z0, v0, cfg.controller.c2, args.from_m, args.to_m, cfg.dt_s)
+    z0, v0 = cfg.initial_conditions(site)
+    t_us, z = frame_schedule(cfg, site, args.from_m, args.to_m)
     lo, hi = cfg.render.min_altitude_m, cfg.render.max_altitude_m
     if z.min() < lo or z.max() > hi:
         raise ValueError(f"altitudes {z.min():.1f}-{z.max():.1f} m are outside the renderer's range "
@@ -135,75 +125,3 @@ def run_events(args) -> int:
         print(f"{len(events)} events from {len(t_us)} frames ({z[0]:.0f} m -> {z[-1]:.0f} m, "
               f"{summary['events_per_px_step']:.3f} events/pixel/step) in {elapsed:.1f} s -> {run_dir}")
     return 0
-
-
-# ------------------------------------------------------------------ figures
-def event_frame_rgb(events, H: int, W: int, t0_us: int, t1_us: int) -> np.ndarray:
-    """(H, W, 3) uint8: white, ON-dominated pixels red, OFF-dominated blue (b = 0 events in
-    [t0_us, t1_us))."""
-    ev = events.time_window(t0_us, t1_us).select_batch(0)
-    img = np.full((H, W, 3), 255, np.uint8)
-    if len(ev):
-        cnt = ev.to_count_image(1, H, W)[0].cpu().numpy()  # (2, H, W)
-        net = cnt[0] - cnt[1]
-        img[net > 0] = (220, 30, 30)
-        img[net < 0] = (30, 60, 220)
-    return img
-
-
-def draw_event_frame(events, H, W, t0_us, t1_us, path: Path, title: str = "") -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    img = event_frame_rgb(events, H, W, t0_us, t1_us)
-    fig, ax = plt.subplots(figsize=(5, 5), dpi=120)
-    ax.imshow(img, interpolation="nearest")
-    ax.set_title(title, fontsize=9)
-    ax.set_xlabel("x [px]")
-    ax.set_ylabel("y [px]")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-
-
-def draw_xyt_scatter(events, H, W, t0_us, t1_us, path: Path, max_points: int = 30000, seed: int = 0,
-                     title: str = "") -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    ev = events.time_window(t0_us, t1_us).select_batch(0)
-    n = len(ev)
-    if n > max_points:
-        idx = torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:max_points]
-        ev = ev[torch.sort(idx).values]
-    fig = plt.figure(figsize=(6, 5), dpi=120)
-    ax = fig.add_subplot(projection="3d")
-    if len(ev):
-        t_ms = (ev.t - t0_us).cpu().numpy() * 1e-3
-        x, y, p = ev.x.cpu().numpy(), ev.y.cpu().numpy(), ev.p.cpu().numpy()
-        for pol, color, lab in ((1, "tab:red", "ON"), (-1, "tab:blue", "OFF")):
-            m = p == pol
-            ax.scatter(x[m], t_ms[m], y[m], s=0.3, c=color, label=lab, depthshade=False)
-        ax.legend(loc="upper left", markerscale=15, fontsize=8)
-    ax.set_xlim(0, W)
-    ax.set_zlim(H, 0)
-    ax.set_xlabel("x [px]")
-    ax.set_ylabel("t [ms]")
-    ax.set_zlabel("y [px]")
-    ax.set_title(title + (f" ({len(ev)} of {n} shown)" if n > len(ev) else ""), fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-
-
-def save_frame_png(frame: torch.Tensor, path: Path) -> None:
-    from PIL import Image
-
-    log = torch.log(frame.detach().float().cpu().clamp(min=1e-12))
-    lo, hi = torch.quantile(log.flatten(), 0.01), torch.quantile(log.flatten(), 0.995)
-    img = ((log - lo) / (hi - lo).clamp(min=1e-6)).clamp(0, 1) * 255
-    Image.fromarray(img.round().to(torch.uint8).numpy()).save(path)

@@ -5,8 +5,8 @@ Writes into the run folder (``--out`` or ``logs/<name>-render-<stamp>/``):
 - ``frames/<site>_<altitude>m.png`` and ``frames.npz`` (linear irradiance, float32,
   shape (altitudes, sites, H, W), with the altitudes and site names),
 - ``montage.png``: rows = altitudes, columns = sites, labelled,
-- ``descent_<site>.gif``: the closed-form ideal descent (DESIGN.md section 2) of the first site
-  from its z0 (config ``simulation.sites``, else 10 km / 4 km as the paper) to 50 m,
+- ``descent_<site>.gif``: the closed-form ideal descent (:func:`dvsland.dynamics.closed_form_descent`)
+  of the first site from its z0 (config ``simulation.sites``, else the paper's) to 50 m,
 - ``mesh_<site>_<altitude>m.ply`` for every ``--export-mesh SITE:ALTITUDE`` (the footprint at
   that altitude as a trimesh heightfield),
 - TensorBoard event files (montage, frames, GIF frames, the config as text).
@@ -20,16 +20,12 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import List, Sequence
+from typing import List
 
 import numpy as np
 import torch
 
 from .common import add_config_args, config_from_args
-
-PAPER_Z0 = {"A": (10000.0, -200.0), "B": (10000.0, -200.0), "C": (10000.0, -200.0)}
-DEFAULT_Z0 = (4000.0, -100.0)
-
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("render", help="render sites: frames, montage, descent GIF, meshes",
@@ -37,8 +33,8 @@ def register(subparsers) -> None:
     add_config_args(p)
     p.add_argument("--sites", default=None, help="comma-separated sites (default: the config's sites)")
     p.add_argument("--altitudes", default="5000,1000,200,50", help="comma-separated altitudes, m")
-    p.add_argument("--renderer", default=None, choices=("fast", "pyrender"),
-                   help="renderer (default: config render.renderer)")
+    p.add_argument("--renderer", default=None, metavar="NAME",
+                   help="renderer: fast, pyrender or a registered one (default: config render.renderer)")
     p.add_argument("--export-mesh", action="append", default=[], metavar="SITE:ALTITUDE",
                    help="export the footprint at ALTITUDE m of SITE as a .ply mesh (repeatable)")
     p.add_argument("--mesh-texels", type=int, default=256, help="mesh vertices per side (default 256)")
@@ -46,49 +42,6 @@ def register(subparsers) -> None:
     p.add_argument("--scale", type=int, default=2, help="montage pixel scale (default 2)")
     p.add_argument("--device", default=None, help="torch device (default: config simulation.device)")
     p.set_defaults(func=run_render)
-
-
-# ------------------------------------------------------------------ display helpers
-def to_display(frames: torch.Tensor, lo_q: float = 0.01, hi_q: float = 0.995, shared: bool = False) -> np.ndarray:
-    """Linear irradiance (B, H, W) -> uint8 (B, H, W): log, then a percentile stretch per image
-    (or one stretch for all images when ``shared``)."""
-    log = torch.log(frames.detach().float().cpu().clamp(min=1e-12))
-    flat = log.reshape(1, -1) if shared else log.flatten(1)
-    lo = torch.quantile(flat, lo_q, dim=1)
-    hi = torch.quantile(flat, hi_q, dim=1)
-    if shared:
-        lo, hi = lo.expand(log.shape[0]), hi.expand(log.shape[0])
-    span = (hi - lo).clamp(min=1e-6)[:, None, None]
-    out = ((log - lo[:, None, None]) / span).clamp(0, 1) * 255.0
-    return out.round().to(torch.uint8).numpy()
-
-
-def montage(tiles: np.ndarray, row_labels: Sequence[str], col_labels: Sequence[str], scale: int = 2,
-            gap: int = 4):
-    """Grid image of uint8 tiles (R, C, H, W) with row and column labels -> PIL.Image (L)."""
-    from PIL import Image, ImageDraw
-
-    r, c, h, w = tiles.shape
-    h2, w2 = h * scale, w * scale
-    left, top = 70, 22
-    canvas = Image.new("L", (left + c * (w2 + gap), top + r * (h2 + gap)), color=0)
-    draw = ImageDraw.Draw(canvas)
-    for j, lab in enumerate(col_labels):
-        draw.text((left + j * (w2 + gap) + w2 // 2 - 4 * len(lab), 5), lab, fill=255)
-    for i, lab in enumerate(row_labels):
-        draw.text((5, top + i * (h2 + gap) + h2 // 2 - 5), lab, fill=255)
-        for j in range(c):
-            tile = Image.fromarray(tiles[i, j]).resize((w2, h2), Image.NEAREST)
-            canvas.paste(tile, (left + j * (w2 + gap), top + i * (h2 + gap)))
-    return canvas
-
-
-def descent_altitudes(z0_m: float, v0_mps: float, n: int, c2: float = 0.5, z_end_m: float = 50.0) -> np.ndarray:
-    """n altitudes of the closed-form ideal descent from z0 to ``z_end_m``, uniform in time."""
-    from dvsland.dynamics import closed_form_state, closed_form_time_to_altitude
-
-    t = np.linspace(0.0, closed_form_time_to_altitude(z_end_m, z0_m, v0_mps, c2), n)
-    return closed_form_state(t, z0_m, v0_mps, c2)[0]
 
 
 def _parse_list(text: str, what: str, cast=float) -> list:
@@ -100,7 +53,9 @@ def _parse_list(text: str, what: str, cast=float) -> list:
 
 # ------------------------------------------------------------------ command
 def run_render(args) -> int:
+    from dvsland.dynamics import closed_form_descent
     from dvsland.render import get_renderer
+    from dvsland.report.images import montage, to_display
     from dvsland.runs import make_run_dir
 
     cfg = config_from_args(args)
@@ -150,11 +105,11 @@ def run_render(args) -> int:
     gif_frames = None
     if args.gif_frames > 0:
         site = sites[0]
-        z0, v0 = next(((s.z0_m, s.v0_mps) for s in cfg.simulation.sites if s.name == site),
-                      PAPER_Z0.get(site, DEFAULT_Z0))
+        z0, v0 = cfg.initial_conditions(site)
         z_end = max(50.0, rc.min_altitude_m)
         z0 = min(z0, rc.max_altitude_m)
-        zs = descent_altitudes(z0, v0, args.gif_frames, cfg.controller.c2, z_end)
+        zs = (np.array([z0]) if args.gif_frames == 1 else
+              closed_form_descent(z0, v0, cfg.controller.c2, to_m=z_end, n=args.gif_frames)[1])
         seq = renderer.render(torch.tensor(zs, dtype=torch.float32),
                               torch.zeros(len(zs), dtype=torch.int64)).float().cpu()
         gif_frames = to_display(seq, shared=True)
@@ -199,28 +154,12 @@ def _export_mesh(spec: str, renderer, cfg, run_dir: Path, n: int) -> Path:
         raise ValueError(f"--export-mesh: altitude must be > 0 m, got {alt_m}")
     if not 8 <= n <= 4096:
         raise ValueError(f"--mesh-texels must be in [8, 4096], got {n}")
+    from dvsland.render.mesh import terrain_mesh
     from dvsland.terrain import load_site
 
     terrain = load_site(site, cfg.render.sun_elevation_deg)
     extent = renderer.footprint_m(alt_m) * 1.1
-    try:
-        from dvsland.render.mesh import terrain_mesh
-
-        mesh = terrain_mesh(terrain, extent, n)
-    except ImportError:  # the reference helper's mesh module is missing: build it here
-        import trimesh
-
-        hgt, alb = terrain.heightmap(extent, n)
-        ys = (extent / 2 - (np.arange(n) + 0.5) * extent / n)
-        xs = (-extent / 2 + (np.arange(n) + 0.5) * extent / n)
-        xx, yy = np.meshgrid(xs, ys)
-        verts = np.stack([xx, yy, hgt.double().numpy()], -1).reshape(-1, 3)
-        i = np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]
-        faces = np.concatenate([np.stack([i, i + n, i + 1], -1).reshape(-1, 3),
-                                np.stack([i + 1, i + n, i + n + 1], -1).reshape(-1, 3)])
-        g = (alb.numpy().reshape(-1) / max(float(alb.max()), 1e-6) * 255).astype(np.uint8)
-        mesh = trimesh.Trimesh(verts, faces, vertex_colors=np.stack([g, g, g, np.full_like(g, 255)], -1),
-                               process=False)
+    mesh = terrain_mesh(terrain, extent, n)
     path = run_dir / f"mesh_{site}_{alt_m:g}m.ply"
     mesh.export(path)
     return path

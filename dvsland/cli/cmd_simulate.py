@@ -13,7 +13,8 @@ def register(subparsers) -> None:
                                           "and figures into the run folder.")
     add_config_args(p)
     p.add_argument("--estimator", default=None, metavar="NAME", help="divergence estimator (dpr, oracle, cmax, ...)")
-    p.add_argument("--renderer", default=None, choices=("fast", "pyrender"), help="scene renderer")
+    p.add_argument("--renderer", default=None, metavar="NAME",
+                   help="scene renderer: fast, pyrender or a registered one (dvsland.render.available_renderers())")
     p.add_argument("--sites", default=None, metavar="A,B,...", help="fly only these configured sites")
     p.add_argument("--device", default=None, metavar="DEVICE", help="torch device: cpu, cuda, cuda:0, ...")
     p.set_defaults(func=run_simulate)

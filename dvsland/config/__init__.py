@@ -6,7 +6,8 @@ Public names: :class:`Config` and its sections, :func:`load_config`, :func:`appl
 
 from .loader import (apply_overrides, config_to_dict, configs_dir, dump_config, load_config, read_yaml,
                      repo_root, resolve_config_path)
-from .schema import (SITE_NAMES, CameraConfig, CMaxConfig, Config, ControllerConfig, ControllerSetting,
+from .schema import (PAPER_INITIAL_CONDITIONS, SITE_NAMES, CameraConfig, CMaxConfig, Config, ControllerConfig,
+                     ControllerSetting,
                      DPRConfig, DynamicsConfig, EmulatorConfig, EstimatorConfig, LoggingConfig,
                      OracleConfig, RenderConfig, SimulationConfig, SiteConfig, SNNConfig)
 from .validate import ConfigError, build
@@ -14,7 +15,8 @@ from .validate import ConfigError, build
 __all__ = [
     "Config", "CameraConfig", "RenderConfig", "EmulatorConfig", "EstimatorConfig", "DPRConfig",
     "CMaxConfig", "OracleConfig", "SNNConfig", "ControllerConfig", "ControllerSetting", "DynamicsConfig",
-    "SimulationConfig", "SiteConfig", "LoggingConfig", "SITE_NAMES", "ConfigError", "load_config",
+    "SimulationConfig", "SiteConfig", "LoggingConfig", "SITE_NAMES", "PAPER_INITIAL_CONDITIONS", "ConfigError",
+    "load_config",
     "apply_overrides", "dump_config", "config_to_dict", "configs_dir", "repo_root", "read_yaml", "build",
     "resolve_config_path",
 ]

@@ -15,8 +15,11 @@ from typing import Any, Optional
 
 INF = float("inf")
 
-#: Site names of the paper (DESIGN.md section 3).
+#: Site names of the paper.
 SITE_NAMES = ("A", "B", "C", "D", "E", "F", "G", "H", "I")
+
+#: The paper's initial conditions (z0 m, v0 m/s): A-C from 10 km at -200 m/s, D-I from 4 km at -100 m/s.
+PAPER_INITIAL_CONDITIONS = {n: (10000.0, -200.0) if n in "ABC" else (4000.0, -100.0) for n in SITE_NAMES}
 
 
 def opt(default: Any, doc: str = "", rng: Optional[tuple] = None, choices: Optional[tuple] = None,
@@ -61,7 +64,8 @@ class SiteConfig:
 class RenderConfig:
     """Scene rendering."""
 
-    renderer: str = opt("fast", "renderer backend", choices=("fast", "pyrender"))
+    renderer: str = opt("fast", "renderer: a name in dvsland.render.available_renderers() ('fast', 'pyrender', "
+                        "or one registered with register_renderer); checked where the renderer is built")
     sun_elevation_deg: Optional[float] = opt(None, "override every site's sun elevation, degrees "
                                              "(not in paper; sites default to ~15 deg)", rng=(1.0, 90.0))
     ambient: float = opt(0.02, "ambient irradiance floor as a fraction of full sun (not in paper)",
@@ -74,7 +78,7 @@ class RenderConfig:
 
 @dataclass
 class EmulatorConfig:
-    """DVS pixel model (DESIGN.md section 4)."""
+    """DVS pixel model (standard log-intensity crossing model; docs/events.md)."""
 
     threshold: float = opt(0.1, "ON contrast threshold (log intensity)", rng=(0.0, 10.0), open_lo=True)
     threshold_off: Optional[float] = opt(None, "OFF contrast threshold; null = same as threshold",
@@ -141,7 +145,7 @@ class OracleConfig:
 
 @dataclass
 class SNNConfig:
-    """The trained spiking estimator 'snn' (DESIGN.md section 5; docs/estimators_snn.md)."""
+    """The trained spiking estimator 'snn' (docs/estimators_snn.md)."""
 
     checkpoint: str = opt("", "checkpoint from scripts/train_snn.py; empty = the one shipped with dvsland")
     warmup_steps: int = opt(5, "updates after a reset that return NaN while the read-out charges", rng=(0, 10000))
@@ -203,9 +207,8 @@ class DynamicsConfig:
 
 
 def _paper_sites():
-    """The paper's nine sites: A-C from 10 km at -200 m/s, D-I from 4 km at -100 m/s."""
-    return [SiteConfig(name=n, z0_m=10000.0, v0_mps=-200.0) if n in "ABC"
-            else SiteConfig(name=n, z0_m=4000.0, v0_mps=-100.0) for n in SITE_NAMES]
+    """The paper's nine sites with their initial conditions (:data:`PAPER_INITIAL_CONDITIONS`)."""
+    return [SiteConfig(name=n, z0_m=z0, v0_mps=v0) for n, (z0, v0) in PAPER_INITIAL_CONDITIONS.items()]
 
 
 @dataclass
@@ -257,6 +260,17 @@ class Config:
     def dt_s(self) -> float:
         """Control / frame interval, s."""
         return 1.0 / self.camera.frame_rate_hz
+
+    def initial_conditions(self, site: str) -> tuple:
+        """(z0_m, v0_mps) of ``site`` from ``simulation.sites``, else the paper's
+        (:data:`PAPER_INITIAL_CONDITIONS`; a variant ``A~1`` takes its site's)."""
+        for s in self.simulation.sites:
+            if s.name == site:
+                return float(s.z0_m), float(s.v0_mps)
+        base = str(site).split("~")[0]
+        if base not in PAPER_INITIAL_CONDITIONS:
+            raise ValueError(f"unknown site {site!r}: expected one of {', '.join(SITE_NAMES)}")
+        return PAPER_INITIAL_CONDITIONS[base]
 
 
 #: Element types of list-valued fields (dataclass annotations cannot say it at runtime).

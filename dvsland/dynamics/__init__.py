@@ -2,11 +2,12 @@
 
 Public names: :class:`LanderParams`, :class:`LanderDynamics`, :func:`step_exact`,
 :func:`step_substeps`, :func:`closed_form_state`, :func:`closed_form_time_to_altitude`,
-:func:`closed_form_thrust`, :func:`loop_gain`.
+:func:`closed_form_thrust`, :func:`closed_form_descent`, :func:`loop_gain`.
 """
 
-from .closed_form import closed_form_state, closed_form_thrust, closed_form_time_to_altitude, loop_gain
+from .closed_form import (closed_form_descent, closed_form_state, closed_form_thrust, closed_form_time_to_altitude,
+                          loop_gain)
 from .lander import LanderDynamics, LanderParams, step_exact, step_substeps
 
 __all__ = ["LanderParams", "LanderDynamics", "step_exact", "step_substeps", "closed_form_state",
-           "closed_form_time_to_altitude", "closed_form_thrust", "loop_gain"]
+           "closed_form_time_to_altitude", "closed_form_thrust", "closed_form_descent", "loop_gain"]

@@ -1,8 +1,8 @@
 """The evaluation descents: the closed-form oracle-controlled descent of every site, sampled per step.
 
-With perfect sensing the controller makes tau(t) = tau0 - c^2 t exactly (DESIGN.md section 2), so
-the oracle-controlled descent is the closed form z = z0 s^(1/c^2), v = v0 s^(1/c^2 - 1),
-s = 1 + c^2 v0 t / z0 (:func:`dvsland.dynamics.closed_form_state`). The evaluation uses it
+With perfect sensing the controller makes tau(t) = tau0 - c^2 t exactly, so the
+oracle-controlled descent is the closed form z = z0 s^(1/c^2), v = v0 s^(1/c^2 - 1),
+s = 1 + c^2 v0 t / z0 (:mod:`dvsland.dynamics.closed_form`). The evaluation uses it
 (not a simulator run), sampled at the frame rate down to the success altitude.
 """
 
@@ -12,10 +12,9 @@ from dataclasses import dataclass
 from typing import List, Optional, Sequence
 
 import numpy as np
-import torch
 
 from dvsland.config import Config
-from dvsland.dynamics import closed_form_state
+from dvsland.dynamics import closed_form_state, closed_form_time_to_altitude
 
 
 @dataclass
@@ -71,8 +70,7 @@ def closed_form_descents(cfg: Config, sites: Optional[Sequence[str]] = None, z_e
         s = specs[n]
         if not s.z0_m > z_end:
             raise ValueError(f"site {n}: z0_m = {s.z0_m} must be above z_end_m = {z_end}")
-        se = (z_end / s.z0_m) ** c2
-        t_end.append((se - 1.0) * s.z0_m / (c2 * s.v0_mps))
+        t_end.append(closed_form_time_to_altitude(z_end, s.z0_m, s.v0_mps, c2))
     K = int(np.ceil(max(t_end) / dt))
     if max_steps is not None:
         if int(max_steps) < 1:
@@ -106,9 +104,3 @@ def segment_schedule(n_steps: int, segment_steps: int = 0, stride: int = 1) -> L
         if i % stride == 0:
             out.append(range(start, min(n_steps, start + segment_steps - 1) + 1))
     return out
-
-
-def truth_tensors(descents: Descents, k: int, device="cpu"):
-    """(altitude_m, velocity_mps) at frame k as (B,) float64 tensors."""
-    return (torch.as_tensor(descents.altitude_m[:, k], device=device),
-            torch.as_tensor(descents.velocity_mps[:, k], device=device))

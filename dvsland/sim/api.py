@@ -37,9 +37,7 @@ def _resolve_config(config, estimator, renderer, device, quiet, overrides) -> Co
     if isinstance(estimator, str):
         cfg.estimator.name = estimator
     if isinstance(renderer, str):
-        if renderer not in ("fast", "pyrender"):
-            raise ValueError(f"renderer must be 'fast' or 'pyrender', got {renderer!r}")
-        cfg.render.renderer = renderer
+        cfg.render.renderer = renderer  # checked against the renderer registry when built
     if device is not None:
         cfg.simulation.device = str(device)
     if quiet is not None:

@@ -17,7 +17,7 @@ import torch
 
 from dvsland.config import Config
 from dvsland.control import MovingAverageFilter
-from dvsland.dynamics import LanderDynamics
+from dvsland.dynamics import LanderDynamics, loop_gain
 from dvsland.estimators import Truth
 
 from .batch import BatchLayout
@@ -225,7 +225,7 @@ class ClosedLoop:
                 "t_end_s": round(float(t_end[b]), 6), "z_end_m": float(z[b]), "v_end_mps": float(v[b]),
                 "lowest_altitude_m": float(low[b]), "fuel_used_kg": float(m0 - m[b]),
                 "max_thrust_n": float(umax[b]),
-                "loop_gain": float(L.kp[b] * L.z0_m[b] / (m0 * L.v0_mps[b] ** 2)),
+                "loop_gain": loop_gain(L.kp[b], L.z0_m[b], L.v0_mps[b], m0),
                 "z0_m": float(L.z0_m[b]), "v0_mps": float(L.v0_mps[b]),
                 "held_steps": int(held[b]), "missing_estimates": int(miss[b]),
             })
