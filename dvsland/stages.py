@@ -103,12 +103,12 @@ def build_event_source(cfg: Config, site_names: Sequence[str], device: Any = "cp
 
 # ------------------------------------------------------------------ estimator
 def build_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: Optional[str] = None,
-                    overrides: Optional[dict] = None, seed: Optional[int] = None):
-    """Estimator ``name`` (default ``estimator.name``) for ``batch_size`` descents, with its config
-    section updated by ``overrides``; see :func:`dvsland.estimators.make_estimator`."""
+                    seed: Optional[int] = None):
+    """Estimator ``name`` (default ``estimator.name``) for ``batch_size`` descents, with the
+    parameters of its config section; see :func:`dvsland.estimators.make_estimator`."""
     from dvsland.estimators import make_estimator
 
-    return make_estimator(cfg, batch_size, device, name=name, seed=seed, overrides=overrides)
+    return make_estimator(cfg, batch_size, device, name=name, seed=seed)
 
 
 # ------------------------------------------------------------------ controller

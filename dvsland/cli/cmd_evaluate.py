@@ -16,8 +16,10 @@ def register(subparsers) -> None:
                     "steps) takes minutes; --segment-steps 20 --stride 10 is a ~10x quicker sample.")
     add_config_args(p)
     p.add_argument("--estimators", default="dpr,cmax", metavar="NAME,NAME",
-                   help="estimators to compare (default dpr,cmax); a name may carry overrides, e.g. "
-                        "'cmax[window_ms=300;n_grid=21]' (separate those with ';')")
+                   help="estimators to compare (default dpr,cmax); a name may carry its own parameter "
+                        "values to compare variants side by side, e.g. 'cmax[window_ms=300;n_grid=21]' = that "
+                        "estimator with --set estimator.cmax.window_ms=300 --set estimator.cmax.n_grid=21 "
+                        "(same typing and range checks; separate them with ';')")
     p.add_argument("--sites", default=None, metavar="A,B,...", help="only these configured sites")
     p.add_argument("--segment-steps", type=int, default=0, metavar="N",
                    help="split the descents into segments of N steps (0 = whole descents)")

@@ -7,9 +7,10 @@ allowed range or choices.
 from __future__ import annotations
 
 import dataclasses
-import math
 import typing
 from typing import Any, Optional
+
+from dvsland.checks import check_choice, check_range
 
 from .schema import LIST_ITEM_TYPES, Config
 
@@ -20,13 +21,6 @@ class ConfigError(ValueError):
 
 def _where(source: Optional[str]) -> str:
     return f" (in {source})" if source else ""
-
-
-def _range_text(md: dict) -> str:
-    lo, hi = md["rng"]
-    left = "(" if md.get("open_lo") else "["
-    right = ")" if md.get("open_hi") else "]"
-    return f"{left}{lo}, {hi}{right}"
 
 
 def _field_types(cls) -> dict:
@@ -95,19 +89,12 @@ def coerce_scalar(value: Any, tp, path: str, source: Optional[str]) -> Any:
 def _check_field(value: Any, md: dict, path: str, source: Optional[str]) -> None:
     if value is None:
         return
-    if md.get("choices") is not None and value not in md["choices"]:
-        raise ConfigError(f"{path}{_where(source)}: {value!r} is not allowed; "
-                          f"choose one of {list(md['choices'])}")
+    if md.get("choices") is not None:
+        check_choice(path, value, md["choices"], where=_where(source), error=ConfigError)
     rng = md.get("rng")
     if rng is not None and isinstance(value, (int, float)):
-        lo, hi = rng
-        ok = (math.isfinite(float(value)) or math.isinf(hi) or math.isinf(lo))
-        ok = ok and not math.isnan(float(value))
-        ok = ok and (value > lo if md.get("open_lo") else value >= lo)
-        ok = ok and (value < hi if md.get("open_hi") else value <= hi)
-        if not ok:
-            raise ConfigError(f"{path}{_where(source)}: {value!r} is out of range; "
-                              f"allowed {_range_text(md)}")
+        check_range(path, value, rng[0], rng[1], open_lo=bool(md.get("open_lo")), open_hi=bool(md.get("open_hi")),
+                    where=_where(source), error=ConfigError)
 
 
 def build(cls, data: Any, path: str = "", source: Optional[str] = None):

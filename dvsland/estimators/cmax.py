@@ -54,7 +54,7 @@ class CMaxEstimator(DivergenceEstimator):
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, window_ms: float = 1000.0,
                  d_min: float = -1.0, d_max: float = 0.5, n_grid: int = 21, n_refine: int = 2,
                  min_events: int = 50, refine_points: int = 9, blur_sigma_px: float = 0.0,
-                 max_events: int = 3000, dither: bool = True, seed: int = 0, **unused):
+                 max_events: int = 3000, dither: bool = True, seed: int = 0):
         super().__init__(batch_size, sensor_size, device, dt_s)
         if not window_ms > 0:
             raise ValueError(f"window_ms must be > 0, got {window_ms}")

@@ -28,17 +28,14 @@ from typing import Optional
 
 import torch
 
+from dvsland.checks import check_fields
+from dvsland.config.schema import DPRConfig
+
 from .base import DivergenceEstimator, Truth
 from .density_peaks import density_peaks
 from .divergence import pairwise_divergence
 from .meanshift import meanshift_flat
 from .registry import register_estimator
-
-
-def _check(name: str, value, lo, hi=None):
-    if value < lo or (hi is not None and value > hi):
-        rng = f"[{lo}, {hi}]" if hi is not None else f">= {lo}"
-        raise ValueError(f"{name} must be in {rng}, got {value}")
 
 
 @register_estimator("dpr")
@@ -66,18 +63,13 @@ class DPREstimator(DivergenceEstimator):
                  n_min: int = 15, radius_px: float = 4.0, c_min: int = 3, r_min_px: float = 3.0,
                  memory_ms: float = 500.0, blur_sigma_px: float = 2.0, meanshift_iters: int = 20,
                  meanshift_tol_px: float = 0.01, merge_px: float = 1.0, nms_px: int = 3,
-                 pair_weighting: str = "none", **unused):
+                 pair_weighting: str = "none"):
         super().__init__(batch_size, sensor_size, device, dt_s)
-        _check("n_max", int(n_max), 1)
-        _check("n_min", int(n_min), 1)
-        _check("radius_px", float(radius_px), 1e-3)
-        _check("c_min", int(c_min), 2)
-        _check("r_min_px", float(r_min_px), 0.0)
-        _check("memory_ms", float(memory_ms), 1e-3)
-        _check("blur_sigma_px", float(blur_sigma_px), 1e-3)
-        _check("meanshift_iters", int(meanshift_iters), 1)
-        _check("meanshift_tol_px", float(meanshift_tol_px), 0.0)
-        _check("merge_px", float(merge_px), 0.0)
+        # the ranges of the config schema (estimator.dpr), written once there
+        check_fields(DPRConfig, n_max=n_max, n_min=n_min, radius_px=radius_px, c_min=c_min, r_min_px=r_min_px,
+                     memory_ms=memory_ms, blur_sigma_px=blur_sigma_px, meanshift_iters=meanshift_iters,
+                     meanshift_tol_px=meanshift_tol_px, merge_px=merge_px, nms_px=nms_px,
+                     pair_weighting=pair_weighting)
         if int(nms_px) < 1 or int(nms_px) % 2 == 0:
             raise ValueError(f"nms_px must be an odd integer >= 1, got {nms_px}")
         self.n_max, self.n_min, self.c_min = int(n_max), int(n_min), int(c_min)

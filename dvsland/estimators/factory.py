@@ -23,16 +23,14 @@ def estimator_params(cfg: Config, name: str | None = None) -> dict:
     return dict(cfg.estimator.params)
 
 
-def make_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: str | None = None,
-                   seed: int | None = None, overrides: dict | None = None):
+def make_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: str | None = None, seed: int | None = None):
     """Instantiate the configured estimator for ``batch_size`` descents on ``device``.
 
-    ``overrides`` update the estimator's parameters from the config (e.g. ``{"window_ms": 500}``).
-    The estimator receives ``dt_s`` (the frame interval) and ``seed`` in addition to its params.
+    The estimator receives ``dt_s`` (the frame interval) and ``seed`` in addition to its params
+    (each only where its constructor takes it; see :func:`get_estimator`).
     """
     name = name or cfg.estimator.name
     params = estimator_params(cfg, name)
-    params.update(overrides or {})
     params.setdefault("dt_s", cfg.dt_s)
     params.setdefault("seed", cfg.simulation.seed if seed is None else seed)
     return get_estimator(name, batch_size, (cfg.camera.width_px, cfg.camera.height_px), device, **params)

@@ -23,7 +23,7 @@ class OracleEstimator(DivergenceEstimator):
     """
 
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, noise_abs: float = 0.0,
-                 noise_rel: float = 0.0, delay_steps: int = 0, seed: int = 0, **unused):
+                 noise_rel: float = 0.0, delay_steps: int = 0, seed: int = 0):
         super().__init__(batch_size, sensor_size, device, dt_s)
         if noise_abs < 0 or noise_rel < 0:
             raise ValueError(f"noise_abs and noise_rel must be >= 0, got {noise_abs}, {noise_rel}")

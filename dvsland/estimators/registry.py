@@ -3,8 +3,11 @@ entry-point group for third-party packages."""
 
 from __future__ import annotations
 
+import inspect
 from importlib import metadata
 from typing import Any, Callable, Dict, List, Tuple
+
+from dvsland.checks import check_keys
 
 _REGISTRY: Dict[str, Callable] = {}
 _ENTRY_POINT_GROUP = "dvsland.estimators"
@@ -68,10 +71,36 @@ def get_estimator(name: str, batch_size: int, sensor_size: Tuple[int, int], devi
                   **params):
     """Build estimator ``name`` for B = ``batch_size`` descents.
 
+    ``params`` must be keyword parameters of the estimator's constructor (a misspelt one is a
+    ValueError listing the allowed ones), except ``dt_s`` and ``seed``, which are passed only
+    where the constructor takes them. A constructor with ``**kwargs`` gets everything.
+
     Raises:
-        ValueError: unknown name (the message lists the known ones).
+        ValueError: unknown name (the message lists the known ones), or unknown parameters.
     """
     _load_entry_points()
     if name not in _REGISTRY:
         raise ValueError(f"unknown estimator {name!r}; known estimators: {available_estimators()}")
-    return _REGISTRY[name](batch_size=batch_size, sensor_size=sensor_size, device=device, **params)
+    cls = _REGISTRY[name]
+    accepted, takes_any = _parameters(cls)
+    if not takes_any:
+        params = {k: v for k, v in params.items() if k in accepted or k not in CONTEXT_PARAMS}
+        check_keys(f"estimator {name!r}", params, accepted)
+    return cls(batch_size=batch_size, sensor_size=sensor_size, device=device, **params)
+
+
+#: offered to every estimator by the factory; passed only to those whose constructor takes them
+CONTEXT_PARAMS = ("dt_s", "seed")
+
+
+def _parameters(cls) -> Tuple[List[str], bool]:
+    """(keyword parameters of ``cls`` besides batch_size, sensor_size and device; whether it takes
+    ``**kwargs``)."""
+    try:
+        sig = inspect.signature(cls)
+    except (TypeError, ValueError):  # not introspectable: pass everything
+        return [], True
+    names = [p.name for p in sig.parameters.values()
+             if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
+             and p.name not in ("self", "batch_size", "sensor_size", "device")]
+    return names, any(p.kind is p.VAR_KEYWORD for p in sig.parameters.values())

@@ -9,6 +9,7 @@ the same events in the same order; ``update`` is timed (with a device sync).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence
@@ -16,7 +17,8 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 import torch
 
-from dvsland.config import Config
+from dvsland.config import Config, build, config_to_dict
+from dvsland.config.validate import check_config
 from dvsland.estimators import Truth
 from dvsland.stages import FrameSource, build_estimator, build_event_source
 
@@ -56,7 +58,8 @@ def _parse_value(text: str):
 def parse_estimator_spec(spec) -> tuple:
     """``"dpr"`` -> ("dpr", "dpr", {}); ``"cmax[window_ms=500;n_grid=21]"`` -> (label, "cmax",
     {"window_ms": 500, "n_grid": 21}) with the whole text as label; a tuple (label, name, dict)
-    passes through. Values are parsed as YAML scalars."""
+    passes through. Values are parsed as YAML scalars; :func:`variant_config` applies them as
+    ``--set estimator.cmax.window_ms=500`` would (one override syntax, one validation)."""
     if isinstance(spec, (tuple, list)):
         label, name, over = spec
         return str(label), str(name), dict(over)
@@ -73,6 +76,20 @@ def parse_estimator_spec(spec) -> tuple:
         k, v = item.split("=", 1)
         over[k.strip()] = _parse_value(v.strip())
     return spec, name.strip(), over
+
+
+def variant_config(cfg: Config, name: str, overrides: dict, label: str = "") -> Config:
+    """``cfg`` with estimator ``name``'s parameters updated by ``overrides``, validated as
+    ``--set estimator.<name>.<key>=<value>`` would be (typed by the schema's field, range-checked,
+    unknown keys rejected with the allowed ones); an estimator without a config section takes
+    them in ``estimator.params``."""
+    if not overrides:
+        return cfg
+    section = name if dataclasses.is_dataclass(getattr(cfg.estimator, name, None)) else "params"
+    data = config_to_dict(cfg)
+    data["estimator"][section].update(overrides)
+    source = f"estimator spec {label or name}"
+    return check_config(build(Config, data, source=source), source=source)
 
 
 def _sync(device: torch.device) -> None:
@@ -146,8 +163,8 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
     for label, name, over in specs:
         if label in ests:
             raise ValueError(f"estimator label {label!r} given twice")
-        # built once, with its overrides (the plain config may not even construct)
-        ests[label] = build_estimator(cfg, B, device, name=name, overrides=over)
+        # built once, from its variant config (the plain config may not even construct)
+        ests[label] = build_estimator(variant_config(cfg, name, over, label), B, device, name=name)
     estimators = list(ests)
     d_hat = {n: np.full((B, K + 1), np.nan) for n in estimators}
     times: Dict[str, List[float]] = {n: [] for n in estimators}

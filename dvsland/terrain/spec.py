@@ -10,85 +10,88 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 import yaml
 
-from dvsland.config import SITE_NAMES, configs_dir
+from dvsland.checks import check_fields
+from dvsland.config import SITE_NAMES, build, configs_dir
+from dvsland.config.schema import opt
 
 
 @dataclass(frozen=True)
 class SunSpec:
     """Sun position. ``azimuth_deg``: compass azimuth TO the sun, clockwise from north (y)."""
 
-    elevation_deg: float = 15.0
-    azimuth_deg: float = 90.0
+    elevation_deg: float = opt(15.0, "sun elevation, degrees", rng=(1.0, 90.0))
+    azimuth_deg: float = opt(90.0, "azimuth to the sun, degrees clockwise from north", rng=(-360.0, 360.0))
 
 
 @dataclass(frozen=True)
 class AlbedoSpec:
     """Normal albedo: ``mean`` x exp(``variation`` x fBm) x crater/boulder factors."""
 
-    mean: float = 0.12
-    variation: float = 0.15          # log-albedo std of the fBm patches
-    ejecta_boost: float = 0.35        # relative brightening of the freshest craters' ejecta
-    boulder_boost: float = 0.25       # relative brightening of boulders
+    mean: float = opt(0.12, "mean normal albedo", rng=(1e-3, 1.0))
+    variation: float = opt(0.15, "log-albedo std of the fBm patches", rng=(0.0, 2.0))
+    ejecta_boost: float = opt(0.35, "relative brightening of the freshest craters' ejecta", rng=(0.0, 5.0))
+    boulder_boost: float = opt(0.25, "relative brightening of boulders", rng=(-0.9, 5.0))
 
 
 @dataclass(frozen=True)
 class ReliefSpec:
     """Gentle background relief: fBm of gradient noise, amplitude (lambda / 1 km)^hurst."""
 
-    amplitude_m: float = 15.0         # octave amplitude at 1 km wavelength, m
-    hurst: float = 0.9
-    max_wavelength_m: float = 40000.0
-    min_wavelength_m: float = 0.1
+    amplitude_m: float = opt(15.0, "octave amplitude at 1 km wavelength, m", rng=(0.0, 1000.0))
+    hurst: float = opt(0.9, "Hurst exponent of the relief", rng=(0.0, 1.5))
+    max_wavelength_m: float = opt(40000.0, "longest relief wavelength, m", rng=(1.0, 1e6))
+    min_wavelength_m: float = opt(0.1, "shortest relief wavelength, m", rng=(1e-3, 1e6))
 
 
 @dataclass(frozen=True)
 class CraterSpec:
     """Crater population N(>D) = density * D^-exponent per m^2, D in m (simple craters)."""
 
-    density: float = 0.05
-    exponent: float = 2.0
-    d_min_m: float = 0.2
-    d_max_m: float = 5000.0
-    depth_ratio: float = 0.2          # bowl depth / D of a fresh crater
-    rim_ratio: float = 0.04           # rim height / D of a fresh crater
-    freshness_min: float = 0.25       # degraded craters keep this fraction of depth and rim
+    density: float = opt(0.05, "N(>1 m) per m^2", rng=(0.0, 10.0))
+    exponent: float = opt(2.0, "size-frequency exponent", rng=(0.5, 5.0))
+    d_min_m: float = opt(0.2, "smallest crater diameter, m", rng=(1e-3, 1e6))
+    d_max_m: float = opt(5000.0, "largest crater diameter, m", rng=(1e-3, 1e6))
+    depth_ratio: float = opt(0.2, "bowl depth / D of a fresh crater", rng=(0.0, 1.0))
+    rim_ratio: float = opt(0.04, "rim height / D of a fresh crater", rng=(0.0, 1.0))
+    freshness_min: float = opt(0.25, "degraded craters keep this fraction of depth and rim", rng=(0.0, 1.0))
 
 
 @dataclass(frozen=True)
 class BoulderSpec:
     """Boulder population N(>D) = density * D^-exponent per m^2, height = D / 2."""
 
-    density: float = 0.0
-    exponent: float = 3.0
-    d_min_m: float = 0.2
-    d_max_m: float = 12.0
+    density: float = opt(0.0, "N(>1 m) per m^2", rng=(0.0, 10.0))
+    exponent: float = opt(3.0, "size-frequency exponent", rng=(0.5, 6.0))
+    d_min_m: float = opt(0.2, "smallest boulder diameter, m", rng=(1e-3, 1e3))
+    d_max_m: float = opt(12.0, "largest boulder diameter, m", rng=(1e-3, 1e3))
 
 
 @dataclass(frozen=True)
 class SiteSpec:
     """One landing site."""
 
-    name: str = "A"
-    seed: int = 0
-    description: str = ""
-    sun: SunSpec = field(default_factory=SunSpec)
-    albedo: AlbedoSpec = field(default_factory=AlbedoSpec)
-    relief: ReliefSpec = field(default_factory=ReliefSpec)
-    craters: CraterSpec = field(default_factory=CraterSpec)
-    boulders: BoulderSpec = field(default_factory=BoulderSpec)
+    name: str = opt("A", "site name")
+    seed: int = opt(0, "terrain seed", rng=(0, 2**63 - 1))
+    description: str = opt("", "one line about the site")
+    sun: SunSpec = opt(None, factory=SunSpec)
+    albedo: AlbedoSpec = opt(None, factory=AlbedoSpec)
+    relief: ReliefSpec = opt(None, factory=ReliefSpec)
+    craters: CraterSpec = opt(None, factory=CraterSpec)
+    boulders: BoulderSpec = opt(None, factory=BoulderSpec)
     #: Features are generated in a square of side ``region_factor * D`` around (0, 0) per size
     #: octave (the camera only looks near the landing point), capped at ``region_max_m``.
-    region_factor: float = 256.0
-    region_max_m: float = 120000.0
+    region_factor: float = opt(256.0, "feature region side / D per size octave", rng=(8.0, 4096.0))
+    region_max_m: float = opt(120000.0, "cap of the feature region side, m", rng=(100.0, 1e7))
     #: A landing site is chosen clear: no crater of diameter >= this (m) has the landing point
     #: within 0.75 D of its centre (so the landing point is not in a shadowed bowl).
-    landing_clear_d_m: float = 25.0
+    landing_clear_d_m: float = opt(25.0, "no crater this large (m) or larger covers the landing point",
+                                   rng=(0.0, 1e7))
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -101,63 +104,19 @@ class SiteSpec:
     def with_sun_elevation(self, elevation_deg: Optional[float]) -> "SiteSpec":
         if elevation_deg is None:
             return self
-        _check("sun.elevation_deg", elevation_deg, 1.0, 90.0)
+        check_fields(SunSpec, "sun.", elevation_deg=elevation_deg)
         return dataclasses.replace(self, sun=dataclasses.replace(self.sun, elevation_deg=float(elevation_deg)))
 
 
-_RANGES = {
-    "sun.elevation_deg": (1.0, 90.0), "sun.azimuth_deg": (-360.0, 360.0),
-    "albedo.mean": (1e-3, 1.0), "albedo.variation": (0.0, 2.0), "albedo.ejecta_boost": (0.0, 5.0),
-    "albedo.boulder_boost": (-0.9, 5.0),
-    "relief.amplitude_m": (0.0, 1000.0), "relief.hurst": (0.0, 1.5),
-    "relief.max_wavelength_m": (1.0, 1e6), "relief.min_wavelength_m": (1e-3, 1e6),
-    "craters.density": (0.0, 10.0), "craters.exponent": (0.5, 5.0), "craters.d_min_m": (1e-3, 1e6),
-    "craters.d_max_m": (1e-3, 1e6), "craters.depth_ratio": (0.0, 1.0), "craters.rim_ratio": (0.0, 1.0),
-    "craters.freshness_min": (0.0, 1.0),
-    "boulders.density": (0.0, 10.0), "boulders.exponent": (0.5, 6.0), "boulders.d_min_m": (1e-3, 1e3),
-    "boulders.d_max_m": (1e-3, 1e3),
-    "region_factor": (8.0, 4096.0), "landing_clear_d_m": (0.0, 1e7), "region_max_m": (100.0, 1e7), "seed": (0, 2**63 - 1),
-}
-
-
-def _check(name: str, value, lo, hi) -> None:
-    if not (lo <= value <= hi):
-        raise ValueError(f"site spec: {name} = {value} is out of range [{lo}, {hi}]")
-
-
 def spec_from_dict(data: dict, source: str = "site spec") -> SiteSpec:
-    """Build and validate a :class:`SiteSpec` from a nested mapping (YAML)."""
-    sub = {"sun": SunSpec, "albedo": AlbedoSpec, "relief": ReliefSpec, "craters": CraterSpec,
-           "boulders": BoulderSpec}
-    kwargs = {}
-    known = {f.name for f in dataclasses.fields(SiteSpec)}
-    for key, value in (data or {}).items():
-        if key not in known:
-            raise ValueError(f"{source}: unknown key '{key}'; known keys: {sorted(known)}")
-        if key in sub:
-            cls = sub[key]
-            names = {f.name for f in dataclasses.fields(cls)}
-            bad = set(value or {}) - names
-            if bad:
-                raise ValueError(f"{source}: unknown key(s) {sorted(bad)} in '{key}'; known: {sorted(names)}")
-            kwargs[key] = cls(**{k: float(v) for k, v in (value or {}).items()})
-        elif key == "seed":
-            kwargs[key] = int(value)
-        elif key in ("name", "description"):
-            kwargs[key] = str(value)
-        else:
-            kwargs[key] = float(value)
-    spec = SiteSpec(**kwargs)
-    flat = spec.to_dict()
-    for dotted, (lo, hi) in _RANGES.items():
-        node = flat
-        for k in dotted.split("."):
-            node = node[k]
-        _check(dotted, node, lo, hi)
-    if spec.craters.d_max_m < spec.craters.d_min_m:
-        raise ValueError(f"{source}: craters.d_max_m must be >= craters.d_min_m")
-    if spec.boulders.d_max_m < spec.boulders.d_min_m:
-        raise ValueError(f"{source}: boulders.d_max_m must be >= boulders.d_min_m")
+    """Build and validate a :class:`SiteSpec` from a nested mapping (YAML), with the same
+    validation as the run configs (:func:`dvsland.config.build`: unknown keys, types, the ranges
+    declared on the fields). Raises ValueError naming the parameter, the file and the range."""
+    spec = build(SiteSpec, data or {}, source=source)
+    for part in ("craters", "boulders"):
+        sub = getattr(spec, part)
+        if sub.d_max_m < sub.d_min_m:
+            raise ValueError(f"{part}.d_max_m (in {source}): {sub.d_max_m} must be >= {part}.d_min_m = {sub.d_min_m}")
     return spec
 
 

@@ -66,7 +66,7 @@ class SpikingEstimator(DivergenceEstimator):
     """
 
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, checkpoint: str = "",
-                 warmup_steps: int = 5, seed: int = 0, **unused):
+                 warmup_steps: int = 5, seed: int = 0):
         super().__init__(batch_size, sensor_size, device, dt_s)
         if int(warmup_steps) < 0:
             raise ValueError(f"warmup_steps must be >= 0, got {warmup_steps}")
