@@ -51,3 +51,14 @@ def test_config_validation_does_not_check_stage_names():
     cfg = load_config("paper", ["estimator.name=nope"])  # loads: the name is checked where it is built
     with pytest.raises(ConfigError, match=r"estimator.name: unknown estimator 'nope'; known: \[.*'dpr'"):
         check_names(cfg)
+
+
+def test_no_file_points_to_the_team_design_notes(repo_root):
+    """Code, configs, scripts and tests stand on their own: no pointer to design notes that the
+    repository does not contain."""
+    needle = "DESIGN" + ".md"
+    roots = [repo_root / d for d in ("dvsland", "scripts", "tests")]
+    files = [p for r in roots for p in r.rglob("*") if p.is_file() and p.suffix in (".py", ".yaml", ".md", ".sh", ".txt")]
+    files += [repo_root / "README.md", repo_root / "pyproject.toml", repo_root / "docs" / "architecture.md"]
+    hits = [str(p.relative_to(repo_root)) for p in files if p.is_file() and needle in p.read_text(errors="ignore")]
+    assert hits == []

@@ -1,7 +1,7 @@
 """EventEmulator against a plain, slow, independent per-pixel float64 reference (issue 4).
 
 The reference below is written for clarity, not speed: Python loops over pixels and over
-crossings, one crossing at a time, following DESIGN.md section 4 literally. It shares no code
+crossings, one crossing at a time, following the pixel model of docs/events.md literally. It shares no code
 with :mod:`dvsland.events.emulator`.
 """
 

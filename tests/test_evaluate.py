@@ -40,7 +40,7 @@ def one_thread():
 def test_closed_form_descents_paper_times(cfg):
     d = closed_form_descents(cfg)
     assert d.sites == list("ABCDEFGHI")
-    # DESIGN.md: A-C reach 50 m at ~92.9 s, D-I at ~71.1 s
+    # closed form: A-C reach 50 m at ~92.9 s, D-I at ~71.1 s
     last_a = d.t_s[d.valid[0]][-1]
     last_d = d.t_s[d.valid[3]][-1]
     assert 92.7 <= last_a <= 93.0 and 70.9 <= last_d <= 71.2

@@ -1,4 +1,4 @@
-"""Divergence estimators behind one interface (DESIGN.md section 5).
+"""Divergence estimators behind one interface (docs/estimators.md).
 
 Public names: :class:`DivergenceEstimator`, :class:`Truth`, :func:`get_estimator`,
 :func:`register_estimator`, :func:`available_estimators`, and the built-in estimators

@@ -1,4 +1,4 @@
-"""``dpr``: the paper's estimator (Sikorski et al. 2021, section 4; DESIGN.md section 5).
+"""``dpr``: the paper's estimator (Sikorski et al. 2021, section 4; docs/estimators.md).
 
 Per step:
 

@@ -1,4 +1,4 @@
-"""The DVS pixel model: exact, batched conversion of frames to events (DESIGN.md section 4).
+"""The DVS pixel model: exact, batched conversion of frames to events (docs/events.md).
 
 Model, per pixel (all arithmetic in float64):
 

@@ -1,6 +1,6 @@
 """Packed events of a batch of event cameras, and their standard representations.
 
-Conventions (DESIGN.md section 4):
+Conventions (docs/events.md):
 
 - ``b``: int64 batch index (which camera / descent), ``x``, ``y``: int64 pixel column and row
   (int64 so they index tensors directly), ``t``: int64 microseconds, ``p``: int8 polarity,

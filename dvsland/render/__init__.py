@@ -1,4 +1,4 @@
-"""Renderers of the landing sites (DESIGN.md section 3).
+"""Renderers of the landing sites (docs/render.md, docs/render_reference.md).
 
 Public names: :class:`Renderer` (interface), :func:`get_renderer`, :func:`available_renderers`,
 :func:`register_renderer`, :class:`FastRenderer`.

@@ -1,4 +1,4 @@
-"""The renderer interface shared by every backend (DESIGN.md section 3).
+"""The renderer interface shared by every backend (nadir pinhole camera, linear irradiance; see below).
 
 A renderer is built for a list of site names, a camera and a render config; ``render`` takes a
 batch of altitudes (m above the landing point) and site indices and returns frames

@@ -1,4 +1,4 @@
-"""The fast batched torch renderer (DESIGN.md sections 3 and 7).
+"""The fast batched torch renderer (docs/render.md).
 
 Per site, levels of detail are prepared once (:mod:`dvsland.render.lod`): shaded irradiance and
 relative height on sun-aligned tiles, each level twice the extent of the previous. All tiles of

@@ -1,4 +1,4 @@
-"""How a descent ends (DESIGN.md section 2): success, ascent, crash, timeout."""
+"""How a descent ends: success (z <= success altitude), ascent (v > 0), crash (|D| too large or z <= 0), timeout."""
 
 from __future__ import annotations
 

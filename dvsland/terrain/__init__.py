@@ -1,4 +1,4 @@
-"""Moon-like landing sites: continuous, seeded, multi-scale terrain (DESIGN.md section 3).
+"""Moon-like landing sites: continuous, seeded, multi-scale terrain (docs/render.md).
 
 Public names: :func:`load_site`, :class:`Terrain`, :class:`SiteSpec`, :func:`load_spec`,
 :func:`available_sites`, :class:`Grid`, :func:`shade`, :func:`cast_shadow`,

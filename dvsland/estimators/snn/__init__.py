@@ -1,4 +1,4 @@
-"""``snn``: a trained spiking divergence estimator (DESIGN.md section 5).
+"""``snn``: a trained spiking divergence estimator (docs/estimators_snn.md).
 
 Public names: :class:`SpikingEstimator` (registered as "snn"), :class:`SpikingDivergenceNet`,
 :class:`LogPolarEncoder`, the LIF primitives (:mod:`.lif`), :func:`load_checkpoint`,
