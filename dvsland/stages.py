@@ -10,17 +10,18 @@ spiking estimator's training data), so a new renderer, estimator or controller p
 
 Names are checked here, against the registries (:func:`check_names`), not when a config is
 loaded: ``dvsland.config`` imports no stage. Stage modules are imported inside the functions,
-so importing this module is cheap.
+so importing this module is cheap (no torch).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, Optional, Sequence, Union
-
-import torch
+from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence, Union
 
 from dvsland.config import Config, ConfigError
+
+if TYPE_CHECKING:  # annotations only: importing this module loads no torch
+    import torch
 
 
 # ------------------------------------------------------------------ names
@@ -124,6 +125,8 @@ def available_controllers() -> list:
 def build_controller(cfg: Config, layout, device: Any = "cpu"):
     """The configured controller for the elements of ``layout`` (a :class:`dvsland.sim.BatchLayout`:
     per-element Kp and initial conditions). This is where a controller registry plugs in."""
+    import torch
+
     from dvsland.control import TauPController, initial_ttc
 
     if cfg.controller.name not in available_controllers():
@@ -204,7 +207,8 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
     return Stages(layout, est, events, controller)
 
 
-FrameSource = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+#: ``f(altitude_m (B,), site_idx (B,) int64) -> (B, H, W)`` float32 frames (torch tensors)
+FrameSource = Callable[[Any, Any], Any]
 
 __all__ = ["Stages", "EventSource", "build_stages", "build_event_source", "build_estimator", "build_controller",
            "available_controllers", "check_names", "FrameSource"]
