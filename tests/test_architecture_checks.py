@@ -62,6 +62,19 @@ def test_radius_px_has_one_range():
         check_fields(DPRConfig, pair_weighting="area")
 
 
+@pytest.mark.parametrize("name,params,needle", [
+    ("cmax", {"window_ms": 0.5}, r"window_ms: 0.5 is out of range; allowed \[1.0, 10000.0\]"),
+    ("cmax", {"blur_sigma_px": 20.0}, r"blur_sigma_px: 20.0 is out of range; allowed \[0.0, 16.0\]"),
+    ("oracle", {"noise_abs": -1.0}, r"noise_abs: -1.0 is out of range; allowed \[0.0, 100.0\]"),
+    ("snn", {"warmup_steps": -1}, r"warmup_steps: -1 is out of range; allowed \[0, 10000\]"),
+])
+def test_constructors_use_the_schema_ranges(name, params, needle):
+    from dvsland.estimators import get_estimator
+
+    with pytest.raises(ValueError, match=needle):
+        get_estimator(name, 1, (32, 32), **params)
+
+
 @pytest.mark.parametrize("name,params", [
     ("dpr", {"radiuss_px": 3.0}),
     ("cmax", {"window": 300}),

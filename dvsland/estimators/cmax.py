@@ -18,6 +18,9 @@ from typing import List, Optional
 
 import torch
 
+from dvsland.checks import check_fields
+from dvsland.config.schema import CMaxConfig
+
 from .base import DivergenceEstimator, Truth
 from .contrast import warped_contrast
 from .registry import register_estimator
@@ -56,22 +59,14 @@ class CMaxEstimator(DivergenceEstimator):
                  min_events: int = 50, refine_points: int = 9, blur_sigma_px: float = 0.0,
                  max_events: int = 3000, dither: bool = True, seed: int = 0):
         super().__init__(batch_size, sensor_size, device, dt_s)
-        if not window_ms > 0:
-            raise ValueError(f"window_ms must be > 0, got {window_ms}")
+        # the ranges of the config schema (estimator.cmax), written once there
+        check_fields(CMaxConfig, window_ms=window_ms, d_min=d_min, d_max=d_max, n_grid=n_grid, n_refine=n_refine,
+                     min_events=min_events, refine_points=refine_points, blur_sigma_px=blur_sigma_px,
+                     max_events=max_events)
         if not d_min < d_max:
             raise ValueError(f"d_min must be < d_max, got d_min={d_min}, d_max={d_max}")
-        if int(n_grid) < 3:
-            raise ValueError(f"n_grid must be >= 3, got {n_grid}")
-        if int(n_refine) < 0:
-            raise ValueError(f"n_refine must be >= 0, got {n_refine}")
-        if int(min_events) < 1:
-            raise ValueError(f"min_events must be >= 1, got {min_events}")
-        if int(refine_points) < 3 or int(refine_points) % 2 == 0:
+        if int(refine_points) % 2 == 0:
             raise ValueError(f"refine_points must be an odd integer >= 3, got {refine_points}")
-        if blur_sigma_px < 0:
-            raise ValueError(f"blur_sigma_px must be >= 0, got {blur_sigma_px}")
-        if int(max_events) < 0:
-            raise ValueError(f"max_events must be >= 0, got {max_events}")
         self.window_us = int(round(float(window_ms) * 1000.0))
         self.d_min, self.d_max = float(d_min), float(d_max)
         self.n_grid, self.n_refine = int(n_grid), int(n_refine)

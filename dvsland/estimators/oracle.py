@@ -6,6 +6,9 @@ from typing import Optional
 
 import torch
 
+from dvsland.checks import check_fields
+from dvsland.config.schema import OracleConfig
+
 from .base import DivergenceEstimator, Truth
 from .registry import register_estimator
 
@@ -25,10 +28,8 @@ class OracleEstimator(DivergenceEstimator):
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, noise_abs: float = 0.0,
                  noise_rel: float = 0.0, delay_steps: int = 0, seed: int = 0):
         super().__init__(batch_size, sensor_size, device, dt_s)
-        if noise_abs < 0 or noise_rel < 0:
-            raise ValueError(f"noise_abs and noise_rel must be >= 0, got {noise_abs}, {noise_rel}")
-        if int(delay_steps) < 0:
-            raise ValueError(f"delay_steps must be >= 0, got {delay_steps}")
+        # the ranges of the config schema (estimator.oracle), written once there
+        check_fields(OracleConfig, noise_abs=noise_abs, noise_rel=noise_rel, delay_steps=delay_steps)
         self.noise_abs = float(noise_abs)
         self.noise_rel = float(noise_rel)
         self.delay_steps = int(delay_steps)

@@ -13,6 +13,9 @@ from typing import Optional
 
 import torch
 
+from dvsland.checks import check_fields
+from dvsland.config.schema import SNNConfig
+
 from ..base import DivergenceEstimator, Truth
 from ..registry import register_estimator
 from .encoding import LogPolarEncoder
@@ -68,8 +71,7 @@ class SpikingEstimator(DivergenceEstimator):
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, checkpoint: str = "",
                  warmup_steps: int = 5, seed: int = 0):
         super().__init__(batch_size, sensor_size, device, dt_s)
-        if int(warmup_steps) < 0:
-            raise ValueError(f"warmup_steps must be >= 0, got {warmup_steps}")
+        check_fields(SNNConfig, warmup_steps=warmup_steps)  # the schema's range (estimator.snn)
         self.warmup_steps = int(warmup_steps)
         self.model, self.encoder, self.meta = load_checkpoint(checkpoint or None, self.sensor_size, self.dt_s,
                                                               self.device)
