@@ -91,6 +91,22 @@ class EmulatorConfig:
                                 "(not in paper)", rng=(0.0, 1.0))
     background_rate_hz: float = opt(0.0, "background activity per pixel, events/s; 0 = ideal "
                                     "(not in paper)", rng=(0.0, 1e4))
+    # non-ideal pixel parts (dvsland.events.pixel_model; docs/events.md), all off = the ideal pixel
+    photoreceptor_cutoff_hz: float = opt(0.0, "photoreceptor low-pass cut-off at full_irradiance and above, Hz; "
+                                         "proportional to irradiance below it; 0 = ideal (not in paper)",
+                                         rng=(0.0, 1e7))
+    full_irradiance: float = opt(1.0, "irradiance at which cut-off and shot-noise rate reach their bright "
+                                 "values (renderer units: 1 = albedo-1 plate facing the sun)",
+                                 rng=(0.0, 1e6), open_lo=True)
+    shot_noise_rate_hz: float = opt(0.0, "shot-noise events per pixel per second (ON + OFF) in the dark; "
+                                    "0 = ideal (not in paper)", rng=(0.0, 1e4))
+    shot_noise_bright_factor: float = opt(0.25, "shot-noise rate at full_irradiance relative to the dark rate "
+                                          "(v2e: 0.25)", rng=(0.0, 100.0))
+    leak_rate_hz: float = opt(0.0, "leak (ON) events per pixel per second on a static scene; 0 = ideal "
+                              "(not in paper)", rng=(0.0, 1e4))
+    leak_rate_sigma: float = opt(0.1, "relative std. dev. of the per-pixel leak rate", rng=(0.0, 10.0))
+    hot_pixel_fraction: float = opt(0.0, "fraction of hot pixels; 0 = ideal (not in paper)", rng=(0.0, 1.0))
+    hot_pixel_rate_hz: float = opt(100.0, "extra ON event rate of a hot pixel, Hz", rng=(0.0, 1e5))
 
 
 @dataclass

@@ -30,19 +30,25 @@ permutation gathers are needed.
 
 Options off by default (the ideal model): per-pixel threshold mismatch ``mismatch_sigma`` (relative
 Gaussian, drawn per batch element from ``seed`` at :meth:`reset`, clamped to >= 1 % of the nominal
-threshold), and background activity ``background_rate_hz`` (Poisson events per pixel, uniform
+threshold), background activity ``background_rate_hz`` (Poisson events per pixel, uniform
 time and polarity, independent of the pixel state: they neither move ``L_ref`` nor start a
-refractory period).
+refractory period), and the non-ideal pixel parts of :mod:`dvsland.events.pixel_model`
+(photoreceptor low-pass, shot noise, leak, hot pixels; they need ``interpolation="log"`` except
+shot noise). The low-pass replaces L by its filtered level and leak/hot pixels add a per-pixel
+linear drift to it, so the crossing machinery above is unchanged; shot-noise events are drawn by
+thinning and reset the reference of their pixel at the end of the step.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Optional, Tuple
 
 import numpy as np
 import torch
 
+from . import pixel_model as pm
 from .events import Events
 
 #: Tolerance, in units of the threshold, when counting level crossings.
@@ -89,7 +95,11 @@ class EventEmulator:
         device: device of the state and the output; None = device of the frames given to reset.
         mismatch_sigma: relative std. dev. of per-pixel threshold mismatch, >= 0 (0 = ideal).
         background_rate_hz: background events per pixel per second, >= 0 (0 = ideal).
-        seed: seed of mismatch and background activity (CPU generators, results moved).
+        seed: seed of mismatch, background activity and the pixel-model noise (per-element CPU
+            generators, results moved).
+        photoreceptor_cutoff_hz, full_irradiance, shot_noise_rate_hz, shot_noise_bright_factor,
+        leak_rate_hz, leak_rate_sigma, hot_pixel_fraction, hot_pixel_rate_hz: the non-ideal pixel
+            parts, see :class:`dvsland.events.pixel_model.PixelModelParams` (all off by default).
 
     Usage::
 
@@ -101,7 +111,10 @@ class EventEmulator:
     def __init__(self, threshold: float = 0.1, threshold_off: Optional[float] = None,
                  refractory_us: float = 15.0, log_eps: float = 1e-4, interpolation: str = "log",
                  device=None, mismatch_sigma: float = 0.0, background_rate_hz: float = 0.0,
-                 seed: int = 0):
+                 seed: int = 0, photoreceptor_cutoff_hz: float = 0.0, full_irradiance: float = 1.0,
+                 shot_noise_rate_hz: float = 0.0, shot_noise_bright_factor: float = 0.25,
+                 leak_rate_hz: float = 0.0, leak_rate_sigma: float = 0.1,
+                 hot_pixel_fraction: float = 0.0, hot_pixel_rate_hz: float = 100.0):
         def pos(name, v):
             v = float(v)
             if not (math.isfinite(v) and v > 0):
@@ -125,7 +138,17 @@ class EventEmulator:
         self.background_rate_hz = nonneg("background_rate_hz", background_rate_hz)
         self.seed = int(seed)
         self.device = torch.device(device) if device is not None else None
-        self._bg_gen = torch.Generator(device="cpu").manual_seed(self.seed ^ 0x5EED_BAC6)
+        self.pixel_model = pm.PixelModelParams(
+            photoreceptor_cutoff_hz=photoreceptor_cutoff_hz, full_irradiance=full_irradiance,
+            shot_noise_rate_hz=shot_noise_rate_hz, shot_noise_bright_factor=shot_noise_bright_factor,
+            leak_rate_hz=leak_rate_hz, leak_rate_sigma=leak_rate_sigma,
+            hot_pixel_fraction=hot_pixel_fraction, hot_pixel_rate_hz=hot_pixel_rate_hz)
+        if interpolation != "log":
+            for name, on in (("photoreceptor_cutoff_hz", self.pixel_model.lowpass),
+                             ("leak_rate_hz / hot_pixel_fraction", self.pixel_model.drift)):
+                if on:
+                    raise ValueError(f"{name} needs interpolation='log' (the filtered or drifting level "
+                                     f"is interpolated in log space), got interpolation={interpolation!r}")
         self._shape: Optional[Tuple[int, int, int]] = None
         self.t_us: Optional[int] = None
 
@@ -136,7 +159,8 @@ class EventEmulator:
                    refractory_us=cfg.refractory_us, log_eps=cfg.log_eps,
                    interpolation=cfg.interpolation, device=device,
                    mismatch_sigma=cfg.mismatch_sigma, background_rate_hz=cfg.background_rate_hz,
-                   seed=seed)
+                   seed=seed, **{f.name: getattr(cfg, f.name) for f in dataclasses.fields(pm.PixelModelParams)
+                                 if hasattr(cfg, f.name)})
 
     # ------------------------------------------------------------------ state
     @property
@@ -152,6 +176,16 @@ class EventEmulator:
     def reference(self) -> torch.Tensor:
         """(B, H, W) float64: per-pixel reference log level L_ref."""
         return self._lref
+
+    @property
+    def photoreceptor_level(self) -> torch.Tensor:
+        """(B, H, W) float64: the low-pass filtered log level (without leak drift); the plain
+        log level of the last frame when the photoreceptor is ideal."""
+        if self._l_lp is not None:
+            return self._l_lp
+        if self._drift is not None:
+            return self._l_prev - self._drift * float(self.t_us - self._t_reset)
+        return self._l_prev
 
     def _check_frames(self, frames, reset: bool) -> torch.Tensor:
         if not isinstance(frames, torch.Tensor):
@@ -218,6 +252,26 @@ class EventEmulator:
         self._draw_mismatch(B, H, W)
         self._layout = _KeyLayout(B, H, W, self.device)
         self.t_us = t_us
+        self._reset_pixel_model(B, H, W, t_us)
+
+    def _reset_pixel_model(self, B: int, H: int, W: int, t_us: int) -> None:
+        """Per-element noise streams and the low-pass / drift state (see :mod:`.pixel_model`)."""
+        pmp = self.pixel_model
+        self._bg_gens = pm.element_generators(self.seed, B, pm.TAG_BACKGROUND)
+        self._shot_gens = pm.element_generators(self.seed, B, pm.TAG_SHOT) if pmp.shot else None
+        # the filtered log level (without drift); None = ideal photoreceptor
+        self._l_lp = self._lref.clone() if pmp.lowpass else None
+        self._t_reset = t_us
+        self._drift = None  # (B, H, W) float64 drift of the level, log units per µs
+        #: (B, H, W): per-pixel leak rate (Hz, hot pixels included), hot-pixel mask, initial phase
+        self.leak_rate_hz_map, self.hot_pixels, self.leak_phase = None, None, None
+        if pmp.drift:
+            rate, hot, phase = pm.draw_leak_state(pm.element_generators(self.seed, B, pm.TAG_LEAK),
+                                                  (B, H, W), pmp)
+            rate, hot, phase = rate.to(self.device), hot.to(self.device), phase.to(self.device)
+            self.leak_rate_hz_map, self.hot_pixels, self.leak_phase = rate, hot, phase
+            self._drift = rate.mul(self._th_on).mul_(1e-6)
+            self._lref.sub_(phase.mul(self._th_on))  # start u_i thresholds below the level
 
     # ------------------------------------------------------------------- step
     def step(self, frames: torch.Tensor, t_us: int) -> Events:
@@ -249,11 +303,23 @@ class EventEmulator:
         l_span = math.log(hi + self.log_eps) - math.log(lo + self.log_eps)
         r = self.refractory_us
         self._spacing_may_bind = r > 0 and dt * self._th_min <= r * l_span * (1 + 1e-6)
+        pmp = self.pixel_model
+        if pmp.lowpass or pmp.drift:  # the frame range no longer bounds the level's change
+            self._spacing_may_bind = r > 0
+        alpha = shot = None
+        if pmp.lowpass:
+            alpha = pm.photoreceptor_alpha(f1, dt * 1e-6, pmp.photoreceptor_cutoff_hz, pmp.full_irradiance)
+        if pmp.shot:  # drawn now: the rate needs the irradiance (f1 becomes L1 below)
+            shot = pm.draw_shot_noise(self._shot_gens, f1, t1 - t0, pmp)
 
         if self.interpolation == "log":
             l1 = f1.add_(self.log_eps).log_()  # f1 is a private copy
         else:
             l1 = torch.log(f1 + self.log_eps)
+        if alpha is not None:
+            l1 = pm.photoreceptor_lowpass_(self._l_lp, l1, alpha).clone()
+        if self._drift is not None:
+            l1 = l1.add_(self._drift, alpha=float(t1 - self._t_reset))
         d = l1 - self._lref
         # candidate pixels (A,): a superset of those with >= 1 crossing (exact counts follow)
         act = _candidates(d, self._th_on, self._th_off, 1.0 - 2 * LEVEL_TOL)  # sync
@@ -278,6 +344,13 @@ class EventEmulator:
         if self.background_rate_hz > 0:
             bg = self._background(b_shift, dt)
             keys = bg if keys is None else torch.cat((keys, bg))
+        if shot is not None:
+            flat, t_rel, off = shot
+            if flat.numel():
+                # a shot event resets its pixel's reference to the current level (as v2e)
+                self._lref.view(-1).index_copy_(0, flat, l1.view(-1).index_select(0, flat))
+                sk = layout.pixel_key(flat, off, b_shift).add_(t_rel << layout.t_shift)
+                keys = sk if keys is None else torch.cat((keys, sk))
         if keys is None or keys.numel() == 0:
             return Events.empty(dev)
         return layout.sort_decode(keys, b_shift, t0)
@@ -339,16 +412,12 @@ class EventEmulator:
         return keys
 
     def _background(self, b_shift: int, dt: float) -> torch.Tensor:
-        """Sort keys of background events: Poisson count over all pixels, uniform pixel, time
-        (integer µs in [1, dt]) and polarity; drawn on CPU from the seeded generator."""
+        """Sort keys of background events: Poisson count per element, uniform pixel, time
+        (integer µs in [1, dt]) and polarity; drawn on CPU from each element's generator."""
         B, H, W = self._shape
-        lam = self.background_rate_hz * dt * 1e-6 * B * H * W
-        g = self._bg_gen
-        n = int(torch.poisson(torch.tensor([lam], dtype=torch.float64), generator=g).item())
-        pix = torch.randint(0, B * H * W, (n,), generator=g).to(self.device)
-        t_rel = torch.randint(1, int(dt) + 1, (n,), generator=g).to(self.device)
-        off = torch.randint(0, 2, (n,), generator=g).bool().to(self.device)
-        return self._layout.pixel_key(pix, off, b_shift).add_(t_rel << self._layout.t_shift)
+        flat, t_rel, off, _ = pm.uniform_candidates(self._bg_gens, self.background_rate_hz, H * W, int(dt))
+        flat, t_rel, off = flat.to(self.device), t_rel.to(self.device), off.to(self.device)
+        return self._layout.pixel_key(flat, off, b_shift).add_(t_rel << self._layout.t_shift)
 
 
 # ---------------------------------------------------------------------------- helpers

@@ -1,0 +1,235 @@
+"""Non-ideal parts of the DVS pixel model: photoreceptor bandwidth, shot noise, leak, hot pixels.
+
+Each part is off at its default (the paper preset uses the ideal pixel) and is switched on by one
+parameter of :class:`PixelModelParams` (the ``emulator`` section of the config carries the same
+names). They follow v2e (Hu, Liu, Delbruck 2021) where it is stated, and say so where not:
+
+- **Photoreceptor bandwidth** (``photoreceptor_cutoff_hz`` > 0): the log intensity seen by the
+  change detector is a first-order low-pass of ``L = log(I + eps)`` whose cut-off is proportional
+  to the irradiance, ``f_c(I) = f_max * min(1, I / full_irradiance)`` (darker pixels are slower;
+  v2e makes the same proportionality). Discretised exactly for an input held over the frame
+  interval: ``L_lp <- L_lp + alpha (L - L_lp)``, ``alpha = 1 - exp(-2 pi f_c(I1) dt)`` with I1 the
+  new frame (v2e uses the Euler step ``alpha = 2 pi f_c dt`` clamped to 1). Between frames the
+  filtered level is interpolated linearly, like the ideal model's L.
+- **Shot noise** (``shot_noise_rate_hz`` > 0): Poisson events per pixel, ON and OFF equally
+  likely, uniform time in the interval, at rate
+  ``r(I) = r_dark * (1 + (k - 1) * min(1, I1 / full_irradiance))``, ``k = shot_noise_bright_factor``
+  (v2e: k = 0.25, darker pixels are noisier). A shot event resets the pixel's reference to its
+  current level at the end of the interval (as v2e does), so a static pixel does not answer it
+  with an opposite event. Shot events are not subject to the refractory period and do not start
+  one (as v2e). Drawn by thinning: candidates at the dark rate ``r_dark * max(1, k)`` over all
+  pixels, each kept with probability ``r(I) / (r_dark max(1, k))``: cost proportional to the
+  events, not to the pixels.
+- **Leak** (``leak_rate_hz`` > 0): junction leakage lowers each pixel's reference at
+  ``rho_i * theta_on_i`` per second, so a static pixel emits ON events at ``rho_i`` Hz;
+  ``rho_i = leak_rate_hz * max(0, 1 + leak_rate_sigma * N(0, 1))`` drawn per pixel at reset. The
+  reference starts a random fraction ``u_i ~ U[0, 1)`` of a threshold below the level, so leak
+  events of equal-rate pixels are not synchronous (v2e draws log-normal rates instead, and
+  dropped this phase). Implemented as a drift added to the log level,
+  ``L'(t) = L(t) + rho_i theta_on_i (t - t_reset)``, which keeps the path linear within each
+  interval, so the exact crossing times of the ideal model still hold.
+- **Hot pixels** (``hot_pixel_fraction`` > 0): that fraction of pixels (Bernoulli per pixel at
+  reset) leak ``hot_pixel_rate_hz`` faster: regular ON events at that rate on a static scene.
+
+Randomness: every batch element has its own CPU generators (one per part), seeded from the
+emulator seed and the element index (:func:`element_seed`); draws are made on CPU and moved, so
+element b's noise does not depend on the batch size or the device.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import List, Optional, Tuple
+
+import torch
+
+#: stream tags of :func:`element_seed` (one independent stream per part)
+TAG_SHOT, TAG_LEAK, TAG_BACKGROUND = 0x5807, 0x1EA4, 0xBAC6
+
+
+@dataclass(frozen=True)
+class PixelModelParams:
+    """Parameters of the non-ideal pixel parts (all off at their defaults).
+
+    Attributes:
+        photoreceptor_cutoff_hz: low-pass cut-off at ``full_irradiance`` and above, Hz; 0 = off.
+        full_irradiance: irradiance at which the intensity-dependent parts reach their bright
+            value (cut-off f_max, shot-noise factor k), in the renderer's units (1 = an albedo-1
+            plate facing the sun), > 0.
+        shot_noise_rate_hz: shot-noise events per pixel per second (ON + OFF) in the dark; 0 = off.
+        shot_noise_bright_factor: shot-noise rate at ``full_irradiance`` relative to the dark rate
+            (v2e: 0.25), >= 0.
+        leak_rate_hz: mean leak (ON) events per pixel per second on a static scene; 0 = off.
+        leak_rate_sigma: relative std. dev. of the per-pixel leak rate, >= 0.
+        hot_pixel_fraction: fraction of hot pixels, in [0, 1]; 0 = off.
+        hot_pixel_rate_hz: extra ON rate of a hot pixel, Hz, >= 0.
+    """
+
+    photoreceptor_cutoff_hz: float = 0.0
+    full_irradiance: float = 1.0
+    shot_noise_rate_hz: float = 0.0
+    shot_noise_bright_factor: float = 0.25
+    leak_rate_hz: float = 0.0
+    leak_rate_sigma: float = 0.1
+    hot_pixel_fraction: float = 0.0
+    hot_pixel_rate_hz: float = 100.0
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                raise ValueError(f"{f.name} must be a number, got {v!r}") from None
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{f.name} must be a finite number >= 0, got {v}")
+            object.__setattr__(self, f.name, v)
+        if self.full_irradiance <= 0:
+            raise ValueError(f"full_irradiance must be > 0, got {self.full_irradiance}")
+        if self.hot_pixel_fraction > 1:
+            raise ValueError(f"hot_pixel_fraction must be in [0, 1], got {self.hot_pixel_fraction}")
+
+    @property
+    def lowpass(self) -> bool:
+        return self.photoreceptor_cutoff_hz > 0
+
+    @property
+    def shot(self) -> bool:
+        return self.shot_noise_rate_hz > 0
+
+    @property
+    def drift(self) -> bool:
+        """Leak or hot pixels: a per-pixel reference drift."""
+        return self.leak_rate_hz > 0 or (self.hot_pixel_fraction > 0 and self.hot_pixel_rate_hz > 0)
+
+    @property
+    def any(self) -> bool:
+        return self.lowpass or self.shot or self.drift
+
+
+def element_seed(seed: int, b: int, tag: int) -> int:
+    """Seed of batch element ``b``'s stream ``tag`` (a 63-bit mix of the three integers)."""
+    x = (int(seed) * 0x9E3779B97F4A7C15 + int(b) * 0xBF58476D1CE4E5B9 + int(tag) * 0x94D049BB133111EB)
+    x &= (1 << 64) - 1
+    x ^= x >> 31
+    return x & ((1 << 63) - 1)
+
+
+def element_generators(seed: int, batch_size: int, tag: int) -> List[torch.Generator]:
+    """One CPU generator per batch element (see :func:`element_seed`)."""
+    return [torch.Generator(device="cpu").manual_seed(element_seed(seed, b, tag)) for b in range(batch_size)]
+
+
+# ----------------------------------------------------------------- photoreceptor bandwidth
+def photoreceptor_alpha(irradiance: torch.Tensor, dt_s: float, cutoff_hz: float,
+                        full_irradiance: float = 1.0) -> torch.Tensor:
+    """Low-pass update weight per pixel, ``1 - exp(-2 pi f_c(I) dt)``.
+
+    Args:
+        irradiance: (...) float, linear irradiance I >= 0 of the new frame.
+        dt_s: frame interval, s.
+        cutoff_hz: f_max, Hz (> 0).
+        full_irradiance: I at and above which f_c = f_max.
+
+    Returns:
+        (...) same dtype, in [0, 1].
+    """
+    x = irradiance.div(full_irradiance).clamp_(max=1.0).mul_(-2.0 * math.pi * cutoff_hz * dt_s)
+    return torch.expm1(x).neg_()
+
+
+def photoreceptor_lowpass_(l_lp: torch.Tensor, l_new: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """In place: ``l_lp += alpha * (l_new - l_lp)`` ((B, H, W) float64). Returns ``l_lp``."""
+    return l_lp.lerp_(l_new, alpha)
+
+
+def shot_noise_rate_hz(irradiance: torch.Tensor, rate_dark_hz: float, bright_factor: float,
+                       full_irradiance: float = 1.0) -> torch.Tensor:
+    """Shot-noise rate per pixel (ON + OFF), Hz: ``r_dark (1 + (k - 1) min(1, I / I_full))``."""
+    x = irradiance.to(torch.float64).div(full_irradiance).clamp(0.0, 1.0)
+    return x.mul_(bright_factor - 1.0).add_(1.0).mul_(rate_dark_hz)
+
+
+# ------------------------------------------------------------------------- Poisson events
+def uniform_candidates(gens: List[torch.Generator], rate_hz: float, n_pix: int,
+                       dt_us: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Poisson events at ``rate_hz`` per pixel over ``n_pix`` pixels of each element, uniform in
+    pixel and time, drawn per element from its generator (a loop of two small draws per element,
+    none over pixels or events).
+
+    Returns (N,) each, on CPU: flat index ``b * n_pix + pixel`` int64, time offset int64 µs in
+    [1, dt_us], OFF flag bool (probability 1/2), and a uniform float64 in [0, 1) for thinning.
+    """
+    lam = float(rate_hz) * dt_us * 1e-6 * n_pix
+    flat, t_rel, off, u = [], [], [], []
+    for b, g in enumerate(gens):
+        n = int(torch.poisson(torch.tensor([lam], dtype=torch.float64), generator=g).item())
+        if n == 0:
+            continue
+        r = torch.rand(n, 4, generator=g, dtype=torch.float64)
+        flat.append(r[:, 0].mul(n_pix).floor_().clamp_(max=n_pix - 1).to(torch.int64).add_(b * n_pix))
+        t_rel.append(r[:, 1].mul(dt_us).floor_().clamp_(max=dt_us - 1).to(torch.int64).add_(1))
+        off.append(r[:, 2] < 0.5)
+        u.append(r[:, 3])
+    if not flat:
+        e = torch.empty(0, dtype=torch.int64)
+        return e, e.clone(), torch.empty(0, dtype=torch.bool), torch.empty(0, dtype=torch.float64)
+    return torch.cat(flat), torch.cat(t_rel), torch.cat(off), torch.cat(u)
+
+
+def draw_shot_noise(gens: List[torch.Generator], irradiance: torch.Tensor, dt_us: int,
+                    params: PixelModelParams):
+    """Shot-noise events of one interval by thinning.
+
+    Args:
+        gens: one CPU generator per batch element.
+        irradiance: (B, H, W) linear irradiance of the new frame (any device).
+        dt_us: interval length, µs.
+        params: the rate parameters.
+
+    Returns:
+        flat pixel index (N,) int64, time offset (N,) int64 µs in [1, dt_us], OFF flag (N,) bool,
+        all on ``irradiance.device``.
+    """
+    B = irradiance.shape[0]
+    n_pix = irradiance[0].numel()
+    k = params.shot_noise_bright_factor
+    r_max = params.shot_noise_rate_hz * max(1.0, k)
+    flat, t_rel, off, u = uniform_candidates(gens, r_max, n_pix, dt_us)
+    dev = irradiance.device
+    flat, t_rel, off, u = flat.to(dev), t_rel.to(dev), off.to(dev), u.to(dev)
+    if flat.numel():
+        i_c = irradiance.reshape(-1).index_select(0, flat)
+        keep = u * r_max < shot_noise_rate_hz(i_c, params.shot_noise_rate_hz, k, params.full_irradiance)
+        flat, t_rel, off = flat[keep], t_rel[keep], off[keep]
+    return flat, t_rel, off
+
+
+# --------------------------------------------------------------------- leak and hot pixels
+def draw_leak_state(gens: List[torch.Generator], shape: Tuple[int, int, int], params: PixelModelParams
+                    ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-pixel leak rate, hot-pixel mask and initial phase, drawn per element (at reset).
+
+    Returns (B, H, W) on CPU: rate_hz float64 (leak rate, plus ``hot_pixel_rate_hz`` on hot
+    pixels), hot bool, phase float64 in [0, 1) (fraction of a threshold the reference starts
+    below the level).
+    """
+    B, H, W = shape
+    rate = torch.empty(B, H, W, dtype=torch.float64)
+    hot = torch.zeros(B, H, W, dtype=torch.bool)
+    phase = torch.empty(B, H, W, dtype=torch.float64)
+    for b, g in enumerate(gens):
+        n = torch.randn(H, W, generator=g, dtype=torch.float64)
+        h = torch.rand(H, W, generator=g, dtype=torch.float64)
+        phase[b] = torch.rand(H, W, generator=g, dtype=torch.float64)
+        rate[b] = n.mul_(params.leak_rate_sigma).add_(1.0).clamp_(min=0.0).mul_(params.leak_rate_hz)
+        if params.hot_pixel_fraction > 0:
+            hot[b] = h < params.hot_pixel_fraction
+    rate += hot.to(torch.float64) * params.hot_pixel_rate_hz
+    return rate, hot, phase
+
+
+__all__ = ["PixelModelParams", "element_seed", "element_generators", "photoreceptor_alpha",
+           "photoreceptor_lowpass_", "shot_noise_rate_hz", "uniform_candidates", "draw_shot_noise",
+           "draw_leak_state", "TAG_SHOT", "TAG_LEAK", "TAG_BACKGROUND"]
