@@ -48,6 +48,61 @@ class CameraConfig:
                          "(not in paper: ~60 deg for a 4.5 mm lens on 40 um pixels)",
                          rng=(1.0, 150.0))
     frame_rate_hz: float = opt(10.0, "frame (and control) rate, Hz", rng=(0.1, 10000.0), open_lo=True)
+    sensor: str = opt("custom", "sensor preset: fills width_px, height_px, pixel_pitch_um and (where the preset "
+                      "names a lens and focal_length_mm is null) focal_length_mm; 'custom' = the fields as given "
+                      "(defaults: DVS128 geometry). See SENSOR_PRESETS", choices=("dvs128", "davis346", "gen4", "square640", "custom"))
+    pixel_pitch_um: Optional[float] = opt(None, "pixel pitch, micrometres (from the preset; null = unknown)",
+                                          rng=(0.1, 1000.0))
+    focal_length_mm: Optional[float] = opt(None, "lens focal length, mm; with pixel_pitch_um it sets fov_deg "
+                                           "= 2 atan(width_px pitch / 2 f); null = use fov_deg", rng=(0.1, 1000.0))
+
+    def __post_init__(self):
+        _apply_sensor_preset(self)
+
+
+#: Sensor presets: (width_px, height_px, pixel_pitch_um, focal_length_mm or None). The lenses are
+#: chosen for a horizontal field of view near the DVS128 default of 60 degrees (not vendor kits);
+#: set camera.focal_length_mm for another lens. DVS128 keeps fov_deg (60, the paper's set-up).
+SENSOR_PRESETS = {
+    "dvs128": (128, 128, 40.0, None),
+    "davis346": (346, 260, 18.5, 5.5),
+    "gen4": (1280, 720, 4.86, 5.5),
+    "square640": (640, 640, 10.0, 5.5),
+}
+
+
+def _apply_sensor_preset(cam: "CameraConfig") -> None:
+    """Fill the preset's geometry into ``cam`` and derive fov_deg from pitch and focal length.
+
+    A field left at its class default takes the preset's value; a field set to another value than
+    the preset's is an error naming both (so a saved config reloads unchanged)."""
+    import math
+
+    def bad(msg):
+        from .validate import ConfigError  # late: validate imports this module
+
+        return ConfigError(msg)
+
+    if cam.sensor != "custom":
+        if cam.sensor not in SENSOR_PRESETS:
+            raise bad(f"camera.sensor: {cam.sensor!r} is not allowed; choose one of "
+                      f"{sorted(SENSOR_PRESETS) + ['custom']}")
+        w, h, pitch, focal = SENSOR_PRESETS[cam.sensor]
+        for name, val, default in (("width_px", w, 128), ("height_px", h, 128), ("pixel_pitch_um", pitch, None)):
+            cur = getattr(cam, name)
+            if cur == default or cur is None:
+                setattr(cam, name, val)
+            elif cur != val:
+                raise bad(f"camera.{name}: {cur} contradicts camera.sensor = {cam.sensor!r} ({val}); "
+                          f"set camera.sensor = 'custom' for another geometry")
+        if cam.focal_length_mm is None and focal is not None:
+            cam.focal_length_mm = focal
+    if cam.focal_length_mm is not None and cam.pixel_pitch_um is not None:
+        fov = math.degrees(2 * math.atan(cam.width_px * cam.pixel_pitch_um * 1e-3 / (2 * cam.focal_length_mm)))
+        if cam.fov_deg not in (60.0, fov) and abs(cam.fov_deg - fov) > 1e-9:
+            raise bad(f"camera.fov_deg: {cam.fov_deg} contradicts the lens ({cam.focal_length_mm} mm on "
+                      f"{cam.width_px} px of {cam.pixel_pitch_um} um give {fov:.4f} deg); set one of them")
+        cam.fov_deg = fov
 
 
 @dataclass
