@@ -31,6 +31,14 @@ def register(subparsers) -> None:
     p.add_argument("--threads", type=int, default=None, metavar="N",
                    help="torch CPU threads (on a busy machine 1 is often fastest)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("--recording", default=None, metavar="PATH",
+                   help="evaluate on a recorded event stream instead of rendered descents (.aedat4, .h5, .npz, "
+                        ".npy tonic array, .csv); intervals of 1/camera.frame_rate_hz")
+    p.add_argument("--ground-truth", default=None, metavar="PATH",
+                   help="with --recording: ground-truth side file (CSV/npz: t_us or t_s, and divergence or "
+                        "altitude_m + velocity_mps)")
+    p.add_argument("--t-unit", default=None, choices=("ns", "us", "ms", "s"),
+                   help="with --recording: unit of the time column (default: integers = us, fractions = s)")
     p.set_defaults(func=run_evaluate)
 
 
@@ -66,9 +74,16 @@ def run_evaluate(args) -> int:
     device = args.device or cfg.simulation.device
     run_dir = make_run_dir(cfg, args.out, kind="evaluate")
     quiet = bool(cfg.logging.quiet)
-    res = evaluate(cfg, _split_estimators(args.estimators), sites, segment_steps=args.segment_steps,
-                   stride=args.stride, max_steps=args.max_steps, warmup_steps=args.warmup_steps, device=device,
-                   progress=not quiet)
+    if args.recording:
+        from dvsland.evaluate import evaluate_recording
+
+        res = evaluate_recording(cfg, args.recording, _split_estimators(args.estimators),
+                                 warmup_steps=args.warmup_steps, max_steps=args.max_steps, device=device,
+                                 progress=not quiet, ground_truth=args.ground_truth, t_unit=args.t_unit)
+    else:
+        res = evaluate(cfg, _split_estimators(args.estimators), sites, segment_steps=args.segment_steps,
+                       stride=args.stride, max_steps=args.max_steps, warmup_steps=args.warmup_steps,
+                       device=device, progress=not quiet)
     paths = write_outputs(res, run_dir, figures=not args.no_figures and cfg.logging.figures)
     if not quiet:
         print(format_table(res.summary))

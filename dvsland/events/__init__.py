@@ -7,10 +7,21 @@ Public names:
     LEVEL_TOL: tolerance (in thresholds) when counting level crossings.
     TONIC_DTYPE: numpy dtype of tonic event arrays (x, y int16, t int64, p int8 OFF=0/ON=1).
     save_events, load_events: .npz / .h5 files, exact round trip (:mod:`dvsland.events.io`).
+    read_recording, write_recording, Recording, GroundTruth, read_ground_truth, write_ground_truth:
+        recordings of others and for others: AEDAT4, HDF5, tonic arrays, npz, CSV
+        (:mod:`dvsland.events.recording`).
+    validate_events: the one check of event columns from outside (:mod:`dvsland.events.validate`).
+    PixelModelParams: the non-ideal pixel parts (:mod:`dvsland.events.pixel_model`).
 """
 
 from .emulator import LEVEL_TOL, EventEmulator
 from .events import TONIC_DTYPE, Events
 from .io import load_events, save_events
+from .pixel_model import PixelModelParams
+from .recording import (GroundTruth, Recording, read_ground_truth, read_recording, write_ground_truth,
+                        write_recording)
+from .validate import validate_events
 
-__all__ = ["Events", "EventEmulator", "LEVEL_TOL", "TONIC_DTYPE", "save_events", "load_events"]
+__all__ = ["Events", "EventEmulator", "LEVEL_TOL", "TONIC_DTYPE", "save_events", "load_events",
+           "read_recording", "write_recording", "Recording", "GroundTruth", "read_ground_truth",
+           "write_ground_truth", "validate_events", "PixelModelParams"]

@@ -148,4 +148,7 @@ def load_events(path: PathLike, device=None, format: Optional[str] = None,
     return ev, meta
 
 
-__all__ = ["save_events", "load_events", "FORMAT_TAG"]
+# recordings of other tools (AEDAT4, HDF5 layouts, tonic, CSV): dvsland.events.recording
+from .recording import read_recording, write_recording  # noqa: E402
+
+__all__ = ["save_events", "load_events", "FORMAT_TAG", "read_recording", "write_recording"]

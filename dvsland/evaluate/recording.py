@@ -1,0 +1,159 @@
+"""Open-loop evaluation on a recorded event stream (a file made by dvsland or by a real camera).
+
+The recording is cut into intervals of the config's frame period (``1 / camera.frame_rate_hz``)
+from its start; after each interval every estimator's ``update`` gets that interval's events, as
+in :func:`dvsland.evaluate.evaluate`, and the estimate is scored against the ground truth
+interpolated at the interval's end (where the recording has one). The result is an
+:class:`~dvsland.evaluate.EvaluationResult` with the same metrics, table and files as a simulated
+descent; the estimators are built for the recording's sensor size.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Union
+
+import numpy as np
+import torch
+
+from dvsland.config import Config
+from dvsland.estimators import Truth, estimator_params, get_estimator, make_estimator
+from dvsland.events import Recording, read_recording
+
+from .run import EvaluationResult, parse_estimator_spec, summarise
+from .trajectory import Descents
+
+
+@dataclass
+class RecordingDescents(Descents):
+    """:class:`Descents` of a recording: the true D is stored (it may be known without altitude).
+
+    Attributes (besides those of :class:`Descents`): d_true (B, K + 1) float64, 1/s, NaN = unknown.
+    """
+
+    d_true: Optional[np.ndarray] = None
+
+    @property
+    def divergence(self) -> np.ndarray:
+        return self.d_true
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
+                       estimators: Sequence[str] = ("dpr", "cmax"), *, warmup_steps: int = 10,
+                       max_steps: Optional[int] = None, device="cpu", name: Optional[str] = None,
+                       progress: bool = True, **read_kwargs) -> EvaluationResult:
+    """Run ``estimators`` on a recording and score them against its ground truth.
+
+    Args:
+        cfg: config (frame rate, estimator parameters, seed); the camera size is the recording's.
+        recording: a :class:`~dvsland.events.Recording` or a path for
+            :func:`~dvsland.events.read_recording` (``read_kwargs`` go there: ``ground_truth``,
+            ``t_unit``, ``format``, ...).
+        estimators: names or ``"name[key=value;...]"`` specs, as in :func:`dvsland.evaluate.evaluate`.
+        warmup_steps: intervals at the start left out of the metrics.
+        max_steps: truncate to this many intervals.
+        device: torch device of the estimators.
+        name: label of the recording in the tables (default: the file stem).
+        progress: tqdm progress bar.
+
+    Returns:
+        :class:`EvaluationResult` for one "site" (the recording); without ground truth the
+        estimates are kept and every metric is NaN.
+    """
+    if not isinstance(recording, Recording):
+        recording = read_recording(recording, **read_kwargs)
+    if not estimators:
+        raise ValueError("estimators must name at least one estimator")
+    if int(warmup_steps) < 0:
+        raise ValueError(f"warmup_steps must be >= 0, got {warmup_steps}")
+    device = torch.device(device)
+    ev_all = recording.events.to(device)
+    if len(ev_all) == 0:
+        raise ValueError(f"{recording.source}: the recording has no events")
+    W, H = recording.sensor_size
+    cam = dataclasses.replace(cfg.camera, sensor="custom", width_px=int(W), height_px=int(H),
+                              pixel_pitch_um=cfg.camera.pixel_pitch_um if cfg.camera.sensor == "custom" else None,
+                              focal_length_mm=None)
+    cfg = dataclasses.replace(cfg, camera=cam)
+    dt_us = int(round(cfg.dt_s * 1e6))
+    t_first, t_last = recording.t_range_us
+    gt = recording.ground_truth
+    t0 = int(gt.t_us[0]) if gt is not None and int(gt.t_us[0]) < t_first else t_first - 1
+    K = int(np.ceil((t_last - t0) / dt_us))
+    if max_steps is not None:
+        K = min(K, int(max_steps))
+    edges = t0 + dt_us * np.arange(K + 1, dtype=np.int64)  # edges[k] = end of interval k
+    t_np = ev_all.t.cpu().numpy()
+    cut = np.searchsorted(t_np, edges, side="right")  # events in (edges[k-1], edges[k]]
+    truth = gt.at(edges) if gt is not None else {k: np.full(K + 1, np.nan) for k in
+                                                   ("divergence", "altitude_m", "velocity_mps")}
+    d_true = truth["divergence"]
+    valid = np.isfinite(d_true) & (d_true != 0)
+    valid[0] = False
+    label = name or (Path(recording.source).stem if recording.source != "array" else "recording")
+    desc = RecordingDescents(sites=[label], t_s=edges / 1e6, altitude_m=truth["altitude_m"][None],
+                             velocity_mps=truth["velocity_mps"][None], valid=valid[None], d_true=d_true[None])
+
+    B = 1
+    ests = {}
+    for lab, est_name, over in (parse_estimator_spec(e) for e in estimators):
+        if lab in ests:
+            raise ValueError(f"estimator label {lab!r} given twice")
+        if over:
+            params = estimator_params(cfg, est_name)
+            params.update(over)
+            params.setdefault("dt_s", cfg.dt_s)
+            params.setdefault("seed", cfg.simulation.seed)
+            ests[lab] = get_estimator(est_name, B, (W, H), device, **params)
+        else:
+            ests[lab] = make_estimator(cfg, B, device, name=est_name)
+    d_hat = {n: np.full((B, K + 1), np.nan) for n in ests}
+    times: Dict[str, List[float]] = {n: [] for n in ests}
+    n_events = np.full((B, K + 1), -1, dtype=np.int64)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=K, desc=f"evaluate {label}", unit="step")
+    for est in ests.values():
+        est.reset()
+    for k in range(1, K + 1):
+        ev = ev_all[int(cut[k - 1]):int(cut[k])]
+        n_events[0, k] = len(ev)
+        if np.isfinite(d_true[k]):
+            z = truth["altitude_m"][k] if np.isfinite(truth["altitude_m"][k]) else 1.0
+            v = truth["velocity_mps"][k] if np.isfinite(truth["velocity_mps"][k]) else d_true[k] * z
+            tr = Truth(torch.tensor([z], dtype=torch.float64, device=device),
+                       torch.tensor([v], dtype=torch.float64, device=device))
+        else:
+            tr = None
+        for n, est in ests.items():
+            _sync(device)
+            t_start = time.perf_counter()
+            d = est.update(ev, int(edges[k]), tr)
+            _sync(device)
+            times[n].append((time.perf_counter() - t_start) * 1e3)
+            d_hat[n][:, k] = d.detach().double().cpu().numpy()
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    scored = desc.valid & (np.arange(K + 1)[None] > warmup_steps)
+    res = EvaluationResult(desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events)
+    info = dict(trajectory="recording", recording=recording.source, recording_format=recording.format,
+                sensor_size=[int(W), int(H)], has_ground_truth=gt is not None, n_steps=K, steps_run=K,
+                warmup_steps=int(warmup_steps), device=str(device), torch_threads=torch.get_num_threads(),
+                estimators_run=list(ests), n_events_total=len(ev_all))
+    res.summary = summarise(res, info)
+    return res
+
+
+__all__ = ["evaluate_recording", "RecordingDescents"]
