@@ -20,6 +20,8 @@ BENCHES = {
                ["--threads", "1", "--batches", "18", "--repeat", "5", "--json", "{json}"]),
     "events": ("bench_events.py", ["--threads", "1", "--json", "{json}"],
                ["--threads", "1", "--batch", "18", "--no-memory", "--json", "{json}"]),
+    "v2e": ("bench_v2e.py", ["--threads", "1", "--json", "{json}"],
+            ["--threads", "1", "--batch", "6", "--steps", "6", "--json", "{json}"]),
     "estimators": ("bench_estimators.py", ["--threads", "1", "--json", "{json}"],
                    ["--threads", "1", "--batch", "18", "--steps", "10", "--estimators", "dpr,oracle",
                     "--json", "{json}"]),

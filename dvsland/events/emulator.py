@@ -257,8 +257,8 @@ class EventEmulator:
     def _reset_pixel_model(self, B: int, H: int, W: int, t_us: int) -> None:
         """Per-element noise streams and the low-pass / drift state (see :mod:`.pixel_model`)."""
         pmp = self.pixel_model
-        self._bg_gens = pm.element_generators(self.seed, B, pm.TAG_BACKGROUND)
-        self._shot_gens = pm.element_generators(self.seed, B, pm.TAG_SHOT) if pmp.shot else None
+        self._bg_gens = pm.element_rngs(self.seed, B, pm.TAG_BACKGROUND) if self.background_rate_hz > 0 else None
+        self._shot_gens = pm.element_rngs(self.seed, B, pm.TAG_SHOT) if pmp.shot else None
         # the filtered log level (without drift); None = ideal photoreceptor
         self._l_lp = self._lref.clone() if pmp.lowpass else None
         self._t_reset = t_us
@@ -316,10 +316,12 @@ class EventEmulator:
             l1 = f1.add_(self.log_eps).log_()  # f1 is a private copy
         else:
             l1 = torch.log(f1 + self.log_eps)
-        if alpha is not None:
-            l1 = pm.photoreceptor_lowpass_(self._l_lp, l1, alpha).clone()
+        if alpha is not None:  # new state, shared with l1 until the drift (out of place) below
+            self._l_lp = torch.lerp(self._l_lp, l1, alpha)
+            l1 = self._l_lp
         if self._drift is not None:
-            l1 = l1.add_(self._drift, alpha=float(t1 - self._t_reset))
+            el = float(t1 - self._t_reset)
+            l1 = l1.add(self._drift, alpha=el) if alpha is not None else l1.add_(self._drift, alpha=el)
         d = l1 - self._lref
         # candidate pixels (A,): a superset of those with >= 1 crossing (exact counts follow)
         act = _candidates(d, self._th_on, self._th_off, 1.0 - 2 * LEVEL_TOL)  # sync
@@ -415,8 +417,7 @@ class EventEmulator:
         """Sort keys of background events: Poisson count per element, uniform pixel, time
         (integer µs in [1, dt]) and polarity; drawn on CPU from each element's generator."""
         B, H, W = self._shape
-        flat, t_rel, off, _ = pm.uniform_candidates(self._bg_gens, self.background_rate_hz, H * W, int(dt))
-        flat, t_rel, off = flat.to(self.device), t_rel.to(self.device), off.to(self.device)
+        flat, t_rel, off = pm.draw_background(self._bg_gens, self.background_rate_hz, H * W, int(dt), self.device)
         return self._layout.pixel_key(flat, off, b_shift).add_(t_rel << self._layout.t_shift)
 
 

@@ -31,9 +31,10 @@ names). They follow v2e (Hu, Liu, Delbruck 2021) where it is stated, and say so 
 - **Hot pixels** (``hot_pixel_fraction`` > 0): that fraction of pixels (Bernoulli per pixel at
   reset) leak ``hot_pixel_rate_hz`` faster: regular ON events at that rate on a static scene.
 
-Randomness: every batch element has its own CPU generators (one per part), seeded from the
-emulator seed and the element index (:func:`element_seed`); draws are made on CPU and moved, so
-element b's noise does not depend on the batch size or the device.
+Randomness: every batch element has its own CPU generators (one per part: numpy PCG64 for the
+per-step draws, torch for the draws at reset), seeded from the emulator seed and the element
+index (:func:`element_seed`); draws are made on CPU and moved, so element b's noise does not
+depend on the batch size or the device.
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ import math
 from dataclasses import dataclass, fields
 from typing import List, Optional, Tuple
 
+import numpy as np
 import torch
 
 #: stream tags of :func:`element_seed` (one independent stream per part)
@@ -135,7 +137,8 @@ def photoreceptor_alpha(irradiance: torch.Tensor, dt_s: float, cutoff_hz: float,
     Returns:
         (...) same dtype, in [0, 1].
     """
-    x = irradiance.div(full_irradiance).clamp_(max=1.0).mul_(-2.0 * math.pi * cutoff_hz * dt_s)
+    w = -2.0 * math.pi * cutoff_hz * dt_s
+    x = irradiance.mul(w / full_irradiance).clamp_(min=w)
     return torch.expm1(x).neg_()
 
 
@@ -152,38 +155,65 @@ def shot_noise_rate_hz(irradiance: torch.Tensor, rate_dark_hz: float, bright_fac
 
 
 # ------------------------------------------------------------------------- Poisson events
-def uniform_candidates(gens: List[torch.Generator], rate_hz: float, n_pix: int,
-                       dt_us: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+def element_rngs(seed: int, batch_size: int, tag: int) -> List[np.random.Generator]:
+    """One numpy PCG64 generator per batch element (CPU; several times faster than torch's CPU
+    generator for the per-step draws)."""
+    return [np.random.Generator(np.random.PCG64(element_seed(seed, b, tag))) for b in range(batch_size)]
+
+
+def uniform_candidates(rngs: List[np.random.Generator], rate_hz: float, n_pix: int,
+                       dt_us: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Poisson events at ``rate_hz`` per pixel over ``n_pix`` pixels of each element, uniform in
-    pixel and time, drawn per element from its generator (a loop of two small draws per element,
-    none over pixels or events).
+    pixel and integer time, drawn per element from its generator (a loop of three small draws per
+    element, none over pixels or events).
 
     Returns (N,) each, on CPU: flat index ``b * n_pix + pixel`` int64, time offset int64 µs in
-    [1, dt_us], OFF flag bool (probability 1/2), and a uniform float64 in [0, 1) for thinning.
+    [1, dt_us], and a uniform float64 in [0, 1) (for thinning and polarity).
     """
     lam = float(rate_hz) * dt_us * 1e-6 * n_pix
-    flat, t_rel, off, u = [], [], [], []
-    for b, g in enumerate(gens):
-        n = int(torch.poisson(torch.tensor([lam], dtype=torch.float64), generator=g).item())
+    span = n_pix * int(dt_us)
+    pts, us = [], []
+    for b, rng in enumerate(rngs):
+        n = int(rng.poisson(lam))
         if n == 0:
             continue
-        r = torch.rand(n, 4, generator=g, dtype=torch.float64)
-        flat.append(r[:, 0].mul(n_pix).floor_().clamp_(max=n_pix - 1).to(torch.int64).add_(b * n_pix))
-        t_rel.append(r[:, 1].mul(dt_us).floor_().clamp_(max=dt_us - 1).to(torch.int64).add_(1))
-        off.append(r[:, 2] < 0.5)
-        u.append(r[:, 3])
-    if not flat:
+        pt = rng.integers(0, span, size=n, dtype=np.int64)
+        if b:
+            pt += b * span
+        pts.append(pt)
+        us.append(rng.random(n))
+    if not pts:
         e = torch.empty(0, dtype=torch.int64)
-        return e, e.clone(), torch.empty(0, dtype=torch.bool), torch.empty(0, dtype=torch.float64)
-    return torch.cat(flat), torch.cat(t_rel), torch.cat(off), torch.cat(u)
+        return e, e.clone(), torch.empty(0, dtype=torch.float64)
+    pt = np.concatenate(pts) if len(pts) > 1 else pts[0]
+    flat, t_rel = np.divmod(pt, int(dt_us))
+    u = np.concatenate(us) if len(us) > 1 else us[0]
+    return torch.from_numpy(flat), torch.from_numpy(t_rel + 1), torch.from_numpy(u)
 
 
-def draw_shot_noise(gens: List[torch.Generator], irradiance: torch.Tensor, dt_us: int,
+def draw_background(rngs: List[np.random.Generator], rate_hz: float, n_pix: int, dt_us: int, device):
+    """Uniform background events: flat pixel index, time offset (µs, in [1, dt_us]), OFF flag
+    (probability 1/2), on ``device``."""
+    flat, t_rel, u = uniform_candidates(rngs, rate_hz, n_pix, dt_us)
+    return flat.to(device), t_rel.to(device), (u < 0.5).to(device)
+
+
+def _nonzero_idx(mask: torch.Tensor) -> torch.Tensor:
+    if mask.device.type == "cpu":
+        return torch.from_numpy(np.flatnonzero(mask.numpy()))
+    return torch.nonzero(mask).squeeze(1)
+
+
+def draw_shot_noise(rngs: List[np.random.Generator], irradiance: torch.Tensor, dt_us: int,
                     params: PixelModelParams):
     """Shot-noise events of one interval by thinning.
 
+    Candidates come at ``r_max = r_dark * max(1, k)`` per pixel; one uniform u per candidate keeps
+    it when ``u < q = r(I) / r_max`` and makes it OFF when ``u < q / 2`` (given kept, u is uniform
+    on [0, q): OFF with probability 1/2, independent of the rate).
+
     Args:
-        gens: one CPU generator per batch element.
+        rngs: one generator per batch element.
         irradiance: (B, H, W) linear irradiance of the new frame (any device).
         dt_us: interval length, µs.
         params: the rate parameters.
@@ -192,18 +222,23 @@ def draw_shot_noise(gens: List[torch.Generator], irradiance: torch.Tensor, dt_us
         flat pixel index (N,) int64, time offset (N,) int64 µs in [1, dt_us], OFF flag (N,) bool,
         all on ``irradiance.device``.
     """
-    B = irradiance.shape[0]
     n_pix = irradiance[0].numel()
     k = params.shot_noise_bright_factor
     r_max = params.shot_noise_rate_hz * max(1.0, k)
-    flat, t_rel, off, u = uniform_candidates(gens, r_max, n_pix, dt_us)
+    flat, t_rel, u = uniform_candidates(rngs, r_max, n_pix, dt_us)
     dev = irradiance.device
-    flat, t_rel, off, u = flat.to(dev), t_rel.to(dev), off.to(dev), u.to(dev)
+    flat, t_rel, u = flat.to(dev), t_rel.to(dev), u.to(dev)
     if flat.numel():
-        i_c = irradiance.reshape(-1).index_select(0, flat)
-        keep = u * r_max < shot_noise_rate_hz(i_c, params.shot_noise_rate_hz, k, params.full_irradiance)
-        flat, t_rel, off = flat[keep], t_rel[keep], off[keep]
-    return flat, t_rel, off
+        # q = r(I) / r_max = a + c min(1, I / I_full), a = r_dark / r_max, c = a (k - 1)
+        a = params.shot_noise_rate_hz / r_max
+        q = irradiance.reshape(-1).index_select(0, flat).mul_(1.0 / params.full_irradiance)
+        q = q.clamp_(max=1.0).mul_(a * (k - 1.0)).add_(a)
+        off = u < q.mul(0.5)
+        if a * min(1.0, k) < 1.0:  # some candidates may be dropped
+            keep = _nonzero_idx(u < q)
+            flat, t_rel, off = flat.index_select(0, keep), t_rel.index_select(0, keep), off.index_select(0, keep)
+        return flat, t_rel, off
+    return flat, t_rel, torch.empty(0, dtype=torch.bool, device=dev)
 
 
 # --------------------------------------------------------------------- leak and hot pixels
@@ -232,4 +267,5 @@ def draw_leak_state(gens: List[torch.Generator], shape: Tuple[int, int, int], pa
 
 __all__ = ["PixelModelParams", "element_seed", "element_generators", "photoreceptor_alpha",
            "photoreceptor_lowpass_", "shot_noise_rate_hz", "uniform_candidates", "draw_shot_noise",
+           "draw_background", "element_rngs",
            "draw_leak_state", "TAG_SHOT", "TAG_LEAK", "TAG_BACKGROUND"]

@@ -1,0 +1,238 @@
+"""Speed of the emulator side by side with v2e, and of the non-ideal pixel model against the ideal one.
+
+:func:`bench_vs_v2e` runs v2e's ``EventEmulator.generate_events`` (imported from a folder outside
+the package, see :func:`load_v2e`; v2e is not on PyPI) and dvsland's :class:`EventEmulator` on
+the same frames at the same settings (ON/OFF threshold, refractory period, no mismatch, no noise,
+no low-pass), one frame at a time per stream as v2e works, and dvsland also batched. Every call
+is timed with the process CPU clock (one torch thread: on a shared machine a waiting process is
+not charged) and the wall clock; the medians are reported per frame, beside a ``torch.log`` pass
+over the same float32 frames. :func:`bench_noise` times the ideal emulator against each non-ideal
+part and all of them at once on the same frames.
+
+v2e takes 8-bit-like intensities: it gets ``255 * I / max(I)`` of the same frames (its lin-log
+mapping is linear below 20, so it emits somewhat fewer events in the darkest pixels; both counts
+are reported).
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Dict, Optional
+
+import numpy as np
+import torch
+
+from .emulator import EventEmulator
+
+DT_US = 100_000
+
+#: the noise settings of :func:`bench_noise` (v2e's "noisy" preset where it has one)
+NOISY = dict(photoreceptor_cutoff_hz=30.0, shot_noise_rate_hz=5.0, leak_rate_hz=0.1,
+             hot_pixel_fraction=1e-4, mismatch_sigma=0.05)
+
+
+def load_v2e(v2e_dir) -> type:
+    """v2e's ``EventEmulator`` class from ``v2e_dir`` (holding ``v2ecore/`` and ``stubs/``).
+
+    Raises:
+        FileNotFoundError naming the folder when it has no ``v2ecore/emulator.py``.
+    """
+    d = Path(v2e_dir)
+    if not (d / "v2ecore" / "emulator.py").is_file():
+        raise FileNotFoundError(f"v2e's emulator not found: {d / 'v2ecore' / 'emulator.py'} (copy it there; "
+                                f"see docs/events.md, 'Speed against v2e')")
+    for p in (d / "stubs", d):
+        if p.is_dir() and str(p) not in sys.path:
+            sys.path.insert(0, str(p))
+    import logging
+
+    logging.getLogger("v2ecore").setLevel(logging.ERROR)  # v2e warns on every event-free frame
+    from v2ecore.emulator import EventEmulator as V2EEmulator
+
+    return V2EEmulator
+
+
+def descent_frames(B: int, n: int, camera=None, sites=None) -> torch.Tensor:
+    """Fast-renderer frames along the oracle descent, (n, B, H, W) float32: sites A-I cycled over
+    the batch, element b started at fraction b / B of its descent."""
+    from dvsland.config import SITE_NAMES, CameraConfig
+    from dvsland.render import get_renderer
+
+    camera = camera or CameraConfig()
+    names = list(sites or SITE_NAMES)
+    r = get_renderer("fast", names, camera)
+    site_idx = torch.arange(B) % len(names)
+    abc = torch.tensor([names[i] in "ABC" for i in site_idx.tolist()])
+    z0 = torch.where(abc, 10_000.0, 4_000.0).double()
+    v0 = torch.where(abc, -200.0, -100.0).double()
+    c2 = 0.5
+    t_end = (1 - (50.0 / z0) ** c2) * z0 / (-c2 * v0)
+    t_start = (torch.arange(B, dtype=torch.float64) / B) * (t_end - n * DT_US * 1e-6).clamp(min=0)
+    out = []
+    for k in range(n):
+        s = 1 + c2 * v0 * (t_start + k * DT_US * 1e-6) / z0
+        out.append(r.render((z0 * s ** (1 / c2)).float(), site_idx))
+    return torch.stack(out)
+
+
+def _clock_pair():
+    return time.process_time(), time.perf_counter()
+
+
+def _median_ms(xs):
+    return statistics.median(xs) * 1e3 if xs else float("nan")
+
+
+def _time_dvsland(frames: torch.Tensor, make: Callable[[], EventEmulator], per_stream: bool, warmup: int):
+    """Per-frame CPU and wall ms of dvsland steps (per stream: B = 1 emulators one after the other)."""
+    n, B = frames.shape[:2]
+    cpu, wall, n_ev = [], [], 0
+    groups = [slice(b, b + 1) for b in range(B)] if per_stream else [slice(0, B)]
+    for g in groups:
+        emu = make()
+        emu.reset(frames[0, g], 0)
+        for k in range(1, n):
+            c0, w0 = _clock_pair()
+            ev = emu.step(frames[k, g], k * DT_US)
+            c1, w1 = _clock_pair()
+            if k > warmup:
+                nb = g.stop - g.start
+                cpu.append((c1 - c0) / nb)
+                wall.append((w1 - w0) / nb)
+                n_ev += len(ev)
+    n_frames = len(cpu) * (1 if per_stream else B)
+    return {"cpu_ms_per_frame": _median_ms(cpu), "wall_ms_per_frame": _median_ms(wall),
+            "events_per_frame": n_ev / max(n_frames, 1)}
+
+
+def _time_v2e(frames: torch.Tensor, V2E, threshold: float, refractory_us: float, warmup: int):
+    n, B = frames.shape[:2]
+    dn = (frames / frames.max() * 255.0).double().numpy()
+    cpu, wall, n_ev = [], [], 0
+    for b in range(B):
+        emu = V2E(pos_thres=threshold, neg_thres=threshold, sigma_thres=0.0, cutoff_hz=0.0, leak_rate_hz=0.0,
+                  refractory_period_s=refractory_us * 1e-6, shot_noise_rate_hz=0.0, device="cpu")
+        emu.generate_events(dn[0, b], 0.0)  # first frame: initialises the state, no events
+        for k in range(1, n):
+            c0, w0 = _clock_pair()
+            ev = emu.generate_events(dn[k, b], k * DT_US * 1e-6)
+            c1, w1 = _clock_pair()
+            if k > warmup:
+                cpu.append(c1 - c0)
+                wall.append(w1 - w0)
+                n_ev += 0 if ev is None else len(ev)
+    return {"cpu_ms_per_frame": _median_ms(cpu), "wall_ms_per_frame": _median_ms(wall),
+            "events_per_frame": n_ev / max(len(cpu), 1)}
+
+
+def _time_log(frames: torch.Tensor, repeats: int = 30) -> Dict[str, float]:
+    """One torch.log pass over a (B, H, W) float32 batch: CPU ms per frame (median)."""
+    f = frames[1].contiguous()
+    B = f.shape[0]
+    cpu, wall = [], []
+    for _ in range(repeats):
+        c0, w0 = _clock_pair()
+        torch.log(f)
+        c1, w1 = _clock_pair()
+        cpu.append((c1 - c0) / B)
+        wall.append((w1 - w0) / B)
+    return {"cpu_ms_per_frame": _median_ms(cpu), "wall_ms_per_frame": _median_ms(wall)}
+
+
+def bench_vs_v2e(frames: torch.Tensor, v2e_dir=None, threshold: float = 0.1, refractory_us: float = 15.0,
+                 warmup: int = 1, threads: Optional[int] = 1) -> dict:
+    """dvsland vs v2e on the same frames ((n, B, H, W) float32 irradiance, n >= warmup + 2).
+
+    Returns a dict: ``v2e`` (or None with ``v2e_error`` when it cannot be imported),
+    ``dvsland_per_stream`` (B = 1, frame by frame, as v2e), ``dvsland_batched`` (all B streams in
+    one step, cost divided by B), ``torch_log``; each with cpu_ms_per_frame, wall_ms_per_frame
+    (medians) and events_per_frame; the speed-ups (v2e / dvsland, CPU time) and dvsland's cost
+    in ``torch.log`` passes.
+    """
+    if threads:
+        torch.set_num_threads(int(threads))
+    n, B, H, W = frames.shape
+    if n < warmup + 2:
+        raise ValueError(f"frames must hold at least warmup + 2 = {warmup + 2} frames, got {n}")
+    frames = frames.to(torch.float32).cpu()
+    out = {"B": B, "H": H, "W": W, "frames_per_stream": n, "threshold": threshold, "refractory_us": refractory_us,
+           "torch_threads": torch.get_num_threads()}
+
+    def make():
+        return EventEmulator(threshold=threshold, refractory_us=refractory_us)
+
+    out["dvsland_per_stream"] = _time_dvsland(frames, make, True, warmup)
+    out["dvsland_batched"] = _time_dvsland(frames, make, False, warmup)
+    out["torch_log"] = _time_log(frames)
+    out["v2e"] = None
+    if v2e_dir is not None:
+        try:
+            V2E = load_v2e(v2e_dir)
+        except Exception as e:  # report why, keep the dvsland figures
+            out["v2e_error"] = f"{type(e).__name__}: {e}"
+        else:
+            out["v2e"] = _time_v2e(frames, V2E, threshold, refractory_us, warmup)
+    log_ms = out["torch_log"]["cpu_ms_per_frame"]
+    for k in ("dvsland_per_stream", "dvsland_batched"):
+        r = out[k]
+        r["x_torch_log"] = r["cpu_ms_per_frame"] / log_ms if log_ms > 0 else math.nan
+        if out["v2e"] is not None:
+            r["speedup_vs_v2e"] = out["v2e"]["cpu_ms_per_frame"] / r["cpu_ms_per_frame"]
+    return out
+
+
+def bench_noise(frames: torch.Tensor, warmup: int = 1, threads: Optional[int] = 1, parts: Optional[dict] = None,
+                seed: int = 0) -> dict:
+    """Batched step cost of each non-ideal part (and all together) relative to the ideal emulator.
+
+    Returns {name: {cpu_ms_per_frame, wall_ms_per_frame, events_per_frame, x_ideal}} with names
+    "ideal", one per part of ``parts`` (default :data:`NOISY`), "all", and "all, shot noise 0.5 Hz"
+    (the cost of shot noise grows with its events: at 5 Hz they outnumber the scene's events).
+    """
+    if threads:
+        torch.set_num_threads(int(threads))
+    frames = frames.to(torch.float32).cpu()
+    parts = dict(NOISY if parts is None else parts)
+    configs = {"ideal": {}, **{k: {k: v} for k, v in parts.items()}, "all": parts,
+               "all, shot noise 0.5 Hz": {**parts, "shot_noise_rate_hz": 0.5}}
+    out = {}
+    for name, kw in configs.items():
+        out[name] = _time_dvsland(frames, lambda kw=kw: EventEmulator(seed=seed, **kw), False, warmup)
+    base = out["ideal"]["cpu_ms_per_frame"]
+    for r in out.values():
+        r["x_ideal"] = r["cpu_ms_per_frame"] / base if base > 0 else math.nan
+    return out
+
+
+def format_results(res_v2e: Optional[dict], res_noise: Optional[dict]) -> str:
+    """Plain-text tables of :func:`bench_vs_v2e` and :func:`bench_noise` results."""
+    lines = []
+    if res_v2e:
+        r = res_v2e
+        lines.append(f"Emulator vs v2e: B = {r['B']} streams of {r['frames_per_stream']} frames, {r['W']}x{r['H']}, "
+                     f"threshold {r['threshold']}, refractory {r['refractory_us']} us, "
+                     f"{r['torch_threads']} torch thread(s); medians per frame")
+        lines.append(f"{'':<22} {'CPU ms':>9} {'wall ms':>9} {'events':>9} {'x log':>7} {'v2e/x':>7}")
+        rows = [("v2e (per frame)", r.get("v2e")), ("dvsland B=1", r["dvsland_per_stream"]),
+                (f"dvsland B={r['B']} (/B)", r["dvsland_batched"]), ("torch.log", r["torch_log"])]
+        for label, x in rows:
+            if x is None:
+                lines.append(f"{label:<22} not run: {r.get('v2e_error', 'no v2e folder given')}")
+                continue
+            lines.append(f"{label:<22} {x['cpu_ms_per_frame']:>9.3f} {x['wall_ms_per_frame']:>9.3f} "
+                         f"{x.get('events_per_frame', float('nan')):>9.0f} {x.get('x_torch_log', float('nan')):>7.1f} "
+                         f"{x.get('speedup_vs_v2e', float('nan')):>7.1f}")
+    if res_noise:
+        lines.append("")
+        lines.append("Pixel model cost (batched, per frame) relative to the ideal emulator")
+        lines.append(f"{'part':<26} {'CPU ms':>9} {'events':>9} {'x ideal':>8}")
+        for name, x in res_noise.items():
+            lines.append(f"{name:<26} {x['cpu_ms_per_frame']:>9.3f} {x['events_per_frame']:>9.0f} {x['x_ideal']:>8.2f}")
+    return "\n".join(lines)
+
+
+__all__ = ["bench_vs_v2e", "bench_noise", "load_v2e", "descent_frames", "format_results", "NOISY"]
