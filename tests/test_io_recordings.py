@@ -239,3 +239,15 @@ def test_evaluate_recording_matches_across_formats_and_cli(tmp_path):
     assert js["trajectory"] == "recording" and js["has_ground_truth"] is False
     tr = np.load(tmp_path / "run" / "traces.npz")
     assert np.isfinite(tr["d_hat_dpr"]).any()
+
+
+@pytest.mark.parametrize("suffix", ["h5", "npz"])
+def test_dvsland_events_files_read_as_recordings(tmp_path, events, suffix):
+    from dvsland.events import save_events
+
+    p = save_events(tmp_path / f"ev.{suffix}", events, sensor_size=(30, 20), batch_size=2)
+    for b in (0, 1):
+        rec = read_recording(p, b=b)
+        want = events.select_batch(b)
+        assert rec.events == Events(torch.zeros_like(want.b), want.x, want.y, want.t, want.p)
+        assert rec.sensor_size == (30, 20) and rec.meta["layout"] == "dvsland"
