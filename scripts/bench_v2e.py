@@ -25,7 +25,7 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=12, help="frames per stream (first = reset)")
     ap.add_argument("--frames", choices=("descent", "synthetic"), default="descent")
     ap.add_argument("--size", type=int, nargs=2, default=(128, 128), metavar=("W", "H"))
-    ap.add_argument("--v2e-dir", default="bench_env/v2e")
+    ap.add_argument("--v2e-dir", default=None, help="folder with v2ecore/ (default: bench_env/v2e in the repository)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-noise", action="store_true", help="skip the pixel-model table")
     ap.add_argument("--json", default=None)
@@ -36,6 +36,10 @@ def main(argv=None) -> int:
     from dvsland.config import CameraConfig
     from dvsland.events.benchmark import bench_noise, bench_vs_v2e, descent_frames, format_results
 
+    if args.v2e_dir is None:
+        from dvsland.config import repo_root
+
+        args.v2e_dir = str(repo_root() / "bench_env" / "v2e")
     W, H = args.size
     if args.frames == "descent":
         frames = descent_frames(args.batch, args.steps, CameraConfig(width_px=W, height_px=H))
