@@ -228,3 +228,15 @@ def test_all_parts_together_sorted_and_valid():
         ev = emu.step(f, 33_333 * (k + 1))
         ev.validate(2, 17, 23)
         assert int(ev.t.min()) > 33_333 * k and int(ev.t.max()) <= 33_333 * (k + 1)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_noise_cuda_matches_cpu():
+    """Draws are made on CPU and moved: the same noise on either device."""
+    f = torch.rand(2, 12, 14, generator=torch.Generator().manual_seed(0)) + 0.1
+    kw = dict(shot_noise_rate_hz=20.0, leak_rate_hz=3.0, hot_pixel_fraction=0.02, background_rate_hz=5.0,
+              refractory_us=0.0, seed=3)
+    cpu = _run_static(EventEmulator(**kw), f, 4, 100_000)
+    gpu = _run_static(EventEmulator(device="cuda", **kw), f.cuda(), 4, 100_000)
+    assert len(cpu) > 0 and gpu.to("cpu") == cpu
