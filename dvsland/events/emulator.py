@@ -232,6 +232,8 @@ class EventEmulator:
         self._th_on = self.threshold * maps[:, 0]
         self._th_off = self.threshold_off * maps[:, 1]
         self._th_min = min(float(self._th_on.min()), float(self._th_off.min()))
+        shrink = 1.0 - 2 * LEVEL_TOL  # the candidate bounds of _candidates, computed once
+        self._cand_bounds = (self._th_on * shrink, self._th_off * -shrink)
 
     def reset(self, frames: torch.Tensor, t_us: int) -> None:
         """Start (or restart) all pixels: L_ref = log(frames + eps) at time ``t_us``; no events.
@@ -316,15 +318,19 @@ class EventEmulator:
             l1 = f1.add_(self.log_eps).log_()  # f1 is a private copy
         else:
             l1 = torch.log(f1 + self.log_eps)
-        if alpha is not None:  # new state, shared with l1 until the drift (out of place) below
-            self._l_lp = torch.lerp(self._l_lp, l1, alpha)
-            l1 = self._l_lp
+        if alpha is not None:  # new state, written over L1 (a private copy); shared with l1
+            # until the drift (out of place) below
+            self._l_lp = torch.lerp(self._l_lp, l1, alpha, out=l1)
+            del alpha
         if self._drift is not None:
             el = float(t1 - self._t_reset)
-            l1 = l1.add(self._drift, alpha=el) if alpha is not None else l1.add_(self._drift, alpha=el)
+            l1 = l1.add(self._drift, alpha=el) if pmp.lowpass else l1.add_(self._drift, alpha=el)
         d = l1 - self._lref
         # candidate pixels (A,): a superset of those with >= 1 crossing (exact counts follow)
-        act = _candidates(d, self._th_on, self._th_off, 1.0 - 2 * LEVEL_TOL)  # sync
+        if self._th_scalar:
+            act = _candidates(d, self._th_on, self._th_off, 1.0 - 2 * LEVEL_TOL)  # sync
+        else:
+            act = _candidates_map(d, *self._cand_bounds)
         del d
         # per event int64 sort keys (see _KeyLayout); updates L_ref and t_last
         keys = None
@@ -558,6 +564,16 @@ def _candidates(d: torch.Tensor, th_on, th_off, shrink: float) -> torch.Tensor:
     mask = (d >= th_on * shrink) | (d <= -th_off * shrink) if not scalar or th_on != th_off \
         else d.abs() >= th_on * shrink
     return _nonzero_1d(mask.reshape(-1))
+
+
+def _candidates_map(d: torch.Tensor, lo_on: torch.Tensor, hi_off: torch.Tensor) -> torch.Tensor:
+    """Flat indices of pixels with d >= lo_on or d <= hi_off (per-pixel bound maps, (B, H, W))."""
+    if _cpu_fast_path(d):
+        dn = d.numpy().reshape(-1)
+        mask = np.greater_equal(dn, lo_on.numpy().reshape(-1))
+        mask |= np.less_equal(dn, hi_off.numpy().reshape(-1))
+        return torch.from_numpy(np.flatnonzero(mask))
+    return _nonzero_1d(((d >= lo_on) | (d <= hi_off)).reshape(-1))
 
 
 def _nonzero_1d(mask: torch.Tensor) -> torch.Tensor:

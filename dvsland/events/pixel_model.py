@@ -138,8 +138,7 @@ def photoreceptor_alpha(irradiance: torch.Tensor, dt_s: float, cutoff_hz: float,
         (...) same dtype, in [0, 1].
     """
     w = -2.0 * math.pi * cutoff_hz * dt_s
-    x = irradiance.mul(w / full_irradiance).clamp_(min=w)
-    return torch.expm1(x).neg_()
+    return irradiance.mul(w / full_irradiance).clamp_(min=w).expm1_().neg_()
 
 
 def photoreceptor_lowpass_(l_lp: torch.Tensor, l_new: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
