@@ -24,6 +24,8 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=18, help="streams (B)")
     ap.add_argument("--steps", type=int, default=12, help="frames per stream (first = reset)")
     ap.add_argument("--frames", choices=("descent", "synthetic"), default="descent")
+    ap.add_argument("--omega", type=float, default=0.1, help="synthetic frames: phase step per frame "
+                    "(0.1: about 0.5 events per pixel per frame)")
     ap.add_argument("--size", type=int, nargs=2, default=(128, 128), metavar=("W", "H"))
     ap.add_argument("--v2e-dir", default=None, help="folder with v2ecore/ (default: bench_env/v2e in the repository)")
     ap.add_argument("--threads", type=int, default=1)
@@ -34,7 +36,7 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(args.threads)
     from dvsland.config import CameraConfig
-    from dvsland.events.benchmark import bench_noise, bench_vs_v2e, descent_frames, format_results
+    from dvsland.events.benchmark import bench_noise, bench_vs_v2e, descent_frames, format_results, smooth_frames
 
     if args.v2e_dir is None:
         from dvsland.config import repo_root
@@ -44,10 +46,7 @@ def main(argv=None) -> int:
     if args.frames == "descent":
         frames = descent_frames(args.batch, args.steps, CameraConfig(width_px=W, height_px=H))
     else:
-        g = torch.Generator().manual_seed(0)
-        base = torch.rand(args.batch, H, W, generator=g) + 0.05
-        frames = torch.stack([base * torch.exp(0.15 * k * torch.randn(args.batch, H, W, generator=g).clamp(-3, 3))
-                              for k in range(args.steps)])
+        frames = smooth_frames(args.batch, H, W, args.steps, omega=args.omega)
     v2e_dir = args.v2e_dir if Path(args.v2e_dir).exists() else None
     res = bench_vs_v2e(frames, v2e_dir, threads=args.threads)
     if v2e_dir is None:

@@ -79,6 +79,22 @@ def descent_frames(B: int, n: int, camera=None, sites=None) -> torch.Tensor:
     return torch.stack(out)
 
 
+def smooth_frames(B: int, H: int, W: int, n: int, omega: float = 0.1, seed: int = 0) -> torch.Tensor:
+    """A smooth drifting pattern, (n, B, H, W) float32 irradiance; the log change per frame grows
+    with ``omega`` (0.1 gives about 0.5 events per pixel per frame at threshold 0.1)."""
+    g = torch.Generator().manual_seed(seed)
+    yy, xx = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
+                            indexing="ij")
+    ph = torch.rand(B, 1, 1, generator=g, dtype=torch.float64) * 6.283
+    kx = 0.05 + 0.1 * torch.rand(B, 1, 1, generator=g, dtype=torch.float64)
+    ky = 0.05 + 0.1 * torch.rand(B, 1, 1, generator=g, dtype=torch.float64)
+    out = []
+    for k in range(n):
+        s = torch.sin(kx * xx + ph + omega * k) * torch.cos(ky * yy - 0.7 * omega * k)
+        out.append((0.5 * torch.exp(1.5 * s) + 0.01).to(torch.float32))
+    return torch.stack(out)
+
+
 def _clock_pair():
     return time.process_time(), time.perf_counter()
 
@@ -235,4 +251,4 @@ def format_results(res_v2e: Optional[dict], res_noise: Optional[dict]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["bench_vs_v2e", "bench_noise", "load_v2e", "descent_frames", "format_results", "NOISY"]
+__all__ = ["bench_vs_v2e", "bench_noise", "load_v2e", "descent_frames", "smooth_frames", "format_results", "NOISY"]
