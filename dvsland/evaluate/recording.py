@@ -20,10 +20,11 @@ import numpy as np
 import torch
 
 from dvsland.config import Config
-from dvsland.estimators import Truth, estimator_params, get_estimator, make_estimator
+from dvsland.estimators import Truth
 from dvsland.events import Recording, read_recording
+from dvsland.stages import build_estimator
 
-from .run import EvaluationResult, parse_estimator_spec, summarise
+from .run import EvaluationResult, parse_estimator_spec, summarise, variant_config
 from .trajectory import Descents
 
 
@@ -107,14 +108,8 @@ def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
     for lab, est_name, over in (parse_estimator_spec(e) for e in estimators):
         if lab in ests:
             raise ValueError(f"estimator label {lab!r} given twice")
-        if over:
-            params = estimator_params(cfg, est_name)
-            params.update(over)
-            params.setdefault("dt_s", cfg.dt_s)
-            params.setdefault("seed", cfg.simulation.seed)
-            ests[lab] = get_estimator(est_name, B, (W, H), device, **params)
-        else:
-            ests[lab] = make_estimator(cfg, B, device, name=est_name)
+        # as in evaluate(): built once from its variant config, here sized for the recording
+        ests[lab] = build_estimator(variant_config(cfg, est_name, over, lab), B, device, name=est_name)
     d_hat = {n: np.full((B, K + 1), np.nan) for n in ests}
     times: Dict[str, List[float]] = {n: [] for n in ests}
     n_events = np.full((B, K + 1), -1, dtype=np.int64)
