@@ -240,3 +240,37 @@ def test_noise_cuda_matches_cpu():
     cpu = _run_static(EventEmulator(**kw), f, 4, 100_000)
     gpu = _run_static(EventEmulator(device="cuda", **kw), f.cuda(), 4, 100_000)
     assert len(cpu) > 0 and gpu.to("cpu") == cpu
+
+
+# ------------------------------------------------------------------------ properties
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2 ** 31 - 1), cutoff=st.sampled_from([0.0, 3.0, 300.0]),
+       shot=st.sampled_from([0.0, 2.0, 50.0]), leak=st.sampled_from([0.0, 0.5, 20.0]),
+       hot=st.sampled_from([0.0, 0.1]), refractory=st.sampled_from([0.0, 15.0, 5000.0]),
+       bright=st.floats(0.0, 4.0), full=st.floats(0.05, 5.0))
+def test_property_noisy_events_valid_and_in_interval(seed, cutoff, shot, leak, hot, refractory, bright, full):
+    """Any mix of the parts: events sorted, on the sensor, p = ±1, times in (t_prev, t]; the
+    reference ends every step within one threshold of the (filtered, drifting) level, since it
+    moves by one threshold per crossing, emitted or not, and shot events set it to the level."""
+    rng = np.random.default_rng(seed)
+    B, H, W = 2, 4, 5
+    f = rng.uniform(0.0, 2.0, (B, H, W))
+    emu = EventEmulator(photoreceptor_cutoff_hz=cutoff, shot_noise_rate_hz=shot, shot_noise_bright_factor=bright,
+                        leak_rate_hz=leak, hot_pixel_fraction=hot, refractory_us=refractory,
+                        full_irradiance=full, seed=seed % 1000)
+    t = int(rng.integers(0, 10 ** 9))
+    emu.reset(torch.tensor(f, dtype=torch.float32), t)
+    for _ in range(4):
+        f = f * np.exp(rng.normal(0.0, 0.5, f.shape))
+        dt = int(rng.integers(1, 150_000))
+        ev = emu.step(torch.tensor(f, dtype=torch.float32), t + dt)
+        ev.validate(B, H, W)
+        if len(ev):
+            assert int(ev.t.min()) > t and int(ev.t.max()) <= t + dt
+        t += dt
+        diff = emu._l_prev - emu.reference
+        assert float(diff.max()) < 0.1 * (1 + 1e-6) and float(diff.min()) > -0.1 * (1 + 1e-6)
