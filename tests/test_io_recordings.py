@@ -239,6 +239,9 @@ def test_evaluate_recording_matches_across_formats_and_cli(tmp_path):
     assert js["trajectory"] == "recording" and js["has_ground_truth"] is False
     tr = np.load(tmp_path / "run" / "traces.npz")
     assert np.isfinite(tr["d_hat_dpr"]).any()
+    # misused flags: exit status 2 with a message naming them
+    assert main(["evaluate", "paper", "--recording", str(DATA / "descent_A.npz"), "--sites", "A", "--quiet"]) == 2
+    assert main(["evaluate", "paper", "--ground-truth", str(DATA / "descent_A_gt.csv"), "--quiet"]) == 2
 
 
 @pytest.mark.parametrize("suffix", ["h5", "npz"])

@@ -69,6 +69,11 @@ def run_evaluate(args) -> int:
         if args.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
+    if args.recording and (args.sites or args.segment_steps or args.stride != 1):
+        raise ValueError("--sites, --segment-steps and --stride select rendered descents; they do not apply "
+                         "to --recording")
+    if not args.recording and (args.ground_truth or args.t_unit):
+        raise ValueError("--ground-truth and --t-unit need --recording PATH")
     cfg = config_from_args(args)
     sites = [s.strip() for s in args.sites.split(",") if s.strip()] if args.sites else None
     device = args.device or cfg.simulation.device
