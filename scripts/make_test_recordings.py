@@ -25,8 +25,8 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     from dvsland.config import load_config
     from dvsland.evaluate import closed_form_descents
-    from dvsland.events import Events, EventEmulator, GroundTruth, write_ground_truth, write_recording
-    from dvsland.render import get_renderer
+    from dvsland.events import Events, GroundTruth, write_ground_truth, write_recording
+    from dvsland.stages import build_event_source
 
     cfg = load_config("paper", ["camera.width_px=64", "camera.height_px=48"])
     desc = closed_form_descents(cfg, ["A"])
@@ -34,11 +34,10 @@ def main(argv=None) -> int:
     ks = list(range(k0, k0 + args.steps + 1))
     alt = torch.as_tensor(desc.altitude_m[0, ks], dtype=torch.float32)
     t_us = np.round(desc.t_s[ks] * 1e6).astype(np.int64)
-    r = get_renderer("fast", ["A"], cfg.camera, cfg.render)
-    emu = EventEmulator.from_config(cfg.emulator, seed=0)
+    src = build_event_source(cfg, ["A"], "cpu", renderer="fast", seed=0)
     idx = torch.zeros(1, dtype=torch.long)
-    emu.reset(r.render(alt[:1], idx), int(t_us[0]))
-    evs = [emu.step(r.render(alt[i:i + 1], idx), int(t_us[i])) for i in range(1, len(ks))]
+    src.reset(alt[:1], idx, int(t_us[0]))
+    evs = [src.step(alt[i:i + 1], idx, int(t_us[i]))[1] for i in range(1, len(ks))]
     ev = Events.cat(evs)
     gt = GroundTruth.from_altitude(t_us, desc.altitude_m[0, ks], desc.velocity_mps[0, ks])
     out = Path(args.out)
