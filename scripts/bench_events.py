@@ -79,29 +79,13 @@ def calibrated_frames(B, H, W, n, target, device):
 
 def descent_frames(B, n, device, camera=None):
     """Fast-renderer frames along the oracle descent (sites A-I cycled over the batch, each
-    element started at a different phase), (n, B, H, W). None if the renderer is unavailable."""
+    element started at a different phase), (n, B, H, W); see
+    :func:`dvsland.events.benchmark.descent_frames`. None if the renderer is unavailable."""
     try:
-        from dvsland.config import SITE_NAMES, CameraConfig
-        from dvsland.render import get_renderer
+        from dvsland.events.benchmark import descent_frames as frames_along_descent
     except Exception:  # pragma: no cover - renderer not installed
         return None
-    camera = camera or CameraConfig()
-    r = get_renderer("fast", list(SITE_NAMES), camera, device=device)
-    site_idx = torch.arange(B) % len(SITE_NAMES)
-    # the oracle's closed-form descent of each element's site (dvsland.dynamics.closed_form)
-    from dvsland.config import PAPER_INITIAL_CONDITIONS
-    from dvsland.dynamics import closed_form_state, closed_form_time_to_altitude
-
-    c2 = 0.5
-    ics = [PAPER_INITIAL_CONDITIONS[SITE_NAMES[i]] for i in site_idx.tolist()]
-    t_end = torch.tensor([closed_form_time_to_altitude(50.0, z0, v0, c2) for z0, v0 in ics])  # time to 50 m
-    t_start = (torch.arange(B, dtype=torch.float64) / B) * (t_end - n * DT_US * 1e-6).clamp(min=0)
-    frames = []
-    for k in range(n):
-        t = (t_start + k * DT_US * 1e-6).tolist()
-        z = torch.tensor([float(closed_form_state(tb, z0, v0, c2)[0]) for tb, (z0, v0) in zip(t, ics)])
-        frames.append(r.render(z.float(), site_idx))
-    return torch.stack(frames).to(device)
+    return frames_along_descent(B, n, camera).to(device)
 
 
 # ----------------------------------------------------------------------------- timing

@@ -59,23 +59,23 @@ def load_v2e(v2e_dir) -> type:
 def descent_frames(B: int, n: int, camera=None, sites=None) -> torch.Tensor:
     """Fast-renderer frames along the oracle descent, (n, B, H, W) float32: sites A-I cycled over
     the batch, element b started at fraction b / B of its descent."""
-    from dvsland.config import SITE_NAMES, CameraConfig
+    from dvsland.config import PAPER_INITIAL_CONDITIONS, SITE_NAMES, CameraConfig
+    from dvsland.dynamics import closed_form_state, closed_form_time_to_altitude
     from dvsland.render import get_renderer
 
     camera = camera or CameraConfig()
     names = list(sites or SITE_NAMES)
     r = get_renderer("fast", names, camera)
     site_idx = torch.arange(B) % len(names)
-    abc = torch.tensor([names[i] in "ABC" for i in site_idx.tolist()])
-    z0 = torch.where(abc, 10_000.0, 4_000.0).double()
-    v0 = torch.where(abc, -200.0, -100.0).double()
     c2 = 0.5
-    t_end = (1 - (50.0 / z0) ** c2) * z0 / (-c2 * v0)
+    ics = [PAPER_INITIAL_CONDITIONS[names[i].split("~")[0]] for i in site_idx.tolist()]
+    t_end = torch.tensor([closed_form_time_to_altitude(50.0, z0, v0, c2) for z0, v0 in ics])  # time to 50 m
     t_start = (torch.arange(B, dtype=torch.float64) / B) * (t_end - n * DT_US * 1e-6).clamp(min=0)
     out = []
     for k in range(n):
-        s = 1 + c2 * v0 * (t_start + k * DT_US * 1e-6) / z0
-        out.append(r.render((z0 * s ** (1 / c2)).float(), site_idx))
+        t = (t_start + k * DT_US * 1e-6).tolist()
+        z = torch.tensor([float(closed_form_state(tb, z0, v0, c2)[0]) for tb, (z0, v0) in zip(t, ics)])
+        out.append(r.render(z.float(), site_idx))
     return torch.stack(out)
 
 
