@@ -37,7 +37,7 @@ class ZoomCorr(DivergenceEstimator):
     """
 
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s=0.1, d_min=-1.0, d_max=0.2, n_grid=49,
-                 blur_px=2.0, min_events=200, **unused):
+                 blur_px=2.0, min_events=200):  # dvsland passes seed only to constructors that take it
         super().__init__(batch_size, sensor_size, device, dt_s)
         self.d_grid = torch.linspace(d_min, d_max, n_grid, device=self.device)
         self.blur_px, self.min_events = float(blur_px), int(min_events)
