@@ -76,30 +76,3 @@ def test_run_dir_writes_config_first(tmp_path, paper_yaml):
     assert run2 != run  # same second: a new folder, never overwritten
     out = make_run_dir(cfg, out=tmp_path / "explicit", kind="render")
     assert (out / "config.yaml").is_file()
-
-
-def test_bench_runs_scripts_and_reports_failures(tmp_path, monkeypatch, capsys):
-    from dvsland.cli import cmd_bench
-
-    monkeypatch.setattr(cmd_bench, "BENCHES", {
-        "render": ("bench_render.py", ["--help"], ["--help"]),
-        "missing": ("no_such_bench.py", [], []),
-    })
-    parser = build_parser()
-    args = parser.parse_args(["bench", "render", "--out", str(tmp_path / "b")])
-    assert args.func(args) == 0
-    assert "bench_render.py --help" in capsys.readouterr().out
-    args.what = ["missing"]
-    assert args.func(args) == 1
-    assert "not found" in capsys.readouterr().err
-
-
-def test_bench_lists_every_stage():
-    args = build_parser().parse_args(["bench", "--quick"])
-    assert args.what == [] and args.quick
-    assert main(["bench", "nope"]) == 2
-    from dvsland.cli.cmd_bench import BENCHES
-    from dvsland.config import repo_root
-
-    for script, _, _ in BENCHES.values():
-        assert (repo_root() / "scripts" / script).is_file(), script

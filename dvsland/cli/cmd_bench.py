@@ -1,68 +1,42 @@
-"""``dvsland bench [WHAT ...] [--quick] [--out DIR]``: run the benchmark scripts of each stage.
+"""``dvsland bench [WHAT ...] [--quick] [--device cpu|cuda] [--out DIR] [--docs DIR]``.
 
-Each stage keeps its benchmark in ``scripts/`` (render, events, estimators, renderer agreement,
-simulator profile); this command runs the chosen ones in turn with the same Python, writes their
-JSON into one folder (``logs/bench-<UTC stamp>/`` by default) and prints their tables.
+A thin command over :func:`dvsland.bench.run_bench`: speed against error, closed-loop success,
+scaling with B and the economies, written to one run folder (bench.json, bench.md, pareto.png,
+scaling.png); the stage benchmarks (render, events, estimators, renderers, sim) on request.
 """
 
 from __future__ import annotations
 
-import subprocess
 import sys
-from pathlib import Path
-
-from dvsland.config import repo_root
-from dvsland.runs import utc_stamp
-
-#: name -> (script, default args, quick args); "{json}" is replaced by the output path.
-BENCHES = {
-    "render": ("bench_render.py", ["--threads", "1", "--json", "{json}"],
-               ["--threads", "1", "--batches", "18", "--repeat", "5", "--json", "{json}"]),
-    "events": ("bench_events.py", ["--threads", "1", "--json", "{json}"],
-               ["--threads", "1", "--batch", "18", "--no-memory", "--json", "{json}"]),
-    "v2e": ("bench_v2e.py", ["--threads", "1", "--json", "{json}"],
-            ["--threads", "1", "--batch", "6", "--steps", "6", "--json", "{json}"]),
-    "estimators": ("bench_estimators.py", ["--threads", "1", "--json", "{json}"],
-                   ["--threads", "1", "--batch", "18", "--steps", "10", "--estimators", "dpr,oracle",
-                    "--json", "{json}"]),
-    "renderers": ("compare_renderers.py", ["--out", "{json}"], ["--n-alt", "4", "--segments", "--out", "{json}"]),
-    "sim": ("profile_sim.py", ["--json", "{json}"], ["--sites", "A,D,H", "--json", "{json}"]),
-}
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("bench", help="run the benchmarks (speed and error) of each stage")
+    from dvsland.bench.run import CHOICES
+
+    p = subparsers.add_parser("bench", help="benchmarks: speed against error, closed loop, scaling, economies")
     p.add_argument("what", nargs="*", metavar="WHAT",
-                   help=f"which benchmarks: all (default), {', '.join(BENCHES)}")
-    p.add_argument("--quick", action="store_true", help="smaller, faster settings")
-    p.add_argument("--out", default=None, metavar="DIR", help="folder for the JSON results")
+                   help=f"parts (default: tradeoff closed_loop scaling economies); all, or any of {', '.join(CHOICES)}")
+    p.add_argument("--quick", action="store_true", help="smaller samples (under 5 minutes on 2 CPU cores)")
+    p.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="torch device (default cpu)")
+    p.add_argument("--out", default=None, metavar="DIR", help="run folder (default logs/bench-<UTC stamp>)")
+    p.add_argument("--docs", default=None, metavar="DIR", help="also write benchmarks.md and its figures here")
+    p.add_argument("--config", default=None, help="open-loop config (default paper)")
+    p.add_argument("--closed-loop-config", default="realistic", help="closed-loop config (default realistic)")
+    p.add_argument("--estimators", default=None, help="comma-separated registered names (default: all registered)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--render-threads", type=int, default=1,
+                   help="fast renderer threads inside a call (default 1; 0 = all cores)")
+    p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    what = args.what or ["all"]
-    unknown = [w for w in what if w != "all" and w not in BENCHES]
-    if unknown:
-        raise ValueError(f"unknown benchmark {unknown[0]!r}; choose from all, {', '.join(BENCHES)}")
-    names = list(BENCHES) if "all" in what else list(dict.fromkeys(what))
-    out = Path(args.out) if args.out else Path("logs") / f"bench-{utc_stamp()}"
-    out.mkdir(parents=True, exist_ok=True)
-    scripts = repo_root() / "scripts"
-    failed = []
-    for name in names:
-        script, full, quick = BENCHES[name]
-        path = scripts / script
-        if not path.is_file():
-            print(f"dvsland bench: {name}: {path} not found", file=sys.stderr)
-            failed.append(name)
-            continue
-        argv = [a.replace("{json}", str(out / f"{name}.json")) for a in (quick if args.quick else full)]
-        print(f"== {name}: {script} {' '.join(argv)}", flush=True)
-        rc = subprocess.call([sys.executable, str(path), *argv])
-        if rc != 0:
-            failed.append(name)
-    print(f"results in {out}")
-    if failed:
-        print(f"dvsland bench: failed: {', '.join(failed)}", file=sys.stderr)
-        return 1
+    from dvsland.bench import run_bench
+
+    est = [e.strip() for e in args.estimators.split(",") if e.strip()] if args.estimators else None
+    command = "dvsland " + " ".join(sys.argv[1:]) if sys.argv and sys.argv[0].endswith("dvsland") else "dvsland bench"
+    run_bench(args.what, quick=args.quick, device=args.device, out=args.out, config=args.config,
+              closed_loop_config=args.closed_loop_config, docs=args.docs, threads=args.threads,
+              render_threads=args.render_threads, estimators=est, command=command,
+              log=(lambda *a, **k: None) if args.quiet else print)
     return 0

@@ -42,8 +42,15 @@ def zoom_blob_events(offsets: torch.Tensor, divergence: torch.Tensor, t0_us: int
         active: (B,) bool, elements that get events (default all).
 
     Returns:
-        :class:`Events` sorted by (b, t), polarity alternating; events off the sensor dropped.
+        :class:`Events` on ``device``, sorted by (b, t), polarity alternating; events off the
+        sensor dropped. Inputs may live on any device: the draw is made on the CPU generator
+        (the same events on every device) and the result moved to ``device`` at the end.
     """
+    # everything is computed on the CPU, where the generator draws, then moved once
+    offsets = offsets.detach().cpu()
+    divergence = torch.as_tensor(divergence).detach().cpu()
+    if active is not None:
+        active = torch.as_tensor(active).detach().cpu()
     B, K, _ = offsets.shape
     W, H = sensor_size
     g = torch.Generator().manual_seed(int(seed))
@@ -58,7 +65,7 @@ def zoom_blob_events(offsets: torch.Tensor, divergence: torch.Tensor, t0_us: int
     b = torch.arange(B).view(B, 1).expand(B, n)
     ok = (xy[..., 0] >= 0) & (xy[..., 0] < W) & (xy[..., 1] >= 0) & (xy[..., 1] < H)
     if active is not None:
-        ok = ok & active.view(B, 1).cpu()
+        ok = ok & active.view(B, 1)
     p = torch.where(torch.arange(n) % 2 == 0, 1, -1).to(torch.int8).expand(B, n)
     ev = Events(b[ok], xy[..., 0][ok], xy[..., 1][ok], t_us[ok], p[ok], sort=True)
     return ev.to(device)
@@ -110,5 +117,5 @@ class ZoomTextureFrames:
         vv, uu = torch.meshgrid(v * self.H / self.W, u, indexing="ij")
         s = (half_w / (self.ground_m / 2)).view(B, 1, 1)
         grid = torch.stack([uu.unsqueeze(0) * s, vv.unsqueeze(0) * s], -1)
-        tex = self.texture[site_idx.to(self.device)]
+        tex = self.texture.index_select(0, site_idx.to(device=self.device, dtype=torch.long))
         return F.grid_sample(tex, grid, mode="bilinear", padding_mode="reflection", align_corners=False)[:, 0]

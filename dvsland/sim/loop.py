@@ -7,6 +7,7 @@ need no events (``needs_events = False``, e.g. ``oracle``) skip rendering and em
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from contextlib import contextmanager
@@ -25,6 +26,29 @@ from .result import TraceRecorder
 from .termination import INTERRUPTED, OUTCOMES, RUNNING, termination_code
 
 STAGES = ("render", "emulate", "estimate", "control", "dynamics", "record", "logging")
+
+#: an estimate with |D_hat| above this (1/s) is not a divergence (a descent crashes at |D| = 0.5 1/s
+#: by default): like +-inf it is replaced by NaN ("no estimate") and counted per descent
+D_HAT_ABS_MAX = 10.0
+
+_log = logging.getLogger("dvsland.sim")
+
+
+def sanitise_estimates(d_hat: torch.Tensor, abs_max: float = D_HAT_ABS_MAX):
+    """Replace estimates that cannot be a divergence by NaN.
+
+    Args:
+        d_hat: (B,) float estimates, 1/s (NaN = no estimate).
+        abs_max: largest accepted |D_hat|, 1/s.
+
+    Returns:
+        (d_clean (B,) same dtype, bad (B,) bool): ``bad`` marks +-inf and |D_hat| > abs_max, now NaN.
+        NaN stays NaN and is not counted; a positive (wrong-sign) estimate is kept (the controller's
+        ``missing_policy`` handles a non-negative filtered estimate) and counted by the loop.
+    """
+    bad = torch.isinf(d_hat) | (d_hat.abs() > abs_max)
+    return torch.where(bad, torch.full_like(d_hat, float("nan")), d_hat), bad
+
 
 
 class StageTimer:
@@ -112,6 +136,8 @@ class ClosedLoop:
         self.max_thrust_n = torch.zeros(B, dtype=f64, device=dev)
         self.n_held = torch.zeros(B, dtype=torch.int64, device=dev)
         self.n_missing = torch.zeros(B, dtype=torch.int64, device=dev)
+        self.n_sanitised = torch.zeros(B, dtype=torch.int64, device=dev)
+        self.n_positive = torch.zeros(B, dtype=torch.int64, device=dev)
         self.step_index = 0
         self.estimator.reset(None)
         self.filter.reset(None)
@@ -164,6 +190,9 @@ class ClosedLoop:
             else:
                 d_hat = self.estimator.update(events, t_us, truth=truth)
             d_hat = d_hat.to(device=self.device, dtype=torch.float64)
+            d_hat, bad = sanitise_estimates(d_hat)  # +-inf or absurd |D_hat| -> NaN, counted
+            self.n_sanitised += (bad & self.active).to(torch.int64)
+            self.n_positive += ((d_hat > 0) & self.active).to(torch.int64)
         with tm("control"):
             d_f, n_used = self.filter.update(d_hat, mask=self.active)
             ctl = self.controller(t_s, d_f, self.m_kg, self.active)
@@ -215,6 +244,7 @@ class ClosedLoop:
         z, v, m = self.z_m.cpu().numpy(), self.v_mps.cpu().numpy(), self.m_kg.cpu().numpy()
         low, umax = self.lowest_m.cpu().numpy(), self.max_thrust_n.cpu().numpy()
         held, miss = self.n_held.cpu().numpy(), self.n_missing.cpu().numpy()
+        san, pos = self.n_sanitised.cpu().numpy(), self.n_positive.cpu().numpy()
         m0 = float(cfg.dynamics.mass_kg)
         runs = []
         for b in range(self.B):
@@ -228,6 +258,7 @@ class ClosedLoop:
                 "loop_gain": loop_gain(L.kp[b], L.z0_m[b], L.v0_mps[b], m0),
                 "z0_m": float(L.z0_m[b]), "v0_mps": float(L.v0_mps[b]),
                 "held_steps": int(held[b]), "missing_estimates": int(miss[b]),
+                "sanitised_estimates": int(san[b]), "positive_estimates": int(pos[b]),
             })
         return runs
 
@@ -247,3 +278,8 @@ class ClosedLoop:
                 with self.timer("logging"):
                     on_step(self)
         self.record_final()
+        n_bad = int(self.n_sanitised.sum())
+        if n_bad:
+            _log.warning("estimator %r returned %d estimates that were +-inf or |D_hat| > %g 1/s in %d of %d "
+                         "descents; they were treated as missing (results: sanitised_estimates)",
+                         self.cfg.estimator.name, n_bad, D_HAT_ABS_MAX, int((self.n_sanitised > 0).sum()), self.B)
