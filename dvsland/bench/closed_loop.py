@@ -37,7 +37,7 @@ def closed_loop_success(cfg: Config, estimator: str, out: Path, sites: Optional[
     from dvsland.evaluate.run import parse_estimator_spec
     from dvsland.sim import simulate
 
-    from .tradeoff import variant_config
+    from .tradeoff import config_with
 
     _, name, over = parse_estimator_spec(estimator)
     overrides = [f"estimator.{name}.{k}={v}" for k, v in over.items()]
@@ -45,7 +45,7 @@ def closed_loop_success(cfg: Config, estimator: str, out: Path, sites: Optional[
                   f"simulation.n_seeds={int(n_seeds)}", f"estimator.name={name}"]
     if t_max_s is not None:
         overrides.append(f"simulation.t_max_s={float(t_max_s)}")
-    vcfg = variant_config(cfg, overrides)
+    vcfg = config_with(cfg, overrides)
     t0 = time.perf_counter()
     res = simulate(vcfg, sites=list(sites) if sites else None, device=device, out=Path(out), quiet=True)
     wall = time.perf_counter() - t0

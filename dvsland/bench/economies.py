@@ -127,7 +127,6 @@ def _event_stream(cfg: Config, sites: List[str], batch_size: int, n_steps: int, 
 def ring_economy(cfg: Config, sites: List[str], batch_size: int = 18, n_steps: int = 12, frac: float = 0.7) -> Dict:
     """See module doc, item 2."""
     from dvsland.estimators import make_estimator
-    from dvsland.estimators._counts import count_image
 
     _, evs, _ = _event_stream(cfg, sites, batch_size, n_steps, frac)
     W, H = cfg.camera.width_px, cfg.camera.height_px
@@ -160,7 +159,7 @@ def ring_economy(cfg: Config, sites: List[str], batch_size: int = 18, n_steps: i
         if len(raw) > K:
             raw.popleft()
         allev = Events.cat(list(raw))
-        img = count_image(allev, batch_size, H, W)
+        img = allev.to_count_image(batch_size, H, W).sum(1)  # ON + OFF, as dpr counts
         raw_ms.append((time.process_time() - t0) * 1e3)
         raw_bytes.append(sum(_event_bytes(e) for e in raw) + img.numel() * img.element_size())
         n_window.append(len(allev))

@@ -31,8 +31,8 @@ import torch
 from dvsland.config import Config
 from dvsland.control import MovingAverageFilter, TauPController, initial_ttc
 from dvsland.dynamics import LanderDynamics
-from dvsland.estimators import Truth, estimator_params, get_estimator, make_estimator
-from dvsland.evaluate.run import parse_estimator_spec
+from dvsland.estimators import Truth, make_estimator
+from dvsland.evaluate.run import parse_estimator_spec, variant_config
 from dvsland.evaluate.trajectory import closed_form_descents
 
 STAGE_NAMES = ("render", "emulate", "estimate", "control_dynamics")
@@ -46,14 +46,8 @@ def _sync(device: torch.device) -> None:
 def build_estimator(cfg: Config, spec, batch_size: int, device):
     """Estimator from a spec ``"name"`` or ``"name[key=value;...]"`` (see
     :func:`dvsland.evaluate.run.parse_estimator_spec`), parameters from ``cfg`` plus the overrides."""
-    _, name, over = parse_estimator_spec(spec)
-    if not over:
-        return make_estimator(cfg, batch_size, device, name=name)
-    params = estimator_params(cfg, name)
-    params.update(over)
-    params.setdefault("dt_s", cfg.dt_s)
-    params.setdefault("seed", cfg.simulation.seed)
-    return get_estimator(name, batch_size, (cfg.camera.width_px, cfg.camera.height_px), device, **params)
+    label, name, over = parse_estimator_spec(spec)
+    return make_estimator(variant_config(cfg, name, over, label), batch_size, device, name=name)
 
 
 def _rss_kib(field: str) -> Optional[int]:

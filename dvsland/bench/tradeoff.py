@@ -102,7 +102,7 @@ def error_metrics(d_hat: np.ndarray, d_true: np.ndarray, scored: np.ndarray) -> 
                 within_10=float((rel <= 0.10).sum() / dh.size))
 
 
-def variant_config(cfg: Config, overrides: Sequence[str]) -> Config:
+def config_with(cfg: Config, overrides: Sequence[str]) -> Config:
     """A validated copy of ``cfg`` with ``section.key=value`` overrides applied."""
     if not overrides:
         return copy.deepcopy(cfg)
@@ -125,7 +125,7 @@ def run_tradeoff(cfg: Config, confs: Sequence[Configuration], device="cpu", quic
         groups.setdefault((tuple(c.overrides), tuple(c.sites or ())), []).append(c)
     rows = []
     for (over, sites), members in groups.items():
-        vcfg = variant_config(cfg, list(over))
+        vcfg = config_with(cfg, list(over))
         site_list = list(sites) or None
         specs = list(dict.fromkeys(m.estimator for m in members))
         t0 = time.perf_counter()
