@@ -37,8 +37,8 @@ STAGE_BENCHES = {
                    ["--threads", "1", "--batch", "18", "--steps", "10", "--estimators", "dpr,oracle",
                     "--json", "{json}"]),
     "renderers": ("stage_renderers", ["--out", "{json}"], ["--n-alt", "4", "--segments", "--out", "{json}"]),
-    "sim": ("stage_sim", ["--threads", "1", "--json", "{json}", "--out", "{dir}"],
-            ["--threads", "1", "--sites", "A,D,H", "--json", "{json}", "--out", "{dir}"]),
+    "sim": ("stage_sim", ["--threads", "1", "--set", "render.threads=1", "--json", "{json}", "--out", "{dir}"],
+            ["--threads", "1", "--set", "render.threads=1", "--sites", "A,D,H", "--json", "{json}", "--out", "{dir}"]),
 }
 ALIASES = {"closed-loop": "closed_loop", "closedloop": "closed_loop"}
 CHOICES = REPORT_PARTS + tuple(STAGE_BENCHES)
