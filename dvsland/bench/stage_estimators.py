@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Benchmark of the divergence estimators (issue 5): time per ``update`` and the open-loop table.
+"""Benchmark of the divergence estimators: time per ``update`` and the open-loop table.
 
 1. Time per update for B = 18 and B = 256 (``--batch``) on CPU, and on CUDA when available, for
    ``dpr``, ``cmax`` and ``oracle`` (``--estimators``), fed synthetic zooming-blob events

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Benchmark of :class:`dvsland.events.EventEmulator` (issue 4).
+"""Benchmark of :class:`dvsland.events.EventEmulator`.
 
 Measures, per device (CPU; CUDA when available):
 
@@ -7,7 +7,7 @@ Measures, per device (CPU; CUDA when available):
   about 1 and about 0.5 events per pixel per step (``--rates``), and on real descent frames of
   the fast renderer (sites A-I along the oracle trajectory, 10 Hz) when it is available;
 - events/s, and the cost as a multiple of one ``torch.log`` pass over the same float32 frames
-  (the issue's target: <= 30x at about 0.5 events/pixel/step). Step and log are timed
+  (the target: <= 30x at about 0.5 events/pixel/step). Step and log are timed
   interleaved, frame by frame, and the ratio uses the medians, so load from other processes
   affects both alike;
 - peak memory of one step with a burst of 10 events per pixel at B = 256, in a fresh subprocess

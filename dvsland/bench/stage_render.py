@@ -8,8 +8,8 @@
 - Preparation: seconds per site to build its levels (``--fresh``: recomputed, no caches).
 - Throughput: ms per ``render`` call and frames/s for each batch size at the camera of
   ``configs/paper.yaml`` (128x128, 60 deg), altitudes spread over 50 m - 10 km, sites mixed.
-- Temporal smoothness (issue 3): a pure-zoom descent of a static scene on the closed-form
-  trajectory (DESIGN.md section 2) at the frame rate (10 Hz) down to 50 m; d_t = log I_{t+1} -
+- Temporal smoothness: a pure-zoom descent of a static scene on the closed-form
+  trajectory (dvsland.dynamics.closed_form) at the frame rate (10 Hz) down to 50 m; d_t = log I_{t+1} -
   log I_t per pixel; the flicker metric is the fraction of pixels whose change reverses sign
   between consecutive steps (d_t * d_{t+1} < 0, both |d| > 1e-3), for the fast renderer and for
   an ablation without the blend between levels (nearest level), which pops.
