@@ -131,7 +131,8 @@ def test_cli(tmp_path, capsys):
 
 
 def test_scripts_are_thin_wrappers(repo_root):
-    for name in ("bench_render", "bench_events", "bench_estimators", "compare_renderers", "profile_sim"):
+    for name in ("bench_render", "bench_events", "bench_v2e", "bench_estimators", "compare_renderers",
+                 "profile_sim"):
         text = (repo_root / "scripts" / f"{name}.py").read_text()
         assert "from dvsland.bench." in text and len(text.splitlines()) < 20, name
 

@@ -33,6 +33,8 @@ STAGE_BENCHES = {
                ["--threads", "1", "--batches", "18", "--repeat", "5", "--flicker-sites", "", "--json", "{json}"]),
     "events": ("stage_events", ["--threads", "1", "--json", "{json}"],
                ["--threads", "1", "--batch", "18", "--no-memory", "--no-real", "--json", "{json}"]),
+    "v2e": ("stage_v2e", ["--threads", "1", "--json", "{json}"],
+            ["--threads", "1", "--batch", "6", "--steps", "6", "--json", "{json}"]),
     "estimators": ("stage_estimators", ["--threads", "1", "--json", "{json}"],
                    ["--threads", "1", "--batch", "18", "--steps", "10", "--estimators", "dpr,oracle",
                     "--json", "{json}"]),
