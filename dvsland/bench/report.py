@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import json
 import math
 import shutil
 from pathlib import Path
 from typing import Dict, List, Optional
+
+from dvsland.report.results import write_json
 
 from .stages import STAGE_NAMES
 from .tradeoff import pareto_front
@@ -284,7 +285,7 @@ def write_report(report: dict, run_dir: Path, docs_dir: Optional[Path] = None) -
         paths["scaling"] = run_dir / "scaling.png"
         plot_scaling(report["scaling"]["rows"], paths["scaling"], f"estimator dpr ({tag})")
         figs["scaling"] = "scaling.png"
-    paths["json"].write_text(json.dumps(report, indent=2, default=str, allow_nan=True))
+    write_json(paths["json"], report)  # strict JSON: NaN / inf -> null
     paths["md"].write_text("# dvsland benchmark\n\n" + markdown(report, figs) + "\n")
     if docs_dir is not None:
         docs_dir = Path(docs_dir)

@@ -18,11 +18,12 @@ event camera (config ``emulator``) and writes into the run folder (``--out`` or
 
 from __future__ import annotations
 
-import json
 import time
 
 import numpy as np
 import torch
+
+from dvsland.report.results import write_json
 
 from .common import add_config_args, config_from_args
 
@@ -120,7 +121,7 @@ def run_events(args) -> int:
         "events_per_px_step": (len(events) / max(1, len(per_step)) / (H * W)),
         "renderer": cfg.render.renderer, "seconds": elapsed, "events_file": path.name,
     }
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_json(run_dir / "summary.json", summary)
     if not quiet:
         print(f"{len(events)} events from {len(t_us)} frames ({z[0]:.0f} m -> {z[-1]:.0f} m, "
               f"{summary['events_per_px_step']:.3f} events/pixel/step) in {elapsed:.1f} s -> {run_dir}")

@@ -27,7 +27,8 @@ def config_from_args(args: argparse.Namespace, extra_overrides=()) -> Config:
     """Load the config named by ``args.config`` with the shortcut flags (``--estimator``,
     ``--renderer``, ``--device``, ``--quiet``), ``extra_overrides`` and ``--set`` applied, so the
     run folder's config.yaml records what actually ran."""
-    overrides = [f"{key}={getattr(args, flag)}" for flag, key in FLAG_KEYS.items() if getattr(args, flag, None)]
+    overrides = [f"{key}={getattr(args, flag)}" for flag, key in FLAG_KEYS.items()
+                 if getattr(args, flag, None) is not None]  # '--estimator ""' is checked, not dropped
     overrides += list(extra_overrides) + list(getattr(args, "overrides", []) or [])
     if getattr(args, "quiet", False):
         overrides.append("logging.quiet=true")

@@ -36,14 +36,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from dvsland.runs import guarded_run
+
     try:
-        return int(args.func(args) or 0)
+        return int(guarded_run(args.func)(args) or 0)  # SIGTERM = Ctrl-C; partial results kept
     except ConfigError as exc:
         print(f"dvsland: config error: {exc}", file=sys.stderr)
         return 2
     except ValueError as exc:  # bad input named by the library
         print(f"dvsland: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:
+        print(f"dvsland: interrupted ({exc or 'Ctrl-C'}); what was gathered so far was written", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

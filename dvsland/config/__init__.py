@@ -1,7 +1,8 @@
 """Typed, validated configuration (YAML in ``configs/`` -> dataclasses).
 
 Public names: :class:`Config` and its sections, :func:`load_config`, :func:`apply_overrides`,
-:func:`dump_config`, :func:`config_to_dict`, :class:`ConfigError`, :func:`configs_dir`.
+:func:`dump_config`, :func:`config_to_dict`, :class:`ConfigError`, :func:`configs_dir`,
+:func:`validate_config` (the one check every entry point runs).
 """
 
 from .loader import (apply_overrides, config_to_dict, configs_dir, dump_config, load_config, read_yaml,
@@ -10,7 +11,7 @@ from .schema import (PAPER_INITIAL_CONDITIONS, SITE_NAMES, CameraConfig, CMaxCon
                      ControllerSetting,
                      DPRConfig, DynamicsConfig, EmulatorConfig, EstimatorConfig, LoggingConfig,
                      OracleConfig, RenderConfig, SimulationConfig, SiteConfig, SNNConfig)
-from .validate import ConfigError, build
+from .validate import ConfigError, build, validate_config
 
 __all__ = [
     "Config", "CameraConfig", "RenderConfig", "EmulatorConfig", "EstimatorConfig", "DPRConfig",
@@ -18,5 +19,5 @@ __all__ = [
     "SimulationConfig", "SiteConfig", "LoggingConfig", "SITE_NAMES", "PAPER_INITIAL_CONDITIONS", "ConfigError",
     "load_config",
     "apply_overrides", "dump_config", "config_to_dict", "configs_dir", "repo_root", "read_yaml", "build",
-    "resolve_config_path",
+    "resolve_config_path", "validate_config",
 ]

@@ -12,7 +12,7 @@ from typing import Iterable, Optional, Union
 import yaml
 
 from .schema import LIST_ITEM_TYPES, Config
-from .validate import ConfigError, _strip_optional, build, check_config
+from .validate import ConfigError, _strip_optional, validate_config
 
 PathLike = Union[str, Path]
 
@@ -103,22 +103,32 @@ def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
             value = yaml.safe_load(raw) if raw.strip() else ""
         except yaml.YAMLError:
             value = raw
-        node = data
-        for k in keys[:-1]:
+        node, defaults = data, config_to_dict(Config())
+        for i, k in enumerate(keys):
+            last = i == len(keys) - 1
             if isinstance(node, list):
                 idx = int(k)
                 if idx >= len(node):
-                    raise ConfigError(f"--set {text}: index {idx} is out of range (list has {len(node)})")
-                node = node[idx]
+                    where = ".".join(keys[:i])
+                    raise ConfigError(f"--set {text}: index {idx} is out of range: {where} has {len(node)} "
+                                      f"item{'s' if len(node) != 1 else ''} (indices 0 to {len(node) - 1})"
+                                      if node else f"--set {text}: index {idx} is out of range: {where} is empty")
+                if last:
+                    node[idx] = value
+                else:
+                    node = node[idx]
+                defaults = defaults[idx] if isinstance(defaults, list) and idx < len(defaults) else None
+            elif isinstance(node, dict):
+                default_k = defaults.get(k) if isinstance(defaults, dict) else None
+                if last:
+                    node[k] = value
+                else:
+                    if node.get(k) is None:  # a section or list the file leaves out: start from its default
+                        node[k] = copy.deepcopy(default_k) if isinstance(default_k, (dict, list)) else {}
+                    node = node[k]
+                defaults = default_k
             else:
-                if node.get(k) is None:
-                    node[k] = {}
-                node = node[k]
-        last = keys[-1]
-        if isinstance(node, list):
-            node[int(last)] = value
-        else:
-            node[last] = value
+                raise ConfigError(f"--set {text}: '{'.'.join(keys[:i])}' is {node!r}, not a section or list")
     return data
 
 
@@ -143,8 +153,7 @@ def load_config(path: Optional[PathLike] = None, overrides: Iterable[str] = ()) 
     if overrides:
         source += " with --set overrides"
     data = apply_overrides(data, overrides)
-    cfg = build(Config, data, source=source)
-    return check_config(cfg, source=source)
+    return validate_config(data, source=source)
 
 
 def config_to_dict(cfg) -> dict:

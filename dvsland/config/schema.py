@@ -162,6 +162,9 @@ class EmulatorConfig:
     leak_rate_sigma: float = opt(0.1, "relative std. dev. of the per-pixel leak rate", rng=(0.0, 10.0))
     hot_pixel_fraction: float = opt(0.0, "fraction of hot pixels; 0 = ideal (not in paper)", rng=(0.0, 1.0))
     hot_pixel_rate_hz: float = opt(100.0, "extra ON event rate of a hot pixel, Hz", rng=(0.0, 1e5))
+    max_events_per_step: int = opt(20_000_000, "most events one step may emit (all cameras together); more is "
+                                   "an error naming this parameter, raised before the events are allocated "
+                                   "(about 48 bytes per event at the peak; not in paper)", rng=(1, 10**11))
 
 
 @dataclass
@@ -296,6 +299,9 @@ class SimulationConfig:
     device: str = opt("cpu", "torch device ('cpu', 'cuda', 'cuda:0', ...)")
     torch_threads: int = opt(1, "torch CPU threads set for the run; 0 = leave torch's default (1 measured "
                              "fastest on 2 cores: the per-step ops are small)", rng=(0, 1024))
+    max_memory_gb: float = opt(0.0, "refuse a run whose estimated peak memory (per-pixel state of every "
+                               "descent plus emulator.max_events_per_step events) exceeds this, GiB; 0 = 80 % "
+                               "of this machine's memory (not in paper)", rng=(0.0, 1e6))
 
 
 @dataclass

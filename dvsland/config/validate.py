@@ -7,6 +7,9 @@ allowed range or choices.
 from __future__ import annotations
 
 import dataclasses
+import math
+import os
+import re
 import typing
 from typing import Any, Optional
 
@@ -175,7 +178,142 @@ def check_config(cfg: Config, source: Optional[str] = None) -> Config:
         if s.z0_m > cfg.render.max_altitude_m:
             raise ConfigError(f"simulation.sites[{i}].z0_m{_where(source)}: {s.z0_m} is above "
                               f"render.max_altitude_m = {cfg.render.max_altitude_m}")
-    if not cfg.simulation.device.startswith(("cpu", "cuda", "mps")):
-        raise ConfigError(f"simulation.device{_where(source)}: {cfg.simulation.device!r} is not a torch "
-                          f"device; use 'cpu' or 'cuda[:N]'")
+    check_run_semantics(cfg, source)
     return cfg
+
+
+# ---------------------------------------------------------------------------------------------
+# The one validation path: YAML files, ``--set``, the CLI and the Python API all end here.
+# The checks below are semantic: they need several fields, or what the run will build from them.
+
+#: bytes per pixel per batch element the loop holds at once (emulator state in float64, frames,
+#: estimator count images and temporaries), measured order of magnitude, rounded up
+STATE_BYTES_PER_PX = 160
+#: bytes per event at the emulator's peak (keys, sort, decoded Events)
+BYTES_PER_EVENT = 48
+
+_DEVICE_RE = re.compile(r"^(cpu|cuda(:\d+)?)$")
+
+
+def validate_config(cfg, source: Optional[str] = None) -> Config:
+    """Check a whole config exactly as the YAML loader does and return a checked copy.
+
+    ``cfg`` may be a :class:`Config` built in Python (fields set by hand) or a plain dict: every
+    field goes through the same type conversion and range check as a file (NaN and inf fail
+    every range), then :func:`check_config`. This is what ``dvsland.simulate``, ``evaluate``,
+    the ``events`` and ``render`` commands and ``config show`` run.
+
+    Raises:
+        ConfigError: naming the parameter and the allowed range.
+    """
+    if not (isinstance(cfg, (Config, dict))):
+        raise ConfigError(f"config must be a dvsland Config or a mapping, got {type(cfg).__name__}")
+    try:
+        data = dataclasses.asdict(cfg) if isinstance(cfg, Config) else cfg
+    except TypeError as exc:
+        raise ConfigError(f"config: a section is not a config section: {exc}") from None
+    built = build(Config, data, source=source or "Python Config")
+    return check_config(built, source=source or "Python Config")
+
+
+def check_run_semantics(cfg: Config, source: Optional[str] = None) -> None:
+    """Checks that need several fields: run name, device, time span, labels, estimator sections,
+    memory. Raises ConfigError naming the parameter."""
+    w = _where(source)
+    check_run_name(cfg.name, f"name{w}")
+    if not cfg.logging.root.strip():
+        raise ConfigError(f"logging.root{w}: must not be empty (the folder under which run folders are made)")
+    if not _DEVICE_RE.match(cfg.simulation.device):
+        raise ConfigError(f"simulation.device{w}: {cfg.simulation.device!r} is not supported; "
+                          f"use 'cpu', 'cuda' or 'cuda:N'")
+    dt = 1.0 / cfg.camera.frame_rate_hz
+    if cfg.simulation.t_max_s < dt:
+        raise ConfigError(f"simulation.t_max_s{w}: {cfg.simulation.t_max_s!r} s is shorter than one control "
+                          f"step (1 / camera.frame_rate_hz = {dt:g} s); allowed [{dt:g}, 1e6]")
+    _check_labels(cfg, w)
+    _check_estimator_sections(cfg, w)
+    check_memory(cfg, source)
+
+
+def check_run_name(name: str, what: str = "name") -> None:
+    """A run name becomes a folder name under ``logging.root``: no path separators, no ``..``."""
+    if not name or name in (".", "..") or "/" in name or "\\" in name or "\0" in name or name.strip() != name:
+        raise ConfigError(f"{what}: {name!r} is not allowed; a run name must be a plain folder name "
+                          f"(no '/', '\\\\', '..', leading or trailing spaces; not empty)")
+
+
+def setting_label(kp: float, n_bin: int, label: str = "") -> str:
+    """Label of a controller setting: ``label`` if given, else e.g. ``Kp5e6-n5`` for Kp = 5e6,
+    n_bin = 5 (the simulator's run labels are ``<site>/<setting label>``)."""
+    if label:
+        return label
+    mant, exp = f"{kp:.3e}".split("e")
+    mant = mant.rstrip("0").rstrip(".")
+    return f"Kp{mant}e{int(exp)}-n{int(n_bin)}"
+
+
+def folder_name(label: str) -> str:
+    """File-system-safe folder name of a run label (``A/Kp5e6-n5`` -> ``A_Kp5e6-n5``): every
+    character outside ``[A-Za-z0-9_.+-]`` becomes ``_``."""
+    return re.sub(r"[^A-Za-z0-9_.+-]", "_", label)
+
+
+_safe = folder_name
+
+
+def _check_labels(cfg: Config, w: str) -> None:
+    seen = {}
+    for i, s in enumerate(cfg.controller.settings):
+        lab = setting_label(s.kp, s.n_bin, s.label)
+        key = _safe(lab)
+        if key in seen:
+            j, other = seen[key]
+            same = "the same label" if other == lab else f"labels that map to the same folder name {key!r}"
+            raise ConfigError(f"controller.settings[{i}].label{w}: {lab!r} and settings[{j}] ({other!r}) have "
+                              f"{same}; run labels name TensorBoard folders and figures, so they must be "
+                              f"unique after replacing characters outside [A-Za-z0-9_.+-] by '_'")
+        seen[key] = (i, lab)
+
+
+def _check_estimator_sections(cfg: Config, w: str) -> None:
+    dpr, cm = cfg.estimator.dpr, cfg.estimator.cmax
+    if dpr.nms_px % 2 == 0:
+        raise ConfigError(f"estimator.dpr.nms_px{w}: {dpr.nms_px} must be odd; allowed odd integers in [1, 63]")
+    if not cm.d_min < cm.d_max:
+        raise ConfigError(f"estimator.cmax.d_min{w}: {cm.d_min} must be below estimator.cmax.d_max = {cm.d_max}")
+    if cm.refine_points % 2 == 0:
+        raise ConfigError(f"estimator.cmax.refine_points{w}: {cm.refine_points} must be odd; "
+                          f"allowed odd integers in [3, 1001]")
+
+
+def memory_limit_bytes(cfg: Config) -> float:
+    """``simulation.max_memory_gb`` in bytes; 0 = 80 % of this machine's physical memory."""
+    gb = float(getattr(cfg.simulation, "max_memory_gb", 0.0) or 0.0)
+    if gb > 0:
+        return gb * 2 ** 30
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return math.inf
+    return 0.8 * total
+
+
+def estimate_run_bytes(cfg: Config) -> float:
+    """Rough peak memory of a simulation: per-pixel state of B elements plus one step's events, bytes."""
+    B = len(cfg.simulation.sites) * len(cfg.controller.settings) * cfg.simulation.n_seeds
+    px = cfg.camera.width_px * cfg.camera.height_px
+    ev = getattr(cfg.emulator, "max_events_per_step", 0) or 0
+    return float(B) * px * STATE_BYTES_PER_PX + float(ev) * BYTES_PER_EVENT
+
+
+def check_memory(cfg: Config, source: Optional[str] = None) -> None:
+    """ConfigError when :func:`estimate_run_bytes` exceeds :func:`memory_limit_bytes`."""
+    need, limit = estimate_run_bytes(cfg), memory_limit_bytes(cfg)
+    if need > limit:
+        B = len(cfg.simulation.sites) * len(cfg.controller.settings) * cfg.simulation.n_seeds
+        raise ConfigError(
+            f"simulation.max_memory_gb{_where(source)}: this run needs about {need / 2 ** 30:.1f} GiB "
+            f"(B = {B} descents x {cfg.camera.width_px}x{cfg.camera.height_px} px x {STATE_BYTES_PER_PX} B/px, "
+            f"plus emulator.max_events_per_step = {getattr(cfg.emulator, 'max_events_per_step', 0)} x "
+            f"{BYTES_PER_EVENT} B), above the limit of {limit / 2 ** 30:.1f} GiB; use fewer sites, settings "
+            f"or seeds, a smaller camera, a lower emulator.max_events_per_step, or raise simulation.max_memory_gb")

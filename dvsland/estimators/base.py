@@ -46,6 +46,15 @@ class DivergenceEstimator:
     #: rendering and event emulation.
     needs_events: bool = True
 
+    def __init_subclass__(cls, **kwargs):
+        """Every subclass's ``update`` runs behind :func:`_checked_update`: events are checked
+        (b, x, y, p in range: a clear error, never an index error deep in an estimator) and
+        sorted by (b, t) when they are not, before the estimator sees them."""
+        super().__init_subclass__(**kwargs)
+        upd = cls.__dict__.get("update")
+        if upd is not None and not getattr(upd, "_dvsland_checked", False):
+            cls.update = _checked_update(upd)
+
     def __init__(self, batch_size: int, sensor_size: Tuple[int, int], device: Any = "cpu",
                  dt_s: float = 0.1, **params):
         if int(batch_size) < 1:
@@ -90,3 +99,21 @@ class DivergenceEstimator:
     def diagnostics(self) -> Dict[str, torch.Tensor]:
         """What the estimator tracks, for logging (e.g. ``centroids`` (B, N, 2), ``n_tracked`` (B,))."""
         return {}
+
+
+def _checked_update(update):
+    """Wrap an estimator's ``update`` with the shared input check of
+    :func:`dvsland.events.validate.checked_for_estimator`."""
+    import functools
+
+    @functools.wraps(update)
+    def wrapper(self, events, t_us, *args, **kwargs):
+        if events is not None and hasattr(events, "b"):
+            from dvsland.events.validate import checked_for_estimator
+
+            W, H = self.sensor_size
+            events = checked_for_estimator(events, self.batch_size, W, H, what=f"{type(self).__name__}.update events")
+        return update(self, events, t_us, *args, **kwargs)
+
+    wrapper._dvsland_checked = True
+    return wrapper

@@ -77,8 +77,11 @@ class CMaxEstimator(DivergenceEstimator):
         W, H = self.sensor_size
         # canvas margin: the largest radial displacement over half a window, plus one pixel
         half_s = 0.5 * self.window_us * 1e-6
-        grow = math.exp(max(abs(self.d_min), abs(self.d_max)) * half_s) - 1.0
-        self.pad_px = int(math.ceil(grow * 0.5 * max(W, H))) + 1
+        # bounded by one sensor size (canvas <= 3x the sensor per side): an extreme |D| * window
+        # (d_min = -100) would otherwise ask for an astronomically large canvas; events warped
+        # beyond the margin drop out of the image, which only lowers such candidates' contrast
+        grow = math.expm1(min(max(abs(self.d_min), abs(self.d_max)) * half_s, 50.0))
+        self.pad_px = min(int(math.ceil(grow * 0.5 * max(W, H))) + 1, max(W, H))
         self._store: List[tuple] = []  # (b, x, y, t) of recent steps
         B = self.batch_size
         self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=self.device)

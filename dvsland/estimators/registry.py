@@ -79,7 +79,7 @@ def get_estimator(name: str, batch_size: int, sensor_size: Tuple[int, int], devi
         ValueError: unknown name (the message lists the known ones), or unknown parameters.
     """
     _load_entry_points()
-    if name not in _REGISTRY:
+    if not isinstance(name, str) or name not in _REGISTRY:
         raise ValueError(f"unknown estimator {name!r}; known estimators: {available_estimators()}")
     cls = _REGISTRY[name]
     accepted, takes_any = _parameters(cls)

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
+
+from dvsland.report.results import write_json
 
 from .metrics import BANDS
 from .run import EvaluationResult
@@ -132,7 +133,7 @@ def write_outputs(res: EvaluationResult, run_dir: Path, figures: bool = True) ->
     run_dir.mkdir(parents=True, exist_ok=True)
     paths = {"json": run_dir / "evaluation.json", "table": run_dir / "table.txt",
              "traces": run_dir / "traces.npz"}
-    paths["json"].write_text(json.dumps(res.summary, indent=2, allow_nan=True))
+    write_json(paths["json"], res.summary)  # strict JSON: NaN / inf -> null
     paths["table"].write_text(format_table(res.summary) + "\n")
     np.savez_compressed(paths["traces"], t_s=res.descents.t_s, altitude_m=res.descents.altitude_m,
                         d_true=res.descents.divergence, scored=res.scored, n_events=res.n_events,

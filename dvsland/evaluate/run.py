@@ -149,6 +149,9 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
             config's renderer for ``sites``.
         progress: tqdm progress bar.
     """
+    from dvsland.config import validate_config
+
+    cfg = validate_config(cfg)  # the same check as a config file (a hand-edited Config included)
     device = torch.device(device)
     if not estimators:
         raise ValueError("estimators must name at least one estimator")

@@ -10,7 +10,8 @@ Public names:
     read_recording, write_recording, Recording, GroundTruth, read_ground_truth, write_ground_truth:
         recordings of others and for others: AEDAT4, HDF5, tonic arrays, npz, CSV
         (:mod:`dvsland.events.recording`).
-    validate_events: the one check of event columns from outside (:mod:`dvsland.events.validate`).
+    validate_events, check_event_arrays, check_events, EventDataError: the one check of events on
+        the way in, for every reader and every estimator (:mod:`dvsland.events.validate`).
     PixelModelParams: the non-ideal pixel parts (:mod:`dvsland.events.pixel_model`).
 """
 
@@ -20,8 +21,9 @@ from .io import load_events, save_events
 from .pixel_model import PixelModelParams
 from .recording import (GroundTruth, Recording, read_ground_truth, read_recording, write_ground_truth,
                         write_recording)
-from .validate import validate_events
+from .validate import EventDataError, check_event_arrays, check_events, validate_events
 
 __all__ = ["Events", "EventEmulator", "LEVEL_TOL", "TONIC_DTYPE", "save_events", "load_events",
            "read_recording", "write_recording", "Recording", "GroundTruth", "read_ground_truth",
-           "write_ground_truth", "validate_events", "PixelModelParams"]
+           "write_ground_truth", "validate_events", "PixelModelParams", "EventDataError", "check_event_arrays",
+           "check_events"]

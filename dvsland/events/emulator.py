@@ -100,6 +100,10 @@ class EventEmulator:
         photoreceptor_cutoff_hz, full_irradiance, shot_noise_rate_hz, shot_noise_bright_factor,
         leak_rate_hz, leak_rate_sigma, hot_pixel_fraction, hot_pixel_rate_hz: the non-ideal pixel
             parts, see :class:`dvsland.events.pixel_model.PixelModelParams` (all off by default).
+        max_events_per_step: most events one :meth:`step` may emit (all cameras together); a
+            step that would emit more raises ValueError naming ``emulator.max_events_per_step``
+            before its events are allocated (about 48 bytes each at the peak). None = no cap.
+            After that error the emulator must be reset.
 
     Usage::
 
@@ -114,7 +118,8 @@ class EventEmulator:
                  seed: int = 0, photoreceptor_cutoff_hz: float = 0.0, full_irradiance: float = 1.0,
                  shot_noise_rate_hz: float = 0.0, shot_noise_bright_factor: float = 0.25,
                  leak_rate_hz: float = 0.0, leak_rate_sigma: float = 0.1,
-                 hot_pixel_fraction: float = 0.0, hot_pixel_rate_hz: float = 100.0):
+                 hot_pixel_fraction: float = 0.0, hot_pixel_rate_hz: float = 100.0,
+                 max_events_per_step: Optional[int] = 20_000_000):
         def pos(name, v):
             v = float(v)
             if not (math.isfinite(v) and v > 0):
@@ -137,6 +142,10 @@ class EventEmulator:
         self.mismatch_sigma = nonneg("mismatch_sigma", mismatch_sigma)
         self.background_rate_hz = nonneg("background_rate_hz", background_rate_hz)
         self.seed = int(seed)
+        if max_events_per_step is not None and not int(max_events_per_step) >= 1:
+            raise ValueError(f"max_events_per_step must be an integer >= 1 or None, got {max_events_per_step}")
+        self.max_events_per_step = None if max_events_per_step is None else int(max_events_per_step)
+        self._n_step = 0.0
         self.device = torch.device(device) if device is not None else None
         self.pixel_model = pm.PixelModelParams(
             photoreceptor_cutoff_hz=photoreceptor_cutoff_hz, full_irradiance=full_irradiance,
@@ -160,7 +169,8 @@ class EventEmulator:
                    interpolation=cfg.interpolation, device=device,
                    mismatch_sigma=cfg.mismatch_sigma, background_rate_hz=cfg.background_rate_hz,
                    seed=seed, **{f.name: getattr(cfg, f.name) for f in dataclasses.fields(pm.PixelModelParams)
-                                 if hasattr(cfg, f.name)})
+                                 if hasattr(cfg, f.name)},
+                   max_events_per_step=getattr(cfg, "max_events_per_step", 20_000_000))
 
     # ------------------------------------------------------------------ state
     @property
@@ -298,6 +308,7 @@ class EventEmulator:
         layout = self._layout
         b_shift = layout.b_shift(t1 - t0)  # ValueError if the key would overflow
         dev = self.device
+        self._n_step = 0.0
         # crossings are spaced dt θ / |L1 - L0| apart; |L1 - L0| is at most the log range of
         # both frames, so when dt θ_min / r exceeds it the spacing alone never drops a crossing
         lo = min(self._range[0], self._range_new[0])
@@ -390,6 +401,7 @@ class EventEmulator:
             cnt, first, step_us, tlast_new = _emitted_log(
                 n_a, th_a, lref_a, self._l_prev.view(-1).index_select(0, act), l1_a, dt, tl_a, r,
                 self._spacing_may_bind)
+            self._count_events(cnt)  # before any per-event allocation
             cnti = cnt.to(torch.int64)
             sel = _nonzero_1d(cnti > 0)  # pixels with >= 1 emitted event (sync)
             all_sel = sel.numel() == act.numel()
@@ -403,6 +415,7 @@ class EventEmulator:
                 parts.append(_extra_keys(multi, cnti, first, step_us, code_a, dt, t_shift))
             keys = torch.cat(parts) if len(parts) > 1 else parts[0]
         else:
+            self._count_events(n_a)  # upper bound (refractory only drops), before the per-crossing loop
             seg, tau, cnti, tlast_new = _emitted_linear(
                 n_a, th_a, lref_a, self._i_prev.view(-1).index_select(0, act),
                 f1.view(-1).index_select(0, act), dt, tl_a, r, self.log_eps)
@@ -419,11 +432,24 @@ class EventEmulator:
             tl_flat.scatter_(0, act.index_select(0, sel), tlast_new.index_select(0, sel).add_(t0))
         return keys
 
+    def _count_events(self, counts: torch.Tensor) -> None:
+        """Add (A,) per-pixel event counts to this step's total; ValueError above the cap."""
+        if self.max_events_per_step is None:
+            return
+        self._n_step += float(counts.sum())  # one sync per block
+        if self._n_step > self.max_events_per_step:
+            raise ValueError(
+                f"emulator.max_events_per_step: this step would emit at least {self._n_step:.4g} events, above "
+                f"the cap of {self.max_events_per_step} (about {self._n_step * 48 / 2 ** 30:.3g} GiB at 48 B per "
+                f"event); raise emulator.threshold or lower the batch / sensor size, or raise the cap if the "
+                f"memory is there. The emulator must be reset after this error")
+
     def _background(self, b_shift: int, dt: float) -> torch.Tensor:
         """Sort keys of background events: Poisson count per element, uniform pixel, time
         (integer µs in [1, dt]) and polarity; drawn on CPU from each element's generator."""
         B, H, W = self._shape
         flat, t_rel, off = pm.draw_background(self._bg_gens, self.background_rate_hz, H * W, int(dt), self.device)
+        self._count_events(torch.tensor([float(flat.numel())]))
         return self._layout.pixel_key(flat, off, b_shift).add_(t_rel << self._layout.t_shift)
 
 

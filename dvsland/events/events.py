@@ -132,9 +132,9 @@ class Events:
         """Whether the events are sorted by (b, t) (one device sync)."""
         if len(self) < 2:
             return True
-        db = self.b[1:] - self.b[:-1]
-        dt = self.t[1:] - self.t[:-1]
-        return bool(((db > 0) | ((db == 0) & (dt >= 0))).all())
+        b0, b1, t0, t1 = self.b[:-1], self.b[1:], self.t[:-1], self.t[1:]
+        # comparisons, not differences: t1 - t0 overflows int64 for timestamps near +-2^62
+        return bool(((b1 > b0) | ((b1 == b0) & (t1 >= t0))).all())
 
     def __eq__(self, other) -> bool:  # exact equality of all fields
         if not isinstance(other, Events) or len(self) != len(other):
@@ -145,19 +145,15 @@ class Events:
 
     def validate(self, batch_size: Optional[int] = None, height: Optional[int] = None,
                  width: Optional[int] = None) -> "Events":
-        """Raise ValueError when a value is out of range or the order is wrong; returns self."""
+        """Raise :class:`~dvsland.events.validate.EventDataError` (a ValueError) naming the field and
+        its range when a value is out of range or the order is wrong; returns self."""
+        from .validate import EventDataError, check_events
+
         if len(self) == 0:
             return self
-        if not bool(((self.p == 1) | (self.p == -1)).all()):
-            raise ValueError("Events polarity p must be +1 or -1 (int8)")
-        for name, hi in (("b", batch_size), ("y", height), ("x", width)):
-            v = getattr(self, name)
-            lo_v, hi_v = int(v.min()), int(v.max())
-            if lo_v < 0 or (hi is not None and hi_v >= hi):
-                rng = f"[0, {hi})" if hi is not None else ">= 0"
-                raise ValueError(f"Events field {name!r} must be in {rng}, got values in [{lo_v}, {hi_v}]")
+        check_events(self, batch_size, width=width, height=height, what="Events")
         if not self.is_sorted():
-            raise ValueError("Events must be sorted by (b, t); use Events.sort()")
+            raise EventDataError("Events must be sorted by (b, t); use Events.sort()")
         return self
 
     # --------------------------------------------------------- selections
@@ -264,22 +260,20 @@ class Events:
     def from_tonic(cls, arr: np.ndarray, b: int = 0, device: DeviceLike = None) -> "Events":
         """Events from a tonic structured array (fields x, y, t, p; p in {0, 1} or bool, 0 = OFF,
         or already in {-1, +1}); all get batch index ``b``. Sorted by t (stable)."""
-        names = getattr(arr.dtype, "names", None) or ()
+        from .validate import EventDataError, check_event_arrays
+
+        names = getattr(getattr(arr, "dtype", None), "names", None) or ()
         missing = [f for f in ("x", "y", "t", "p") if f not in names]
         if missing:
-            raise ValueError(f"tonic array must have fields x, y, t, p; missing {missing}")
-        p = np.asarray(arr["p"]).astype(np.int64)
-        if p.size and (p.min() < -1 or p.max() > 1):
-            raise ValueError(f"tonic polarity p must be in {{0, 1}} (or -1/+1), got range "
-                             f"[{p.min()}, {p.max()}]")
-        p = np.where(p > 0, 1, -1).astype(np.int8)
-        n = len(arr)
+            raise EventDataError(f"tonic array must have fields x, y, t, p; missing {missing}")
+        a = check_event_arrays({k: arr[k] for k in ("x", "y", "t", "p")}, polarity="any01pm1",
+                               require_sorted=False, source="tonic array")
+        if int(b) < 0:
+            raise EventDataError(f"batch index b must be >= 0, got {b}")
+        n = len(a["t"])
         dev = torch.device(device) if device is not None else torch.device("cpu")
         return cls(b=torch.full((n,), int(b), dtype=torch.int64, device=dev),
-                   x=torch.as_tensor(np.asarray(arr["x"]).astype(np.int64), device=dev),
-                   y=torch.as_tensor(np.asarray(arr["y"]).astype(np.int64), device=dev),
-                   t=torch.as_tensor(np.asarray(arr["t"]).astype(np.int64), device=dev),
-                   p=torch.as_tensor(p, device=dev), sort=True)
+                   **{k: torch.as_tensor(a[k], device=dev) for k in ("x", "y", "t", "p")}, sort=True)
 
 
 def _check_pos(name: str, v) -> None:

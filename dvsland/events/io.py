@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from .events import Events
+from .validate import EventDataError, check_event_arrays
 
 FORMAT_TAG = "dvsland.events/1"
 _STORE_DTYPES = {"b": np.int64, "x": np.int16, "y": np.int16, "t": np.int64, "p": np.int8}
@@ -113,42 +114,78 @@ def load_events(path: PathLike, device=None, format: Optional[str] = None,
     fmt = _fmt(path, format)
     if not path.exists():
         raise FileNotFoundError(path)
-    if fmt == "npz":
-        with np.load(path, allow_pickle=False) as z:
-            missing = [k for k in _STORE_DTYPES if k not in z.files]
-            if missing:
-                raise ValueError(f"{path}: not a dvsland events file (missing {missing})")
-            arrs = {k: z[k] for k in _STORE_DTYPES}
-            raw = {k: z[f"meta_{k}"] for k in _META_KEYS if f"meta_{k}" in z.files}
+    try:
+        arrs, raw = _read_npz(path) if fmt == "npz" else _read_h5(path)
+    except EventDataError:
+        raise
+    except Exception as exc:  # zipfile, OSError, EOFError, h5py, pickle refusals ...
+        raise EventDataError(f"truncated or corrupt event file {path}: {type(exc).__name__}: {exc}") from None
+    meta = _check_meta(raw, path)
+    src = str(path)
+    if "sensor_size" in meta:
+        W, H = meta["sensor_size"][:2]
+        sensor = (W, H) if W > 0 and H > 0 else None
     else:
-        import h5py
-
-        with h5py.File(path, "r") as h5:
-            if "events" not in h5:
-                raise ValueError(f"{path}: not a dvsland events file (no /events group)")
-            g = h5["events"]
-            missing = [k for k in _STORE_DTYPES if k not in g]
-            if missing:
-                raise ValueError(f"{path}: not a dvsland events file (missing {missing})")
-            arrs = {k: g[k][()] for k in _STORE_DTYPES}
-            raw = {k: g.attrs[k] for k in _META_KEYS if k in g.attrs}
+        sensor = None
+    checked = check_event_arrays(arrs, sensor_size=sensor, batch_size=meta.get("batch_size") or None,
+                                 polarity="pm1", require_sorted=True, source=src)
     dev = torch.device(device) if device is not None else torch.device("cpu")
-    ev = Events(**{k: torch.as_tensor(a.astype(np.int64) if k != "p" else a.astype(np.int8),
-                                      device=dev) for k, a in arrs.items()})
+    ev = Events(**{k: torch.as_tensor(a, device=dev) for k, a in checked.items()})
     if not with_meta:
         return ev
-    meta: Dict[str, Any] = {}
-    if "sensor_size" in raw:
-        meta["sensor_size"] = tuple(int(v) for v in np.asarray(raw["sensor_size"]).reshape(-1))
-    if "batch_size" in raw:
-        meta["batch_size"] = int(raw["batch_size"])
-    for k in ("threshold", "threshold_off", "refractory_us"):
-        if k in raw:
-            meta[k] = float(raw[k])
     return ev, meta
+
+
+def _read_npz(path: Path):
+    with np.load(path, allow_pickle=False) as z:
+        missing = [k for k in _STORE_DTYPES if k not in z.files]
+        if missing:
+            raise EventDataError(f"{path}: not a dvsland events file (missing {missing})")
+        arrs = {k: z[k] for k in _STORE_DTYPES}
+        raw = {k: z[f"meta_{k}"] for k in _META_KEYS if f"meta_{k}" in z.files}
+    return arrs, raw
+
+
+def _read_h5(path: Path):
+    import h5py
+
+    with h5py.File(path, "r") as h5:
+        if "events" not in h5:
+            raise EventDataError(f"{path}: not a dvsland events file (no /events group)")
+        g = h5["events"]
+        missing = [k for k in _STORE_DTYPES if k not in g]
+        if missing:
+            raise EventDataError(f"{path}: not a dvsland events file (missing {missing})")
+        arrs = {k: g[k][()] for k in _STORE_DTYPES}
+        raw = {k: g.attrs[k] for k in _META_KEYS if k in g.attrs}
+    return arrs, raw
+
+
+def _check_meta(raw: dict, path: Path) -> Dict[str, Any]:
+    """Metadata of an event file, typed and checked (EventDataError naming the key)."""
+    meta: Dict[str, Any] = {}
+    try:
+        if "sensor_size" in raw:
+            ss = np.asarray(raw["sensor_size"]).reshape(-1)
+            if ss.size != 3 or not np.isfinite(ss.astype(np.float64)).all() or (ss < 0).any():
+                raise EventDataError(f"{path}: meta sensor_size must be (W, H, 2) with W, H >= 0, got {ss.tolist()}")
+            meta["sensor_size"] = tuple(int(v) for v in ss)
+        if "batch_size" in raw:
+            bs = np.asarray(raw["batch_size"]).reshape(-1)
+            if bs.size != 1 or not np.isfinite(float(bs[0])) or float(bs[0]) < 0:
+                raise EventDataError(f"{path}: meta batch_size must be an integer >= 0, got {bs.tolist()}")
+            meta["batch_size"] = int(bs[0])
+        for k in ("threshold", "threshold_off", "refractory_us"):
+            if k in raw:
+                meta[k] = float(np.asarray(raw[k]).reshape(-1)[0])
+    except EventDataError:
+        raise
+    except (TypeError, ValueError, IndexError) as exc:
+        raise EventDataError(f"{path}: unreadable metadata: {exc}") from None
+    return meta
 
 
 # recordings of other tools (AEDAT4, HDF5 layouts, tonic, CSV): dvsland.events.recording
 from .recording import read_recording, write_recording  # noqa: E402
 
-__all__ = ["save_events", "load_events", "FORMAT_TAG", "read_recording", "write_recording"]
+__all__ = ["save_events", "load_events", "FORMAT_TAG", "read_recording", "write_recording", "EventDataError"]

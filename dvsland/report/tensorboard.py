@@ -15,7 +15,6 @@ step index (t = step * dt). Images (every ``image_every_s`` of flight, active de
 from __future__ import annotations
 
 import math
-import re
 import time
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
@@ -31,8 +30,11 @@ SCALAR_TAGS = {
 
 
 def run_folder_name(run_label: str) -> str:
-    """File-system-safe folder name of a run label (``A/Kp5e6-n5`` -> ``A_Kp5e6-n5``)."""
-    return re.sub(r"[^A-Za-z0-9_.+-]", "_", run_label)
+    """File-system-safe folder name of a run label (``A/Kp5e6-n5`` -> ``A_Kp5e6-n5``); the config
+    check refuses settings whose labels would collide here."""
+    from dvsland.config.validate import folder_name
+
+    return folder_name(run_label)
 
 
 def draw_centroids(rgb: np.ndarray, centroids_xy: Optional[np.ndarray], color=(0, 255, 0)) -> np.ndarray:

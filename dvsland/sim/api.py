@@ -12,9 +12,9 @@ from typing import Optional, Sequence, Union
 import torch
 
 from dvsland._version import __version__
-from dvsland.config import Config, load_config
+from dvsland.config import Config, load_config, validate_config
 from dvsland.report import write_results_json, write_traces_npz
-from dvsland.runs import make_run_dir
+from dvsland.runs import guarded_run, make_run_dir
 from dvsland.stages import build_stages, check_names
 
 from .batch import build_layout
@@ -42,7 +42,7 @@ def _resolve_config(config, estimator, renderer, device, quiet, overrides) -> Co
         cfg.simulation.device = str(device)
     if quiet is not None:
         cfg.logging.quiet = bool(quiet)
-    return cfg
+    return validate_config(cfg)  # one check for files, the CLI and Config objects built in Python
 
 
 def _device(name: str) -> torch.device:
@@ -63,6 +63,7 @@ def _run_meta(cfg: Config, estimator_name: str, device, batch_size: int, rendere
             "renderer": cfg.render.renderer if rendered else None}
 
 
+@guarded_run  # SIGTERM = Ctrl-C; an interrupted set-up still leaves results.json
 def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, renderer=None,
              sites: Optional[Union[str, Sequence[str]]] = None, device=None, out: Optional[PathLike] = None,
              quiet: Optional[bool] = None, overrides: Sequence[str] = (), on_step=None,
@@ -88,14 +89,21 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
         callbacks: more callbacks (:mod:`dvsland.sim.callbacks`), called after the built-in ones.
 
     Returns:
-        :class:`SimulationResult`. On an exception or Ctrl-C the outputs gathered so far are
-        written (results.json ``status: "interrupted"``) and the exception is re-raised.
+        :class:`SimulationResult`. On an exception, Ctrl-C or SIGTERM the outputs gathered so far
+        are written (results.json ``status: "interrupted"``, also when it happens during set-up)
+        and the exception is re-raised.
     """
     t_start = time.perf_counter()
     # ---- build
     cfg = _resolve_config(config, estimator, renderer, device, quiet, overrides)
     if isinstance(sites, str):
         sites = sites.split(",")
+    if sites is not None and (not isinstance(sites, (list, tuple)) or not all(isinstance(s, str) for s in sites)):
+        raise ValueError(f"sites must be 'A,B' or a list of site names, got {sites!r}")
+    if estimator is not None and not isinstance(estimator, str) and not (
+            callable(getattr(estimator, "update", None)) and callable(getattr(estimator, "reset", None))):
+        raise ValueError(f"estimator must be a name or an estimator instance (with update and reset), "
+                         f"got {type(estimator).__name__}")
     dev = _device(cfg.simulation.device)
     if cfg.simulation.torch_threads > 0:
         torch.set_num_threads(cfg.simulation.torch_threads)

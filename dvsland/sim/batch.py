@@ -13,15 +13,7 @@ import numpy as np
 import torch
 
 from dvsland.config import Config
-
-
-def setting_label(kp: float, n_bin: int, label: str = "") -> str:
-    """``label`` if given, else e.g. ``Kp5e6-n5`` for Kp = 5e6, n_bin = 5."""
-    if label:
-        return label
-    mant, exp = f"{kp:.3e}".split("e")
-    mant = mant.rstrip("0").rstrip(".")
-    return f"Kp{mant}e{int(exp)}-n{int(n_bin)}"
+from dvsland.config.validate import setting_label  # noqa: F401 - one definition, checked unique there
 
 
 def expand_seeds(master_seed: int, n: int) -> np.ndarray:

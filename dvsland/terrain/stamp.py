@@ -37,10 +37,13 @@ def stamp(outs: Sequence[torch.Tensor], grid: Grid, x_m: torch.Tensor, y_m: torc
     if not bool(keep.any()):
         return
     ci, cj, d_m, fresh, weight, rad = (t[keep] for t in (ci, cj, d_m, fresh, weight, rad))
-    half = torch.ceil(rad).to(torch.int64) + 1
+    # a patch never needs to be larger than the grid (the window is clipped to it below): a
+    # feature much larger than a fine grid (narrow field of view) gets a grid-sized patch
+    half = (torch.ceil(rad).to(torch.int64) + 1).clamp_(max=max(nr, nc) + 1)
     # patch half-sizes rounded up on a geometric ladder (ratio ~1.25) to batch similar features
     ladder = torch.unique(torch.round(1.25 ** torch.arange(0, 64, dtype=torch.float64)).to(torch.int64))
-    bins = ladder[torch.searchsorted(ladder, half)]
+    pos = torch.searchsorted(ladder, half).clamp_(max=ladder.numel() - 1)
+    bins = torch.maximum(ladder[pos], half)
     for b in torch.unique(bins).tolist():
         sel = torch.nonzero(bins == b).squeeze(1)
         wr, wc = min(2 * b + 1, nr), min(2 * b + 1, nc)

@@ -42,8 +42,14 @@ def load_checkpoint(path=None, sensor_size=(128, 128), dt_s: float = 0.1, device
     path = Path(path) if path else DEFAULT_CHECKPOINT
     if not path.is_file():
         raise ValueError(f"estimator.snn.checkpoint: file not found: {path} (train one with scripts/train_snn.py)")
-    ck = torch.load(path, map_location="cpu", weights_only=True)
-    e = ck["encoder"]
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+        e = ck["encoder"]
+        _ = (ck["model"], ck["state_dict"], e["n_rho"], e["n_phi"], e["r_min_px"], e["r_max_px"], e["n_sub"])
+    except Exception as exc:  # truncated zip, pickle refusal, wrong layout: not torch's unpickling advice
+        raise ValueError(f"estimator.snn.checkpoint: {path} is not a readable dvsland snn checkpoint "
+                         f"(truncated, corrupt or of another kind: {type(exc).__name__}); use one written by "
+                         f"scripts/train_snn.py, or '' for the shipped one") from None
     if min(sensor_size) < 2 * e["r_max_px"]:
         raise ValueError(f"the snn checkpoint needs a sensor of at least {2 * e['r_max_px']:g} px per side, "
                          f"got {tuple(sensor_size)}")
@@ -55,7 +61,11 @@ def load_checkpoint(path=None, sensor_size=(128, 128), dt_s: float = 0.1, device
                          f"time constants are per slice); got dt_s = {dt_s:g} s (camera.frame_rate_hz)")
     model = SpikingDivergenceNet(e["n_rho"], e["n_phi"], dt_s=dt_s / e["n_sub"], channels=m["channels"],
                                  d_scale=m["d_scale"], learn_tau=m.get("learn_tau", False))
-    model.load_state_dict(ck["state_dict"])
+    try:
+        model.load_state_dict(ck["state_dict"])
+    except (RuntimeError, KeyError, TypeError) as exc:
+        raise ValueError(f"estimator.snn.checkpoint: {path}: its weights do not fit the model it describes "
+                         f"({str(exc).splitlines()[0]})") from None
     return model.to(device).eval(), enc, ck.get("meta", {})
 
 
@@ -68,6 +78,9 @@ class SpikingEstimator(DivergenceEstimator):
         warmup_steps: updates after a reset that return NaN.
     """
 
+    #: after this many consecutive windows without events an element gives NaN (no data, no estimate)
+    max_empty_windows: int = 10
+
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, checkpoint: str = "",
                  warmup_steps: int = 5, seed: int = 0):
         super().__init__(batch_size, sensor_size, device, dt_s)
@@ -77,6 +90,7 @@ class SpikingEstimator(DivergenceEstimator):
                                                               self.device)
         self._state = self.model.initial_state(self.batch_size, self.device)
         self._steps = torch.zeros(self.batch_size, dtype=torch.int64, device=self.device)
+        self._empty = torch.zeros(self.batch_size, dtype=torch.int64, device=self.device)  # windows without events
         self._t_prev: Optional[int] = None
         self._rates = {}
 
@@ -84,6 +98,7 @@ class SpikingEstimator(DivergenceEstimator):
         mask = self._mask(mask)
         self._state = self.model.reset(self._state, mask)
         self._steps[mask] = 0
+        self._empty[mask] = 0
 
     @torch.no_grad()
     def update(self, events, t_us: int, truth: Optional[Truth] = None) -> torch.Tensor:
@@ -93,8 +108,12 @@ class SpikingEstimator(DivergenceEstimator):
         x = self.encoder.encode(events, t0, t_us, self.batch_size)
         d, self._state, self._rates = self.model.run_step(x, self._state)
         self._steps += 1
+        n_ev = (torch.bincount(events.b, minlength=self.batch_size)[: self.batch_size] if events is not None
+                and len(events) else torch.zeros_like(self._empty))
+        self._empty = torch.where(n_ev > 0, torch.zeros_like(self._empty), self._empty + 1)
         nan = torch.full_like(d, float("nan"))
-        return torch.where(self._steps > self.warmup_steps, d, nan).to(torch.float32)
+        ok = (self._steps > self.warmup_steps) & (self._empty < self.max_empty_windows)
+        return torch.where(ok, d, nan).to(torch.float32)
 
     def diagnostics(self):
         out = {"steps_since_reset": self._steps.clone()}
