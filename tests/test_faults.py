@@ -194,7 +194,7 @@ def test_interrupt_during_setup_leaves_results(tmp_path, monkeypatch):
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(api, "make_estimator", boom)
+    monkeypatch.setattr(api, "build_stages", boom)
     out = tmp_path / "run"
     with pytest.raises(KeyboardInterrupt):
         dvsland.simulate(_cfg(), estimator="oracle", sites="D", out=out, quiet=True)
