@@ -411,3 +411,31 @@ def test_snn_nan_after_empty_windows():
     for k in range(12):
         d = est.update(Events.empty(), (k + 1) * 100_000)
     assert torch.isnan(d).all()
+
+
+@pytest.mark.slow  # ~30 s on a loaded 2-core machine; test_sigterm_is_handled_like_ctrl_c covers it in-process
+def test_sigterm_from_outside_cli(tmp_path):
+    """`kill <pid>` of a running `dvsland simulate`: exit code 130, results.json 'interrupted',
+    traces and TensorBoard files written."""
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "dvsland.cli.main", "simulate", "--estimator", "dpr",
+                             "--sites", "D", "--out", str(out), "--quiet", "--set", "logging.figures=false",
+                             "--set", "controller.settings=[{kp: 5e6, n_bin: 5}]"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None:
+        if (out / "results.json").is_file() and read_results_json(out / "results.json")["status"] == "running":
+            break
+        time.sleep(0.02)
+    time.sleep(0.5)  # inside the loop
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    res = read_results_json(out / "results.json")
+    assert res["status"] == "interrupted" and "SIGTERM" in res["error"]
+    assert (out / "traces.npz").is_file()
+    assert any((out / "tb").rglob("events.out.tfevents*"))
