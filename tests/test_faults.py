@@ -422,7 +422,7 @@ def test_sigterm_from_outside_cli(tmp_path):
     import time
 
     out = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "dvsland.cli.main", "simulate", "--estimator", "dpr",
+    proc = subprocess.Popen([sys.executable, "-m", "dvsland.cli.main", "simulate", "realistic", "--estimator", "dpr",
                              "--sites", "D", "--out", str(out), "--quiet", "--set", "logging.figures=false",
                              "--set", "controller.settings=[{kp: 5e6, n_bin: 5}]"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
