@@ -69,10 +69,10 @@ def test_stamp_feature_larger_than_patch_ladder():
 def test_render_narrow_fov(fov):
     from dvsland.render import get_renderer
 
-    cfg = _cfg(f"camera.fov_deg={fov}", "camera.width_px=16", "camera.height_px=16")
+    cfg = _cfg(f"camera.fov_deg={fov}")
     r = get_renderer("fast", ["A"], cfg.camera, cfg.render, "cpu")
-    f = r.render(torch.tensor([1000.0]), torch.tensor([0]))
-    assert f.shape == (1, 16, 16) and torch.isfinite(f).all()
+    f = r.render(torch.tensor([1000.0, 50.0]), torch.tensor([0, 0]))
+    assert f.shape == (2, 128, 128) and torch.isfinite(f).all()
 
 
 # ------------------------------------------------------------------ 3. memory bounds
