@@ -186,9 +186,12 @@ def check_config(cfg: Config, source: Optional[str] = None) -> Config:
 # The one validation path: YAML files, ``--set``, the CLI and the Python API all end here.
 # The checks below are semantic: they need several fields, or what the run will build from them.
 
-#: bytes per pixel per batch element the loop holds at once (emulator state in float64, frames,
-#: estimator count images and temporaries), measured order of magnitude, rounded up
-STATE_BYTES_PER_PX = 160
+#: peak bytes per camera pixel the simulator holds per site (renderer levels) and per descent
+#: (frames, emulator state in float64, estimator images), fitted to the peak RSS of
+#: ``dvsland simulate realistic`` for 1 s at 512 x 512 px: sites D (B = 2) 845 MiB, D-G (B = 8)
+#: 3096 MiB, i.e. about 3000 B/px per site with its two descents; rounded up, a rough bound
+SITE_BYTES_PER_PX = 2400
+STATE_BYTES_PER_PX = 300
 #: bytes per event at the emulator's peak (keys, sort, decoded Events)
 BYTES_PER_EVENT = 48
 
@@ -299,11 +302,13 @@ def memory_limit_bytes(cfg: Config) -> float:
 
 
 def estimate_run_bytes(cfg: Config) -> float:
-    """Rough peak memory of a simulation: per-pixel state of B elements plus one step's events, bytes."""
+    """Rough peak memory of a simulation, bytes: per-pixel state of every site and every descent,
+    plus one step's events at the cap (``emulator.max_events_per_step``)."""
+    n_sites = len({s.name for s in cfg.simulation.sites})
     B = len(cfg.simulation.sites) * len(cfg.controller.settings) * cfg.simulation.n_seeds
-    px = cfg.camera.width_px * cfg.camera.height_px
+    px = float(cfg.camera.width_px * cfg.camera.height_px)
     ev = getattr(cfg.emulator, "max_events_per_step", 0) or 0
-    return float(B) * px * STATE_BYTES_PER_PX + float(ev) * BYTES_PER_EVENT
+    return px * (n_sites * SITE_BYTES_PER_PX + B * STATE_BYTES_PER_PX) + float(ev) * BYTES_PER_EVENT
 
 
 def check_memory(cfg: Config, source: Optional[str] = None) -> None:
@@ -313,7 +318,8 @@ def check_memory(cfg: Config, source: Optional[str] = None) -> None:
         B = len(cfg.simulation.sites) * len(cfg.controller.settings) * cfg.simulation.n_seeds
         raise ConfigError(
             f"simulation.max_memory_gb{_where(source)}: this run needs about {need / 2 ** 30:.1f} GiB "
-            f"(B = {B} descents x {cfg.camera.width_px}x{cfg.camera.height_px} px x {STATE_BYTES_PER_PX} B/px, "
-            f"plus emulator.max_events_per_step = {getattr(cfg.emulator, 'max_events_per_step', 0)} x "
-            f"{BYTES_PER_EVENT} B), above the limit of {limit / 2 ** 30:.1f} GiB; use fewer sites, settings "
+            f"({cfg.camera.width_px}x{cfg.camera.height_px} px x ({SITE_BYTES_PER_PX} B per site + "
+            f"{STATE_BYTES_PER_PX} B per descent, B = {B}), plus emulator.max_events_per_step = "
+            f"{getattr(cfg.emulator, 'max_events_per_step', 0)} x {BYTES_PER_EVENT} B), above the limit of "
+            f"{limit / 2 ** 30:.1f} GiB; use fewer sites, settings "
             f"or seeds, a smaller camera, a lower emulator.max_events_per_step, or raise simulation.max_memory_gb")
