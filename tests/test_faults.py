@@ -95,11 +95,15 @@ def test_config_caps_flow_into_emulator():
     assert EventEmulator.from_config(cfg.emulator).max_events_per_step == 123
 
 
-def test_memory_estimate_refuses_huge_camera():
+def test_memory_estimate_refuses_huge_camera(tmp_path):
     """A 4096x4096 camera asked for 7.9 GB at set-up before anything checked."""
+    cfg = _cfg("camera.width_px=4096", "camera.height_px=4096", "simulation.max_memory_gb=4", root=tmp_path / "logs")
     with pytest.raises(ConfigError, match="max_memory_gb"):
-        _cfg("camera.width_px=4096", "camera.height_px=4096", "simulation.max_memory_gb=4")
-    _cfg("simulation.max_memory_gb=4")  # the paper experiment fits
+        dvsland.simulate(cfg, estimator="dpr", sites="D")
+    assert not (tmp_path / "logs").exists()  # refused before the run folder and the renderer
+    from dvsland.config.validate import check_memory
+
+    check_memory(_cfg("simulation.max_memory_gb=4"))  # the paper experiment fits
 
 
 # ------------------------------------------------------------------ 4. one validation path

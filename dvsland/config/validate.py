@@ -235,7 +235,6 @@ def check_run_semantics(cfg: Config, source: Optional[str] = None) -> None:
                           f"step (1 / camera.frame_rate_hz = {dt:g} s); allowed [{dt:g}, 1e6]")
     _check_labels(cfg, w)
     _check_estimator_sections(cfg, w)
-    check_memory(cfg, source)
 
 
 def check_run_name(name: str, what: str = "name") -> None:
@@ -301,21 +300,27 @@ def memory_limit_bytes(cfg: Config) -> float:
     return 0.8 * total
 
 
-def estimate_run_bytes(cfg: Config) -> float:
+def estimate_run_bytes(cfg: Config, n_sites: Optional[int] = None, batch_size: Optional[int] = None) -> float:
     """Rough peak memory of a simulation, bytes: per-pixel state of every site and every descent,
-    plus one step's events at the cap (``emulator.max_events_per_step``)."""
-    n_sites = len({s.name for s in cfg.simulation.sites})
-    B = len(cfg.simulation.sites) * len(cfg.controller.settings) * cfg.simulation.n_seeds
+    plus one step's events at the cap (``emulator.max_events_per_step``). ``n_sites`` and
+    ``batch_size`` default to the whole configured experiment."""
+    n_sites = len({s.name for s in cfg.simulation.sites}) if n_sites is None else int(n_sites)
+    B = (len(cfg.simulation.sites) * len(cfg.controller.settings) * cfg.simulation.n_seeds
+         if batch_size is None else int(batch_size))
     px = float(cfg.camera.width_px * cfg.camera.height_px)
     ev = getattr(cfg.emulator, "max_events_per_step", 0) or 0
     return px * (n_sites * SITE_BYTES_PER_PX + B * STATE_BYTES_PER_PX) + float(ev) * BYTES_PER_EVENT
 
 
-def check_memory(cfg: Config, source: Optional[str] = None) -> None:
-    """ConfigError when :func:`estimate_run_bytes` exceeds :func:`memory_limit_bytes`."""
-    need, limit = estimate_run_bytes(cfg), memory_limit_bytes(cfg)
+def check_memory(cfg: Config, n_sites: Optional[int] = None, batch_size: Optional[int] = None,
+                 source: Optional[str] = None) -> None:
+    """ConfigError when :func:`estimate_run_bytes` exceeds :func:`memory_limit_bytes`. The simulator
+    runs it on the batch it is about to build (after ``--sites``), before the run folder is made;
+    it depends on the machine, so loading a config does not."""
+    need, limit = estimate_run_bytes(cfg, n_sites, batch_size), memory_limit_bytes(cfg)
     if need > limit:
-        B = len(cfg.simulation.sites) * len(cfg.controller.settings) * cfg.simulation.n_seeds
+        B = (len(cfg.simulation.sites) * len(cfg.controller.settings) * cfg.simulation.n_seeds
+             if batch_size is None else int(batch_size))
         raise ConfigError(
             f"simulation.max_memory_gb{_where(source)}: this run needs about {need / 2 ** 30:.1f} GiB "
             f"({cfg.camera.width_px}x{cfg.camera.height_px} px x ({SITE_BYTES_PER_PX} B per site + "

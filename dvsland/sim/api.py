@@ -13,6 +13,7 @@ import torch
 
 from dvsland._version import __version__
 from dvsland.config import Config, load_config, validate_config
+from dvsland.config.validate import check_memory
 from dvsland.report import write_results_json, write_traces_npz
 from dvsland.runs import guarded_run, make_run_dir
 from dvsland.stages import build_stages, check_names
@@ -108,6 +109,7 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
     if cfg.simulation.torch_threads > 0:
         torch.set_num_threads(cfg.simulation.torch_threads)
     layout = build_layout(cfg, sites)
+    check_memory(cfg, len(layout.site_names), layout.batch_size)  # before anything large is allocated
     if estimator is None or isinstance(estimator, str):
         check_names(cfg)
     run_dir = make_run_dir(cfg, out)  # config.yaml first: a failing set-up still leaves it
