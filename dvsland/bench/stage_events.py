@@ -66,7 +66,7 @@ def calibrated_frames(B, H, W, n, target, device):
     omega = 0.1
     for _ in range(4):
         f = synthetic_frames(B, H, W, 6, omega, "cpu")
-        emu = EventEmulator()
+        emu = EventEmulator(max_events_per_step=None)  # measure the raw emulator: no cap
         emu.reset(f[0], 0)
         emu.step(f[1], DT_US)
         ev = sum(len(emu.step(f[k], k * DT_US)) for k in range(2, 6))  # steady state
@@ -90,7 +90,7 @@ def descent_frames(B, n, device, camera=None):
 def time_steps(frames, device, warmup=2, clock=time.perf_counter):
     """Interleaved timing of emulator steps and torch.log passes over the same frames."""
     n, B, H, W = frames.shape
-    emu = EventEmulator(device=device)
+    emu = EventEmulator(device=device, max_events_per_step=None)
     emu.reset(frames[0], 0)
     t_step, t_log, n_ev = [], [], []
     for k in range(1, n):
@@ -128,7 +128,7 @@ B, H, W, dev = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
 g = torch.Generator().manual_seed(0)
 f0 = (torch.rand(B, H, W, generator=g) * 0.9 + 0.1).to(dev)
 f1 = ((f0.double() + 1e-4) * torch.exp(torch.tensor(1.05, dtype=torch.float64)) - 1e-4).to(dev)
-emu = EventEmulator(device=dev)
+emu = EventEmulator(device=dev, max_events_per_step=None)
 emu.reset(f0, 0)
 state_bytes = sum(t.numel() * t.element_size() for t in (emu._lref, emu._l_prev, emu._t_last))
 def status_kib(key):
