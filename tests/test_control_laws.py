@@ -199,3 +199,25 @@ class TestGainMaths:
         assert div["loop_gain"].item() == pytest.approx(5e6 / (9e3 * 50.0))
         assert loop_gain_fields(object(), _t(1.0), _t(1.0)) == {"loop_gain": None, "loop_gain_kind": None,
                                                                  "gain_limit_altitude_m": None}
+
+
+def test_custom_controller_script_flies(tmp_path, capsys):
+    """scripts/custom_controller.py registers 'div_backoff' and flies it in the closed loop (oracle, D)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "custom_controller.py"
+    spec = importlib.util.spec_from_file_location("custom_controller", path)
+    mod = importlib.util.module_from_spec(spec)
+    try:
+        spec.loader.exec_module(mod)
+        assert "div_backoff" in available_controllers()
+        assert mod.main(["--sites", "D", "--quiet", "--out", str(tmp_path / "cc")]) == 0
+    finally:
+        _REGISTRY.pop("div_backoff", None)
+    out = capsys.readouterr().out
+    assert out.count("D/") == 2 and "success" in out
+    import json
+
+    runs = json.loads((tmp_path / "cc" / "results.json").read_text())["runs"]
+    assert all(r["controller"] == "div_backoff" and r["outcome"] == "success" for r in runs)
