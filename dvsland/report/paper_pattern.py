@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from importlib import resources
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 import numpy as np
 import yaml
@@ -115,7 +115,7 @@ def paper_pattern_chart(runs: List[dict], path, c2: float, success_altitude_m: f
     paper = load_paper_pattern()
     sites = [s for s in SITE_NAMES if any(r["site"] == s for r in runs)]
     labels = list(dict.fromkeys(r["label"] for r in runs))
-    fig, ax = plt.subplots(figsize=(9, 4.5))
+    fig, ax = plt.subplots(figsize=(10, 4.5))
     width = 0.8 / max(len(labels), 1)
     colours = {"reached": "tab:green", "late": "tab:orange", "early": "tab:red", "running": "tab:gray"}
     for j, lab in enumerate(labels):
@@ -147,7 +147,7 @@ def paper_pattern_chart(runs: List[dict], path, c2: float, success_altitude_m: f
 
     handles = [Patch(color=c, label=k) for k, c in colours.items() if k != "running"]
     handles.append(Patch(facecolor="w", edgecolor="k", label=" / ".join(labels)))
-    ax.legend(handles=handles, fontsize=7, loc="lower right")
+    ax.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.005, 1.0))
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
