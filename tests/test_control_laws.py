@@ -11,7 +11,7 @@ import torch
 from dvsland.config import ConfigError, load_config
 from dvsland.control import (ControlOutput, Controller, DescentParams, DivGSController, DivPController,
                              TauPController, available_controllers, critical_step_gain, div_loop_gain,
-                             gain_limit_altitude_m, get_controller, reference_speed, register_controller,
+                             gain_limit_altitude_m, get_controller, divergence_target, register_controller,
                              tau_loop_gain)
 from dvsland.control.gain import loop_gain_fields
 from dvsland.control.registry import _ENTRY_POINT_GROUP, _REGISTRY
@@ -76,35 +76,35 @@ class TestDivP:
 
 
 class TestDivGS:
-    def test_reference_branches_by_hand(self):
-        z0, v0 = _t(4000.0, 4000.0, 4000.0, 4000.0), _t(-100.0, -100.0, -100.0, -100.0)
-        z = _t(4000.0, 500.0, 70.0, 20.0)
-        speed, decel = reference_speed(z, z0, v0, 0.5, 1.0, 50.0, 1.5, 0.2)
-        # 4 km: v_p = 100, v_b = sqrt(1 + 3 * 3950) = 108.9, v_f = 791 -> paper branch, decel 0.5 v^2 / z
-        assert speed[0].item() == pytest.approx(100.0) and decel[0].item() == pytest.approx(0.5 * 1e4 / 4000)
-        # 500 m: v_p = 100 sqrt(1/8) = 35.36, v_b = sqrt(1 + 3 * 450) = 36.76 -> still paper
-        assert speed[1].item() == pytest.approx(100 * math.sqrt(500 / 4000))
-        # 70 m: v_p = 13.2, v_b = sqrt(61) = 7.81, v_f = 1 + 0.2 * 20 = 5 -> final approach, decel k v_f
-        assert speed[2].item() == pytest.approx(5.0) and decel[2].item() == pytest.approx(1.0)
-        # below z_land: keep sinking at v_land, no deceleration demanded
-        assert speed[3].item() == 1.0 and decel[3].item() == 0.0
+    def test_target_by_hand(self):
+        tau0 = _t(40.0, 40.0, 40.0)
+        # t = 0: D* = -1/40 (TTC part, coef 1 - c2); t = 60: tau* = 10 -> 1/10 > 0.03: final part (coef 1)
+        d_star, coef = divergence_target(_t(0.0, 60.0, 200.0), tau0, 0.5, 0.03)
+        assert d_star.tolist() == pytest.approx([-1 / 40.0, -0.03, -0.03]) and coef.tolist() == [0.5, 1.0, 1.0]
+        # the switch: 1/tau* = 0.03 at tau* = 33.3 s, t = (40 - 33.3) / 0.5 = 13.3 s
+        d_star, _ = divergence_target(_t(13.0, 13.7, 13.7), tau0, 0.5, 0.03)
+        assert d_star[0].item() == pytest.approx(-1 / 33.5) and d_star[1].item() == -0.03
 
     def test_law_by_hand(self):
-        ctl = DivGSController(_t(4000.0), _t(-100.0), 0.5, 1.62, lambda_per_s=0.5)
+        ctl = DivGSController(_t(40.0), 0.5, 1.62, lambda_per_s=0.5, d_final_per_s=0.03)
         z, m = _t(70.0), _t(9000.0)
-        d_f = _t(-6.0 / 70.0)  # sinking at 6 m/s where the profile wants 5 m/s
-        out = ctl(50.0, d_f, m, altitude_m=z)
-        expect = 9000 * (1.62 + 1.0) + 0.5 * 9000 * 70 * (-5 / 70 + 6 / 70)
+        d_f = _t(-0.04)  # approaching faster than the final 0.03 1/s
+        out = ctl(100.0, d_f, m, altitude_m=z)
+        expect = 9000 * (1.62 + 0.03 ** 2 * 70) + 0.5 * 9000 * 70 * (-0.03 + 0.04)
         assert out.thrust_n.item() == pytest.approx(expect)
-        assert out.tau_target_s.item() == pytest.approx(14.0)  # 70 m / 5 m/s
+        assert out.tau_target_s.item() == pytest.approx(1 / 0.03)
+        f = ctl.loop_gain_fields(m, z)
+        assert f["loop_gain"].item() == 0.5 and f["loop_gain_kind"] == "div"
 
     def test_needs_altitude(self):
-        ctl = DivGSController(_t(4000.0), _t(-100.0), 0.5, 1.62)
+        ctl = DivGSController(_t(40.0), 0.5, 1.62)
         assert ctl.needs_altitude
         with pytest.raises(ValueError, match="altitude_m"):
             ctl(0.0, _t(-0.025), _t(1e4))
         with pytest.raises(ValueError, match="lambda_per_s"):
-            DivGSController(_t(4000.0), _t(-100.0), 0.5, 1.62, lambda_per_s=0.0)
+            DivGSController(_t(40.0), 0.5, 1.62, lambda_per_s=0.0)
+        with pytest.raises(ValueError, match="d_final_per_s"):
+            DivGSController(_t(40.0), 0.5, 1.62, d_final_per_s=-1.0)
 
 
 class TestRegistry:

@@ -261,10 +261,8 @@ class DivGSConfig:
 
     lambda_per_s: float = opt(1.0, "divergence-loop rate lambda, 1/s (gain K = lambda m z_hat)",
                               rng=(0.0, 100.0), open_lo=True)
-    v_land_mps: float = opt(1.0, "target descent speed at z_land_m, m/s", rng=(0.0, 100.0), open_lo=True)
-    z_land_m: float = opt(50.0, "altitude where the profile reaches v_land, m", rng=(0.0, 1e5))
-    a_brake_mps2: float = opt(1.5, "deceleration of the braking curve, m/s^2", rng=(0.0, 100.0), open_lo=True)
-    k_final_per_s: float = opt(0.2, "rate of the final exponential approach, 1/s", rng=(0.0, 100.0), open_lo=True)
+    d_final_per_s: float = opt(0.03, "divergence of the final constant-divergence approach, 1/s (the speed "
+                               "at altitude z is then d_final z: 1.5 m/s at 50 m)", rng=(0.0, 10.0), open_lo=True)
 
 
 @dataclass

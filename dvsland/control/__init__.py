@@ -24,11 +24,11 @@ from .registry import (available_controllers, controller_class, get_controller, 
 from .target import initial_ttc, tau_target
 from .tau_p import TauPController
 from .div_p import DivPController  # noqa: E402 - registers 'div_p'
-from .div_gs import DivGSController, reference_speed  # noqa: E402 - registers 'div_gs'
+from .div_gs import DivGSController, divergence_target  # noqa: E402 - registers 'div_gs'
 from .factory import FILTER_NAMES, descent_params, filter_name, make_controller, make_filter  # noqa: E402
 
 __all__ = ["tau_target", "initial_ttc", "nan_moving_average", "MovingAverageFilter", "EfferenceFilter",
            "Controller", "ControlOutput", "DescentParams", "TauPController", "DivPController", "DivGSController",
-           "reference_speed", "register_controller", "available_controllers", "controller_class", "get_controller",
+           "divergence_target", "register_controller", "available_controllers", "controller_class", "get_controller",
            "refresh_entry_points", "make_controller", "make_filter", "descent_params", "filter_name",
            "FILTER_NAMES", "tau_loop_gain", "div_loop_gain", "critical_step_gain", "gain_limit_altitude_m"]
