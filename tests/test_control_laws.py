@@ -15,6 +15,7 @@ from dvsland.control import (ControlOutput, Controller, DescentParams, DivGSCont
                              tau_loop_gain)
 from dvsland.control.gain import loop_gain_fields
 from dvsland.control.registry import _ENTRY_POINT_GROUP, _REGISTRY
+from dvsland.stages import check_names
 
 F64 = torch.float64
 NAN = float("nan")
@@ -144,11 +145,12 @@ class TestRegistry:
             assert "test_const" in available_controllers()
             c = get_controller("test_const", DescentParams.simple(1.0, 1, 100.0, -1.0), thrust_n=7.0)
             assert c.u.tolist() == [7.0]
-            assert load_config(None, ["controller.name=test_const"]).controller.name == "test_const"
+            cfg = load_config(None, ["controller.name=test_const"])
+            check_names(cfg)  # names are checked where stages are built
         finally:
             _REGISTRY.pop("test_const", None)
         with pytest.raises(ConfigError, match=r"controller\.name.*unknown controller 'test_const'.*known"):
-            load_config(None, ["controller.name=test_const"])
+            check_names(cfg)
 
     def test_register_needs_from_params(self):
         with pytest.raises(TypeError, match="from_params"):

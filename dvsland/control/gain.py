@@ -26,7 +26,12 @@ Tensor = torch.Tensor
 
 
 def tau_loop_gain(kp, z0_m, v0_mps, mass_kg):
-    """lambda = Kp z0 / (m v0^2), 1/s (tau-space gain of Eq. 2). Tensors or floats, broadcast."""
+    """lambda = Kp z0 / (m v0^2), 1/s (tau-space gain of Eq. 2). Tensors or floats, broadcast
+    (the same formula as :func:`dvsland.dynamics.loop_gain`, which takes floats)."""
+    if not any(isinstance(x, Tensor) for x in (kp, z0_m, v0_mps, mass_kg)):
+        from dvsland.dynamics import loop_gain
+
+        return loop_gain(kp, z0_m, v0_mps, mass_kg)
     return kp * z0_m / (mass_kg * v0_mps ** 2)
 
 
