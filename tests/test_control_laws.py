@@ -223,3 +223,20 @@ def test_custom_controller_script_flies(tmp_path, capsys):
 
     runs = json.loads((tmp_path / "cc" / "results.json").read_text())["runs"]
     assert all(r["controller"] == "div_backoff" and r["outcome"] == "success" for r in runs)
+
+
+def test_cli_controller_flag(tmp_path, capsys):
+    from dvsland.cli.main import main
+
+    assert main(["simulate", "--controller", "nope", "--estimator", "oracle", "--sites", "D", "--quiet",
+                 "--out", str(tmp_path / "bad")]) == 2
+    assert "unknown controller 'nope'" in capsys.readouterr().err
+    assert main(["simulate", "paper_eq2", "--controller", "div_p", "--estimator", "oracle", "--sites", "D", "--quiet",
+                 "--set", "logging.figures=false", "--set", "logging.tensorboard=false",
+                 "--out", str(tmp_path / "ok")]) == 0
+    import json
+
+    res = json.loads((tmp_path / "ok" / "results.json").read_text())
+    assert {r["controller"] for r in res["runs"]} == {"div_p"}
+    assert {r["outcome"] for r in res["runs"]} == {"success"}
+    assert "controller:\n  name: div_p" in (tmp_path / "ok" / "config.yaml").read_text()
