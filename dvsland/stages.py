@@ -123,21 +123,15 @@ def available_controllers() -> list:
 
 
 def build_controller(cfg: Config, layout, device: Any = "cpu"):
-    """The configured controller for the elements of ``layout`` (a :class:`dvsland.sim.BatchLayout`:
-    per-element Kp and initial conditions). This is where a controller registry plugs in."""
-    import torch
-
-    from dvsland.control import TauPController, initial_ttc
+    """The configured controller (``controller.name`` with its options) for the elements of ``layout``
+    (a :class:`dvsland.sim.BatchLayout`: per-element Kp, n_bin and initial conditions), from the
+    controller registry (:func:`dvsland.control.make_controller`)."""
+    from dvsland.control import descent_params, make_controller
 
     if cfg.controller.name not in available_controllers():
         raise ConfigError(f"controller.name: unknown controller {cfg.controller.name!r}; "
                           f"known: {available_controllers()}")
-    f64 = torch.float64
-    c = cfg.controller
-    z0 = layout.tensor("z0_m", device, f64)
-    v0 = layout.tensor("v0_mps", device, f64)
-    return TauPController(layout.tensor("kp", device, f64), initial_ttc(z0, v0), c.c2, cfg.dynamics.g_mps2,
-                          c.thrust_min_n, c.thrust_max_n, c.missing_policy)
+    return make_controller(cfg, descent_params(cfg, layout, device))
 
 
 # ------------------------------------------------------------------ all of them

@@ -55,9 +55,12 @@ def test_paper_initial_conditions_written_once():
 def test_loop_gain_in_results_is_the_dynamics_one(tmp_path):
     from dvsland.sim import simulate
 
-    r = simulate(None, estimator="oracle", sites="D", quiet=True, out=tmp_path / "g",
+    # Eq. 2 (tau_p) reports the tau-space lambda of dynamics.loop_gain; configs/paper.yaml flies div_p,
+    # whose gain (Kp / (m z) at the end) comes from dvsland.control.gain
+    r = simulate("paper_eq2", estimator="oracle", sites="D", quiet=True, out=tmp_path / "g",
                  overrides=["logging.tensorboard=false", "logging.figures=false", "simulation.t_max_s=0.2"])
     run = r.runs[0]
+    assert run["loop_gain_kind"] == "tau"
     assert run["loop_gain"] == loop_gain(run["kp"], run["z0_m"], run["v0_mps"], 10000.0)
 
 

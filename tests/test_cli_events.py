@@ -63,7 +63,7 @@ def test_cli_events_bad_range(tmp_path, zoom_renderer, capsys):
 
 
 def test_frame_schedule_closed_form():
-    t_us, z = frame_schedule(load_config("paper"), "A", 1000.0, 800.0)  # z0 10 km, v0 -200 m/s, c2 0.5
+    t_us, z = frame_schedule(load_config("paper_eq2"), "A", 1000.0, 800.0)  # z0 10 km, v0 -200 m/s, c2 0.5 (paper.yaml: 0.25)
     # s = (z / z0)^c2, t = (s - 1) z0 / (c2 v0)
     t0 = ((1000 / 10000) ** 0.5 - 1) * 10000 / (0.5 * -200)
     assert t_us[0] == round(t0 * 1e6) and np.all(np.diff(t_us) == 100_000)

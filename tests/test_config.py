@@ -32,7 +32,25 @@ class TestLoad:
         assert cfg.dt_s == pytest.approx(0.1)
         d = cfg.estimator.dpr
         assert (d.n_max, d.n_min, d.radius_px, d.c_min, d.r_min_px, d.memory_ms) == (15, 15, 4.0, 3, 3.0, 500.0)
-        assert cfg.controller.c2 == 0.5 and cfg.dynamics.isp_s == 600.0 and cfg.dynamics.g_mps2 == 1.62
+        # the paper preset flies the released implementation's law and constants
+        assert cfg.controller.name == "div_p" and cfg.controller.c2 == 0.25 and not cfg.controller.div_p.feedforward_mg
+        assert cfg.dynamics.isp_s == 300.0 and cfg.dynamics.g_mps2 == 1.623 and cfg.dynamics.mass_kg == 1e4
+        assert cfg.dynamics.integrator == "euler" and cfg.controller.thrust_max_n is None
+        eq2 = load_config(paper_yaml.parent / "paper_eq2.yaml")  # Eq. 2 literal, the text's constants
+        assert eq2.controller.name == "tau_p" and eq2.controller.c2 == 0.5 and eq2.dynamics.isp_s == 600.0
+        assert eq2.dynamics.g_mps2 == 1.62 and eq2.dynamics.integrator == "exact"
+
+    def test_paper_yaml_says_where_each_number_comes_from(self, paper_yaml):
+        import re
+
+        section = None
+        for line in paper_yaml.read_text().splitlines():
+            if re.match(r"^[a-z]", line):
+                section = line.split(":")[0]
+                continue
+            body = line.split("#")[0]
+            if section in ("camera", "emulator", "controller", "dynamics") and re.search(r"[:{]\s*[-0-9.]", body):
+                assert re.search(r"paper text|released code|not in paper", line), line
 
     def test_paper_yaml_marks_numbers_not_in_paper(self, paper_yaml):
         text = paper_yaml.read_text()
@@ -212,8 +230,8 @@ class TestOverrides:
         assert d["simulation"]["sites"][0]["name"] == "A"
 
 
-def test_realistic_preset_is_paper_with_100kN(paper_yaml):
-    paper = load_config(paper_yaml)
+def test_realistic_preset_is_paper_eq2_with_100kN(paper_yaml):
+    paper = load_config(paper_yaml.parent / "paper_eq2.yaml")  # Eq. 2 literal (paper.yaml flies div_p now)
     real = load_config(paper_yaml.parent / "realistic.yaml")
     assert real.controller.thrust_max_n == 1e5 and paper.controller.thrust_max_n is None
     real.controller.thrust_max_n, real.name = None, paper.name

@@ -10,8 +10,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dvsland.dynamics import (LanderDynamics, LanderParams, closed_form_state, closed_form_thrust,
-                              closed_form_time_to_altitude, loop_gain, step_exact, step_substeps)
+from dvsland.dynamics import (INTEGRATORS, LanderDynamics, LanderParams, closed_form_state, closed_form_thrust,
+                              closed_form_time_to_altitude, loop_gain, step_euler, step_exact, step_substeps)
 
 F64 = torch.float64
 P = LanderParams()
@@ -108,7 +108,7 @@ class TestStepExact:
         with pytest.raises(ValueError, match="isp_s"):
             LanderParams(isp_s=0.0)
         with pytest.raises(ValueError, match="integrator"):
-            LanderDynamics(P, integrator="euler")
+            LanderDynamics(P, integrator="rk45")  # euler is a valid choice now
         with pytest.raises(ValueError, match="substeps"):
             step_substeps(_t(1.0), _t(-1.0), _t(1e4), _t(0.0), 0.1, P, substeps=0)
 
@@ -149,3 +149,57 @@ class TestClosedForm:
             closed_form_state([0.0], 1e4, -10.0, c2=1.5)
         with pytest.raises(ValueError, match="z_m"):
             closed_form_time_to_altitude(2e4, 1e4, -200.0)
+
+
+class TestIntegratorChoice:
+    """exact / euler / substeps against the rocket equation's closed form under a held thrust."""
+
+    @staticmethod
+    def _closed_form(t, z0, v0, m0, u, p=P):
+        ce = p.exhaust_velocity_mps
+        x = u * t / (ce * m0)
+        v = v0 - p.g_mps2 * t - ce * math.log1p(-x)
+        z = z0 + v0 * t - 0.5 * p.g_mps2 * t * t + ce * t * ((1 - x) * math.log1p(-x) + x) / x
+        return z, v, m0 - u * t / ce
+
+    def _fly(self, integrator, dt, t_end=20.0, u=3e4):
+        dyn = LanderDynamics(P, integrator, substeps=20)
+        z, v, m = _t(4000.0), _t(-100.0), _t(1e4)
+        for _ in range(int(round(t_end / dt))):
+            z, v, m, _b = dyn.step(z, v, m, _t(u), dt)
+        return z.item(), v.item(), m.item()
+
+    def test_against_closed_form(self):
+        z_cf, v_cf, m_cf = self._closed_form(20.0, 4000.0, -100.0, 1e4, 3e4)
+        z, v, m = self._fly("exact", 0.1)
+        assert z == pytest.approx(z_cf, abs=1e-6) and v == pytest.approx(v_cf, abs=1e-9) and m == pytest.approx(m_cf)
+        z, v, m = self._fly("substeps", 0.1)
+        assert z == pytest.approx(z_cf, abs=1e-6) and v == pytest.approx(v_cf, abs=1e-8)
+        z, v, m = self._fly("euler", 0.1)
+        assert m == pytest.approx(m_cf, abs=1e-9)  # the mass rate is constant: Euler is exact there
+        err_z, err_v = abs(z - z_cf), abs(v - v_cf)
+        assert 0.05 < err_z < 5.0 and 1e-4 < err_v < 0.1  # first order: visible, bounded
+
+    def test_euler_is_first_order(self):
+        z_cf, v_cf, _ = self._closed_form(20.0, 4000.0, -100.0, 1e4, 3e4)
+        e1 = abs(self._fly("euler", 0.1)[0] - z_cf)
+        e2 = abs(self._fly("euler", 0.05)[0] - z_cf)
+        assert e1 / e2 == pytest.approx(2.0, rel=0.05)
+
+    def test_euler_free_fall_by_hand(self):
+        z1, v1, m1, burn = step_euler(_t(1000.0), _t(-10.0), _t(5000.0), _t(0.0), 0.1, P)
+        assert z1.item() == pytest.approx(999.0) and v1.item() == pytest.approx(-10.162) and m1.item() == 5000.0
+        assert burn.item() == 0.0
+
+    def test_euler_burnout(self):
+        p = LanderParams(dry_mass_kg=9999.0)
+        ce = p.exhaust_velocity_mps
+        z1, v1, m1, burn = step_euler(_t(1000.0), _t(-10.0), _t(1e4), _t(1e5), 0.1, p)
+        t_burn = 1.0 * ce / 1e5  # 1 kg of fuel at 1e5 / ce kg/s
+        assert burn.item() == pytest.approx(t_burn) and m1.item() == pytest.approx(9999.0)
+        assert v1.item() == pytest.approx(-10.0 + 1e5 / 1e4 * t_burn - 1.62 * 0.1)
+
+    def test_unknown_integrator(self):
+        with pytest.raises(ValueError, match=r"integrator must be one of \['exact', 'euler', 'substeps'\]"):
+            LanderDynamics(P, "rk45")
+        assert INTEGRATORS == ("exact", "euler", "substeps")

@@ -1,4 +1,4 @@
-"""``dvsland simulate [CONFIG] [--estimator NAME] [--renderer fast|pyrender] [--sites A,B,...]
+"""``dvsland simulate [CONFIG] [--estimator NAME] [--controller NAME] [--renderer fast|pyrender] [--sites A,B,...]
 [--device cpu|cuda] [--out DIR] [--set key=value ...] [--quiet]``: fly the batched closed loop."""
 
 from __future__ import annotations
@@ -13,6 +13,8 @@ def register(subparsers) -> None:
                                           "and figures into the run folder.")
     add_config_args(p)
     p.add_argument("--estimator", default=None, metavar="NAME", help="divergence estimator (dpr, oracle, cmax, ...)")
+    p.add_argument("--controller", default=None, metavar="NAME",
+                   help="thrust law (tau_p, div_p, div_gs, or a registered name); sets controller.name")
     p.add_argument("--renderer", default=None, metavar="NAME",
                    help="scene renderer: fast, pyrender or a registered one (dvsland.render.available_renderers())")
     p.add_argument("--sites", default=None, metavar="A,B,...", help="fly only these configured sites")
@@ -23,7 +25,7 @@ def register(subparsers) -> None:
 def run_simulate(args) -> int:
     from dvsland.sim import simulate
 
-    cfg = config_from_args(args)
+    cfg = config_from_args(args, [f"controller.name={args.controller}"] if args.controller else [])
     try:
         result = simulate(cfg, sites=args.sites, out=args.out)
     except KeyboardInterrupt:

@@ -252,17 +252,61 @@ def _paper_settings():
 
 
 @dataclass
-class ControllerConfig:
-    """TTC tracking controller of Eq. 2: u = Kp (tau* - tau_hat) + m g, clamped."""
+class DivPConfig:
+    """Options of the ``div_p`` law (the paper's released implementation)."""
 
-    name: str = opt("tau_p", "controller law", choices=("tau_p",))
-    c2: float = opt(0.5, "c^2 in tau*(t) = tau0 - c^2 t", rng=(0.0, 1.0), open_lo=True, open_hi=True)
+    feedforward_mg: bool = opt(False, "add m g to u = Kp e (the released code: no)")
+
+
+@dataclass
+class DivGSConfig:
+    """Options of the ``div_gs`` law (gain scheduled on the efference-copy altitude; not in paper)."""
+
+    lambda_per_s: float = opt(1.0, "divergence-loop rate lambda, 1/s (gain K = lambda m z_hat)",
+                              rng=(0.0, 100.0), open_lo=True)
+    d_final_per_s: float = opt(0.03, "divergence of the final constant-divergence approach, 1/s (the speed "
+                               "at altitude z is then d_final z: 1.5 m/s at 50 m)", rng=(0.0, 10.0), open_lo=True)
+
+
+@dataclass
+class EfferenceConfig:
+    """Options of the ``efference`` filter: EKF on (z, v) fusing D_hat with the known thrust (not in paper)."""
+
+    prior_scale: float = opt(1.0, "initial guess = prior_scale x the nominal (z0, v0)", rng=(0.0, 100.0),
+                             open_lo=True)
+    prior_rel_sigma: float = opt(0.3, "relative std. dev. of the prior on z and v", rng=(0.0, 10.0), open_lo=True)
+    accel_sigma_mps2: float = opt(0.05, "absolute std. dev. of the known acceleration, m/s^2", rng=(0.0, 100.0))
+    accel_sigma_rel: float = opt(0.02, "relative std. dev. of the thrust acceleration u/m", rng=(0.0, 10.0))
+    meas_sigma_rel: float = opt(0.3, "relative std. dev. of one D_hat", rng=(0.0, 100.0))
+    meas_sigma_abs: float = opt(0.005, "absolute std. dev. of one D_hat, 1/s", rng=(0.0, 100.0), open_lo=True)
+    gate_sigma: float = opt(5.0, "reject an estimate further than this many std. dev. from the prediction",
+                            rng=(0.0, 1e6), open_lo=True)
+    min_altitude_m: float = opt(1.0, "lowest altitude estimate, m", rng=(0.0, 1e5), open_lo=True)
+
+
+@dataclass
+class ControllerConfig:
+    """The thrust law, its per-descent settings, its filter and bounds."""
+
+    name: str = opt("tau_p", "controller law: tau_p (Eq. 2 in tau-space), div_p (the paper's released code), "
+                    "div_gs (gain scheduled on the efference-copy altitude), or a registered name "
+                    "(see dvsland.control.available_controllers())")
+    c2: float = opt(0.5, "slope of the TTC target tau*(t) = tau0 - c2 t (the paper's text: c^2 = 0.5; "
+                    "its released code: c*c = 0.25)", rng=(0.0, 1.0), open_lo=True, open_hi=True)
     settings: list = opt(None, "controller settings flown for every site", factory=_paper_settings)
     thrust_min_n: float = opt(0.0, "lowest thrust, N (not in paper: an engine cannot pull)", rng=(0.0, 1e9))
     thrust_max_n: Optional[float] = opt(None, "highest thrust, N; null = unbounded (Eq. 2 as written; "
                                         "not in paper)", rng=(0.0, 1e12), open_lo=True)
-    missing_policy: str = opt("hold", "what to do when the filtered estimate is missing or has the "
-                              "wrong sign: hold the last thrust, or hover (m g)", choices=("hold", "hover"))
+    missing_policy: str = opt("hold", "what to do when the filtered estimate is missing (and, for tau_p, "
+                              "wrong-signed): hold the last thrust, or hover (m g)", choices=("hold", "hover"))
+    filter: str = opt("auto", "divergence filter: moving_average (mean of the last n_bin estimates), "
+                      "efference (EKF with the known thrust; gives an altitude estimate), auto (efference "
+                      "for a law that needs an altitude, else moving_average)",
+                      choices=("auto", "moving_average", "efference"))
+    div_p: DivPConfig = opt(None, "options of 'div_p'", factory=DivPConfig)
+    div_gs: DivGSConfig = opt(None, "options of 'div_gs'", factory=DivGSConfig)
+    efference: EfferenceConfig = opt(None, "options of the 'efference' filter", factory=EfferenceConfig)
+    params: dict = opt(None, "free-form keyword options for other (third-party) controllers", factory=dict)
 
 
 @dataclass
@@ -275,8 +319,9 @@ class DynamicsConfig:
     mass_kg: float = opt(10000.0, "initial mass, kg (not in paper)", rng=(0.0, 1e9), open_lo=True)
     dry_mass_kg: float = opt(1000.0, "dry mass: thrust ends when reached, kg (not in paper)",
                              rng=(0.0, 1e9), open_lo=True)
-    integrator: str = opt("exact", "zero-order-hold integration over a control step",
-                          choices=("exact", "substeps"))
+    integrator: str = opt("exact", "integration over a control step, thrust held: exact (rocket equation), "
+                          "euler (one explicit Euler step: the paper's released code), substeps (RK4)",
+                          choices=("exact", "euler", "substeps"))
     substeps: int = opt(100, "sub-steps per control step for integrator='substeps'", rng=(1, 100000))
 
 

@@ -1,12 +1,34 @@
-"""Control: the TTC target, the NaN-aware moving-average filter and thrust laws.
+"""Control: the TTC target, the divergence filters and the thrust laws, selected by name.
+
+Laws (``controller.name``): ``tau_p`` (paper Eq. 2 in tau-space), ``div_p`` (the paper's released
+implementation: proportional in divergence space), ``div_gs`` (gain scheduled on the
+efference-copy altitude, soft-landing profile); more with :func:`register_controller` or the
+``dvsland.controllers`` entry-point group. Filters (``controller.filter``): ``moving_average``
+(the paper's) and ``efference`` (EKF fusing D_hat with the known thrust).
 
 Public names: :func:`tau_target`, :func:`initial_ttc`, :func:`nan_moving_average`,
-:class:`MovingAverageFilter`, :class:`Controller`, :class:`ControlOutput`, :class:`TauPController`.
+:class:`MovingAverageFilter`, :class:`EfferenceFilter`, :class:`Controller`, :class:`ControlOutput`,
+:class:`DescentParams`, :class:`TauPController`, :class:`DivPController`, :class:`DivGSController`,
+:func:`register_controller`, :func:`available_controllers`, :func:`get_controller`,
+:func:`make_controller`, :func:`make_filter`, :func:`descent_params`, and the gain maths
+:func:`tau_loop_gain`, :func:`div_loop_gain`, :func:`critical_step_gain`, :func:`gain_limit_altitude_m`.
 """
 
+from .base import ControlOutput, Controller
+from .efference import EfferenceFilter
 from .filter import MovingAverageFilter, nan_moving_average
+from .gain import critical_step_gain, div_loop_gain, gain_limit_altitude_m, tau_loop_gain
+from .params import DescentParams
+from .registry import (available_controllers, controller_class, get_controller, refresh_entry_points,
+                       register_controller)
 from .target import initial_ttc, tau_target
-from .tau_p import ControlOutput, Controller, TauPController
+from .tau_p import TauPController
+from .div_p import DivPController  # noqa: E402 - registers 'div_p'
+from .div_gs import DivGSController, divergence_target  # noqa: E402 - registers 'div_gs'
+from .factory import FILTER_NAMES, descent_params, filter_name, make_controller, make_filter  # noqa: E402
 
-__all__ = ["tau_target", "initial_ttc", "nan_moving_average", "MovingAverageFilter", "Controller",
-           "ControlOutput", "TauPController"]
+__all__ = ["tau_target", "initial_ttc", "nan_moving_average", "MovingAverageFilter", "EfferenceFilter",
+           "Controller", "ControlOutput", "DescentParams", "TauPController", "DivPController", "DivGSController",
+           "divergence_target", "register_controller", "available_controllers", "controller_class", "get_controller",
+           "refresh_entry_points", "make_controller", "make_filter", "descent_params", "filter_name",
+           "FILTER_NAMES", "tau_loop_gain", "div_loop_gain", "critical_step_gain", "gain_limit_altitude_m"]

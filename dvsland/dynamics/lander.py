@@ -5,7 +5,8 @@
 z is up (z = 0 the surface), v < 0 while descending. Between control steps the thrust u is
 held (zero-order hold). :func:`step_exact` advances the state in closed form (rocket
 equation), splitting the step at burnout when the tank empties (mass never falls below the
-dry mass; after burnout the craft falls freely). :func:`step_substeps` integrates the same
+dry mass; after burnout the craft falls freely). :func:`step_euler` takes one explicit Euler
+step (the paper's released implementation). :func:`step_substeps` integrates the same
 ODE with classic RK4 sub-steps (a reference for the exact step, and a template for laws whose
 thrust is not held).
 """
@@ -18,6 +19,9 @@ from typing import Tuple
 import torch
 
 Tensor = torch.Tensor
+
+#: Integrator names of :class:`LanderDynamics` (``dynamics.integrator``).
+INTEGRATORS = ("exact", "euler", "substeps")
 
 
 @dataclass
@@ -149,18 +153,45 @@ def step_substeps(z_m: Tensor, v_mps: Tensor, m_kg: Tensor, thrust_n: Tensor, dt
     return z, v, m, burn
 
 
+def step_euler(z_m: Tensor, v_mps: Tensor, m_kg: Tensor, thrust_n: Tensor, dt_s: float,
+               params: LanderParams) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Advance by ``dt_s`` with one explicit Euler step (the paper's released implementation):
+
+        z += v dt,  v += (u/m - g) dt,  m -= u / (Isp g0) dt      (all rates at the start state)
+
+    First order: its error per step is O(dt^2) (about g dt^2 / 2 = 8 mm in z at dt = 0.1 s with
+    no thrust). Thrust is cut (0) where the mass is at or below the dry mass; the mass never
+    falls below it (the burn time is then shortened to what the fuel allowed).
+
+    Args and returns as :func:`step_exact`.
+    """
+    _check(z_m, v_mps, m_kg, thrust_n, dt_s)
+    dtype = torch.float64
+    z0, v0, m0 = z_m.to(dtype), v_mps.to(dtype), m_kg.to(dtype)
+    ce, g, dry = params.exhaust_velocity_mps, params.g_mps2, params.dry_mass_kg
+    u = torch.where(m0 > dry, thrust_n.to(dtype).clamp_min(0.0), 0.0)
+    fuel = (m0 - dry).clamp_min(0.0)
+    mdot = u / ce
+    burn = torch.where(mdot * dt_s <= fuel, dt_s, fuel / torch.where(mdot > 0, mdot, 1.0))
+    z1 = z0 + v0 * dt_s
+    v1 = v0 + (u / m0) * burn - g * dt_s
+    m1 = torch.maximum(m0 - mdot * burn, torch.minimum(m0, torch.full_like(m0, dry)))
+    return z1, v1, m1, torch.where(u > 0, burn, 0.0)
+
+
 class LanderDynamics:
     """Module form: ``dyn.step(z, v, m, thrust, dt_s)`` with the configured integrator.
 
     Args:
         params: :class:`LanderParams`.
-        integrator: ``"exact"`` (rocket equation, zero-order hold) or ``"substeps"`` (RK4).
+        integrator: ``"exact"`` (rocket equation, zero-order hold), ``"euler"`` (one explicit Euler
+            step, the paper's released code) or ``"substeps"`` (RK4).
         substeps: sub-steps per step for ``"substeps"``.
     """
 
     def __init__(self, params: LanderParams, integrator: str = "exact", substeps: int = 100):
-        if integrator not in ("exact", "substeps"):
-            raise ValueError(f"integrator must be 'exact' or 'substeps', got {integrator!r}")
+        if integrator not in INTEGRATORS:
+            raise ValueError(f"integrator must be one of {list(INTEGRATORS)}, got {integrator!r}")
         if int(substeps) < 1:
             raise ValueError(f"substeps must be >= 1, got {substeps}")
         self.params = params
@@ -176,4 +207,6 @@ class LanderDynamics:
         """See :func:`step_exact`; returns (z_m, v_mps, m_kg, burn_s)."""
         if self.integrator == "exact":
             return step_exact(z_m, v_mps, m_kg, thrust_n, dt_s, self.params)
+        if self.integrator == "euler":
+            return step_euler(z_m, v_mps, m_kg, thrust_n, dt_s, self.params)
         return step_substeps(z_m, v_mps, m_kg, thrust_n, dt_s, self.params, self.substeps)

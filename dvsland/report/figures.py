@@ -48,7 +48,8 @@ def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: f
     for a in ax:
         a.cla()
     title = f"{run.get('run', b)}  ({run['estimator']}): {run['outcome']} at {run['t_end_s']:.1f} s, " \
-            f"lowest {run['lowest_altitude_m']:.0f} m, loop gain {run['loop_gain']:.3g}"
+            f"lowest {run['lowest_altitude_m']:.0f} m, loop gain " \
+            f"{'-' if run.get('loop_gain') is None else format(run['loop_gain'], '.3g')}"
     fig.suptitle(title, fontsize=9)
     zc = vc = None
     if run.get("z0_m") and run.get("v0_mps", 0) < 0:

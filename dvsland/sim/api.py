@@ -85,7 +85,8 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
         overrides: ``section.key=value`` strings applied to a config file.
         on_step: optional callable ``f(loop)`` after every step (tests, custom logging).
         sync_timers: synchronise CUDA around the per-stage timers (profiling).
-        controller: optional :class:`dvsland.control.Controller` instance for the B elements
+        controller: a controller name (sets ``controller.name``) or a :class:`dvsland.control.Controller`
+            instance for the B elements
             (element order: see :func:`dvsland.sim.build_layout`), replacing the configured law.
         callbacks: more callbacks (:mod:`dvsland.sim.callbacks`), called after the built-in ones.
 
@@ -105,6 +106,8 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
             callable(getattr(estimator, "update", None)) and callable(getattr(estimator, "reset", None))):
         raise ValueError(f"estimator must be a name or an estimator instance (with update and reset), "
                          f"got {type(estimator).__name__}")
+    if isinstance(controller, str):  # a law by name (like estimator=): sets controller.name
+        cfg.controller.name, controller = controller, None
     dev = _device(cfg.simulation.device)
     if cfg.simulation.torch_threads > 0:
         torch.set_num_threads(cfg.simulation.torch_threads)

@@ -116,6 +116,11 @@ class FiguresCallback(Callback):
         t0 = time.perf_counter()
         write_figures(self.run_dir, result.runs, result.traces, self.cfg.controller.c2,
                       self.cfg.simulation.success_altitude_m)
+        from dvsland.report import paper_pattern
+
+        if paper_pattern.applies(result.runs):  # the paper's nine sites: its Fig. 7 pattern beside this run's
+            paper_pattern.paper_pattern_chart(result.runs, self.run_dir / "figures" / "paper_pattern.png",
+                                              self.cfg.controller.c2, self.cfg.simulation.success_altitude_m)
         result.timings_s["figures"] = time.perf_counter() - t0
 
 
@@ -130,6 +135,10 @@ class SummaryCallback(Callback):
 
         runs = result.runs
         print(format_table(runs))
+        from dvsland.report import paper_pattern
+
+        if paper_pattern.applies(runs):  # the paper's nine sites: its reported pattern beside this run's
+            print(paper_pattern.format_comparison(runs, self.cfg.controller.c2, self.cfg.simulation.success_altitude_m))
         held = [r for r in runs if r["held_steps"]]
         if held:
             policy = self.cfg.controller.missing_policy

@@ -17,8 +17,9 @@ import numpy as np
 import torch
 
 from dvsland.config import Config
-from dvsland.control import MovingAverageFilter
-from dvsland.dynamics import LanderDynamics, loop_gain
+from dvsland.control import descent_params, make_filter
+from dvsland.control.gain import loop_gain_fields
+from dvsland.dynamics import LanderDynamics
 from dvsland.estimators import Truth
 
 from .batch import BatchLayout
@@ -85,7 +86,7 @@ class ClosedLoop:
         device: torch device of the state.
         sync_timers: synchronise CUDA around stage timers (profiling only).
         controller: optional :class:`dvsland.control.Controller` for the B elements, replacing
-            the configured Eq. 2 law (it gets the filtered divergence, see ``Controller``).
+            the configured law ``controller.name`` (it gets the filtered divergence, see ``Controller``).
     """
 
     def __init__(self, cfg: Config, layout: BatchLayout, estimator, renderer=None, emulator=None,
@@ -110,12 +111,14 @@ class ClosedLoop:
         self.m0_kg = torch.full((B,), float(cfg.dynamics.mass_kg), dtype=f64, device=dev)
         self.kp = layout.tensor("kp", dev, f64)
         self.dynamics = LanderDynamics.from_config(cfg.dynamics)
-        self.filter = MovingAverageFilter(layout.tensor("n_bin", dev, torch.int64), device=dev)
+        self.params = descent_params(cfg, layout, dev)
         if controller is None:
             from dvsland.stages import build_controller
 
             controller = build_controller(cfg, layout, dev)
         self.controller = controller
+        self.filter = make_filter(cfg, self.params, controller)
+        self._needs_altitude = bool(getattr(controller, "needs_altitude", False))
         sim = cfg.simulation
         self.n_steps_max = int(math.ceil(sim.t_max_s / self.dt_s - 1e-9))
         self.traces = TraceRecorder(self.n_steps_max + 1, B, dev)
@@ -138,6 +141,8 @@ class ClosedLoop:
         self.n_missing = torch.zeros(B, dtype=torch.int64, device=dev)
         self.n_sanitised = torch.zeros(B, dtype=torch.int64, device=dev)
         self.n_positive = torch.zeros(B, dtype=torch.int64, device=dev)
+        self.last_thrust_n: Optional[torch.Tensor] = None  # efference copy: the command held over the last step
+        self.last_mass_kg: Optional[torch.Tensor] = None
         self.step_index = 0
         self.estimator.reset(None)
         self.filter.reset(None)
@@ -194,8 +199,17 @@ class ClosedLoop:
             self.n_sanitised += (bad & self.active).to(torch.int64)
             self.n_positive += ((d_hat > 0) & self.active).to(torch.int64)
         with tm("control"):
-            d_f, n_used = self.filter.update(d_hat, mask=self.active)
-            ctl = self.controller(t_s, d_f, self.m_kg, self.active)
+            accel = thrust_accel = None
+            if self.last_thrust_n is not None:  # the craft knows the acceleration it applied
+                thrust_accel = self.last_thrust_n / self.last_mass_kg
+                accel = thrust_accel - float(self.cfg.dynamics.g_mps2)
+            d_f, n_used = self.filter.update(d_hat, mask=self.active, accel_mps2=accel,
+                                             thrust_accel_mps2=thrust_accel)
+            z_hat = getattr(self.filter, "altitude_m", None)
+            if self._needs_altitude:
+                ctl = self.controller(t_s, d_f, self.m_kg, self.active, altitude_m=z_hat)
+            else:
+                ctl = self.controller(t_s, d_f, self.m_kg, self.active)
             thrust = torch.where(self.active, ctl.thrust_n, torch.zeros_like(ctl.thrust_n))
             held = ctl.held & self.active
             self.n_held += held.to(torch.int64)
@@ -204,8 +218,10 @@ class ClosedLoop:
             self.traces.record(k, t_s=t_s, z_m=self.z_m, v_mps=self.v_mps, m_kg=self.m_kg, thrust_n=thrust,
                                d_true=truth.divergence, d_est=d_hat, d_filtered=d_f,
                                tau_target_s=ctl.tau_target_s, tau_hat_s=ctl.tau_hat_s,
-                               n_used=n_used.to(torch.float64), active=self.active, held=held)
+                               n_used=n_used.to(torch.float64), active=self.active, held=held,
+                               **({} if z_hat is None else {"z_est_m": z_hat}))
         with tm("dynamics"):
+            self.last_thrust_n, self.last_mass_kg = thrust, self.m_kg
             z, v, m, _ = self.dynamics.step(self.z_m, self.v_mps, self.m_kg, thrust, dt)
             act = self.active
             self.z_m = torch.where(act, z, self.z_m)
@@ -246,16 +262,18 @@ class ClosedLoop:
         held, miss = self.n_held.cpu().numpy(), self.n_missing.cpu().numpy()
         san, pos = self.n_sanitised.cpu().numpy(), self.n_positive.cpu().numpy()
         m0 = float(cfg.dynamics.mass_kg)
+        gains = loop_gain_fields(self.controller, self.m_kg, self.z_m)
         runs = []
         for b in range(self.B):
             runs.append({
                 "run": L.run_label[b], "site": L.site[b], "label": L.label[b], "kp": float(L.kp[b]),
                 "n_bin": int(L.n_bin[b]), "seed": int(L.seed[b]), "seed_index": int(L.seed_idx[b]),
-                "estimator": cfg.estimator.name, "outcome": OUTCOMES[int(outcome[b])],
+                "estimator": cfg.estimator.name, "controller": getattr(self.controller, "controller_name",
+                                                                    type(self.controller).__name__), "filter": type(self.filter).__name__, "outcome": OUTCOMES[int(outcome[b])],
                 "t_end_s": round(float(t_end[b]), 6), "z_end_m": float(z[b]), "v_end_mps": float(v[b]),
                 "lowest_altitude_m": float(low[b]), "fuel_used_kg": float(m0 - m[b]),
                 "max_thrust_n": float(umax[b]),
-                "loop_gain": loop_gain(L.kp[b], L.z0_m[b], L.v0_mps[b], m0),
+                **{k: (val if val is None or isinstance(val, str) else float(val[b])) for k, val in gains.items()},
                 "z0_m": float(L.z0_m[b]), "v0_mps": float(L.v0_mps[b]),
                 "held_steps": int(held[b]), "missing_estimates": int(miss[b]),
                 "sanitised_estimates": int(san[b]), "positive_estimates": int(pos[b]),

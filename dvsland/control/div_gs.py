@@ -1,0 +1,117 @@
+"""A divergence law past the paper (controller ``div_gs``): the gain is scheduled on the
+efference-copy altitude estimate, and the target ends in a slow constant-divergence approach.
+
+The released law u = Kp (D* - D) has loop gain Kp / (m z): sluggish high up, past the sampled
+loop's stability limit near the ground (:mod:`dvsland.control.gain`). With an altitude estimate
+z_hat from the efference-copy filter (:class:`~dvsland.control.EfferenceFilter`) the gain can be
+scheduled, K = lambda m z_hat, so that the divergence loop has the same rate ``lambda`` at every
+altitude:
+
+    u = m (g + a_ref) + lambda m z_hat (D*(t) - D_filtered),  clamped to [thrust_min, thrust_max]
+
+The target follows the paper's TTC profile until its divergence reaches ``d_final_per_s``, then
+holds that divergence (an exponential approach, v = -d_final z):
+
+    D*(t) = -min(1 / tau*(t), d_final),   tau*(t) = tau0 - c2 t
+
+so the speed at the success altitude z_s is d_final z_s (0.03 1/s x 50 m = 1.5 m/s) whatever the
+altitude estimate says: z_hat only scales the gain and the feed-forward a_ref (the deceleration
+the target needs: (1 - c2) D*^2 z_hat on the TTC part, D*^2 z_hat on the constant-divergence part).
+The constant-TTC-decrease descent alone reaches 50 m at 11-14 m/s on the paper's sites. A
+missing filtered estimate holds the last thrust (or hovers).
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from .base import ControlOutput, Controller, HoldLast, check_bounds
+from .registry import register_controller
+
+Tensor = torch.Tensor
+
+
+def divergence_target(t_s, tau0_s: Tensor, c2: float, d_final_per_s: float):
+    """Target of ``div_gs`` and the deceleration coefficient of its phase.
+
+    Args:
+        t_s: flight time, s (float or (B,)).
+        tau0_s: (B,) float64 initial TTC, s.
+        c2: slope of tau*(t) = tau0 - c2 t.
+        d_final_per_s: divergence of the final approach, 1/s (> 0).
+
+    Returns:
+        (d_star (B,) float64 < 0, 1/s; coef (B,) float64: a_ref = coef d_star^2 z, i.e. 1 - c2 on the
+        TTC part and 1 on the constant-divergence part).
+    """
+    tau_star = tau0_s - c2 * t_s
+    inv = torch.where(tau_star > 0, 1.0 / tau_star.clamp_min(1e-9), float("inf"))
+    final = inv >= d_final_per_s
+    d_star = -torch.where(final, torch.full_like(inv, d_final_per_s), inv)
+    coef = torch.where(final, 1.0, 1.0 - c2)
+    return d_star, coef
+
+
+@register_controller("div_gs")
+class DivGSController(Controller):
+    """Gain-scheduled divergence law (needs the filter's altitude estimate).
+
+    Args:
+        tau0_s: (B,) float64 initial TTC z0/|v0|, s.
+        c2: slope of the TTC target.
+        g_mps2: gravity, m/s^2.
+        thrust_min_n, thrust_max_n, missing_policy: as for ``tau_p``.
+        lambda_per_s: divergence-loop rate, 1/s (> 0; lambda dt well below 2).
+        d_final_per_s: divergence of the final approach, 1/s (> 0): the speed at altitude z is
+            then d_final z.
+    """
+
+    needs_altitude = True
+
+    def __init__(self, tau0_s: Tensor, c2: float, g_mps2: float, thrust_min_n: float = 0.0,
+                 thrust_max_n: Optional[float] = None, missing_policy: str = "hold", lambda_per_s: float = 1.0,
+                 d_final_per_s: float = 0.03):
+        check_bounds(thrust_min_n, thrust_max_n, missing_policy)
+        for name, val in (("lambda_per_s", lambda_per_s), ("d_final_per_s", d_final_per_s)):
+            if not val > 0:
+                raise ValueError(f"{name} must be > 0, got {val}")
+        if not 0 < c2 < 1:
+            raise ValueError(f"c2 must be in (0, 1), got {c2}")
+        self.tau0_s = torch.as_tensor(tau0_s, dtype=torch.float64)
+        self.c2, self.g_mps2 = float(c2), float(g_mps2)
+        self.missing_policy = missing_policy
+        self.lambda_per_s, self.d_final_per_s = float(lambda_per_s), float(d_final_per_s)
+        self._mem = HoldLast(thrust_min_n, thrust_max_n)
+
+    @classmethod
+    def from_params(cls, p, **options) -> "DivGSController":
+        """From the loop's :class:`~dvsland.control.DescentParams` and the ``controller.div_gs`` options
+        (the settings' Kp is not used: the gain is lambda m z_hat)."""
+        return cls(p.tau0_s, p.c2, p.g_mps2, p.thrust_min_n, p.thrust_max_n, p.missing_policy, **options)
+
+    def reset(self, mask: Optional[Tensor] = None) -> None:
+        self._mem.reset(mask)
+
+    def loop_gain_fields(self, m_kg: Tensor, z_m: Tensor) -> dict:
+        """The scheduled divergence-loop gain is lambda at every altitude: it never crosses the limit."""
+        return {"loop_gain": torch.full_like(m_kg, self.lambda_per_s), "loop_gain_kind": "div"}
+
+    def __call__(self, t_s, d_filtered: Tensor, mass_kg: Tensor, active: Optional[Tensor] = None,
+                 altitude_m: Optional[Tensor] = None) -> ControlOutput:
+        if altitude_m is None:
+            raise ValueError("controller 'div_gs' needs altitude_m (use the 'efference' filter)")
+        d = d_filtered.to(torch.float64)
+        m = mass_kg.to(torch.float64)
+        mg = m * self.g_mps2
+        z = altitude_m.to(torch.float64).clamp_min(1.0)
+        d_star, coef = divergence_target(t_s, self.tau0_s, self.c2, self.d_final_per_s)
+        usable = ~torch.isnan(d)
+        a_ref = coef * d_star * d_star * z
+        u = m * (self.g_mps2 + a_ref) + self.lambda_per_s * m * z * (d_star - torch.where(usable, d, 0.0))
+        u = self._mem.clamp(u)
+        self._mem.before(mg)
+        thrust = self._mem.finish(usable, u, mg, self.missing_policy, active)
+        tau_hat = torch.where(d < 0, -1.0 / d, float("nan"))
+        return ControlOutput(thrust_n=thrust, tau_hat_s=tau_hat, tau_target_s=-1.0 / d_star, held=~usable)

@@ -1,0 +1,94 @@
+"""The law the paper's released implementation flies (controller ``div_p``): proportional
+control in divergence space.
+
+    e = D*(t) - mean(last n_bin D_hat),   D*(t) = -1 / tau*(t),   tau*(t) = tau0 - c2 t
+    u = Kp e  (+ m g with ``feedforward_mg``),  clamped to [thrust_min, thrust_max]
+
+With the released code's constants there is no m g term, negative u becomes 0 and no upper
+bound is applied. The mean of the last n_bin estimates is the loop's filter output
+(``d_filtered``). Its loop gain is Kp / (m z) (see :mod:`dvsland.control.gain`).
+
+A missing filtered estimate (NaN) triggers ``missing_policy`` (hold the last thrust, or hover);
+a non-negative D is used as it is (the error is then negative and the thrust drops to the
+lower bound). Past t = tau0 / c2 the target tau* is <= 0 and -1/tau* changes sign, as in the
+formula; descents end long before that in practice.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from .base import ControlOutput, Controller, HoldLast, check_bounds
+from .gain import div_loop_gain, gain_limit_altitude_m
+from .registry import register_controller
+
+Tensor = torch.Tensor
+
+
+@register_controller("div_p")
+class DivPController(Controller):
+    """u = Kp (-1/tau*(t) - D_filtered) [+ m g], batched with per-element gains.
+
+    Args:
+        kp: (B,) float64 gains Kp, N s (thrust per unit divergence error, 1/s).
+        tau0_s: (B,) float64 initial TTC z0/|v0|, s.
+        c2: slope of tau*(t) = tau0 - c2 t (released code: c*c = 0.25 with c = 0.5).
+        g_mps2: gravity, m/s^2.
+        thrust_min_n: lower clamp, N (>= 0; the released code: 0).
+        thrust_max_n: upper clamp, N, or None (the released code: none applied).
+        missing_policy: ``"hold"`` or ``"hover"`` when the filtered D is NaN.
+        feedforward_mg: add m g to the command (the released code: no).
+        n_bin: optional (B,) int filter lengths, for the reported stability altitude.
+        dt_s: control interval, s (for the reported stability altitude).
+    """
+
+    def __init__(self, kp: Tensor, tau0_s: Tensor, c2: float, g_mps2: float, thrust_min_n: float = 0.0,
+                 thrust_max_n: Optional[float] = None, missing_policy: str = "hold", feedforward_mg: bool = False,
+                 n_bin: Optional[Tensor] = None, dt_s: float = 0.1):
+        check_bounds(thrust_min_n, thrust_max_n, missing_policy)
+        if not 0 < c2 < 1:
+            raise ValueError(f"c2 must be in (0, 1), got {c2}")
+        self.kp = torch.as_tensor(kp, dtype=torch.float64)
+        if bool((self.kp <= 0).any()):
+            raise ValueError("kp must be > 0 for every element")
+        self.tau0_s = torch.as_tensor(tau0_s, dtype=torch.float64, device=self.kp.device)
+        self.c2, self.g_mps2 = float(c2), float(g_mps2)
+        self.missing_policy = missing_policy
+        self.feedforward_mg = bool(feedforward_mg)
+        self.n_bin = n_bin
+        self.dt_s = float(dt_s)
+        self._mem = HoldLast(thrust_min_n, thrust_max_n)
+
+    @classmethod
+    def from_params(cls, p, feedforward_mg: bool = False) -> "DivPController":
+        """From the loop's :class:`~dvsland.control.DescentParams`; option ``feedforward_mg``."""
+        return cls(p.kp, p.tau0_s, p.c2, p.g_mps2, p.thrust_min_n, p.thrust_max_n, p.missing_policy,
+                   feedforward_mg=feedforward_mg, n_bin=p.n_bin, dt_s=p.dt_s)
+
+    def reset(self, mask: Optional[Tensor] = None) -> None:
+        self._mem.reset(mask)
+
+    def loop_gain_fields(self, m_kg: Tensor, z_m: Tensor) -> dict:
+        """Kp / (m z) at the given (final) state, and the altitude where Kp / (m z) dt crosses the
+        sampled loop's limit g_crit(n_bin) (no estimator lag counted)."""
+        out = {"loop_gain": div_loop_gain(self.kp, m_kg, z_m.clamp_min(1e-9)), "loop_gain_kind": "div"}
+        if self.n_bin is not None:
+            out["gain_limit_altitude_m"] = gain_limit_altitude_m(self.kp, m_kg, self.dt_s, self.n_bin)
+        return out
+
+    def __call__(self, t_s, d_filtered: Tensor, mass_kg: Tensor, active: Optional[Tensor] = None) -> ControlOutput:
+        d = d_filtered.to(torch.float64)
+        mg = mass_kg.to(torch.float64) * self.g_mps2
+        tau_star = self.tau0_s - self.c2 * t_s
+        usable = ~torch.isnan(d)
+        e = -1.0 / tau_star - torch.where(usable, d, 0.0)
+        u = self.kp * e
+        if self.feedforward_mg:
+            u = u + mg
+        u = self._mem.clamp(torch.nan_to_num(u, nan=0.0))
+        self._mem.before(mg)
+        thrust = self._mem.finish(usable, u, mg, self.missing_policy, active)
+        tau_hat = torch.where(d < 0, -1.0 / d, float("nan"))
+        return ControlOutput(thrust_n=thrust, tau_hat_s=tau_hat, tau_target_s=tau_star, held=~usable)
