@@ -188,17 +188,40 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
         layout = build_layout(cfg, sites)
     B = layout.batch_size
     if estimator is None:
-        est = build_estimator(cfg, B, device)
+        est = build_estimator(cfg, B, device, seed=layout.noise_seed)
     else:
         est = estimator
         if getattr(est, "batch_size", B) != B:
             raise ValueError(f"estimator instance is for batch_size={est.batch_size}, the batch has B={B}")
     events = None
     if getattr(est, "needs_events", True):
-        events = build_event_source(cfg, layout.site_names, device, renderer)
+        kw = _dispersed_scene_kwargs(cfg, layout, renderer)
+        names = kw.pop("site_names", layout.site_names)  # dispersed scenes: their sites (variants)
+        events = build_event_source(cfg, names, device, renderer, seed=layout.noise_seed, **kw)
+        if layout.sensor or layout.dispersed:  # a Monte Carlo batch: per-element sensor values
+            events.emulator.set_element_params(element_seeds=layout.seed, **layout.sensor)
     if controller is None:
         controller = build_controller(cfg, layout, device)
     return Stages(layout, est, events, controller)
+
+
+def _dispersed_scene_kwargs(cfg: Config, layout, renderer) -> dict:
+    """Renderer arguments of a batch with dispersed scenes (:mod:`dvsland.sim.dispersion`): its
+    scenes' sites (variants), suns and altitude ranges (lazy levels of the fast renderer)."""
+    if not layout.scenes_dispersed or not (renderer is None or isinstance(renderer, str)):
+        return {}
+    name = renderer or cfg.render.renderer
+    kw = {"site_names": list(layout.scene_site)}
+    if name != "fast":
+        if any(sun != (None, 0.0) for sun in layout.scene_sun):
+            raise ValueError("dispersion.sun_elevation_deg / sun_azimuth_offset_deg need render.renderer='fast'")
+        return kw
+    import numpy as np
+
+    top = [float(np.max(layout.z0_m[layout.scene_idx == i])) for i in range(len(layout.scene_names))]
+    kw.update(suns=list(layout.scene_sun),
+              altitude_ranges=[(cfg.simulation.success_altitude_m, z) for z in top])
+    return kw
 
 
 #: ``f(altitude_m (B,), site_idx (B,) int64) -> (B, H, W)`` float32 frames (torch tensors)

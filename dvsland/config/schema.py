@@ -342,11 +342,63 @@ class SimulationConfig:
     success_altitude_m: float = opt(50.0, "success when altitude <= this, m", rng=(0.0, 1e5))
     crash_divergence: float = opt(0.5, "crash when |D| = -v/z >= this, 1/s", rng=(0.0, 1e3), open_lo=True)
     device: str = opt("cpu", "torch device ('cpu', 'cuda', 'cuda:0', ...)")
+    seed_offset: int = opt(0, "first seed index of this batch: seeds seed_offset .. seed_offset + n_seeds - 1 "
+                           "(a campaign shard); dispersion draws depend on the seed index, not the batch",
+                           rng=(0, 2**62))
     torch_threads: int = opt(1, "torch CPU threads set for the run; 0 = leave torch's default (1 measured "
                              "fastest on 2 cores: the per-step ops are small)", rng=(0, 1024))
     max_memory_gb: float = opt(0.0, "refuse a run whose estimated peak memory (per-pixel state of every "
                                "descent plus emulator.max_events_per_step events) exceeds this, GiB; 0 = 80 % "
                                "of this machine's memory (not in paper)", rng=(0.0, 1e6))
+
+
+@dataclass
+class Dispersion:
+    """One dispersed parameter: off (the config's nominal value), fixed, uniform on [low, high],
+    or normal (mean, std) clipped to [low, high]. Drawn per (site, seed index); see
+    :mod:`dvsland.sim.dispersion`."""
+
+    kind: str = opt("off", "distribution", choices=("off", "fixed", "uniform", "normal"))
+    value: float = opt(0.0, "the value of 'fixed'")
+    low: float = opt(0.0, "lower bound of 'uniform'; clip bound of 'normal'")
+    high: float = opt(0.0, "upper bound of 'uniform'; clip bound of 'normal'")
+    mean: float = opt(0.0, "mean of 'normal'")
+    std: float = opt(0.0, "standard deviation of 'normal'", rng=(0.0, INF))
+
+
+#: allowed range of each dispersed parameter's draws (checked on low/high/value/mean)
+DISPERSION_RANGES = {
+    "z0_scale": (0.05, 20.0), "v0_scale": (0.05, 20.0), "sun_elevation_deg": (1.0, 90.0),
+    "sun_azimuth_offset_deg": (-360.0, 360.0), "threshold_scale": (0.01, 100.0),
+    "mismatch_sigma": (0.0, 1.0), "background_rate_hz": (0.0, 1e4), "refractory_us": (0.0, 1e7),
+}
+
+
+@dataclass
+class DispersionConfig:
+    """Per-seed dispersions of a Monte Carlo batch (not in paper). ``enabled: false`` (the
+    default) switches all of them off: every seed then flies the nominal experiment."""
+
+    enabled: bool = opt(False, "master switch of every dispersion below")
+    terrain_variants: int = opt(0, "scene: seed k flies terrain realisation k mod N of its site (0 = the shipped "
+                                "terrain, j = variant '<site>~j', the same statistics drawn anew); 0 or 1 = off",
+                                rng=(0, 1000))
+    sun_elevation_deg: Dispersion = opt(None, "scene: sun elevation, degrees (replaces the site's)",
+                                        factory=Dispersion)
+    sun_azimuth_offset_deg: Dispersion = opt(None, "scene: added to the site's sun azimuth, degrees",
+                                             factory=Dispersion)
+    sun_step_deg: float = opt(1.0, "scene: sun angles are rounded to this step so that seeds share prepared "
+                              "scenes (each distinct scene costs one terrain preparation)", rng=(0.01, 90.0))
+    z0_scale: Dispersion = opt(None, "flight: factor on the site's initial altitude z0_m", factory=Dispersion)
+    v0_scale: Dispersion = opt(None, "flight: factor on the site's initial velocity v0_mps", factory=Dispersion)
+    threshold_scale: Dispersion = opt(None, "sensor: factor on the ON and OFF contrast thresholds",
+                                      factory=Dispersion)
+    mismatch_sigma: Dispersion = opt(None, "sensor: per-pixel threshold mismatch std. dev. (relative), "
+                                     "replaces emulator.mismatch_sigma", factory=Dispersion)
+    background_rate_hz: Dispersion = opt(None, "sensor: background events per pixel per second, replaces "
+                                         "emulator.background_rate_hz", factory=Dispersion)
+    refractory_us: Dispersion = opt(None, "sensor: refractory period, us, replaces emulator.refractory_us",
+                                    factory=Dispersion)
 
 
 @dataclass
@@ -377,6 +429,7 @@ class Config:
     dynamics: DynamicsConfig = opt(None, factory=DynamicsConfig)
     simulation: SimulationConfig = opt(None, factory=SimulationConfig)
     logging: LoggingConfig = opt(None, factory=LoggingConfig)
+    dispersion: DispersionConfig = opt(None, factory=DispersionConfig)
 
     @property
     def dt_s(self) -> float:

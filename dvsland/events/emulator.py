@@ -160,6 +160,36 @@ class EventEmulator:
                                      f"is interpolated in log space), got interpolation={interpolation!r}")
         self._shape: Optional[Tuple[int, int, int]] = None
         self.t_us: Optional[int] = None
+        self._elem: dict = {}  # per-element values (set_element_params), numpy (B,)
+        self._r_elem = self._bg_elem = None
+
+    def set_element_params(self, threshold_scale=None, mismatch_sigma=None, background_rate_hz=None,
+                           refractory_us=None, element_seeds=None) -> None:
+        """Per-element sensor values (a Monte Carlo batch's dispersions), each (B,) or None (the
+        scalar of the constructor). ``threshold_scale`` multiplies both thresholds;
+        ``element_seeds`` (B,) int seed each element's mismatch map (default: ``seed``, index).
+        Takes effect at the next :meth:`reset`; per-element refractory periods need
+        ``interpolation="log"``."""
+        import numpy as np
+
+        vals = {}
+        for name, v in (("threshold_scale", threshold_scale), ("mismatch_sigma", mismatch_sigma),
+                        ("background_rate_hz", background_rate_hz), ("refractory_us", refractory_us)):
+            if v is None:
+                continue
+            a = np.asarray(v, dtype=np.float64).reshape(-1)
+            lo = 0.0 if name != "threshold_scale" else 1e-9
+            if not (np.isfinite(a).all() and (a >= lo).all()):
+                raise ValueError(f"{name} must be finite and >= {lo} per element, got {a}")
+            vals[name] = a
+        if "refractory_us" in vals and self.interpolation != "log":
+            raise ValueError("per-element refractory_us needs interpolation='log'")
+        if element_seeds is not None:
+            vals["element_seeds"] = np.asarray(element_seeds, dtype=np.int64).reshape(-1)
+        sizes = {len(a) for a in vals.values()}
+        if len(sizes) > 1:
+            raise ValueError(f"per-element values must all have the batch size, got sizes {sorted(sizes)}")
+        self._elem = vals
 
     @classmethod
     def from_config(cls, cfg, device=None, seed: int = 0) -> "EventEmulator":
@@ -227,6 +257,9 @@ class EventEmulator:
         return frames.to(device=self.device, dtype=torch.float64, copy=True)
 
     def _draw_mismatch(self, B: int, H: int, W: int) -> None:
+        self._r_elem = self._bg_elem = None
+        if self._elem:
+            return self._draw_elements(B, H, W)
         if self.mismatch_sigma == 0:
             self._th_scalar = True
             self._th_on = self.threshold
@@ -244,6 +277,40 @@ class EventEmulator:
         self._th_min = min(float(self._th_on.min()), float(self._th_off.min()))
         shrink = 1.0 - 2 * LEVEL_TOL  # the candidate bounds of _candidates, computed once
         self._cand_bounds = (self._th_on * shrink, self._th_off * -shrink)
+
+    def _draw_elements(self, B: int, H: int, W: int) -> None:
+        """Threshold maps (B, H, W) from per-element scale, mismatch sigma and seeds; per-element
+        refractory periods and background rates."""
+        e = self._elem
+        n = next(len(a) for a in e.values())
+        if n != B:
+            raise ValueError(f"per-element values are for B={n}, the frames have B={B}")
+        sig = e.get("mismatch_sigma")
+        sig = torch.full((B,), self.mismatch_sigma, dtype=torch.float64) if sig is None else torch.from_numpy(sig)
+        seeds = e.get("element_seeds")
+        maps = torch.ones(B, 2, H, W, dtype=torch.float64)
+        for b in range(B):  # reset only: one mismatch map per element from its own seed
+            if float(sig[b]) > 0:
+                sd = int(seeds[b]) if seeds is not None else (self.seed * 1_000_003 + b) % (2 ** 63)
+                g = torch.Generator(device="cpu").manual_seed(sd)
+                maps[b] = (1.0 + float(sig[b]) * torch.randn(2, H, W, generator=g, dtype=torch.float64)).clamp_(min=0.01)
+        scale = e.get("threshold_scale")
+        if scale is not None:
+            maps *= torch.from_numpy(scale)[:, None, None, None]
+        maps = maps.to(self.device)
+        self._th_scalar = False
+        self._th_on = self.threshold * maps[:, 0]
+        self._th_off = self.threshold_off * maps[:, 1]
+        self._th_min = min(float(self._th_on.min()), float(self._th_off.min()))
+        shrink = 1.0 - 2 * LEVEL_TOL  # the candidate bounds of _candidates, computed once
+        self._cand_bounds = (self._th_on * shrink, self._th_off * -shrink)
+        r = e.get("refractory_us")
+        self._r_elem = None if r is None else torch.from_numpy(r).to(self.device)
+        bg = e.get("background_rate_hz")
+        self._bg_elem = None if bg is None else bg
+
+    def _bg_active(self) -> bool:
+        return bool((self._bg_elem > 0).any()) if self._bg_elem is not None else self.background_rate_hz > 0
 
     def reset(self, frames: torch.Tensor, t_us: int) -> None:
         """Start (or restart) all pixels: L_ref = log(frames + eps) at time ``t_us``; no events.
@@ -269,7 +336,7 @@ class EventEmulator:
     def _reset_pixel_model(self, B: int, H: int, W: int, t_us: int) -> None:
         """Per-element noise streams and the low-pass / drift state (see :mod:`.pixel_model`)."""
         pmp = self.pixel_model
-        self._bg_gens = pm.element_rngs(self.seed, B, pm.TAG_BACKGROUND) if self.background_rate_hz > 0 else None
+        self._bg_gens = pm.element_rngs(self.seed, B, pm.TAG_BACKGROUND) if self._bg_active() else None
         self._shot_gens = pm.element_rngs(self.seed, B, pm.TAG_SHOT) if pmp.shot else None
         # the filtered log level (without drift); None = ideal photoreceptor
         self._l_lp = self._lref.clone() if pmp.lowpass else None
@@ -314,7 +381,7 @@ class EventEmulator:
         lo = min(self._range[0], self._range_new[0])
         hi = max(self._range[1], self._range_new[1])
         l_span = math.log(hi + self.log_eps) - math.log(lo + self.log_eps)
-        r = self.refractory_us
+        r = self.refractory_us if self._r_elem is None else float(self._r_elem.max())
         self._spacing_may_bind = r > 0 and dt * self._th_min <= r * l_span * (1 + 1e-6)
         pmp = self.pixel_model
         if pmp.lowpass or pmp.drift:  # the frame range no longer bounds the level's change
@@ -360,7 +427,7 @@ class EventEmulator:
             self._i_prev = f1
         self.t_us = t1
 
-        if self.background_rate_hz > 0:
+        if self._bg_active():
             bg = self._background(b_shift, dt)
             keys = bg if keys is None else torch.cat((keys, bg))
         if shot is not None:
@@ -380,6 +447,8 @@ class EventEmulator:
         layout = self._layout
         th_on, th_off = self._th_on, self._th_off
         r = self.refractory_us
+        if self._r_elem is not None:  # per element: (A,) gathered per pixel
+            r = self._r_elem.index_select(0, torch.div(act, l1[0].numel(), rounding_mode="floor"))
         lref_flat = self._lref.view(-1)
         lref_a = lref_flat.index_select(0, act)
         l1_a = l1.view(-1).index_select(0, act)
@@ -448,7 +517,14 @@ class EventEmulator:
         """Sort keys of background events: Poisson count per element, uniform pixel, time
         (integer µs in [1, dt]) and polarity; drawn on CPU from each element's generator."""
         B, H, W = self._shape
-        flat, t_rel, off = pm.draw_background(self._bg_gens, self.background_rate_hz, H * W, int(dt), self.device)
+        if self._bg_elem is not None:  # per-element rates: each element's own stream and rate
+            parts = [pm.draw_background([self._bg_gens[b]], float(self._bg_elem[b]), H * W, int(dt), self.device)
+                     for b in range(B)]
+            flat = torch.cat([p[0] + b * H * W for b, p in enumerate(parts)])
+            t_rel = torch.cat([p[1] for p in parts])
+            off = torch.cat([p[2] for p in parts])
+        else:
+            flat, t_rel, off = pm.draw_background(self._bg_gens, self.background_rate_hz, H * W, int(dt), self.device)
         self._count_events(torch.tensor([float(flat.numel())]))
         return self._layout.pixel_key(flat, off, b_shift).add_(t_rel << self._layout.t_shift)
 
@@ -480,7 +556,8 @@ def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r, spacing_may_bind: b
     cnt = n_a
     first = base + spacing
     step = spacing
-    if r > 0:
+    r_t = r if isinstance(r, torch.Tensor) else None  # per-pixel refractory (A,) or a scalar
+    if r_t is not None or r > 0:
         # the refractory rule can only bind where crossings are closer than r, or the first
         # one is within r of the last emitted event: apply the closed form there only
         near = first < tl_a + r
@@ -489,6 +566,8 @@ def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r, spacing_may_bind: b
             cnt, first, step = cnt.clone(), first.clone(), step.clone()
             sp, bs = spacing.index_select(0, need), base.index_select(0, need)
             nn = n_a.index_select(0, need)
+            if r_t is not None:
+                r = r_t.index_select(0, need)
             j0 = torch.ceil(tl_a.index_select(0, need).sub_(bs).add_(r).div_(sp)).clamp_(min=1.0)
             m = torch.ceil(r / sp).clamp_(min=1.0)
             c = torch.floor((nn - j0).div_(m)).add_(1.0).clamp_(min=0.0).nan_to_num_(0.0, 0.0, 0.0)

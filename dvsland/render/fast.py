@@ -69,7 +69,7 @@ class FastRenderer(Renderer):
     def __init__(self, site_names: Sequence[str], camera: CameraConfig, render: Optional[RenderConfig] = None,
                  device="cpu", level_size: Optional[int] = None, parallax_iters: int = 1,
                  disk_cache: bool = True, progress: bool = False, blend_levels: bool = True,
-                 chunk: Optional[int] = None, threads: Optional[int] = None):
+                 chunk: Optional[int] = None, threads: Optional[int] = None, suns=None):
         super().__init__(site_names, camera, render, device)
         rc = self.render_config
         threads = rc.threads if threads is None else threads
@@ -90,10 +90,24 @@ class FastRenderer(Renderer):
         self.prep_cpu_s = {}
         self.sources = {}
         tiles = []
-        for name in dict.fromkeys(self.site_names):
-            terrain = load_site(name, rc.sun_elevation_deg)
+        # suns: per entry of site_names (elevation_deg or None, azimuth offset deg): dispersed scenes
+        self._scene_keys = scene_keys(self.site_names, suns)
+        for key in dict.fromkeys(self._scene_keys):
+            name = key
+            if suns is None:
+                terrain = load_site(name, rc.sun_elevation_deg)
+            else:
+                from .scenes import load_scene
+
+                terrain = load_scene(key, rc.sun_elevation_deg)
             t0 = time.perf_counter()
-            lv = prepare_levels(terrain, self.levels, disk_cache=disk_cache)
+            if suns is None:
+                lv = prepare_levels(terrain, self.levels, disk_cache=disk_cache)
+            else:
+                from .scenes import prepare_scene_levels
+
+                lv = prepare_scene_levels(terrain, self.levels, key, disk_cache=disk_cache)
+            lv.sun_elevation_deg = terrain.sun_elevation_deg
             self.prep_s[name] = lv.prep_s
             self.prep_cpu_s[name] = lv.prep_cpu_s
             self.sources[name] = lv.source
@@ -117,7 +131,7 @@ class FastRenderer(Renderer):
         dev = self.device
         self.atlas_irradiance = irr.to(dev)[None, None]  # (1, 1, S*T, K*T)
         self.atlas_height = hgt.to(dev)[None, None]
-        row_of_site = [order[s] for s in self.site_names]
+        row_of_site = [order[s] for s in self._scene_keys]
         self._site_row = torch.tensor(row_of_site, dtype=torch.float32, device=dev)
         ang = torch.tensor([tiles[r].angle_rad for r in row_of_site], dtype=torch.float64)
         self._cos = torch.cos(ang).to(device=dev, dtype=torch.float32)
@@ -152,12 +166,12 @@ class FastRenderer(Renderer):
         (cos e = n_z); a pixel off the axis sees flat ground at cos e = 1 / sqrt(1 + t^2), which
         lunar-Lambert brightens. gain = R(mu0, cos e_pixel) / R(mu0, 1) for flat ground. tx, ty:
         (H, W) float64 ray tangents."""
-        from dvsland.terrain import load_site, lunar_lambert_l
+        from dvsland.terrain import lunar_lambert_l
 
         mu = 1.0 / torch.sqrt(1.0 + tx * tx + ty * ty)
         out = []
         for r in row_of_site:
-            el = load_site(tiles[r].name, self.render_config.sun_elevation_deg).sun_elevation_deg
+            el = tiles[r].sun_elevation_deg
             mu0 = math.sin(math.radians(el))
             lam = lunar_lambert_l(90.0 - el)
             refl = lambda m: lam * 2 * mu0 / (mu0 + m) + (1 - lam) * mu0  # noqa: E731
@@ -254,6 +268,20 @@ class FastRenderer(Renderer):
         out = self._sample(self.atlas_irradiance, g.view(2, 2 * b * h, w).permute(1, 2, 0)).view(2, b, h, w)
         gain = self._gain_shared if self._gain_shared is not None else self._gain.index_select(0, site_idx)
         return torch.lerp(out[0], out[1], frac).mul_(gain)
+
+
+def scene_keys(site_names, suns=None) -> list:
+    """One key per entry of ``site_names``: the name itself, or with ``suns`` (per entry
+    ``(elevation_deg or None, azimuth_offset_deg)``) the scene label ``E~2@el12@az+5``."""
+    if suns is None:
+        return list(site_names)
+    suns = list(suns)
+    if len(suns) != len(site_names):
+        raise ValueError(f"suns must give one (elevation_deg, azimuth_offset_deg) per site, got {len(suns)} "
+                         f"for {len(site_names)} sites")
+    from dvsland.sim.batch import scene_label
+
+    return [scene_label(n, None if e is None else float(e), float(a)) for n, (e, a) in zip(site_names, suns)]
 
 
 def _upsample2x(x: torch.Tensor) -> torch.Tensor:

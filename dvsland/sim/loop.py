@@ -105,7 +105,7 @@ class ClosedLoop:
         self.dt_s = float(cfg.dt_s)
         dev = self.device
         f64 = torch.float64
-        self.site_idx = layout.tensor("site_idx", dev, torch.int64)
+        self.site_idx = layout.tensor("scene_idx", dev, torch.int64)  # the renderer's row (= site unless dispersed)
         self.z0_m = layout.tensor("z0_m", dev, f64)
         self.v0_mps = layout.tensor("v0_mps", dev, f64)
         self.m0_kg = torch.full((B,), float(cfg.dynamics.mass_kg), dtype=f64, device=dev)
@@ -278,6 +278,10 @@ class ClosedLoop:
                 "held_steps": int(held[b]), "missing_estimates": int(miss[b]),
                 "sanitised_estimates": int(san[b]), "positive_estimates": int(pos[b]),
             })
+            if L.dispersed:  # a Monte Carlo batch: the element's scene and dispersed values
+                runs[-1]["scene"] = L.scene[b]
+                runs[-1]["dispersion"] = {k: (int(v[b]) if v.dtype.kind == "i" else float(v[b]))
+                                          for k, v in L.dispersed.items()}
         return runs
 
     def traces_numpy(self) -> Dict[str, np.ndarray]:

@@ -1,0 +1,136 @@
+"""Dispersed scenes for the fast renderer: a site (or variant ``A~k``) under another sun.
+
+A scene label is ``<site>[@el<deg>][@az<+deg>]`` (:func:`dvsland.sim.batch.scene_label`):
+``E~2@el12@az+5`` is variant 2 of site E lit from 12 deg elevation, its sun azimuth turned by
++5 deg. Preparing a scene's levels costs what preparing a site costs (about 2 s of CPU), except
+that scenes differing only in sun elevation share their height and albedo fields (the expensive
+part: fBm noise and feature stamping, about 95 % of the time): the fields of each level are kept
+per process, and another elevation only re-shades them (shadows and lunar-Lambert), which is
+bit-identical to preparing that scene from scratch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import time
+from typing import Optional, Tuple
+
+import torch
+
+from dvsland.terrain import Terrain
+from dvsland.terrain.grid import Grid, compute_threads
+from dvsland.terrain.photometry import shade
+from dvsland.terrain.spec import load_spec
+
+from .lod import LevelParams, SiteLevels, _MEMORY, cache_dir
+
+#: height and albedo fields per (spec without sun elevation, level params, level): float64 CPU
+_FIELDS: dict = {}
+#: at most this many levels' fields are kept (each ~3 MB at 384 px levels)
+FIELD_CACHE_LEVELS = int(os.environ.get("DVSLAND_FIELD_CACHE_LEVELS", "260"))
+_TERRAINS: dict = {}
+
+
+def parse_scene(label: str) -> Tuple[str, Optional[float], float]:
+    """``"E~2@el12@az+5"`` -> ("E~2", 12.0, 5.0); ``"E"`` -> ("E", None, 0.0)."""
+    parts = str(label).split("@")
+    el, az = None, 0.0
+    for p in parts[1:]:
+        try:
+            if p.startswith("el"):
+                el = float(p[2:])
+                continue
+            if p.startswith("az"):
+                az = float(p[2:])
+                continue
+        except ValueError:
+            pass
+        raise ValueError(f"scene label {label!r}: expected '<site>[@el<deg>][@az<+deg>]', e.g. 'E~2@el12@az+5'")
+    return parts[0], el, az
+
+
+def load_scene(label: str, default_elevation_deg: Optional[float] = None) -> Terrain:
+    """The terrain of a scene label (see module doc); ``default_elevation_deg`` (the config's
+    ``render.sun_elevation_deg``) applies when the label sets no elevation."""
+    name, el, az = parse_scene(label)
+    spec = load_spec(name).with_sun_elevation(el if el is not None else default_elevation_deg)
+    if az:
+        spec = dataclasses.replace(spec, sun=dataclasses.replace(spec.sun, azimuth_deg=spec.sun.azimuth_deg + az))
+    key = spec.digest()
+    if key not in _TERRAINS:
+        _TERRAINS[key] = Terrain(spec)
+    return _TERRAINS[key]
+
+
+def _fields_key(terrain: Terrain, params: LevelParams, k: int) -> str:
+    spec = dataclasses.replace(terrain.spec, sun=dataclasses.replace(terrain.spec.sun, elevation_deg=45.0))
+    return f"{spec.digest()}-{params.key()}-{k}"
+
+
+def _level(terrain: Terrain, params: LevelParams, k: int):
+    """Irradiance and height (T, T) float64 of level k (as :func:`shaded_sun_grid`), the fields
+    shared between sun elevations."""
+    m, s = params.tile_size, params.texel_m(k)
+    ang = terrain.sun_grid_angle_rad
+    pad = int(math.ceil(params.shadow_pad * m))
+    ec = (math.cos(ang), math.sin(ang))
+    cx, cy = 0.5 * pad * s * ec[0], 0.5 * pad * s * ec[1]
+    key = _fields_key(terrain, params, k)
+    hit = _FIELDS.get(key)
+    if hit is None:
+        full = Grid.centered((cx, cy), m, m + pad, s, ang)
+        hit = terrain.fields(full)
+        if len(_FIELDS) >= FIELD_CACHE_LEVELS:
+            _FIELDS.pop(next(iter(_FIELDS)))
+        _FIELDS[key] = hit
+    h, a = hit
+    irr, _ = shade(h, a, s, terrain.sun_elevation_deg, params.ambient)
+    return irr[:, :m].contiguous(), h[:, :m].contiguous()
+
+
+def prepare_scene_levels(terrain: Terrain, params: LevelParams, label: str, disk_cache: bool = True) -> SiteLevels:
+    """Levels of a dispersed scene (as :func:`dvsland.render.lod.prepare_levels`, same cache
+    folder and key scheme, named ``label``), re-using the fields of a scene that differs only in
+    sun elevation."""
+    from .lod import ALGO_VERSION  # noqa: F401  (the key below includes it through params.key())
+
+    key = f"{terrain.name}-{terrain.spec.digest()}-{params.key()}"
+    if key in _MEMORY:
+        lv = _MEMORY[key]
+        return SiteLevels(label, lv.irradiance, lv.height_m, lv.h0_m, lv.angle_rad, 0.0, "memory")
+    folder = cache_dir() if disk_cache else None
+    path = folder / f"{key}.pt" if folder is not None else None
+    if path is not None and path.is_file():
+        try:
+            d = torch.load(path, map_location="cpu", weights_only=True)
+            lv = SiteLevels(label, d["irradiance"], d["height_m"], float(d["h0_m"]), float(d["angle_rad"]), 0.0, "disk")
+            _MEMORY[key] = lv
+            return lv
+        except Exception:  # a broken cache file is recomputed
+            pass
+    t0, c0 = time.perf_counter(), time.process_time()
+    k_max, m = params.n_levels, params.tile_size
+    irr = torch.empty(k_max, m, m, dtype=torch.float32)
+    hgt = torch.empty(k_max, m, m, dtype=torch.float32)
+    with compute_threads(0):
+        for k in range(k_max):
+            ik, hk = _level(terrain, params, k)
+            irr[k] = ik.to(torch.float32)
+            hgt[k] = hk.to(torch.float32)
+    c = m // 2
+    h0 = float(hgt[0, c - 1:c + 1, c - 1:c + 1].to(torch.float64).mean())
+    hgt -= h0
+    lv = SiteLevels(label, irr, hgt, h0, terrain.sun_grid_angle_rad, time.perf_counter() - t0, "computed",
+                    time.process_time() - c0)
+    _MEMORY[key] = lv
+    if path is not None:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".tmp{os.getpid()}")
+            torch.save({"irradiance": irr, "height_m": hgt, "h0_m": h0, "angle_rad": lv.angle_rad}, tmp)
+            os.replace(tmp, path)
+        except OSError:
+            pass
+    return lv
