@@ -1,0 +1,149 @@
+"""The merged report of a campaign: results.json, runs.csv, groups.csv (+ Parquet with pyarrow),
+the printed table, a figure and a TensorBoard HParams table."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import List, Sequence
+
+from dvsland.report.results import write_results_json
+from dvsland.report.stats import format_group_table, write_csv
+
+#: flat columns of runs.csv (nested dicts are flattened as sweep.<k> and dispersion.<k>)
+RUN_COLUMNS = ("run", "site", "scene", "label", "estimator", "seed_index", "seed", "outcome", "t_end_s",
+               "lowest_altitude_m", "v_at_50m_mps", "v_end_mps", "fuel_used_kg", "max_thrust_n", "z0_m", "v0_mps",
+               "held_steps", "missing_estimates")
+
+
+def flat_runs(runs: List[dict]) -> List[dict]:
+    """Runs as flat rows (one column per field; ``sweep.<key>`` and ``dispersion.<name>``)."""
+    out = []
+    for r in runs:
+        row = {k: r.get(k) for k in RUN_COLUMNS}
+        for k, v in (r.get("sweep") or {}).items():
+            row[f"sweep.{k}"] = v
+        for k, v in (r.get("dispersion") or {}).items():
+            row[f"dispersion.{k}"] = v
+        out.append(row)
+    return out
+
+
+def write_tables(folder, runs: List[dict], groups: List[dict]) -> List[Path]:
+    """runs.csv and groups.csv (and .parquet files when pyarrow is installed)."""
+    folder = Path(folder)
+    rows = flat_runs(runs)
+    paths = [folder / "runs.csv", folder / "groups.csv"]
+    write_csv(paths[0], rows)
+    write_csv(paths[1], groups)
+    try:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+    except ImportError:
+        return paths
+    for name, data in (("runs", rows), ("groups", groups)):
+        cols = sorted({k for r in data for k in r}, key=lambda k: list(data[0]).index(k) if k in data[0] else 1e9)
+        table = pa.table({c: [r.get(c) for r in data] for c in cols})
+        pq.write_table(table, folder / f"{name}.parquet")
+        paths.append(folder / f"{name}.parquet")
+    return paths
+
+
+def _label(g: dict, by: Sequence[str], skip=("site",)) -> str:
+    return " ".join(str(g.get(k)) for k in by if k not in skip)
+
+
+def campaign_figure(path, runs: List[dict], groups: List[dict], by: Sequence[str]) -> Path:
+    """Two panels: success rate with its 95 % Wilson interval per site (one marker per series =
+    the group keys other than the site), and the velocity at the success altitude of the
+    successful descents per site and series (dots, median bar)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from dvsland.report.stats import group_key
+
+    sites = list(dict.fromkeys(g["site"] for g in groups))
+    series = list(dict.fromkeys(_label(g, by) for g in groups))
+    n_s = max(1, len(series))
+    width = 0.8 / n_s
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.0), dpi=90)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for j, s in enumerate(series):
+        c = colors[j % len(colors)]
+        xs, ys, lo, hi = [], [], [], []
+        for g in groups:
+            if _label(g, by) != s:
+                continue
+            x = sites.index(g["site"]) - 0.4 + width * (j + 0.5)
+            xs.append(x)
+            ys.append(100 * g["success_rate"])
+            lo.append(100 * (g["success_rate"] - g["success_lo"]))
+            hi.append(100 * (g["success_hi"] - g["success_rate"]))
+        ax1.errorbar(xs, ys, yerr=[lo, hi], fmt="o", color=c, capsize=3, ms=4, label=s or "all")
+        for i, site in enumerate(sites):
+            v = [abs(r["v_at_50m_mps"]) for r in runs
+                 if r.get("site") == site and r.get("outcome") == "success" and r.get("v_at_50m_mps") is not None
+                 and _label(dict(zip(by, group_key(r, by))), by) == s]
+            if not v:
+                continue
+            x = i - 0.4 + width * (j + 0.5)
+            jitter = [x + width * 0.3 * (((k * 7919) % 13) / 12 - 0.5) for k in range(len(v))]
+            ax2.plot(jitter, v, ".", color=c, ms=3, alpha=0.6)
+            med = sorted(v)[len(v) // 2]
+            ax2.plot([x - width * 0.4, x + width * 0.4], [med, med], "-", color=c, lw=2)
+    for ax in (ax1, ax2):
+        ax.set_xticks(range(len(sites)))
+        ax.set_xticklabels(sites)
+        ax.set_xlabel("site")
+        ax.grid(alpha=0.3)
+    ax1.set_ylim(-3, 103)
+    ax1.set_ylabel("success rate, % (95 % Wilson interval)")
+    ax1.legend(fontsize=7, loc="best")
+    ax2.set_ylabel("|v| at the success altitude, m/s (successes)")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def write_hparams(folder, groups: List[dict], by: Sequence[str]) -> Path:
+    """One TensorBoard HParams entry per group (hparams: the group keys; metrics: n, success rate
+    and interval, medians), under ``<folder>/tb``: compare groups in TensorBoard's HParams view."""
+    import shutil
+
+    from torch.utils.tensorboard import SummaryWriter
+
+    folder = Path(folder) / "tb"
+    if folder.is_dir():  # a resumed campaign rewrites its table, never appends a second one
+        shutil.rmtree(folder)
+    with SummaryWriter(str(folder)) as w:
+        for i, g in enumerate(groups):
+            hp = {k.replace("sweep.", ""): str(g.get(k)) for k in by}
+            metrics = {}
+            for k in ("n", "success_rate", "success_lo", "success_hi", "n_crash", "n_ascent", "n_timeout",
+                      "lowest_m_median", "v50_mps_median", "fuel_kg_median"):
+                v = g.get(k)
+                metrics[f"campaign/{k}"] = float("nan") if v is None else float(v)
+            w.add_hparams(hp, metrics, run_name=f"group{i:03d}")
+    return folder
+
+
+def write_report(folder, runs: List[dict], groups: List[dict], by: Sequence[str], meta: dict,
+                 figures: bool = True, tensorboard: bool = True) -> dict:
+    """Write every merged output of a campaign into ``folder``; returns {name: path}."""
+    folder = Path(folder)
+    out = {"results": write_results_json(folder / "results.json", runs, groups=groups, group_by=list(by), **meta)}
+    for p in write_tables(folder, runs, groups):
+        out[p.name] = p
+    (folder / "table.txt").write_text(format_group_table(groups, by) + "\n")
+    (folder / "table.md").write_text(format_group_table(groups, by, markdown=True) + "\n")
+    if figures and runs:
+        out["figure"] = campaign_figure(folder / "figures" / "campaign.png", runs, groups, by)
+    if tensorboard and groups:
+        out["tb"] = write_hparams(folder, groups, by)
+    return out
+

@@ -1,0 +1,49 @@
+"""``dvsland campaign CONFIG [--sweep key=v1,v2 ...] [--n-seeds N] [--executor local|ray]
+[--workers K] [--shard-seeds S] [--resume DIR] [--out DIR] [--set key=value ...] [--quiet]``:
+a Monte Carlo campaign (grid x seeds in shards, merged report with success-rate intervals)."""
+
+from __future__ import annotations
+
+from .common import add_config_args, config_from_args
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "campaign", help="Monte Carlo campaign: grid x seeds in resumable shards, success rates with intervals",
+        description="Fly the config's sites x controller settings for many seeds (and every combination of "
+                    "--sweep values), one batch per shard, locally or on Ray; merge into results.json, "
+                    "runs.csv / groups.csv, a figure and a TensorBoard HParams table. Turn dispersions on with "
+                    "--set dispersion.enabled=true (see docs/campaigns.md).")
+    add_config_args(p)
+    p.add_argument("--sweep", action="append", default=[], metavar="KEY=V1,V2",
+                   help="sweep a config value, e.g. --sweep estimator.name=dpr,oracle (repeatable: cartesian grid)")
+    p.add_argument("--n-seeds", type=int, default=None, metavar="N", help="seeds per grid point "
+                   "(default simulation.n_seeds)")
+    p.add_argument("--shard-seeds", type=int, default=5, metavar="S", help="seeds per shard (default 5)")
+    p.add_argument("--executor", default="local", choices=("local", "ray"),
+                   help="local: here (--workers > 1: a process pool); ray: Ray tasks (local instance, or the "
+                        "cluster at $RAY_ADDRESS)")
+    p.add_argument("--workers", type=int, default=1, metavar="K", help="processes (local) or CPUs of a local Ray")
+    p.add_argument("--resume", default=None, metavar="DIR", help="resume the campaign in DIR (its plan and "
+                   "config rule): run only the missing shards, then merge")
+    p.add_argument("--estimator", default=None, metavar="NAME", help="divergence estimator (dpr, oracle, ...)")
+    p.add_argument("--keep-runs", action="store_true", help="keep each shard's run folder (traces.npz) under shards/")
+    p.set_defaults(func=run_campaign_cmd)
+
+
+def run_campaign_cmd(args) -> int:
+    from dvsland.campaign import run_campaign
+
+    cfg = None
+    if args.resume is None:
+        cfg = config_from_args(args)
+    elif args.config or args.sweep or args.overrides:
+        print("dvsland campaign: resuming: the config, sweeps and seeds come from the campaign folder")
+    try:
+        res = run_campaign(cfg, sweeps=args.sweep, n_seeds=args.n_seeds, executor=args.executor,
+                           workers=args.workers, resume=args.resume, out=args.out, quiet=args.quiet,
+                           shard_seeds=args.shard_seeds, keep_runs=args.keep_runs)
+    except KeyboardInterrupt:
+        print("dvsland: campaign interrupted; finished shards are kept: resume with --resume <folder>", flush=True)
+        return 130
+    return 0 if res.status == "complete" else 1

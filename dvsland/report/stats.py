@@ -1,0 +1,164 @@
+"""Monte Carlo statistics of many descents: Wilson intervals and per-group summaries.
+
+A group is every run sharing the same values of the ``by`` keys (by default site, controller
+setting, estimator and any swept value). Per group: n, outcome counts, the success rate with its
+95 % Wilson score interval, and median / IQR / p10-p90 of the lowest altitude, the velocity at
+50 m (successful descents) and the fuel used.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Dict, Iterable, List, Optional, Sequence
+
+import numpy as np
+
+OUTCOME_ORDER = ("success", "crash", "ascent", "timeout", "interrupted")
+#: run fields summarised per group -> column prefix
+METRICS = {"lowest_altitude_m": "lowest_m", "v_at_50m_mps": "v50_mps", "fuel_used_kg": "fuel_kg"}
+#: the default group keys (a run's "sweep" values are added after these)
+GROUP_KEYS = ("site", "label", "estimator")
+
+
+def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple:
+    """Wilson score interval of a binomial proportion.
+
+    Args:
+        successes: k, 0 <= k <= n.  n: trials (0 gives (nan, nan)).
+        confidence: two-sided level in (0, 1).
+
+    Returns:
+        (low, high) in [0, 1].
+    """
+    if not (0 < confidence < 1):
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    if n < 0 or successes < 0 or successes > n:
+        raise ValueError(f"need 0 <= successes <= n, got successes={successes}, n={n}")
+    if n == 0:
+        return (math.nan, math.nan)
+    z = _norm_ppf(0.5 + confidence / 2)
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def _norm_ppf(q: float) -> float:
+    """Standard normal quantile (scipy when present, else bisection on erf)."""
+    try:
+        from scipy.stats import norm
+
+        return float(norm.ppf(q))
+    except ImportError:  # pragma: no cover - scipy is a dependency
+        lo, hi = -10.0, 10.0
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            if 0.5 * (1 + math.erf(mid / math.sqrt(2))) < q:
+                lo = mid
+            else:
+                hi = mid
+        return 0.5 * (lo + hi)
+
+
+def _spread(values: Sequence[float]) -> Dict[str, Optional[float]]:
+    a = np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=np.float64)
+    if a.size == 0:
+        return {"median": None, "q25": None, "q75": None, "p10": None, "p90": None}
+    q = np.percentile(a, [50, 25, 75, 10, 90])
+    return {"median": float(q[0]), "q25": float(q[1]), "q75": float(q[2]), "p10": float(q[3]), "p90": float(q[4])}
+
+
+def group_key(run: dict, by: Sequence[str]) -> tuple:
+    """The values of ``by`` for one run (missing keys give None); ``sweep.<key>`` reads the run's
+    ``sweep`` dict."""
+    out = []
+    for k in by:
+        if k.startswith("sweep."):
+            out.append((run.get("sweep") or {}).get(k[len("sweep."):]))
+        else:
+            out.append(run.get(k))
+    return tuple(out)
+
+
+def default_group_keys(runs: Iterable[dict]) -> List[str]:
+    """GROUP_KEYS plus ``sweep.<key>`` for every swept key found in the runs (sorted)."""
+    swept = sorted({k for r in runs for k in (r.get("sweep") or {})})
+    return list(GROUP_KEYS) + [f"sweep.{k}" for k in swept if k != "estimator.name"]
+
+
+def group_stats(runs: List[dict], by: Optional[Sequence[str]] = None, confidence: float = 0.95) -> List[dict]:
+    """One summary dict per group of ``runs`` (in order of first appearance).
+
+    Each dict: the ``by`` values, ``n``, ``n_<outcome>`` for every outcome, ``success_rate``,
+    ``success_lo`` / ``success_hi`` (Wilson interval at ``confidence``), and for each metric of
+    :data:`METRICS` its ``<prefix>_median``, ``_q25``, ``_q75``, ``_p10``, ``_p90`` (None when no
+    run of the group has the value: e.g. the velocity at 50 m of a group that never got there).
+    """
+    by = list(by) if by is not None else default_group_keys(runs)
+    groups: Dict[tuple, List[dict]] = {}
+    for r in runs:
+        groups.setdefault(group_key(r, by), []).append(r)
+    out = []
+    for key, rs in groups.items():
+        row = dict(zip(by, key))
+        n = len(rs)
+        counts = {o: 0 for o in OUTCOME_ORDER}
+        for r in rs:
+            counts[r["outcome"]] = counts.get(r["outcome"], 0) + 1
+        k = counts["success"]
+        lo, hi = wilson_interval(k, n, confidence)
+        row.update(n=n, **{f"n_{o}": c for o, c in counts.items()}, success_rate=k / n if n else math.nan,
+                   success_lo=lo, success_hi=hi)
+        for field, prefix in METRICS.items():
+            for name, v in _spread([r.get(field) for r in rs]).items():
+                row[f"{prefix}_{name}"] = v
+        out.append(row)
+    return out
+
+
+def format_group_table(rows: List[dict], by: Sequence[str], markdown: bool = False) -> str:
+    """The printed (or Markdown) table of :func:`group_stats` rows."""
+    head = [k.replace("sweep.", "") for k in by] + ["n", "success", "95% CI", "crash", "ascent", "timeout",
+                                                      "lowest_m med [p10,p90]", "v50_mps med [IQR]",
+                                                      "fuel_kg med [IQR]"]
+
+    def f(x, fmt):
+        return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else format(x, fmt)
+
+    body = []
+    for r in rows:
+        body.append([str(r.get(k)) for k in by] + [
+            str(r["n"]), f(100 * r["success_rate"], ".0f") + " %",
+            f"{f(100 * r['success_lo'], '.0f')}-{f(100 * r['success_hi'], '.0f')} %",
+            str(r["n_crash"]), str(r["n_ascent"]), str(r["n_timeout"]),
+            f"{f(r['lowest_m_median'], '.0f')} [{f(r['lowest_m_p10'], '.0f')},{f(r['lowest_m_p90'], '.0f')}]",
+            f"{f(r['v50_mps_median'], '.2f')} [{f(r['v50_mps_q25'], '.2f')},{f(r['v50_mps_q75'], '.2f')}]",
+            f"{f(r['fuel_kg_median'], '.0f')} [{f(r['fuel_kg_q25'], '.0f')},{f(r['fuel_kg_q75'], '.0f')}]"])
+    if markdown:
+        lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        return "\n".join(lines + ["| " + " | ".join(b) + " |" for b in body])
+    widths = [max(len(h), *(len(b[i]) for b in body)) if body else len(h) for i, h in enumerate(head)]
+    fmt = "  ".join(f"{{:<{w}}}" if i < len(by) else f"{{:>{w}}}" for i, w in enumerate(widths))
+    return "\n".join([fmt.format(*head), fmt.format(*["-" * w for w in widths])] + [fmt.format(*b) for b in body])
+
+
+def write_csv(path, rows: List[dict]) -> None:
+    """Write dict rows to CSV (union of keys, in first-seen order), atomically."""
+    import csv
+    import os
+    from pathlib import Path
+
+    path = Path(path)
+    cols: List[str] = []
+    for r in rows:
+        for k in r:
+            if k not in cols:
+                cols.append(k)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=cols)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in cols})
+    os.replace(tmp, path)
