@@ -92,7 +92,10 @@ class FastRenderer(Renderer):
         tiles = []
         # suns: per entry of site_names (elevation_deg or None, azimuth offset deg): dispersed scenes
         self._scene_keys = scene_keys(self.site_names, suns)
-        for key in dict.fromkeys(self._scene_keys):
+        keys = list(dict.fromkeys(self._scene_keys))
+        if suns is not None:  # scenes of one terrain one after another: their fields are computed once
+            keys.sort(key=lambda k: (k.split("@")[0], k))
+        for key in keys:
             name = key
             if suns is None:
                 terrain = load_site(name, rc.sun_elevation_deg)

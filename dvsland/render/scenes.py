@@ -28,8 +28,9 @@ from .lod import LevelParams, SiteLevels, _MEMORY, cache_dir
 
 #: height and albedo fields per (spec without sun elevation, level params, level): float64 CPU
 _FIELDS: dict = {}
-#: at most this many levels' fields are kept (each ~3 MB at 384 px levels)
-FIELD_CACHE_LEVELS = int(os.environ.get("DVSLAND_FIELD_CACHE_LEVELS", "260"))
+#: at most this many levels' fields are kept (each ~3.3 MB at 388 px tiles: 130 levels = 10 terrains,
+#: ~420 MB); ``$DVSLAND_FIELD_CACHE_LEVELS`` changes it
+FIELD_CACHE_LEVELS = int(os.environ.get("DVSLAND_FIELD_CACHE_LEVELS", "130"))
 _TERRAINS: dict = {}
 
 

@@ -1,0 +1,81 @@
+"""Wilson interval and per-group statistics (dvsland.report.stats) against hand computations and scipy."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dvsland.report.stats import default_group_keys, format_group_table, group_stats, wilson_interval
+
+
+class TestWilson:
+    def test_hand_computation(self):
+        # k = 8, n = 10, z = 1.959964: p = 0.8; centre = (0.8 + z^2/20) / (1 + z^2/10);
+        # half = z sqrt(0.016 + z^2/400) / (1 + z^2/10)  ->  (0.4902, 0.9433)
+        z = 1.959963984540054
+        d = 1 + z * z / 10
+        c = (0.8 + z * z / 20) / d
+        h = z * math.sqrt(0.8 * 0.2 / 10 + z * z / 400) / d
+        lo, hi = wilson_interval(8, 10)
+        assert lo == pytest.approx(c - h, abs=1e-12) and hi == pytest.approx(c + h, abs=1e-12)
+        assert lo == pytest.approx(0.4902, abs=1e-4) and hi == pytest.approx(0.9433, abs=1e-4)
+
+    @pytest.mark.parametrize("k,n", [(0, 5), (5, 5), (13, 18), (1, 50), (49, 50), (437, 900)])
+    def test_against_scipy(self, k, n):
+        stats = pytest.importorskip("scipy.stats")
+        ci = stats.binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
+        lo, hi = wilson_interval(k, n)
+        assert lo == pytest.approx(ci.low, abs=1e-12) and hi == pytest.approx(ci.high, abs=1e-12)
+
+    def test_edges_and_errors(self):
+        assert all(math.isnan(x) for x in wilson_interval(0, 0))
+        lo, hi = wilson_interval(0, 10)
+        assert lo == 0.0 and 0 < hi < 0.35
+        with pytest.raises(ValueError, match="successes"):
+            wilson_interval(5, 3)
+        with pytest.raises(ValueError, match="confidence"):
+            wilson_interval(1, 3, confidence=1.5)
+
+
+def _runs():
+    rng = np.random.default_rng(0)
+    runs = []
+    for site in "AB":
+        for i in range(10):
+            ok = i < (7 if site == "A" else 2)
+            runs.append({"site": site, "label": "L", "estimator": "dpr", "outcome": "success" if ok else
+                         ("crash" if i % 2 else "ascent"), "lowest_altitude_m": float(50 - i),
+                         "v_at_50m_mps": float(-10 - i) if ok else None, "fuel_used_kg": float(rng.uniform(300, 400)),
+                         "sweep": {"controller.thrust_max_n": "1e5"}})
+    return runs
+
+
+class TestGroups:
+    def test_counts_rates_and_spread(self):
+        runs = _runs()
+        by = default_group_keys(runs)
+        assert by == ["site", "label", "estimator", "sweep.controller.thrust_max_n"]
+        rows = group_stats(runs, by)
+        assert [r["site"] for r in rows] == ["A", "B"]
+        a = rows[0]
+        assert a["n"] == 10 and a["n_success"] == 7 and a["n_crash"] + a["n_ascent"] == 3
+        assert a["success_rate"] == 0.7
+        assert (a["success_lo"], a["success_hi"]) == wilson_interval(7, 10)
+        lows = [50.0 - i for i in range(10)]
+        assert a["lowest_m_median"] == pytest.approx(np.median(lows))
+        assert a["lowest_m_p10"] == pytest.approx(np.percentile(lows, 10))
+        v = [-10.0 - i for i in range(7)]  # only successes have a velocity at 50 m
+        assert a["v50_mps_median"] == pytest.approx(np.median(v))
+        assert a["v50_mps_q25"] == pytest.approx(np.percentile(v, 25))
+
+    def test_group_without_values(self):
+        runs = [{"site": "H", "label": "L", "estimator": "dpr", "outcome": "crash", "lowest_altitude_m": 90.0,
+                 "v_at_50m_mps": None, "fuel_used_kg": 100.0}]
+        row = group_stats(runs)[0]
+        assert row["v50_mps_median"] is None and row["success_rate"] == 0.0
+        text = format_group_table([row], ["site", "label", "estimator"])
+        assert "H" in text and "0 %" in text
+        md = format_group_table([row], ["site", "label", "estimator"], markdown=True)
+        assert md.startswith("| site |")
