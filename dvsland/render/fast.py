@@ -69,7 +69,7 @@ class FastRenderer(Renderer):
     def __init__(self, site_names: Sequence[str], camera: CameraConfig, render: Optional[RenderConfig] = None,
                  device="cpu", level_size: Optional[int] = None, parallax_iters: int = 1,
                  disk_cache: bool = True, progress: bool = False, blend_levels: bool = True,
-                 chunk: Optional[int] = None, threads: Optional[int] = None, suns=None):
+                 chunk: Optional[int] = None, threads: Optional[int] = None, suns=None, altitude_ranges=None):
         super().__init__(site_names, camera, render, device)
         rc = self.render_config
         threads = rc.threads if threads is None else threads
@@ -92,6 +92,17 @@ class FastRenderer(Renderer):
         tiles = []
         # suns: per entry of site_names (elevation_deg or None, azimuth offset deg): dispersed scenes
         self._scene_keys = scene_keys(self.site_names, suns)
+        # altitude_ranges (dispersed scenes only): per entry (lo_m, hi_m) its descents fly through:
+        # only the levels that range samples are prepared (lazy levels), frames clamp to them
+        k_rng = {}
+        if altitude_ranges is not None:
+            if suns is None or len(altitude_ranges) != len(self.site_names):
+                raise ValueError("altitude_ranges needs suns and one (lo_m, hi_m) per site")
+            for key, (a_lo, a_hi) in zip(self._scene_keys, altitude_ranges):
+                k_lo = int(math.floor(self._lam(max(float(a_lo), rc.min_altitude_m))))
+                k_hi = min(int(math.floor(self._lam(min(float(a_hi), rc.max_altitude_m)))) + 1, self.levels.n_levels - 1)
+                old = k_rng.get(key, (k_lo, k_hi))
+                k_rng[key] = (max(0, min(k_lo, old[0])), max(k_hi, old[1]))
         keys = list(dict.fromkeys(self._scene_keys))
         if suns is not None:  # scenes of one terrain one after another: their fields are computed once
             keys.sort(key=lambda k: (k.split("@")[0], k))
@@ -109,7 +120,7 @@ class FastRenderer(Renderer):
             else:
                 from .scenes import prepare_scene_levels
 
-                lv = prepare_scene_levels(terrain, self.levels, key, disk_cache=disk_cache)
+                lv = prepare_scene_levels(terrain, self.levels, key, disk_cache=disk_cache, levels=k_rng.get(key))
             lv.sun_elevation_deg = terrain.sun_elevation_deg
             self.prep_s[name] = lv.prep_s
             self.prep_cpu_s[name] = lv.prep_cpu_s
@@ -140,6 +151,16 @@ class FastRenderer(Renderer):
         self._cos = torch.cos(ang).to(device=dev, dtype=torch.float32)
         self._sin = torch.sin(ang).to(device=dev, dtype=torch.float32)
         self.h0_m = {lv.name: lv.h0_m for lv in tiles}
+        rngs = [getattr(tiles[r], "levels", None) for r in row_of_site]
+        if any(x is not None for x in rngs):
+            k_top = p.n_levels - 1.0
+            lo = [0.0 if x is None else float(x[0]) for x in rngs]
+            # lo + 1 (the blend's and parallax's coarser level) must be prepared: lam < k_hi
+            hi = [k_top if x is None or x[1] >= k_top else float(x[1]) - 1e-4 for x in rngs]
+            self._lam_lo = torch.tensor(lo, dtype=torch.float32, device=self.device)
+            self._lam_hi = torch.tensor(hi, dtype=torch.float32, device=self.device)
+        else:
+            self._lam_lo = self._lam_hi = None
         self._pitch = self.pixel_m_per_m()
         tx, ty = self.ray_tangents(torch.float64)  # (H, W)
         self._gain = self._emission_gain(tiles, row_of_site, tx, ty)
@@ -189,6 +210,10 @@ class FastRenderer(Renderer):
         uv = torch.stack([(tx * c + ty * s) * nrm[0], (tx * s - ty * c) * nrm[1]])
         return uv.to(device=self.device, dtype=torch.float32).contiguous()
 
+    def _lam(self, altitude_m: float) -> float:
+        """Unclamped level of detail of one altitude (m)."""
+        return math.log2(altitude_m * (self.pixel_m_per_m() / self.levels.base_texel_m))
+
     def lod(self, altitude_m: torch.Tensor) -> torch.Tensor:
         """Continuous level of detail lambda (B,) for altitudes (B,) m."""
         lam = torch.log2(altitude_m * (self._pitch / self.levels.base_texel_m))
@@ -232,6 +257,9 @@ class FastRenderer(Renderer):
             return torch.empty(0, h, w, device=self.device)
         k_max = self.levels.n_levels
         lam = self.lod(altitude_m)
+        if self._lam_lo is not None:  # lazy levels: stay inside the prepared ones
+            lam = torch.minimum(torch.maximum(lam, self._lam_lo.index_select(0, site_idx)),
+                                self._lam_hi.index_select(0, site_idx))
         lo = torch.floor(lam).clamp(max=k_max - 2.0)
         frac = (lam - lo)[:, None, None]
         if not self.blend_levels:

@@ -91,40 +91,54 @@ def _level(terrain: Terrain, params: LevelParams, k: int):
     return irr[:, :m].contiguous(), h[:, :m].contiguous()
 
 
-def prepare_scene_levels(terrain: Terrain, params: LevelParams, label: str, disk_cache: bool = True) -> SiteLevels:
+def prepare_scene_levels(terrain: Terrain, params: LevelParams, label: str, disk_cache: bool = True,
+                         levels: Optional[Tuple[int, int]] = None) -> SiteLevels:
     """Levels of a dispersed scene (as :func:`dvsland.render.lod.prepare_levels`, same cache
     folder and key scheme, named ``label``), re-using the fields of a scene that differs only in
-    sun elevation."""
-    from .lod import ALGO_VERSION  # noqa: F401  (the key below includes it through params.key())
+    sun elevation.
 
-    key = f"{terrain.name}-{terrain.spec.digest()}-{params.key()}"
+    ``levels``: ``(k_lo, k_hi)`` inclusive: prepare only these (lazy levels: the levels a
+    descent between two altitudes samples); the others hold a copy of the nearest prepared one
+    and must not be sampled (the fast renderer clamps to the range). The landing point height
+    then comes from level ``k_lo``. None = all levels."""
+    k_max, m = params.n_levels, params.tile_size
+    k_lo, k_hi = (0, k_max - 1) if levels is None else (int(levels[0]), int(levels[1]))
+    if not (0 <= k_lo <= k_hi <= k_max - 1):
+        raise ValueError(f"levels must satisfy 0 <= k_lo <= k_hi <= {k_max - 1}, got {levels}")
+    full = (k_lo, k_hi) == (0, k_max - 1)
+    key = f"{terrain.name}-{terrain.spec.digest()}-{params.key()}" + ("" if full else f"-L{k_lo}-{k_hi}")
     if key in _MEMORY:
         lv = _MEMORY[key]
-        return SiteLevels(label, lv.irradiance, lv.height_m, lv.h0_m, lv.angle_rad, 0.0, "memory")
+        out = SiteLevels(label, lv.irradiance, lv.height_m, lv.h0_m, lv.angle_rad, 0.0, "memory")
+        out.levels = None if full else (k_lo, k_hi)
+        return out
     folder = cache_dir() if disk_cache else None
     path = folder / f"{key}.pt" if folder is not None else None
     if path is not None and path.is_file():
         try:
             d = torch.load(path, map_location="cpu", weights_only=True)
             lv = SiteLevels(label, d["irradiance"], d["height_m"], float(d["h0_m"]), float(d["angle_rad"]), 0.0, "disk")
+            lv.levels = None if full else (k_lo, k_hi)
             _MEMORY[key] = lv
             return lv
         except Exception:  # a broken cache file is recomputed
             pass
     t0, c0 = time.perf_counter(), time.process_time()
-    k_max, m = params.n_levels, params.tile_size
     irr = torch.empty(k_max, m, m, dtype=torch.float32)
     hgt = torch.empty(k_max, m, m, dtype=torch.float32)
     with compute_threads(0):
-        for k in range(k_max):
+        for k in range(k_lo, k_hi + 1):
             ik, hk = _level(terrain, params, k)
             irr[k] = ik.to(torch.float32)
             hgt[k] = hk.to(torch.float32)
+    irr[:k_lo], hgt[:k_lo] = irr[k_lo], hgt[k_lo]
+    irr[k_hi + 1:], hgt[k_hi + 1:] = irr[k_hi], hgt[k_hi]
     c = m // 2
-    h0 = float(hgt[0, c - 1:c + 1, c - 1:c + 1].to(torch.float64).mean())
+    h0 = float(hgt[k_lo, c - 1:c + 1, c - 1:c + 1].to(torch.float64).mean())
     hgt -= h0
     lv = SiteLevels(label, irr, hgt, h0, terrain.sun_grid_angle_rad, time.perf_counter() - t0, "computed",
                     time.process_time() - c0)
+    lv.levels = None if full else (k_lo, k_hi)
     _MEMORY[key] = lv
     if path is not None:
         try:
