@@ -181,3 +181,23 @@ def test_undispersed_runs_bit_identical_to_reference(tmp_path):
         r = simulate("realistic", estimator=est, sites="A,E", quiet=True, out=tmp_path / est,
                      overrides=["simulation.t_max_s=3", "simulation.n_seeds=2", "estimator.oracle.noise_rel=0.05"] + QUIET)
         assert json.loads(json.dumps(r.runs)) == ref[est]
+
+
+def test_lazy_levels_render_like_full_levels(monkeypatch):
+    monkeypatch.setenv("DVSLAND_CACHE_DIR", "off")
+    from dvsland.config import CameraConfig, RenderConfig
+    from dvsland.render.fast import FastRenderer
+
+    cam, rc = CameraConfig(width_px=32, height_px=32), RenderConfig(threads=1)
+    full = FastRenderer(["E~7"], cam, rc, disk_cache=False)
+    lazy = FastRenderer(["E~7"], cam, rc, disk_cache=False, suns=[(None, 0.0)], altitude_ranges=[(50.0, 4400.0)])
+    assert float(lazy._lam_lo[0]) == 2.0 and 8.9 < float(lazy._lam_hi[0]) < 9.0  # levels 2-9 of 13
+    alt = torch.tensor([60.0, 400.0, 4000.0])
+    idx = torch.zeros(3, dtype=torch.int64)
+    a, b = full.render(alt, idx), lazy.render(alt, idx)
+    # same tiles; only the landing-point height (from level 2 instead of 0) moves the parallax a little
+    assert float((a.log() - b.log()).abs().mean()) < 0.05
+    low = lazy.render(torch.tensor([12.0, 19000.0]), torch.zeros(2, dtype=torch.int64))
+    assert bool(torch.isfinite(low).all()) and bool((low > 0).all())  # clamped to the prepared levels
+    with pytest.raises(ValueError, match="altitude_ranges"):
+        FastRenderer(["E~7"], cam, rc, disk_cache=False, altitude_ranges=[(50.0, 4400.0)])
