@@ -179,7 +179,7 @@ def check_config(cfg: Config, source: Optional[str] = None) -> Config:
             raise ConfigError(f"simulation.sites[{i}].z0_m{_where(source)}: {s.z0_m} is above "
                               f"render.max_altitude_m = {cfg.render.max_altitude_m}")
     check_run_semantics(cfg, source)
-    from dvsland.sim.dispersion import check_dispersion_config  # late: sim imports config
+    from .dispersion import check_dispersion_config
 
     try:
         check_dispersion_config(cfg.dispersion, source or "")

@@ -26,7 +26,7 @@ STREAM_KEYS: Dict[str, int] = {
     "refractory_us": 9, "element_seed": 10,
 }
 
-KINDS = ("off", "fixed", "uniform", "normal")
+from dvsland.config.dispersion import KINDS, check_dispersion_config, check_distribution  # noqa: F401 (re-export)
 
 
 def site_key(site: str) -> int:
@@ -49,21 +49,6 @@ def element_rng(master_seed: int, site: str, seed_index: int, stream: str) -> np
         raise ValueError(f"seed_index must be >= 0, got {seed_index}")
     ss = np.random.SeedSequence(int(master_seed), spawn_key=(site_key(site), int(seed_index), STREAM_KEYS[stream]))
     return np.random.default_rng(ss)
-
-
-def check_distribution(dist, path: str) -> None:
-    """ValueError naming ``path`` when ``dist`` (a Dispersion) is inconsistent."""
-    kind = dist.kind
-    if kind not in KINDS:
-        raise ValueError(f"{path}.kind: {kind!r} is not allowed; choose one of {list(KINDS)}")
-    if kind == "uniform" and not (dist.low <= dist.high):
-        raise ValueError(f"{path}: uniform needs low <= high, got low={dist.low}, high={dist.high}")
-    if kind == "normal":
-        if not dist.std >= 0:
-            raise ValueError(f"{path}.std: must be >= 0, got {dist.std}")
-        if not (dist.low <= dist.high):
-            raise ValueError(f"{path}: normal is clipped to [low, high]; needs low <= high, "
-                             f"got low={dist.low}, high={dist.high}")
 
 
 def sample_one(dist, rng: np.random.Generator) -> Optional[float]:
@@ -107,24 +92,3 @@ def element_seeds(master_seed: int, sites: Sequence[str], setting_idx: Sequence[
         out.append(int(ss.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1)))
     return np.asarray(out, dtype=np.int64)
 
-
-def check_dispersion_config(dcfg, source: str = "") -> None:
-    """Cross-field checks of a :class:`~dvsland.config.schema.DispersionConfig`: every enabled
-    distribution is consistent and its possible draws lie in the parameter's allowed range.
-    ValueError naming the parameter (``dispersion.<name>``) and the range."""
-    from dvsland.config.schema import DISPERSION_RANGES
-
-    where = f" (in {source})" if source else ""
-    for name, (lo, hi) in DISPERSION_RANGES.items():
-        dist = getattr(dcfg, name)
-        path = f"dispersion.{name}"
-        try:
-            check_distribution(dist, path)
-        except ValueError as exc:
-            raise ValueError(f"{exc}{where}") from None
-        if dist.kind == "off":
-            continue
-        vals = {"fixed": [dist.value], "uniform": [dist.low, dist.high], "normal": [dist.low, dist.high, dist.mean]}
-        for v in vals[dist.kind]:
-            if not (lo <= v <= hi):
-                raise ValueError(f"{path}{where}: {dist.kind} draws must lie in [{lo}, {hi}], got {v}")
