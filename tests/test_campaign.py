@@ -36,7 +36,8 @@ class TestPlan:
 
     @pytest.mark.parametrize("sweep,match", [("controller.c2", "key=v1"), ("controller.c2=", "at least one"),
                                              ("controller.c2=2.0", "controller.c2"),
-                                             ("simulation.n_seeds=1,2", "--n-seeds")])
+                                             ("simulation.n_seeds=1,2", "--n-seeds"),
+                                             ("estimator.name=oracle,nosuch", "nosuch")])
     def test_bad_sweeps(self, sweep, match):
         with pytest.raises(ValueError, match=match):
             make_plan(_cfg(), [sweep], n_seeds=2)

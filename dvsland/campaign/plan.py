@@ -126,7 +126,9 @@ def make_plan(cfg: Config, sweeps: Sequence[str] = (), n_seeds: int = None, shar
     for g, values in enumerate(itertools.product(*(sw[k] for k in keys)) if keys else [()]):
         point = dict(zip(keys, values))
         try:
-            config_from_dict(base, [f"{k}={v}" for k, v in point.items()])
+            from dvsland.stages import check_names
+
+            check_names(config_from_dict(base, [f"{k}={v}" for k, v in point.items()]))
         except ConfigError as exc:
             raise ValueError(f"--sweep {point}: {exc}") from None
         for k0 in range(0, n_seeds, shard_seeds):

@@ -184,6 +184,8 @@ def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_
         rate = f", {dpm:.1f} descents/min" if dpm else ""
         print(f"{status}: {len(plan.shards) - len(missing)}/{len(plan.shards)} shards, {len(runs)} descents "
               f"({descents} run now in {run_s:.1f} s{rate}); output in {run_dir}")
+        if missing:
+            print(f"{len(missing)} shards missing: dvsland campaign --resume {run_dir}")
     if exc_to_raise is not None:
         raise exc_to_raise
     return CampaignResult(run_dir=run_dir, runs=runs, groups=groups, group_by=by, status=status,
