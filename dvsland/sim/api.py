@@ -112,7 +112,7 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
     if cfg.simulation.torch_threads > 0:
         torch.set_num_threads(cfg.simulation.torch_threads)
     layout = build_layout(cfg, sites)
-    check_memory(cfg, len(layout.site_names), layout.batch_size)  # before anything large is allocated
+    check_memory(cfg, len(layout.scene_names), layout.batch_size)  # scenes: the sites, or their dispersed variants  # before anything large is allocated
     if estimator is None or isinstance(estimator, str):
         check_names(cfg)
     run_dir = make_run_dir(cfg, out)  # config.yaml first: a failing set-up still leaves it
