@@ -137,3 +137,14 @@ def test_cli_campaign(tmp_path, capsys):
     assert capsys.readouterr().out == ""  # --quiet
     assert main(["campaign", "--resume", str(tmp_path / "cli"), "--quiet"]) == 0
     assert main(["campaign", "realistic", "--sweep", "controller.c2", "--quiet", "--out", str(tmp_path / "bad")]) == 2
+
+
+def test_keep_runs_and_a_stale_shard_folder(tmp_path):
+    res = run_campaign(_cfg(), n_seeds=2, shard_seeds=1, out=tmp_path / "k", quiet=True, keep_runs=True, max_shards=1)
+    shards = tmp_path / "k" / "shards"
+    first, second = sorted(p.name for p in shards.glob("*.json"))[0][:-5], "g000-s00001"
+    assert (shards / first / "traces.npz").is_file()
+    (shards / second).mkdir()
+    (shards / second / "results.json").write_text("{}")  # a killed earlier try of the missing shard
+    res = run_campaign(resume=tmp_path / "k", quiet=True, keep_runs=True)
+    assert res.status == "complete" and (shards / second / "traces.npz").is_file()

@@ -180,7 +180,10 @@ def test_undispersed_runs_bit_identical_to_reference(tmp_path):
     for est in ("dpr", "oracle"):
         r = simulate("realistic", estimator=est, sites="A,E", quiet=True, out=tmp_path / est,
                      overrides=["simulation.t_max_s=3", "simulation.n_seeds=2", "estimator.oracle.noise_rel=0.05"] + QUIET)
-        assert json.loads(json.dumps(r.runs)) == ref[est]
+        runs = json.loads(json.dumps(r.runs))
+        assert len(runs) == len(ref[est])
+        for run, want in zip(runs, ref[est]):  # every field the reference has (newer fields may be added)
+            assert {k: run.get(k) for k in want} == want
 
 
 def test_lazy_levels_render_like_full_levels(monkeypatch):

@@ -62,6 +62,10 @@ def run_shard(plan_config: dict, shard: dict, keep_dir: Optional[str] = None, th
     cfg = config_from_dict(plan_config, sh.overrides())
     torch.set_num_threads(max(1, int(threads)))
     t0 = time.perf_counter()
+    if keep_dir is not None and os.path.isdir(keep_dir):  # a killed earlier try of this shard: start afresh
+        import shutil
+
+        shutil.rmtree(keep_dir)
     with tempfile.TemporaryDirectory(prefix="dvsland-shard-") as tmp:
         out = keep_dir if keep_dir is not None else os.path.join(tmp, sh.id)
         res = simulate(cfg, out=out, quiet=True)

@@ -359,11 +359,11 @@ class Dispersion:
     :mod:`dvsland.sim.dispersion`."""
 
     kind: str = opt("off", "distribution", choices=("off", "fixed", "uniform", "normal"))
-    value: float = opt(0.0, "the value of 'fixed'")
-    low: float = opt(0.0, "lower bound of 'uniform'; clip bound of 'normal'")
-    high: float = opt(0.0, "upper bound of 'uniform'; clip bound of 'normal'")
-    mean: float = opt(0.0, "mean of 'normal'")
-    std: float = opt(0.0, "standard deviation of 'normal'", rng=(0.0, INF))
+    value: float = opt(0.0, "the value of 'fixed'", rng=(-1e9, 1e9))
+    low: float = opt(0.0, "lower bound of 'uniform'; clip bound of 'normal'", rng=(-1e9, 1e9))
+    high: float = opt(0.0, "upper bound of 'uniform'; clip bound of 'normal'", rng=(-1e9, 1e9))
+    mean: float = opt(0.0, "mean of 'normal'", rng=(-1e9, 1e9))
+    std: float = opt(0.0, "standard deviation of 'normal'", rng=(0.0, 1e9))
 
 
 #: allowed range of each dispersed parameter's draws (checked on low/high/value/mean)
