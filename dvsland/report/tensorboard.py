@@ -1,15 +1,30 @@
-"""TensorBoard output of a simulation, written incrementally while the loop runs.
+"""TensorBoard output of a simulation, written with :class:`torch.utils.tensorboard.SummaryWriter`
+while the loop runs.
 
-Layout under ``<run_dir>/tb/``: one sub-folder per descent (``A_Kp5e6-n5``) holding its scalars
-and images, so TensorBoard overlays the descents on one chart per tag; the top folder holds the
-resolved config and the final results table as text.
+Layout under ``<run_dir>/tb/``: one sub-folder per descent (``A_Kp5e6-n5``), each with exactly one
+event file holding that descent's scalars, histograms, images and HParams session, so TensorBoard
+overlays the descents on one chart per tag and lists them as rows of the HParams table. The top
+folder holds the resolved config and the results table as text, the HParams experiment (the
+columns of the HParams table) and a custom-scalars layout. A folder that already holds TensorBoard
+files (``--out`` reused) is never appended to: :func:`fresh_log_dir` picks ``tb-2/``, ``tb-3/``, ...
 
-Per-run scalar tags: ``altitude_m``, ``velocity_mps``, ``mass_kg``, ``thrust_n``,
-``divergence/true``, ``divergence/estimated``, ``divergence/filtered``, ``ttc/true_s``,
+**x-axis = flight time.** TensorBoard's x-axis is a step, a relative time or a wall time. Every
+per-descent entry is written with ``global_step = round(t_s * 1000)``, the flight time in
+milliseconds (a step of 93 100 is t = 93.1 s), and with ``walltime = start + t_s``, so the
+RELATIVE axis also reads flight time (and the WALL axis shows start + flight time, not the
+computer's clock).
+
+Per-descent scalar tags: ``altitude_m``, ``velocity_mps``, ``mass_kg``, ``thrust_n``,
+``divergence/true``, ``divergence/estimated``, ``divergence/filtered`` (1/s), ``ttc/true_s``,
 ``ttc/estimated_s``, ``ttc/target_s``, ``control/held``, ``control/n_used``, and
-``tracking/n_centroids`` where the estimator reports centroids. The step axis is the control
-step index (t = step * dt). Images (every ``image_every_s`` of flight, active descents only):
-``images/frame`` and ``images/events`` with the tracked centroids drawn in green.
+``tracking/n_centroids`` where the estimator reports centroids. Histograms:
+``divergence/rel_error`` (D̂ − D)/|D| of the estimates in each flush window (every
+``flush_every_s`` of flight), clipped to ±2, in bins of 0.1. Images (every ``image_every_s`` of flight, active descents only):
+``images/frame`` and ``images/events`` (ON red, OFF blue) with the tracked centroids in green.
+HParams (written when the run ends): site, setting, Kp, n_bin, seed index, estimator, renderer (when frames are rendered) against
+the outcome metrics ``outcome/success``, ``outcome/t_end_s``, ``outcome/lowest_altitude_m``,
+``outcome/v_end_mps``, ``outcome/fuel_used_kg``, ``outcome/max_thrust_kN`` and
+``outcome/median_abs_rel_err``.
 """
 
 from __future__ import annotations
@@ -28,6 +43,10 @@ SCALAR_TAGS = {
     "tau_target_s": "ttc/target_s", "tau_hat_s": "ttc/estimated_s", "n_used": "control/n_used",
 }
 
+#: the HParams metrics of a closed-loop descent (scalar tag -> results.json key or a derived value)
+OUTCOME_METRICS = ("outcome/success", "outcome/t_end_s", "outcome/lowest_altitude_m", "outcome/v_end_mps",
+                   "outcome/fuel_used_kg", "outcome/max_thrust_kN", "outcome/median_abs_rel_err")
+
 
 def run_folder_name(run_label: str) -> str:
     """File-system-safe folder name of a run label (``A/Kp5e6-n5`` -> ``A_Kp5e6-n5``); the config
@@ -35,6 +54,91 @@ def run_folder_name(run_label: str) -> str:
     from dvsland.config.validate import folder_name
 
     return folder_name(run_label)
+
+
+def flight_step(t_s: float) -> int:
+    """TensorBoard ``global_step`` of flight time ``t_s``: milliseconds, rounded (93.1 s -> 93100)."""
+    return int(round(float(t_s) * 1000.0))
+
+
+def fresh_log_dir(path) -> Path:
+    """``path`` if it holds no TensorBoard files yet, else the first free ``<path>-2``, ``-3``, ...
+
+    A reused run folder (``--out``) must not append a second event file whose steps restart at 0
+    to the first run's curves: the new run gets its own folder, which TensorBoard lists as its own run.
+    """
+    path = Path(path)
+
+    def used(p: Path) -> bool:
+        return p.exists() and any(p.rglob("events.out.tfevents.*"))
+
+    if not used(path):
+        return path
+    k = 2
+    while used(path.with_name(f"{path.name}-{k}")) or path.with_name(f"{path.name}-{k}").is_file():
+        k += 1
+    return path.with_name(f"{path.name}-{k}")
+
+
+def summary_writer(log_dir, flush_secs: int = 5):
+    """A :class:`torch.utils.tensorboard.SummaryWriter` on ``log_dir`` (created)."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    Path(log_dir).mkdir(parents=True, exist_ok=True)
+    return SummaryWriter(log_dir=str(log_dir), flush_secs=flush_secs)
+
+
+#: relative errors are clipped to +-this before their histogram (fixed bins of 0.1)
+REL_ERROR_CLIP = 2.0
+_REL_EDGES = np.linspace(-REL_ERROR_CLIP, REL_ERROR_CLIP, 41)
+
+
+def add_histogram_fixed(writer, tag: str, values: np.ndarray, step: int, walltime: Optional[float] = None,
+                        edges: np.ndarray = _REL_EDGES) -> None:
+    """A histogram on fixed bucket ``edges`` (values outside are clipped in), written with
+    ``SummaryWriter.add_histogram_raw``: about 10x cheaper than ``add_histogram``'s automatic bins."""
+    v = np.clip(np.asarray(values, dtype=np.float64).ravel(), edges[0], edges[-1])
+    if v.size == 0:
+        return
+    counts, _ = np.histogram(v, edges)
+    writer.add_histogram_raw(tag, min=float(v.min()), max=float(v.max()), num=int(v.size), sum=float(v.sum()),
+                             sum_squares=float((v * v).sum()), bucket_limits=edges[1:].tolist(),
+                             bucket_counts=counts.tolist(), global_step=step, walltime=walltime)
+
+
+def write_hparams(top_writer, run_writers: Sequence, hparams: Sequence[dict], metrics: Sequence[dict],
+                  walltime: Optional[float] = None, step: Optional[int] = None) -> None:
+    """HParams: one experiment on ``top_writer`` (the table's columns) and one session per run on ``run_writers[i]`` with its metrics as
+    scalars, so each run is one row of TensorBoard's HParams table, next to its own curves.
+
+    Args:
+        top_writer: SummaryWriter of the parent folder.
+        run_writers: one SummaryWriter per run (its own sub-folder).
+        hparams: per run, {name: bool | int | float | str}.
+        metrics: per run, {scalar tag: float}; NaN values are left out of that run.
+        walltime, step: of the metric scalars (default: now, 0); a list gives one per run.
+    """
+    from torch.utils.tensorboard.summary import hparams as hparams_summary
+
+    if not hparams:
+        return
+    names = list(dict.fromkeys(k for h in hparams for k in h))
+    tags = list(dict.fromkeys(k for m in metrics for k in m))
+    union = {k: next(h[k] for h in hparams if k in h) for k in names}
+    # no discrete domains: with --logdir over several runs TensorBoard uses one run's experiment,
+    # and a domain listing only that run's values would filter the other runs' rows out
+    exp, _, _ = hparams_summary(union, {t: 0.0 for t in tags})
+    top_writer._get_file_writer().add_summary(exp)
+    for i, (w, h, m) in enumerate(zip(run_writers, hparams, metrics)):
+        _, ssi, sei = hparams_summary(h, {t: 0.0 for t in tags})
+        fw = w._get_file_writer()
+        fw.add_summary(ssi)
+        fw.add_summary(sei)
+        st = step[i] if isinstance(step, (list, tuple)) else (step or 0)
+        wt = walltime[i] if isinstance(walltime, (list, tuple)) else walltime
+        for tag, val in m.items():
+            if val is not None and math.isfinite(float(val)):
+                w.add_scalar(tag, float(val), st, walltime=wt)
 
 
 def draw_centroids(rgb: np.ndarray, centroids_xy: Optional[np.ndarray], color=(0, 255, 0)) -> np.ndarray:
@@ -71,40 +175,56 @@ def counts_to_rgb(counts: np.ndarray) -> np.ndarray:
     return rgb
 
 
+def descent_layout() -> dict:
+    """Custom-scalars layout (TensorBoard's CUSTOM SCALARS tab): D true / estimated / filtered on
+    one chart, τ true / estimated / target on another, and the state, for every descent."""
+    return {
+        "descent (x = flight time, ms)": {
+            "divergence D [1/s]: true, estimated, filtered": ["Multiline", [r"divergence/(true|estimated|filtered)"]],
+            "time to contact [s]: true, estimated, target": ["Multiline", [r"ttc/.*"]],
+            "altitude [m]": ["Multiline", [r"altitude_m"]],
+            "velocity [m/s]": ["Multiline", [r"velocity_mps"]],
+            "thrust [N]": ["Multiline", [r"thrust_n"]],
+        }
+    }
+
+
 class TensorBoardLogger:
     """Writes a :class:`dvsland.sim.loop.ClosedLoop`'s traces and images as it flies.
 
     Args:
-        log_dir: folder (``<run_dir>/tb``).
+        log_dir: folder (``<run_dir>/tb``); if it already holds TensorBoard files the logger writes
+            into a fresh sibling (:func:`fresh_log_dir`); the folder used is ``self.log_dir``.
         run_labels: (B,) run labels.
         dt_s: control step, s.
         scalar_every_s: scalars every this many s of flight (>= dt: every step).
         image_every_s: images every this many s of flight.
-        flush_every_s: write buffered scalars every this many s of flight.
+        flush_every_s: write buffered scalars (and one error histogram) every this many s of flight.
     """
 
     def __init__(self, log_dir, run_labels: Sequence[str], dt_s: float, scalar_every_s: float = 0.5,
                  image_every_s: float = 5.0, flush_every_s: float = 5.0):
-        from torch.utils.tensorboard.writer import FileWriter
-
-        self.log_dir = Path(log_dir)
+        self.log_dir = fresh_log_dir(log_dir)
         self.run_labels = list(run_labels)
         self.dt_s = float(dt_s)
         self.scalar_every = max(1, int(round(scalar_every_s / dt_s)))
         self.image_every = max(1, int(round(image_every_s / dt_s)))
         self.flush_every = max(1, int(round(flush_every_s / dt_s)))
+        self.start_wall = time.time()
         # the writers' own threads flush every few wall seconds: a crash loses at most that much
-        self.top = FileWriter(str(self.log_dir), flush_secs=5)
-        self.writers = [FileWriter(str(self.log_dir / run_folder_name(r)), flush_secs=5) for r in self.run_labels]
+        self.top = summary_writer(self.log_dir)
+        self.writers = [summary_writer(self.log_dir / run_folder_name(r)) for r in self.run_labels]
+        self.top.add_custom_scalars(descent_layout())
         self._written_rows = 0
         self._closed = False
+
+    def _wall(self, t_s: float) -> float:
+        return self.start_wall + float(t_s)
 
     # -------------------------------------------------------------- text
     def add_text(self, tag: str, text: str, step: int = 0) -> None:
         """Markdown text on the top writer (config, results table)."""
-        from torch.utils.tensorboard.summary import text as text_summary
-
-        self.top.add_summary(text_summary(tag, text), step, time.time())
+        self.top.add_text(tag, text, step)
 
     def add_config(self, cfg_yaml: str) -> None:
         """The resolved config, as a YAML code block."""
@@ -113,31 +233,51 @@ class TensorBoardLogger:
 
     # -------------------------------------------------------------- scalars
     def write_rows(self, traces: Dict[str, np.ndarray], start_row: int, n_centroids: Optional[np.ndarray] = None) -> None:
-        """Scalars of rows ``start_row + i`` of ``traces`` (each (n, B)), decimated, active rows only."""
+        """Scalars of rows ``start_row + i`` of ``traces`` (each (n, B)), decimated, active rows only,
+        at step = flight time in ms; plus one histogram per descent of the relative error of the
+        estimates in these rows (all active rows, not decimated)."""
         from tensorboard.compat.proto.summary_pb2 import Summary
 
         n = traces["z_m"].shape[0]
-        wall = time.time()
+        t_s = traces["t_s"] if "t_s" in traces else (start_row + np.arange(n))[:, None] * self.dt_s \
+            + np.zeros((1, len(self.writers)))
         rows = [i for i in range(n) if (start_row + i) % self.scalar_every == 0]
-        if not rows:
+        if rows:
+            # plain Python lists once per chunk: indexing numpy scalars one by one is slow
+            cols = {key: traces[key][rows].tolist() for key in SCALAR_TAGS}
+            z_l, v_l = traces["z_m"][rows].tolist(), traces["v_mps"][rows].tolist()
+            active_l, held_l = traces["active"][rows].tolist(), traces["held"][rows].tolist()
+            t_l = np.asarray(t_s)[rows].tolist()
+            Value = Summary.Value
+            isfinite = math.isfinite
+            file_writers = [w._get_file_writer() for w in self.writers]
+            for j in range(len(rows)):
+                for b, fw in enumerate(file_writers):
+                    if not active_l[j][b]:
+                        continue
+                    vals = [Value(tag=tag, simple_value=x) for key, tag in SCALAR_TAGS.items()
+                            if isfinite(x := cols[key][j][b])]
+                    if v_l[j][b] < 0:
+                        vals.append(Value(tag="ttc/true_s", simple_value=-z_l[j][b] / v_l[j][b]))
+                    vals.append(Value(tag="control/held", simple_value=float(held_l[j][b])))
+                    t = t_l[j][b]
+                    # several tags in one Summary: one event per row, the cost of one add_scalar
+                    fw.add_summary(Summary(value=vals), flight_step(t), self._wall(t))
+        self._error_histograms(traces, np.asarray(t_s))
+
+    def _error_histograms(self, traces: Dict[str, np.ndarray], t_s: np.ndarray) -> None:
+        d_true, d_est, active = traces["d_true"], traces["d_est"], traces["active"].astype(bool)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = (d_est - d_true) / np.abs(d_true)
+        ok = np.isfinite(rel) & active
+        if not ok.any():
             return
-        # plain Python lists once per chunk: indexing numpy scalars one by one is slow
-        cols = {key: traces[key][rows].tolist() for key in SCALAR_TAGS}
-        z_l, v_l = traces["z_m"][rows].tolist(), traces["v_mps"][rows].tolist()
-        active_l, held_l = traces["active"][rows].tolist(), traces["held"][rows].tolist()
-        Value = Summary.Value
-        isfinite = math.isfinite
-        for j, i in enumerate(rows):
-            row = start_row + i
-            for b, w in enumerate(self.writers):
-                if not active_l[j][b]:
-                    continue
-                vals = [Value(tag=tag, simple_value=x) for key, tag in SCALAR_TAGS.items()
-                        if isfinite(x := cols[key][j][b])]
-                if v_l[j][b] < 0:
-                    vals.append(Value(tag="ttc/true_s", simple_value=-z_l[j][b] / v_l[j][b]))
-                vals.append(Value(tag="control/held", simple_value=float(held_l[j][b])))
-                w.add_summary(Summary(value=vals), row, wall)
+        rel = np.clip(rel, -REL_ERROR_CLIP, REL_ERROR_CLIP)
+        for b in np.nonzero(ok.any(axis=0))[0].tolist():
+            r = rel[ok[:, b], b]
+            last = np.nonzero(ok[:, b])[0][-1]
+            add_histogram_fixed(self.writers[b], "divergence/rel_error", r, flight_step(t_s[last, b]),
+                                self._wall(t_s[last, b]))
 
     def on_step(self, loop) -> None:
         """Call after each loop step: flushes scalars periodically, logs images every few seconds."""
@@ -155,9 +295,6 @@ class TensorBoardLogger:
         self._written_rows = stop_row
 
     def _images(self, loop, row: int) -> None:
-        from torch.utils.tensorboard.summary import image as image_summary
-        from tensorboard.compat.proto.summary_pb2 import Summary
-
         diag = {}
         try:
             diag = loop.estimator.diagnostics() or {}
@@ -172,29 +309,81 @@ class TensorBoardLogger:
         if ev is not None and frames is not None and hasattr(ev, "to_count_image"):
             B, H, W = frames.shape
             counts = ev.to_count_image(B, H, W).detach().cpu().numpy()
-        wall = time.time()
+        t_s = row * self.dt_s  # the time of trace row `row` (t = row * dt)
+        step, wall = flight_step(t_s), self._wall(t_s)
         for b, w in enumerate(self.writers):
             if not active[b]:
                 continue
             c = cents[b] if cents is not None and b < len(cents) else None
             if cents is not None:
                 n_c = int(np.isfinite(c).all(axis=1).sum()) if c is not None else 0
-                w.add_summary(Summary(value=[Summary.Value(tag="tracking/n_centroids", simple_value=n_c)]), row, wall)
+                w.add_scalar("tracking/n_centroids", n_c, step, walltime=wall)
             if frames is not None:
-                img = draw_centroids(frame_to_rgb(frames[b]), c)
-                w.add_summary(image_summary("images/frame", img, dataformats="HWC"), row, wall)
+                w.add_image("images/frame", draw_centroids(frame_to_rgb(frames[b]), c), step, walltime=wall,
+                            dataformats="HWC")
             if counts is not None:
-                img = draw_centroids(counts_to_rgb(counts[b]), c)
-                w.add_summary(image_summary("images/events", img, dataformats="HWC"), row, wall)
+                w.add_image("images/events", draw_centroids(counts_to_rgb(counts[b]), c), step, walltime=wall,
+                            dataformats="HWC")
+
+    # -------------------------------------------------------------- hparams
+    def add_hparams(self, runs: List[dict], traces: Optional[Dict[str, np.ndarray]] = None,
+                    extra: Optional[dict] = None) -> None:
+        """One HParams row per descent: its settings (site, setting, Kp, n_bin, seed, estimator and
+        ``extra``, e.g. the renderer) against its outcome (:data:`OUTCOME_METRICS`).
+
+        Args:
+            runs: the ``runs`` of results.json, in the order of ``run_labels``.
+            traces: optional traces (rows, B) for ``outcome/median_abs_rel_err`` (over the steps
+                with an estimate while the descent flew).
+            extra: hparams shared by every run.
+        """
+        med = [float("nan")] * len(runs)
+        if traces is not None and "d_est" in traces:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rel = np.abs((traces["d_est"] - traces["d_true"]) / traces["d_true"])
+            ok = np.isfinite(rel) & traces["active"].astype(bool)
+            med = [float(np.median(rel[ok[:, b], b])) if ok[:, b].any() else float("nan") for b in range(len(runs))]
+        hps, mets = [], []
+        for r, m in zip(runs, med):
+            h = {"site": str(r.get("site", "")), "setting": str(r.get("label", "")), "kp_n_per_s": float(r.get("kp", 0)),
+                 # the seed's index (the 64-bit seed itself is in results.json: a float64 hparam rounds it)
+                 "n_bin": int(r.get("n_bin", 0)), "seed_index": int(r.get("seed_index", 0)),
+                 "estimator": str(r.get("estimator", ""))}
+            h.update(extra or {})
+            hps.append(h)
+            thrust = r.get("max_thrust_n")
+            mets.append({"outcome/success": float(r.get("outcome") == "success"),
+                         "outcome/t_end_s": r.get("t_end_s"), "outcome/lowest_altitude_m": r.get("lowest_altitude_m"),
+                         "outcome/v_end_mps": r.get("v_end_mps"), "outcome/fuel_used_kg": r.get("fuel_used_kg"),
+                         "outcome/max_thrust_kN": None if thrust is None else thrust / 1e3,
+                         "outcome/median_abs_rel_err": m})
+        t_end = [float(r.get("t_end_s") or 0.0) for r in runs]
+        write_hparams(self.top, self.writers[:len(runs)], hps, mets, walltime=[self._wall(t) for t in t_end],
+                      step=[flight_step(t) for t in t_end])
 
     # -------------------------------------------------------------- end
     def close(self, loop=None, table_markdown: Optional[str] = None) -> None:
-        """Write the remaining rows, the results table, and close every file (safe to call twice)."""
+        """Write the remaining rows, the HParams of every descent (when ``loop`` is given), the
+        results table, and close every file (safe to call twice)."""
         if self._closed:
             return
         try:
             if loop is not None:
                 self._flush_rows(loop, loop.traces.rows)
+                extra = {}
+                rend = getattr(getattr(getattr(loop, "cfg", None), "render", None), "renderer", None)
+                if rend is not None and getattr(loop, "renderer", None) is not None:
+                    extra["renderer"] = str(rend)
+                try:
+                    traces = loop.traces_numpy()
+                except Exception:  # a loop stand-in without traces: outcomes only
+                    traces = None
+                try:
+                    self.add_hparams(loop.summaries(), traces, extra)
+                except Exception as exc:  # never lose the run's other outputs over its HParams
+                    import warnings
+
+                    warnings.warn(f"TensorBoard HParams not written: {type(exc).__name__}: {exc}")
             if table_markdown:
                 self.add_text("results", table_markdown)
         finally:
@@ -202,3 +391,110 @@ class TensorBoardLogger:
                 w.flush()
                 w.close()
             self._closed = True
+
+
+# ------------------------------------------------------------------ other commands
+def write_evaluation_tensorboard(log_dir, res, cfg_yaml: Optional[str] = None,
+                                 table_text: Optional[str] = None) -> Path:
+    """TensorBoard of an open-loop evaluation (``dvsland evaluate``), in a fresh ``log_dir``.
+
+    One sub-folder per estimator and one ``truth``: tag ``divergence/site_<S>`` (1/s) at step =
+    flight time in ms, so each site's chart overlays the truth and every estimator; a histogram
+    ``divergence/rel_error`` of (D̂ − D)/|D| over the scored steps of sites A–G; one HParams row per
+    estimator (``estimator``) with ``eval/median_abs_rel_err``, ``eval/rmse``, ``eval/coverage``,
+    ``eval/within_10``, ``eval/ms_per_step`` (sites A–G; ms per update for the batch). The top
+    folder holds the config and the printed table as text.
+
+    Args:
+        log_dir: folder (``<run_dir>/tb``).
+        res: a :class:`dvsland.evaluate.EvaluationResult`.
+        cfg_yaml: the resolved config as YAML.
+        table_text: the printed table.
+
+    Returns:
+        The folder written (a fresh sibling if ``log_dir`` already held TensorBoard files).
+    """
+    log_dir = fresh_log_dir(log_dir)
+    desc = res.descents
+    d_true = desc.divergence
+    steps = [flight_step(t) for t in desc.t_s]
+    start = time.time()
+    top = summary_writer(log_dir)
+    writers = {}
+    try:
+        if cfg_yaml:
+            top.add_text("config", "```yaml\n" + cfg_yaml + "\n```")
+        if table_text:
+            top.add_text("results", "```\n" + table_text + "\n```")
+        series = {"truth": d_true, **res.d_hat}
+        for name, dh in series.items():
+            w = writers[name] = summary_writer(log_dir / run_folder_name(name))
+            for i, site in enumerate(desc.sites):
+                ok = np.nonzero(desc.valid[i] & np.isfinite(dh[i]))[0]
+                for k in ok.tolist():
+                    w.add_scalar(f"divergence/site_{site}", float(dh[i, k]), steps[k],
+                                 walltime=start + float(desc.t_s[k]))
+        hps, mets, ws = [], [], []
+        from dvsland.evaluate.run import TARGET_SITES
+
+        target = np.array([s in TARGET_SITES for s in desc.sites])
+        for name, dh in res.d_hat.items():
+            m = res.scored & target[:, None]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rel = (dh[m] - d_true[m]) / np.abs(d_true[m])
+            rel = rel[np.isfinite(rel)]
+            if rel.size:
+                add_histogram_fixed(writers[name], "divergence/rel_error", rel, 0, start)
+            e = res.summary.get("estimators", {}).get(name, {})
+            ag = e.get("sites_A_G", {})
+            hps.append({"estimator": name, "batch_size": int(len(desc.sites))})
+            mets.append({"eval/median_abs_rel_err": ag.get("median_abs_rel_err"), "eval/rmse": ag.get("rmse"),
+                         "eval/coverage": ag.get("coverage"), "eval/within_10": ag.get("within_10"),
+                         "eval/ms_per_step": e.get("ms_per_step_median")})
+            ws.append(writers[name])
+        write_hparams(top, ws, hps, mets, walltime=start, step=0)
+    finally:
+        for w in list(writers.values()) + [top]:
+            w.close()
+    return log_dir
+
+
+def write_events_tensorboard(log_dir, t_us: np.ndarray, altitude_m: np.ndarray, events_per_step: Sequence[int],
+                             event_frame: Optional[np.ndarray] = None, last_frame: Optional[np.ndarray] = None,
+                             cfg_yaml: Optional[str] = None, summary: Optional[dict] = None) -> Path:
+    """TensorBoard of ``dvsland events``, in a fresh ``log_dir``: scalars ``altitude_m`` and
+    ``events/per_step`` (events per frame interval, by emission time) at step = flight time in
+    ms, images ``events/frame`` (ON red, OFF blue) and ``frames/last`` (uint8, (H, W) or
+    (H, W, 3)), and the config and summary as text.
+
+    Args:
+        t_us: (K + 1,) int64 frame times, µs of flight time.
+        altitude_m: (K + 1,) altitudes, m.
+        events_per_step: (K,) events emitted between frames k − 1 and k.
+
+    Returns:
+        The folder written.
+    """
+    log_dir = fresh_log_dir(log_dir)
+    start = time.time()
+    t_s = np.asarray(t_us, dtype=np.float64) * 1e-6
+    with summary_writer(log_dir) as w:
+        if cfg_yaml:
+            w.add_text("config", "```yaml\n" + cfg_yaml + "\n```")
+        if summary:
+            import json
+
+            w.add_text("summary", "```json\n" + json.dumps({k: v for k, v in summary.items()
+                                                           if k != "events_per_step"}, indent=2) + "\n```")
+        for k, (t, z) in enumerate(zip(t_s.tolist(), np.asarray(altitude_m, dtype=np.float64).tolist())):
+            w.add_scalar("altitude_m", z, flight_step(t), walltime=start + t)
+            if k >= 1 and k - 1 < len(events_per_step):
+                w.add_scalar("events/per_step", float(events_per_step[k - 1]), flight_step(t), walltime=start + t)
+        last = flight_step(t_s[-1]) if t_s.size else 0
+        wall = start + (float(t_s[-1]) if t_s.size else 0.0)
+        if event_frame is not None:
+            w.add_image("events/frame", np.asarray(event_frame), last, walltime=wall, dataformats="HWC")
+        if last_frame is not None:
+            img = np.asarray(last_frame)
+            w.add_image("frames/last", img, last, walltime=wall, dataformats="HWC" if img.ndim == 3 else "HW")
+    return log_dir
