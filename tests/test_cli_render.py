@@ -31,7 +31,7 @@ def test_render_cli_writes_everything(tmp_path, monkeypatch):
 
     mesh = trimesh.load(out / "mesh_A_100m.ply")
     assert len(mesh.vertices) == 16 * 16
-    assert any(p.name.startswith("events.out.tfevents") for p in out.iterdir())
+    assert any(p.name.startswith("events.out.tfevents") for p in (out / "tb").iterdir())
 
 
 def test_render_cli_bad_altitude(tmp_path, capsys):

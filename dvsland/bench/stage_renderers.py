@@ -73,30 +73,12 @@ def _timing(fast, pyr, site: int, altitude_m: float, n: int):
     return res
 
 
-def _montage(pairs, path: Path, labels):
-    """pairs: list (rows) of lists of (fast (H,W), pyr (H,W)); saves a grey PNG."""
-    from PIL import Image, ImageDraw
+def _montage(pairs, path: Path, sites, altitudes_m):
+    """pairs: list (rows = sites) of lists (altitudes) of (fast (H,W), pyr (H,W)); saves a labelled PNG
+    (:func:`dvsland.report.style.renderer_pairs_figure`: which tile is fast / pyrender, site, altitude)."""
+    from dvsland.report.style import renderer_pairs_figure
 
-    tiles = []
-    for row in pairs:
-        cells = []
-        for f, p in row:
-            lf, lp = np.log(f), np.log(p)
-            lo = min(np.percentile(lf, 0.5), np.percentile(lp, 0.5))
-            hi = max(np.percentile(lf, 99.5), np.percentile(lp, 99.5))
-            norm = lambda x: np.clip((x - lo) / max(hi - lo, 1e-6), 0, 1)  # noqa: E731
-            h = f.shape[0]
-            cells.append(np.concatenate([norm(lf), np.ones((h, 2)), norm(lp), np.ones((h, 10))], 1))
-        tiles.append(np.concatenate(cells, 1))
-        tiles.append(np.ones((10, tiles[-1].shape[1])))
-    img = Image.fromarray((np.concatenate(tiles, 0) * 255).astype(np.uint8))
-    img = img.resize((img.width * 2, img.height * 2), Image.NEAREST)
-    d = ImageDraw.Draw(img)
-    for (r, c), text in labels.items():
-        d.text((c, r), text, fill=255)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    img.save(path)
-
+    renderer_pairs_figure(pairs, sites, altitudes_m, path)
 
 def _events(fast, pyr, site: int, z0_m: float, divergence: float, steps: int, dt_s: float, emu_kwargs,
             fixed_mesh: bool = False):
@@ -220,8 +202,7 @@ def main(argv=None) -> int:
     result["summary"] = summ
     say("\nsummary:", json.dumps(summ, indent=1))
     png = args.png if args.png is not None else args.out.with_suffix(".png")
-    labels = {}
-    _montage(montage_rows, png, labels)
+    _montage(montage_rows, png, args.sites, [float(alts[k]) for k in show])
     result["png"] = str(png)
     result["png_layout"] = {"rows": args.sites, "columns": [float(alts[k]) for k in show],
                             "cell": "fast (left) | pyrender (right), shared log scale"}

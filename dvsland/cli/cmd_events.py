@@ -1,8 +1,8 @@
 """``dvsland events [CONFIG] --site A --from-m 1000 --to-m 800 [--renderer fast|pyrender]
 [--format npz|h5] [--out DIR] [--set key=value ...] [--quiet]``: the events of a descent segment.
 
-Renders one site along the ideal (oracle) descent (:func:`dvsland.dynamics.closed_form_descent`:
-s = 1 + c^2 v0 t / z0, z = z0 s^(1/c^2)) from ``--from-m`` down to ``--to-m`` at the camera frame rate, emulates the
+Renders one site along the ideal (closed-form) descent (s = 1 + c^2 v0 t / z0,
+z = z0 s^(1/c^2)) from ``--from-m`` down to ``--to-m`` at the camera frame rate, emulates the
 event camera (config ``emulator``) and writes into the run folder (``--out`` or
 ``logs/<name>-events-<stamp>/``):
 
@@ -13,7 +13,9 @@ event camera (config ``emulator``) and writes into the run folder (``--out`` or
 - ``events_xyt.png``: a 3-D x-y-t scatter of the events of the last ``--scatter-ms`` (default
   500 ms, at most ``--max-points`` points), ON red, OFF blue (as the paper's Figure 3);
 - ``frame_last.png``: the last rendered frame (log irradiance, percentile stretch);
-- ``summary.json``: frames, times, altitudes, event counts.
+- ``summary.json``: frames, times, altitudes, event counts;
+- ``tb/``: TensorBoard (altitude and events per step against flight time, the event frame, the
+  last frame, the config).
 """
 
 from __future__ import annotations
@@ -29,8 +31,12 @@ from .common import add_config_args, config_from_args
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("events", help="render a descent segment and write its events and figures",
-                              description=__doc__.split("\n\n")[0])
+    p = subparsers.add_parser(
+        "events", help="render a descent segment and write its events and figures",
+        description="Render one site along the ideal descent from --from-m down to --to-m at the camera "
+                    "frame rate, emulate the event camera and write the events (.npz or .h5), an event "
+                    "frame (ON red, OFF blue), an x-y-t scatter, the last frame, summary.json and "
+                    "TensorBoard files into the run folder.")
     add_config_args(p)
     p.add_argument("--site", default="A", help="site name A-I (default A)")
     p.add_argument("--from-m", type=float, default=1000.0, help="start altitude, m (default 1000)")
@@ -63,7 +69,7 @@ def frame_schedule(cfg, site: str, from_m: float, to_m: float):
 
 def run_events(args) -> int:
     from dvsland.events import Events, save_events
-    from dvsland.report.images import draw_event_frame, draw_xyt_scatter, save_frame_png
+    from dvsland.report.images import draw_event_frame, draw_xyt_scatter, event_frame_rgb, save_frame_png
     from dvsland.runs import make_run_dir
     from dvsland.stages import build_event_source
 
@@ -122,7 +128,19 @@ def run_events(args) -> int:
         "renderer": cfg.render.renderer, "seconds": elapsed, "events_file": path.name,
     }
     write_json(run_dir / "summary.json", summary)
-    if not quiet:
+    if cfg.logging.tensorboard:
+        from PIL import Image
+
+        from dvsland.config import dump_config
+        from dvsland.report.tensorboard import write_events_tensorboard
+
+        write_events_tensorboard(run_dir / "tb", t_us, z, per_step,
+                                 event_frame=event_frame_rgb(events, H, W, t_end - window_us, t_end),
+                                 last_frame=np.asarray(Image.open(run_dir / "frame_last.png")),
+                                 cfg_yaml=dump_config(cfg), summary=summary)
+    if quiet:
+        print(f"run folder: {run_dir}")
+    else:
         print(f"{len(events)} events from {len(t_us)} frames ({z[0]:.0f} m -> {z[-1]:.0f} m, "
               f"{summary['events_per_px_step']:.3f} events/pixel/step) in {elapsed:.1f} s -> {run_dir}")
     return 0

@@ -2,18 +2,19 @@
 
 Writes into the run folder (``--out`` or ``logs/<name>-render-<stamp>/``):
 
-- ``frames/<site>_<altitude>m.png`` and ``frames.npz`` (linear irradiance, float32,
-  shape (altitudes, sites, H, W), with the altitudes and site names),
-- ``montage.png``: rows = altitudes, columns = sites, labelled,
-- ``descent_<site>.gif``: the closed-form ideal descent (:func:`dvsland.dynamics.closed_form_descent`)
-  of the first site from its z0 (config ``simulation.sites``, else the paper's) to 50 m,
+- ``frames/<site>_<altitude>m.png`` and ``frames.npz`` (linear irradiance, float32, shape
+  (altitudes, sites, H, W), with the altitudes and site names);
+- ``montage.png``: rows = altitudes, columns = sites, with labels and a colorbar;
+- ``descent_<site>.gif``: the ideal (closed-form) descent of the first site from its z0 (config
+  ``simulation.sites``, else the paper's) to 50 m, with the altitude and time on every frame;
 - ``mesh_<site>_<altitude>m.ply`` for every ``--export-mesh SITE:ALTITUDE`` (the footprint at
-  that altitude as a trimesh heightfield),
-- TensorBoard event files (montage, frames, GIF frames, the config as text).
+  that altitude as a trimesh heightfield);
+- ``tb/``: TensorBoard (montage, frames, GIF frames at step = flight time in ms, the config).
 
 Display mapping (PNG and GIF only; the data stay linear): log irradiance, linearly stretched
-between its 1st and 99.5th percentile, per image for frames and montage tiles, once over the
-whole sequence for the GIF (so brightness changes along the descent are kept).
+between its 1st and 99.5th percentile: once over all tiles of the montage and once over the whole
+GIF (so brightness differences between sites, altitudes and along the descent stay visible), and
+per image for ``frames/*.png``.
 """
 
 from __future__ import annotations
@@ -28,8 +29,13 @@ import torch
 from .common import add_config_args, config_from_args
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("render", help="render sites: frames, montage, descent GIF, meshes",
-                              description=__doc__.split("\n\n")[0])
+    p = subparsers.add_parser(
+        "render", help="render sites: frames, montage, descent GIF, meshes",
+        description="Render the chosen sites at the chosen altitudes and write frames (PNG and .npz), a "
+                    "labelled montage (altitudes x sites), a descent GIF with the altitude on every frame, "
+                    "optional .ply meshes and TensorBoard files into the run folder. Display images show "
+                    "log irradiance stretched between its 1st and 99.5th percentile (one stretch over the "
+                    "montage, one over the GIF).")
     add_config_args(p)
     p.add_argument("--sites", default=None, help="comma-separated sites (default: the config's sites)")
     p.add_argument("--altitudes", default="5000,1000,200,50", help="comma-separated altitudes, m")
@@ -39,7 +45,7 @@ def register(subparsers) -> None:
                    help="export the footprint at ALTITUDE m of SITE as a .ply mesh (repeatable)")
     p.add_argument("--mesh-texels", type=int, default=256, help="mesh vertices per side (default 256)")
     p.add_argument("--gif-frames", type=int, default=60, help="frames of the descent GIF (0: no GIF)")
-    p.add_argument("--scale", type=int, default=2, help="montage pixel scale (default 2)")
+    p.add_argument("--scale", type=int, default=2, help="montage tile size, x 0.8 inch (default 2)")
     p.add_argument("--device", default=None, help="torch device (default: config simulation.device)")
     p.set_defaults(func=run_render)
 
@@ -55,7 +61,7 @@ def _parse_list(text: str, what: str, cast=float) -> list:
 def run_render(args) -> int:
     from dvsland.dynamics import closed_form_descent
     from dvsland.render import get_renderer
-    from dvsland.report.images import montage, to_display
+    from dvsland.report.images import annotated_gif, montage, to_display
     from dvsland.runs import make_run_dir
 
     cfg = config_from_args(args)
@@ -98,23 +104,23 @@ def run_render(args) -> int:
             Image.fromarray(disp[i, j]).save(fdir / f"{s}_{a:g}m.png")
     np.savez_compressed(run_dir / "frames.npz", irradiance=frames.reshape(n_a, n_s, h, w).numpy(),
                         altitude_m=np.asarray(alts), sites=np.asarray(sites))
-    mont = montage(disp, [f"{a:g} m" for a in alts], sites, scale=max(1, args.scale))
-    mont.save(run_dir / "montage.png")
+    mont = montage(frames.reshape(n_a, n_s, h, w).numpy(), alts, sites, run_dir / "montage.png",
+                   scale=max(1, args.scale), renderer=name)
 
     # ---- descent GIF (first site)
-    gif_frames = None
+    gif_frames = t_gif = None
     if args.gif_frames > 0:
         site = sites[0]
         z0, v0 = cfg.initial_conditions(site)
         z_end = max(50.0, rc.min_altitude_m)
         z0 = min(z0, rc.max_altitude_m)
-        zs = (np.array([z0]) if args.gif_frames == 1 else
-              closed_form_descent(z0, v0, cfg.controller.c2, to_m=z_end, n=args.gif_frames)[1])
+        t_gif, zs = ((np.array([0.0]), np.array([z0])) if args.gif_frames == 1 else
+                     closed_form_descent(z0, v0, cfg.controller.c2, to_m=z_end, n=args.gif_frames)[:2])
         seq = renderer.render(torch.tensor(zs, dtype=torch.float32),
                               torch.zeros(len(zs), dtype=torch.int64)).float().cpu()
         gif_frames = to_display(seq, shared=True)
-        ims = [Image.fromarray(f).resize((w * 2, h * 2), Image.NEAREST) for f in gif_frames]
-        ims[0].save(run_dir / f"descent_{site}.gif", save_all=True, append_images=ims[1:], duration=100, loop=0)
+        annotated_gif(gif_frames, [f"site {site}  {z:,.0f} m  t = {t:.1f} s" for z, t in zip(zs, t_gif)],
+                      run_dir / f"descent_{site}.gif")
 
     # ---- meshes
     meshes: List[Path] = []
@@ -123,19 +129,20 @@ def run_render(args) -> int:
 
     # ---- TensorBoard
     if cfg.logging.tensorboard:
-        from torch.utils.tensorboard import SummaryWriter
-
         from dvsland.config import dump_config
+        from dvsland.report.tensorboard import flight_step, fresh_log_dir, summary_writer
 
-        with SummaryWriter(log_dir=str(run_dir)) as tb:
-            tb.add_text("config", "```\n" + dump_config(cfg) + "\n```")
-            tb.add_image("render/montage", np.asarray(mont)[None], dataformats="CHW")
+        with summary_writer(fresh_log_dir(run_dir / "tb")) as tb:
+            tb.add_text("config", "```yaml\n" + dump_config(cfg) + "\n```")
+            tb.add_image("render/montage", mont, dataformats="HWC")
             for i, a in enumerate(alts):
                 tb.add_images(f"render/frames_{a:g}m", disp[i][:, None], dataformats="NCHW")
             if gif_frames is not None:
-                for k, f in enumerate(gif_frames):
-                    tb.add_image(f"render/descent_{sites[0]}", f[None], global_step=k, dataformats="CHW")
-    if not quiet:
+                for f, t in zip(gif_frames, t_gif):  # step = flight time, ms
+                    tb.add_image(f"render/descent_{sites[0]}", f[None], global_step=flight_step(t), dataformats="CHW")
+    if quiet:
+        print(f"run folder: {run_dir}")
+    else:
         print(f"renderer {name}: prepared {len(sites)} site(s) in {prep_s:.2f} s, "
               f"{len(alts) * len(sites)} frames in {render_s * 1e3:.1f} ms")
         print(f"wrote {run_dir}/montage.png, frames/, frames.npz"

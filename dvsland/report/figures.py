@@ -10,16 +10,14 @@ import numpy as np
 
 from dvsland.dynamics import closed_form_state
 
+from .style import label
 from .tensorboard import run_folder_name
 
 
 def _plt():
-    import matplotlib
+    from .style import pyplot
 
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    return plt
+    return pyplot()
 
 
 def _run_rows(traces: Dict[str, np.ndarray], b: int) -> np.ndarray:
@@ -48,8 +46,8 @@ def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: f
     for a in ax:
         a.cla()
     title = f"{run.get('run', b)}  ({run['estimator']}): {run['outcome']} at {run['t_end_s']:.1f} s, " \
-            f"lowest {run['lowest_altitude_m']:.0f} m, loop gain " \
-            f"{'-' if run.get('loop_gain') is None else format(run['loop_gain'], '.3g')}"
+            f"lowest {run['lowest_altitude_m']:.0f} m, loop gain λ = " \
+            f"{'-' if run.get('loop_gain') is None else format(run['loop_gain'], '.3g')} 1/s"
     fig.suptitle(title, fontsize=9)
     zc = vc = None
     if run.get("z0_m") and run.get("v0_mps", 0) < 0:
@@ -57,29 +55,25 @@ def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: f
     ax[0].plot(t, traces["z_m"][rows, b], label="altitude")
     if zc is not None:
         ax[0].plot(t, zc, "k--", lw=0.8, label="closed form")
-    ax[0].set_ylabel("z [m]")
-    ax[0].legend(fontsize=7)
+    label(ax[0], ylabel="altitude z [m]", legend="upper right")
     ax[1].plot(t, traces["v_mps"][rows, b], label="velocity")
     if vc is not None:
         ax[1].plot(t, vc, "k--", lw=0.8, label="closed form")
-    ax[1].set_ylabel("v [m/s]")
-    ax[1].legend(fontsize=7)
+    label(ax[1], ylabel="velocity v [m/s]", legend="lower right")
     ax[2].plot(t, traces["d_true"][rows, b], "k", lw=1.0, label="D true")
     ax[2].plot(t, traces["d_est"][rows, b], ".", ms=2, label="D estimated")
     ax[2].plot(t, traces["d_filtered"][rows, b], lw=0.8, label="D filtered")
-    ax[2].set_ylabel("D [1/s]")
     d_true = traces["d_true"][rows, b]
     d_true = d_true[np.isfinite(d_true)]
     if d_true.size:  # outlying estimates must not flatten the true curve
         lo, hi = float(d_true.min()), float(d_true.max())
         pad = 0.25 * max(hi - lo, abs(lo), 0.02)
         ax[2].set_ylim(lo - pad, max(hi, 0.0) + pad)
-    ax[2].legend(fontsize=7)
-    ax[3].step(t, traces["thrust_n"][rows, b] / 1e3, where="post", lw=0.8)
-    ax[3].set_ylabel("thrust [kN]")
-    ax[3].set_xlabel("t [s]")
-    for a in ax:
-        a.grid(alpha=0.3)
+    label(ax[2], ylabel="divergence D [1/s]", legend="lower left")
+    thrust = traces["thrust_n"][rows, b]
+    big = np.isfinite(thrust).any() and np.nanmax(np.abs(thrust)) >= 1e6
+    ax[3].step(t, thrust / (1e6 if big else 1e3), where="post", lw=0.8, label="commanded thrust")
+    label(ax[3], "flight time t [s]", "thrust [MN]" if big else "thrust [kN]")
     fig.savefig(path, dpi=80)
     if _fig is None:
         plt.close(fig)
@@ -116,13 +110,13 @@ def lowest_altitude_chart(runs: List[dict], path, success_altitude_m: float = 50
     ax.minorticks_off()  # log minor ticks are most of this chart's drawing time
     ax.set_xticks(np.arange(len(sites)))
     ax.set_xticklabels(sites)
-    ax.set_xlabel("site")
-    ax.set_ylabel("lowest altitude reached [m]")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return Path(path)
+    ax.set_xlabel("site")  # categorical: no unit
+    label(ax, None, "lowest altitude reached [m]", "Lowest altitude per site and controller setting "
+          "(log scale)", legend="outside", grid=False)
+    ax.grid(True, axis="y", alpha=0.3)
+    from .style import save
+
+    return save(fig, path, dpi=90)
 
 
 def write_figures(run_dir, runs: List[dict], traces: Dict[str, np.ndarray], c2: float = 0.5,
