@@ -22,14 +22,31 @@ def _run(**kw):
 
 
 def test_table_text_and_markdown():
-    runs = [_run(), _run(run="H/Kp4e6-n10", site="H", label="Kp4e6-n10", outcome="crash", lowest_altitude_m=812.3)]
+    runs = [_run(), _run(run="H/Kp4e6-n10", site="H", label="Kp4e6-n10", outcome="crash", lowest_altitude_m=812.3,
+                         max_thrust_n=2.123e11)]
     text = format_table(runs)
     lines = text.splitlines()
-    assert lines[0].split()[:3] == ["run", "outcome", "t_end_s"]
+    assert lines[0].split()[:4] == ["run", "outcome", "t_end", "[s]"]
+    for unit in ("t_end [s]", "lowest [m]", "v_end [m/s]", "fuel [kg]", "λ [1/s]", "held [steps]"):
+        assert unit in lines[0], unit
     assert "H/Kp4e6-n10" in lines[3] and "812.3" in lines[3] and "crash" in lines[3]
-    assert lines[-1] == "outcomes: crash 1, success 1"
-    md = format_table(runs, markdown=True)
+    assert "447.0 kN" in lines[2] and "212300.0 MN" not in lines[3] and "212.3 GN" in lines[3]
+    assert "outcomes: crash 1, success 1" in lines
+    legend = "\n".join(lines[lines.index("outcomes: crash 1, success 1") + 1:])
+    for col in ("t_end [s]:", "lowest [m]:", "v_end [m/s]:", "max thrust:", "λ [1/s]:", "held [steps]:"):
+        assert col in legend, col
+    assert "success = reached z <= 50 m" in legend and "crash = |D|" in legend and "0.5 1/s" in legend
+    md = format_table(runs, markdown=True, with_legend=False)
     assert md.startswith("| run | outcome") and md.count("\n") == 3
+    assert "columns:" in format_table(runs, markdown=True)
+
+
+@pytest.mark.parametrize("n, text", [(None, "-"), (950.0, "950 N"), (1e5, "100.0 kN"), (2.123e8, "212.3 MN"),
+                                     (-3e6, "-3.0 MN")])
+def test_format_force(n, text):
+    from dvsland.report.table import format_force
+
+    assert format_force(n) == text
 
 
 def test_results_json_nan_is_null(tmp_path):
@@ -72,3 +89,29 @@ def test_figures_written(tmp_path):
     assert figs == ["descent_D_Kp4e6-n10.png", "descent_D_Kp5e6-n5.png", "lowest_altitude.png"]
     assert all((r.run_dir / "figures" / f).stat().st_size > 5000 for f in figs)
     assert not math.isnan(r.timings_s["figures"])
+
+
+def test_descent_figure_labels_and_thrust_unit(tmp_path, monkeypatch):
+    from dvsland.report import figures, style
+
+    n = 5
+    tr = {"t_s": np.arange(n)[:, None] * 0.1, "z_m": np.linspace(4000, 3900, n)[:, None],
+          "v_mps": np.full((n, 1), -100.0), "d_true": np.full((n, 1), -0.025), "d_est": np.full((n, 1), -0.03),
+          "d_filtered": np.full((n, 1), -0.028), "thrust_n": np.array([[1e4], [3.4e7], [0.0], [0.0], [0.0]]),
+          "active": np.array([[True]] * (n - 1) + [[False]])}
+    seen = {}
+    real_savefig = None
+
+    def grab(fig, path, **kw):
+        seen["labels"] = [a.get_ylabel() for a in fig.axes] + [fig.axes[-1].get_xlabel()]
+        seen["title"] = fig._suptitle.get_text()
+        return real_savefig(fig, path, **kw)
+
+    plt = style.pyplot()
+    real_savefig = plt.Figure.savefig
+    monkeypatch.setattr(plt.Figure, "savefig", lambda self, path, **kw: grab(self, path, **kw))
+    figures.descent_figure(tr, 0, _run(run="D/x", loop_gain=200.0), tmp_path / "d.png")
+    assert seen["labels"] == ["altitude z [m]", "velocity v [m/s]", "divergence D [1/s]", "thrust [MN]",
+                              "flight time t [s]"]
+    assert "loop gain λ = 200 1/s" in seen["title"]
+    assert all(style.has_unit(label) for label in seen["labels"])
