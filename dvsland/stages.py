@@ -32,13 +32,15 @@ def check_names(cfg: Config, source: str = "") -> None:
         ConfigError: ``estimator.name``, ``render.renderer`` or ``controller.name`` names nothing
             registered; the message lists the known names.
     """
-    from dvsland.estimators import available_estimators
     from dvsland.render import available_renderers
 
     where = f" (in {source})" if source else ""
-    known = available_estimators()
-    if cfg.estimator.name not in known:
-        raise ConfigError(f"estimator.name{where}: unknown estimator {cfg.estimator.name!r}; known: {known}")
+    from dvsland.estimators.registry import estimator_class
+
+    try:  # a registered name, an entry point, or an import path 'package.module:Class'
+        estimator_class(cfg.estimator.name)
+    except ValueError as exc:
+        raise ConfigError(f"estimator.name{where}: {exc}") from None
     known = available_renderers()
     if cfg.render.renderer not in known:
         raise ConfigError(f"render.renderer{where}: unknown renderer {cfg.render.renderer!r}; known: {known}")

@@ -12,8 +12,9 @@ def register(subparsers) -> None:
         "evaluate", help="open-loop error and speed of divergence estimators on all sites",
         description="Render the closed-form oracle descent of every site, emulate its events, run the "
                     "estimators side by side and write evaluation.json, table.txt, traces.npz, "
-                    "speed_vs_error.png and traces.png into the run folder. A full run (9 sites, ~930 "
-                    "steps) takes minutes; --segment-steps 20 --stride 10 is a ~10x quicker sample.")
+                    "speed_vs_error.png, traces.png and TensorBoard files (tb/) into the run folder. A full "
+                    "run (9 sites, ~930 steps) takes minutes; --segment-steps 20 --stride 10 is a ~10x quicker "
+                    "sample.")
     add_config_args(p)
     p.add_argument("--estimators", default="dpr,cmax", metavar="NAME,NAME",
                    help="estimators to compare (default dpr,cmax); a name may carry its own parameter "
@@ -29,7 +30,8 @@ def register(subparsers) -> None:
                    help="steps at the start of each segment left out of the metrics (default 10)")
     p.add_argument("--device", default=None, metavar="DEVICE", help="torch device (default simulation.device)")
     p.add_argument("--threads", type=int, default=None, metavar="N",
-                   help="torch CPU threads (on a busy machine 1 is often fastest)")
+                   help="torch CPU threads (default: simulation.torch_threads, 1 in the shipped configs; "
+                        "on a busy machine 1 is often fastest)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--recording", default=None, metavar="PATH",
                    help="evaluate on a recorded event stream instead of rendered descents (.aedat4, .h5, .npz, "
@@ -62,21 +64,23 @@ def _split_estimators(text: str):
 def run_evaluate(args) -> int:
     import torch
 
+    from dvsland.config import dump_config
     from dvsland.evaluate import evaluate, format_table, write_outputs
     from dvsland.runs import make_run_dir
 
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ValueError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
+    if args.threads is not None and args.threads < 1:
+        raise ValueError(f"--threads must be >= 1, got {args.threads}")
     if args.recording and (args.sites or args.segment_steps or args.stride != 1):
         raise ValueError("--sites, --segment-steps and --stride select rendered descents; they do not apply "
                          "to --recording")
     if not args.recording and (args.ground_truth or args.t_unit):
         raise ValueError("--ground-truth and --t-unit need --recording PATH")
-    cfg = config_from_args(args)
+    cfg = config_from_args(args)  # checks the device before the run folder exists
+    threads = args.threads if args.threads is not None else cfg.simulation.torch_threads
+    if threads > 0:  # --threads, else simulation.torch_threads (0 = torch's default)
+        torch.set_num_threads(threads)
     sites = [s.strip() for s in args.sites.split(",") if s.strip()] if args.sites else None
-    device = args.device or cfg.simulation.device
+    device = cfg.simulation.device
     run_dir = make_run_dir(cfg, args.out, kind="evaluate")
     quiet = bool(cfg.logging.quiet)
     if args.recording:
@@ -90,7 +94,13 @@ def run_evaluate(args) -> int:
                        stride=args.stride, max_steps=args.max_steps, warmup_steps=args.warmup_steps,
                        device=device, progress=not quiet)
     paths = write_outputs(res, run_dir, figures=not args.no_figures and cfg.logging.figures)
+    table = format_table(res.summary)
+    if cfg.logging.tensorboard:
+        from dvsland.report.tensorboard import write_evaluation_tensorboard
+
+        paths["tensorboard"] = write_evaluation_tensorboard(run_dir / "tb", res, dump_config(cfg), table)
     if not quiet:
-        print(format_table(res.summary))
+        print(table)
         print(f"wrote {', '.join(str(p) for p in paths.values())}")
+    print(f"run folder: {run_dir}")
     return 0

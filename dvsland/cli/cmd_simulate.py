@@ -6,19 +6,32 @@ from __future__ import annotations
 from .common import add_config_args, config_from_args
 
 
+def _estimator_names() -> str:
+    try:
+        from dvsland.estimators import available_estimators
+
+        return ", ".join(available_estimators())
+    except Exception:  # a broken plug-in must not break --help
+        return "dpr, oracle, ..."
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("simulate", help="fly every site x controller setting as one batched closed loop",
-                              description="Fly the configured experiment (default configs/paper.yaml: 9 sites x "
-                                          "2 settings) and write results.json, traces.npz, TensorBoard files "
-                                          "and figures into the run folder.")
+                              description="Fly the configured experiment (default: the shipped 'paper' config, "
+                                          "9 sites x 2 settings) as one batch and write config.yaml, "
+                                          "results.json, traces.npz, TensorBoard files (tb/) and figures into "
+                                          "the run folder.")
     add_config_args(p)
-    p.add_argument("--estimator", default=None, metavar="NAME", help="divergence estimator (dpr, oracle, cmax, ...)")
+    p.add_argument("--estimator", default=None, metavar="NAME",
+                   help=f"divergence estimator: {_estimator_names()}; or a class by import path, "
+                        "'package.module:Class' or 'path/to/file.py:Class' (default: estimator.name)")
     p.add_argument("--controller", default=None, metavar="NAME",
                    help="thrust law (tau_p, div_p, div_gs, or a registered name); sets controller.name")
     p.add_argument("--renderer", default=None, metavar="NAME",
-                   help="scene renderer: fast, pyrender or a registered one (dvsland.render.available_renderers())")
+                   help="scene renderer: fast, pyrender or a registered one (default: render.renderer)")
     p.add_argument("--sites", default=None, metavar="A,B,...", help="fly only these configured sites")
-    p.add_argument("--device", default=None, metavar="DEVICE", help="torch device: cpu, cuda, cuda:0, ...")
+    p.add_argument("--device", default=None, metavar="DEVICE",
+                   help="torch device: cpu, cuda, cuda:0, ... (checked against this machine)")
     p.set_defaults(func=run_simulate)
 
 
@@ -31,4 +44,6 @@ def run_simulate(args) -> int:
     except KeyboardInterrupt:
         print("dvsland: interrupted; results gathered so far were written", flush=True)
         return 130
+    if cfg.logging.quiet:
+        print(f"run folder: {result.run_dir}")
     return 0 if result.status == "complete" else 1

@@ -1,5 +1,6 @@
-"""Estimators by name: built-ins, ``@register_estimator``, and the ``dvsland.estimators``
-entry-point group for third-party packages."""
+"""Estimators by name: built-ins, ``@register_estimator``, the ``dvsland.estimators``
+entry-point group for third-party packages, and import paths ``package.module:Class`` or
+``path/to/file.py:Class`` for a user's class that is neither registered nor installed."""
 
 from __future__ import annotations
 
@@ -67,9 +68,73 @@ def available_estimators() -> List[str]:
     return sorted(_REGISTRY)
 
 
+def _import_path(name: str):
+    """The class named by ``package.module:Class`` or ``path/to/file.py:Class``.
+
+    A module is imported from ``sys.path``, then from the current directory; a ``.py`` file is
+    loaded from its path (once; its ``@register_estimator`` names are registered too).
+    """
+    import importlib
+    import importlib.util
+    import os
+    import sys
+
+    mod_name, _, attr = name.rpartition(":")
+    if not mod_name or not attr:
+        raise ValueError(f"estimator import path must look like 'package.module:Class' or 'file.py:Class', got {name!r}")
+    try:
+        if mod_name.endswith(".py"):
+            path = os.path.abspath(mod_name)
+            if not os.path.isfile(path):
+                raise ValueError(f"estimator {name!r}: file {mod_name!r} not found")
+            key = "dvsland_user_estimator_" + "".join(c if c.isalnum() else "_" for c in path)
+            module = sys.modules.get(key)
+            if module is None:
+                spec = importlib.util.spec_from_file_location(key, path)
+                module = importlib.util.module_from_spec(spec)
+                sys.modules[key] = module
+                try:
+                    spec.loader.exec_module(module)
+                except BaseException:
+                    del sys.modules[key]
+                    raise
+        else:
+            try:
+                module = importlib.import_module(mod_name)
+            except ModuleNotFoundError as exc:
+                if exc.name != mod_name.split(".")[0] or os.getcwd() in sys.path:
+                    raise
+                sys.path.append(os.getcwd())
+                module = importlib.import_module(mod_name)
+    except ValueError:
+        raise
+    except Exception as exc:
+        raise ValueError(f"estimator {name!r}: cannot import {mod_name!r}: {type(exc).__name__}: {exc}") from exc
+    cls = getattr(module, attr, None)
+    if cls is None or not callable(cls):
+        raise ValueError(f"estimator {name!r}: {mod_name!r} has no class {attr!r}")
+    return cls
+
+
+def estimator_class(name: str) -> Callable:
+    """The class (or factory) of estimator ``name``: a registered name, an entry point, or an
+    import path ``package.module:Class`` / ``path/to/file.py:Class``.
+
+    Raises:
+        ValueError: unknown name (the message lists the known ones) or an import path that fails.
+    """
+    _load_entry_points()
+    if name in _REGISTRY:
+        return _REGISTRY[name]
+    if isinstance(name, str) and ":" in name:
+        return _import_path(name)
+    raise ValueError(f"unknown estimator {name!r}; known: {available_estimators()}, "
+                     f"or an import path 'package.module:Class'")
+
+
 def get_estimator(name: str, batch_size: int, sensor_size: Tuple[int, int], device: Any = "cpu",
                   **params):
-    """Build estimator ``name`` for B = ``batch_size`` descents.
+    """Build estimator ``name`` (see :func:`estimator_class`) for B = ``batch_size`` descents.
 
     ``params`` must be keyword parameters of the estimator's constructor (a misspelt one is a
     ValueError listing the allowed ones), except ``dt_s`` and ``seed``, which are passed only
@@ -78,10 +143,9 @@ def get_estimator(name: str, batch_size: int, sensor_size: Tuple[int, int], devi
     Raises:
         ValueError: unknown name (the message lists the known ones), or unknown parameters.
     """
-    _load_entry_points()
-    if not isinstance(name, str) or name not in _REGISTRY:
+    if not isinstance(name, str):
         raise ValueError(f"unknown estimator {name!r}; known estimators: {available_estimators()}")
-    cls = _REGISTRY[name]
+    cls = estimator_class(name)
     accepted, takes_any = _parameters(cls)
     if not takes_any:
         params = {k: v for k, v in params.items() if k in accepted or k not in CONTEXT_PARAMS}
