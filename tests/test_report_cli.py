@@ -136,3 +136,12 @@ def test_estimator_by_import_path(tmp_path, monkeypatch, repo_root):
     assert rc == 0
     res = json.loads((out / "results.json").read_text())
     assert res["estimator"].endswith("custom_estimator.py:ZoomCorr") and res["status"] == "complete"
+
+
+@pytest.mark.parametrize("command", ["render", "events"])
+def test_quiet_render_and_events_print_only_the_run_folder(command, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("DVSLAND_CACHE_DIR", str(tmp_path / "cache"))
+    out = tmp_path / command
+    assert main([*COMMANDS[command], "--out", str(out), *SMALL, "--quiet"]) == 0
+    assert capsys.readouterr().out.strip().splitlines() == [f"run folder: {out}"]
+    assert any((out / "tb").glob("events.out.tfevents*"))
