@@ -97,9 +97,9 @@ class EventEmulator:
         background_rate_hz: background events per pixel per second, >= 0 (0 = ideal).
         seed: seed of mismatch, background activity and the pixel-model noise (per-element CPU
             generators, results moved).
-        photoreceptor_cutoff_hz, full_irradiance, shot_noise_rate_hz, shot_noise_bright_factor,
-        leak_rate_hz, leak_rate_sigma, hot_pixel_fraction, hot_pixel_rate_hz: the non-ideal pixel
-            parts, see :class:`dvsland.events.pixel_model.PixelModelParams` (all off by default).
+        photoreceptor_cutoff_hz: with full_irradiance, shot_noise_rate_hz, shot_noise_bright_factor,
+            leak_rate_hz, leak_rate_sigma, hot_pixel_fraction and hot_pixel_rate_hz: the non-ideal
+            pixel parts, see :class:`dvsland.events.pixel_model.PixelModelParams` (all off by default).
         max_events_per_step: most events one :meth:`step` may emit (all cameras together); a
             step that would emit more raises ValueError naming ``emulator.max_events_per_step``
             before its events are allocated (about 48 bytes each at the peak). None = no cap.

@@ -351,8 +351,9 @@ def read_recording(path, format: Optional[str] = None, ground_truth: Optional[Pa
         :class:`Recording`.
 
     Raises:
-        FileNotFoundError, ValueError (bad layout or values, naming the file and field),
-        ImportError (AEDAT4 without dv-processing).
+        FileNotFoundError: no such file.
+        ValueError: bad layout or values (the message names the file and field).
+        ImportError: AEDAT4 without dv-processing.
     """
     if t_unit is not None and t_unit not in TIME_UNITS:
         raise ValueError(f"t_unit must be one of {sorted(TIME_UNITS)}, got {t_unit!r}")

@@ -251,8 +251,8 @@ def validate_events(x, y, t_us, p, sensor_size: Optional[Tuple[int, int]] = None
         Events with b, x, y, t int64 and p int8 ±1, stably sorted by t when not already.
 
     Raises:
-        EventDataError (a ValueError) naming the field, the allowed range and the source
-        (the checks of :func:`check_event_arrays`).
+        EventDataError: (a ValueError) naming the field, the allowed range and the source (the
+            checks of :func:`check_event_arrays`).
     """
     cols = {k: _as_1d(k, v, source) for k, v in (("x", x), ("y", y), ("t", t_us), ("p", p))}
     n = len(cols["x"])
