@@ -105,14 +105,19 @@ def test_custom_scalars_layout_and_text(oracle_run):
     assert {"config/text_summary", "results/text_summary", "custom_scalars__config__"} <= tags
 
 
-def test_reused_out_gets_a_fresh_tensorboard_folder(tmp_path):
+def test_reused_out_is_refused_and_tensorboard_never_appends(tmp_path):
+    from dvsland.report.tensorboard import TensorBoardLogger
+    from dvsland.runs import RunDirError
+
     out = tmp_path / "again"
-    for _ in range(2):
+    simulate(None, estimator="oracle", sites="D", out=out, quiet=True, overrides=SIM[:2])
+    with pytest.raises(RunDirError, match="already holds a run"):
         simulate(None, estimator="oracle", sites="D", out=out, quiet=True, overrides=SIM[:2])
-    assert (out / "tb").is_dir() and (out / "tb-2").is_dir() and not (out / "tb-3").exists()
-    for d in ("tb", "tb-2"):
-        assert len(_event_files(out / d / "D_Kp5e6-n5")) == 1
-        assert _acc(out / d / "D_Kp5e6-n5").Scalars("altitude_m")[0].step == 0
+    # a folder reused anyway (make_run_dir(..., overwrite=True)): the logger takes a fresh tb-2/
+    tb = TensorBoardLogger(out / "tb", ["D/Kp5e6-n5"], 0.1)
+    tb.close()
+    assert tb.log_dir == out / "tb-2" and len(_event_files(out / "tb-2" / "D_Kp5e6-n5")) == 1
+    assert len(_event_files(out / "tb" / "D_Kp5e6-n5")) == 1
     assert fresh_log_dir(out / "tb") == out / "tb-3"
     assert fresh_log_dir(tmp_path / "new") == tmp_path / "new"
 

@@ -6,7 +6,8 @@ event file holding that descent's scalars, histograms, images and HParams sessio
 overlays the descents on one chart per tag and lists them as rows of the HParams table. The top
 folder holds the resolved config and the results table as text, the HParams experiment (the
 columns of the HParams table) and a custom-scalars layout. A folder that already holds TensorBoard
-files (``--out`` reused) is never appended to: :func:`fresh_log_dir` picks ``tb-2/``, ``tb-3/``, ...
+files (a run folder reused on purpose) is never appended to: :func:`fresh_log_dir` picks ``tb-2/``,
+``tb-3/``, ...
 
 **x-axis = flight time.** TensorBoard's x-axis is a step, a relative time or a wall time. Every
 per-descent entry is written with ``global_step = round(t_s * 1000)``, the flight time in
