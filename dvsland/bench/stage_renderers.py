@@ -80,6 +80,7 @@ def _montage(pairs, path: Path, sites, altitudes_m):
 
     renderer_pairs_figure(pairs, sites, altitudes_m, path)
 
+
 def _events(fast, pyr, site: int, z0_m: float, divergence: float, steps: int, dt_s: float, emu_kwargs,
             fixed_mesh: bool = False):
     """Event counts per step for both renderers over z(t) = z0 exp(D t).
