@@ -150,3 +150,17 @@ def test_every_variant_and_closed_loop_spec_builds():
     for spec in sorted(specs):
         est = build_estimator(cfg, spec, 2, "cpu")
         assert est.batch_size == 2, spec
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error on a machine without CUDA")
+def test_cli_device_checked_before_any_folder(tmp_path, capsys):
+    out = tmp_path / "bench"
+    assert main(["bench", "--device", "cuda", "--out", str(out), "tradeoff"]) == 2
+    assert "--device='cuda'" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_cli_help_has_a_description(capsys):
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    assert "speed" in capsys.readouterr().out.split("positional arguments")[0]
