@@ -99,3 +99,52 @@ def test_cmax_waits_for_half_window_after_reset():
     est.reset(torch.tensor([True, False]))
     d = _run(est, torch.tensor([-0.5, -0.5]), 1, start=3)[0]
     assert torch.isnan(d[0]) and torch.isfinite(d[1])
+
+
+# ---------------------------------------------------------------- robustness (fast path)
+@pytest.mark.parametrize("d_min", [-100.0, -10.0, -1.0])
+def test_cmax_extreme_search_range_is_bounded_and_still_finds_d(d_min):
+    """The canvas margin exp(|d| window / 2) is capped (d_min = -100 used to overflow, -10 to ask
+    for tens of GB); events a candidate sends off the canvas only lower its score."""
+    est = get_estimator("cmax", 2, (W, H), "cpu", dt_s=0.1, window_ms=300.0, d_min=d_min, d_max=0.5,
+                        n_grid=int(max(21, -d_min * 20)), n_refine=2, min_events=20)
+    assert est.pad_cap_px <= max(W, H) and est._pad_for(abs(d_min), 0.3) <= max(W, H)
+    d = _run(est, torch.tensor([-0.5, -0.5]), 12)[-4:]
+    assert torch.isfinite(d).all() and torch.allclose(d.mean(0), torch.tensor([-0.5, -0.5]), atol=0.08), d
+
+
+def test_cmax_event_order_does_not_matter():
+    """Thinning, dither and the half split come from a hash of each event: shuffled events give
+    the same estimate as sorted ones."""
+    D = torch.tensor([-0.4, -0.2])
+    offsets = blob_layout(2, 40, (W, H), extent=0.8, seed=3)
+    a = get_estimator("cmax", 2, (W, H), "cpu", window_ms=300.0, max_events=500, min_events=20)
+    b = get_estimator("cmax", 2, (W, H), "cpu", window_ms=300.0, max_events=500, min_events=20)
+    g = torch.Generator().manual_seed(0)
+    for k in range(5):
+        ev = zoom_blob_events(offsets, D, k * 100_000, (k + 1) * 100_000, (W, H), events_per_blob=20, seed=k)
+        perm = torch.randperm(len(ev), generator=g)
+        da = a.update(ev, (k + 1) * 100_000)
+        db = b.update(ev[perm], (k + 1) * 100_000)
+    assert torch.isfinite(da).all()
+    assert torch.allclose(da, db, rtol=1e-5, atol=1e-6), (da, db)
+
+
+def test_cmax_adaptive_window_follows_d():
+    est = get_estimator("cmax", 2, (W, H), "cpu", window_ms=500.0, window_motion=0.1, window_min_ms=200.0,
+                        window_max_ms=3000.0, radial_bin_px=4.0, min_events=20)
+    d = _run(est, torch.tensor([-0.4, -0.1]), 20)
+    w = est.diagnostics()["window_s"]
+    assert torch.isfinite(d[-1]).all()
+    assert w[0] == pytest.approx(0.1 / abs(float(d[-1, 0])), rel=1e-3)  # 0.25 s
+    assert w[1] == pytest.approx(min(3.0, 0.1 / abs(float(d[-1, 1]))), rel=1e-3)  # 1 s
+    assert torch.allclose(d[-5:].mean(0), torch.tensor([-0.4, -0.1]), rtol=0.08)
+
+
+def test_cmax_new_parameter_errors():
+    for kw, name in [(dict(window_motion=-1.0), "window_motion"), (dict(newton_iters=0), "newton_iters"),
+                     (dict(window_min_ms=500.0, window_max_ms=100.0), "window_min_ms"),
+                     (dict(radial_bin_px=-1.0), "radial_bin_px"), (dict(d_min=float("-inf")), "d_min"),
+                     (dict(blur_sigma_px=1.0), "blur_sigma_px")]:
+        with pytest.raises(ValueError, match=name):
+            get_estimator("cmax", 1, (W, H), **kw)

@@ -265,3 +265,36 @@ def test_meanshift_translation_equivariant(dx, dy, seed):
     c2, n2, _ = meanshift_flat(shifted, seeds + torch.tensor([dx, dy], dtype=torch.float32), ok, 4.0, 50, 1e-4)
     assert torch.allclose(c2, c1 + torch.tensor([dx, dy], dtype=torch.float32), atol=1e-4)
     assert torch.equal(n1, n2)
+
+
+# ---------------------------------------------------------------- the multi-step baseline variant
+def test_baseline_divergence_exact_for_pure_zoom():
+    from dvsland.estimators.divergence import baseline_divergence
+
+    g = torch.Generator().manual_seed(0)
+    past = torch.rand(2, 6, 2, generator=g) * 60 - 30
+    D, el = -0.25, 0.4
+    cur = past * math.exp(-D * el)
+    lag = torch.full((2, 6, 6), 4)
+    pp = torch.stack([past.unsqueeze(2).expand(-1, -1, 6, -1), past.unsqueeze(1).expand(-1, 6, -1, -1)], 3)
+    d, n, rel = baseline_divergence(cur, pp, lag, torch.full((2, 6, 6), el, dtype=torch.float64))
+    assert torch.allclose(d, torch.full((2,), D), atol=1e-6) and (n == 15).all() and (rel < 1e-5).all()
+    d, n, rel = baseline_divergence(cur, pp, torch.zeros_like(lag), torch.full((2, 6, 6), el, dtype=torch.float64))
+    assert torch.isnan(d).all() and (n == 0).all() and torch.isinf(rel).all()
+
+
+def test_dpr_baseline_variant_tracks_zoom_resets_by_mask_and_gives_nan():
+    D = torch.tensor([-0.3, -0.15, -0.15])
+    est = get_estimator("dpr", 3, (W, H), dt_s=0.1, n_min=10, radius_px=3.0, baseline_steps=5)
+    d = _run_zoom(est, D, 15, n_blobs=12)
+    med = d[8:].median(0).values
+    assert torch.isfinite(d[8:]).all() and torch.allclose(med, D, rtol=0.1), med
+    conf = est.confidence()
+    assert ((conf > 0) & (conf <= 1)).all()
+    est.reset(torch.tensor([False, True, False]))
+    d2 = est.update(Events.empty(), 1_600_000)
+    assert torch.isnan(d2[1]) and est.confidence()[1] == 0 and est.diagnostics()["n_tracked"][1] == 0
+    assert torch.isfinite(d2[[0, 2]]).all()  # the others keep tracking from their window
+    with pytest.raises(ValueError, match="baseline_steps"):
+        get_estimator("dpr", 1, (W, H), baseline_steps=0)
+

@@ -226,3 +226,99 @@ def test_training_sequence_errors():
         args = {"n_seq": 2, **kw}
         with pytest.raises(ValueError, match=name):
             make_sequences(cfg, enc, ["E~1"], args.pop("n_seq"), 3, progress=False, **args)
+
+
+# ---------------------------------------------------------------- hard cases, activity, NIR
+def test_snn_corrupt_or_foreign_checkpoint_gives_a_clear_error(tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"\x00not a checkpoint at all" * 10)
+    with pytest.raises(ValueError, match="not a readable dvsland snn checkpoint") as e:
+        get_estimator("snn", 2, SENSOR, checkpoint=str(bad))
+    assert "weights_only" not in str(e.value) and "Unpickl" not in str(e.value)
+    half = tmp_path / "half.pt"
+    half.write_bytes(DEFAULT_CHECKPOINT.read_bytes()[:5000])
+    with pytest.raises(ValueError, match="not a readable"):
+        get_estimator("snn", 2, SENSOR, checkpoint=str(half))
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    with pytest.raises(ValueError, match="missing"):
+        get_estimator("snn", 2, SENSOR, checkpoint=str(foreign))
+
+
+def test_snn_nan_after_many_empty_windows_and_back_with_events():
+    est = get_estimator("snn", 2, SENSOR, warmup_steps=1, max_silent_steps=5)
+    g = torch.Generator().manual_seed(0)
+
+    def burst(k):
+        n = 2000
+        return _events(torch.randint(0, 2, (n,), generator=g), torch.randint(0, 128, (n,), generator=g),
+                       torch.randint(0, 128, (n,), generator=g), torch.randint(k * 100_000 + 1, (k + 1) * 100_000 + 1,
+                                                                            (n,), generator=g),
+                       torch.where(torch.rand(n, generator=g) < 0.5, 1, -1))
+    for k in range(3):
+        d = est.update(burst(k), (k + 1) * 100_000)
+    assert torch.isfinite(d).all() and (est.confidence() > 0).all()
+    for k in range(3, 3 + 4):
+        d = est.update(Events.empty(), (k + 1) * 100_000)
+    assert torch.isfinite(d).all()  # 4 silent updates < 5
+    for k in range(7, 40):
+        d = est.update(Events.empty(), (k + 1) * 100_000)
+        assert torch.isnan(d).all() and (est.confidence() == 0).all()
+    d = est.update(burst(40), 41 * 100_000)
+    assert torch.isfinite(d).all()
+
+
+def test_snn_ignores_events_off_the_sensor():
+    """Events with x >= W, y >= H, negative coordinates or b >= B are dropped and counted."""
+    est = get_estimator("snn", 2, SENSOR, warmup_steps=0)
+    ev = _events(torch.tensor([0, 0, 1, 1, 5]), torch.tensor([10, 128, 300, 20, 3]),
+                 torch.tensor([10, 5, 5, -1, 3]), torch.tensor([10, 20, 30, 40, 50]), torch.tensor([1, -1, 1, 1, 1]))
+    d = est.update(ev, 100_000)
+    assert d.shape == (2,) and torch.isfinite(d).all()
+    assert int(est.diagnostics()["dropped_events"]) == 4
+
+
+def test_snn_reports_spikes_and_synaptic_operations():
+    est = get_estimator("snn", 2, SENSOR, warmup_steps=0)
+    g = torch.Generator().manual_seed(2)
+    n = 4000
+    ev = _events(torch.zeros(n, dtype=torch.int64), torch.randint(0, 128, (n,), generator=g),
+                 torch.randint(0, 128, (n,), generator=g), torch.randint(1, 100_001, (n,), generator=g),
+                 torch.where(torch.rand(n, generator=g) < 0.5, 1, -1))
+    for k in range(3):
+        ev.t += 100_000 * (k > 0)
+        est.update(ev, (k + 1) * 100_000)
+    diag = est.diagnostics()
+    c1, _ = est.model.channels
+    assert diag["spikes"][0] > 0 and diag["synops"][0] >= diag["spikes"][0]
+    assert diag["synops"][1] == 0 and diag["spikes"][1] == 0  # element 1 saw nothing, stays silent
+    # every input bin with events costs c1 x 5 x 3 synaptic operations
+    assert float(diag["synops"][0]) % 1 == 0 or diag["synops"][0] > c1 * 15
+
+
+def test_snn_nir_round_trip_reproduces_the_network(tmp_path):
+    pytest.importorskip("nir")
+    pytest.importorskip("nirtorch")
+    import nir
+
+    from dvsland.estimators.snn import load_checkpoint
+    from dvsland.estimators.snn.nir_export import export_nir, from_nir, nir_input
+
+    model, _, _ = load_checkpoint()
+    path = export_nir(model, tmp_path / "snn.nir")
+    graph = nir.read(str(path))  # type-checked on read: the shapes are consistent
+    assert {"conv1", "lif1", "conv2", "lif2", "readout", "li"} <= set(graph.nodes)
+    assert graph.metadata["dt_s"] == pytest.approx(model.dt_s)
+    back = from_nir(path)
+    g = torch.Generator().manual_seed(0)
+    B, steps = 3, 24
+    x = (torch.rand(steps, B, 2, model.n_rho, model.n_phi, generator=g) < 0.06).float() \
+        * torch.rand(steps, B, 2, model.n_rho, model.n_phi, generator=g) * 0.5
+    st, st2, spikes = model.initial_state(B), None, 0.0
+    with torch.no_grad():
+        for k in range(steps):
+            d, st, r = model(x[k], st)
+            out, st2 = back(nir_input(x[k], model), st2)
+            spikes += float(r["rate1"].sum() + r["rate2"].sum())
+            assert torch.allclose(out[:, 0], d, rtol=1e-4, atol=1e-7), (k, out[:, 0], d)
+    assert spikes > 0  # the comparison covered a spiking network, not a silent one

@@ -56,6 +56,11 @@ class CameraConfig:
     focal_length_mm: Optional[float] = opt(None, "lens focal length, mm; with pixel_pitch_um it sets fov_deg "
                                            "= 2 atan(width_px pitch / 2 f); null = use fov_deg", rng=(0.1, 1000.0))
 
+    principal_point_px: Optional[list] = opt(None, "[cx, cy] focus of expansion (principal point) in pixel "
+                                             "coordinates, pixel centres at integers, x right, y down; "
+                                             "null = the sensor centre ((W-1)/2, (H-1)/2); every estimator "
+                                             "uses it (not in paper)")
+
     def __post_init__(self):
         _apply_sensor_preset(self)
 
@@ -186,14 +191,17 @@ class DPRConfig:
     nms_px: int = opt(3, "odd max-pool window of the DPR local maxima, px (not in paper)", rng=(1, 63))
     pair_weighting: str = opt("none", "Eq. 8 average over pairs: none = the paper's plain mean, length = "
                               "weighted by pair length (not in paper)", choices=("none", "length"))
+    baseline_steps: int = opt(1, "1 = the paper's Eq. 8 between consecutive steps; k > 1 compares each pair with "
+                              "its length up to k steps ago, inverse-variance weighted (not in paper)", rng=(1, 1000))
 
 
 @dataclass
 class CMaxConfig:
     """Contrast-maximisation divergence estimator (after McLeod et al. 2022; not in the paper).
 
-    Defaults chosen on the open-loop evaluation (docs/estimators.md): a window of several frames
-    so that features move by pixels, dithered event positions, a capped event count."""
+    Defaults chosen on the open-loop evaluation (docs/estimators.md): an adaptive window in which
+    the scene grows by about 10 %, dithered event positions, radial density flattening, one
+    warm-started Newton round on 4000 events per element, and the lag correction."""
 
     window_ms: float = opt(1000.0, "event window warped per estimate, ms", rng=(1.0, 10000.0))
     d_min: float = opt(-1.0, "lowest divergence searched, 1/s", rng=(-100.0, 0.0))
@@ -202,10 +210,24 @@ class CMaxConfig:
     n_refine: int = opt(2, "refinement rounds around the best grid value", rng=(0, 20))
     min_events: int = opt(50, "fewer events in the window than this gives NaN", rng=(1, 10**9))
     refine_points: int = opt(9, "odd number of candidates per refinement round", rng=(3, 1001))
-    max_events: int = opt(3000, "events warped per element (evenly strided subsample); 0 = all", rng=(0, 10**9))
+    max_events: int = opt(4000, "events warped per element (thinned by a hash of each event); 0 = all",
+                          rng=(0, 10**9))
     dither: bool = opt(True, "spread events uniformly within their pixel before warping")
     blur_sigma_px: float = opt(0.0, "Gaussian blur of the warped image before the variance, px (0 = none)",
                                rng=(0.0, 16.0))
+    window_motion: float = opt(0.1, "adaptive window: target |D| * window (0 = fixed window_ms)", rng=(0.0, 10.0))
+    window_min_ms: float = opt(200.0, "shortest adaptive window, ms", rng=(1.0, 100000.0))
+    window_max_ms: float = opt(3000.0, "longest adaptive window, ms", rng=(1.0, 100000.0))
+    newton_iters: int = opt(1, "Newton rounds (3 candidates each) per update, warm-started", rng=(1, 100))
+    step_motion: float = opt(0.01, "first Newton step = step_motion / window, 1/s per 1/s", rng=(0.0, 1.0),
+                             open_lo=True)
+    extrapolate: bool = opt(True, "carry the window-middle estimate to the end of the interval (linear "
+                                   "time-to-contact trend)")
+    trend_steps: int = opt(100, "estimates in the trend fit of extrapolate", rng=(3, 100000))
+    radial_bin_px: float = opt(8.0, "flatten the event density over radius about the FoE in annuli this wide, "
+                                    "px (0 = off)", rng=(0.0, 1000.0))
+    research_rel: float = opt(0.5, "search globally again when the estimate's half-split standard error exceeds "
+                                   "this fraction of |D|", rng=(0.0, 1e9), open_lo=True)
 
 
 @dataclass
@@ -223,6 +245,10 @@ class SNNConfig:
 
     checkpoint: str = opt("", "checkpoint from scripts/train_snn.py; empty = the one shipped with dvsland")
     warmup_steps: int = opt(5, "updates after a reset that return NaN while the read-out charges", rng=(0, 10000))
+    max_silent_steps: int = opt(10, "NaN after this many updates in a row without an event in the annulus "
+                                    "(0 = never)", rng=(0, 100000))
+    confidence_events: float = opt(100.0, "annulus events per update at which the confidence is 0.5",
+                                   rng=(0.0, 1e9), open_lo=True)
 
 
 @dataclass

@@ -167,6 +167,18 @@ def check_config(cfg: Config, source: Optional[str] = None) -> Config:
     if cfg.controller.thrust_max_n is not None and cfg.controller.thrust_max_n < cfg.controller.thrust_min_n:
         raise ConfigError(f"controller.thrust_max_n{_where(source)}: {cfg.controller.thrust_max_n} must be "
                           f">= controller.thrust_min_n = {cfg.controller.thrust_min_n}")
+    pp = cfg.camera.principal_point_px
+    if pp is not None:
+        W, H = cfg.camera.width_px, cfg.camera.height_px
+        try:
+            cx, cy = (float(v) for v in pp)
+        except (TypeError, ValueError):
+            raise ConfigError(f"camera.principal_point_px{_where(source)}: expected [cx, cy] (two numbers, px) "
+                              f"or null, got {pp!r}") from None
+        if not (0.0 <= cx <= W - 1 and 0.0 <= cy <= H - 1):
+            raise ConfigError(f"camera.principal_point_px{_where(source)}: [{cx}, {cy}] is off the sensor; "
+                              f"allowed cx in [0, {W - 1}], cy in [0, {H - 1}] px")
+        cfg.camera.principal_point_px = [cx, cy]
     if cfg.render.min_altitude_m >= cfg.render.max_altitude_m:
         raise ConfigError(f"render.min_altitude_m{_where(source)}: must be below render.max_altitude_m")
     if not cfg.controller.settings:

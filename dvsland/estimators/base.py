@@ -9,7 +9,8 @@ paper's sign (negative while descending) and NaN where it has no estimate.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Dict, Optional, Tuple
+import math
+from typing import Any, Dict, Optional, Sequence, Tuple
 
 import torch
 
@@ -32,6 +33,31 @@ class Truth:
         return self.velocity_mps / self.altitude_m
 
 
+def resolve_principal_point(principal_point_px: Optional[Sequence[float]],
+                            sensor_size: Tuple[int, int]) -> Tuple[float, float]:
+    """(cx, cy) floats, px: ``principal_point_px`` checked to lie on the sensor, or the sensor
+    centre ((W - 1) / 2, (H - 1) / 2) when None. sensor_size is (W, H)."""
+    W, H = int(sensor_size[0]), int(sensor_size[1])
+    if principal_point_px is None:
+        return ((W - 1) / 2.0, (H - 1) / 2.0)
+    try:
+        cx, cy = (float(v) for v in principal_point_px)
+    except (TypeError, ValueError):
+        raise ValueError(f"principal_point_px must be [cx, cy] (two numbers, px) or None, "
+                         f"got {principal_point_px!r}") from None
+    if not (math.isfinite(cx) and math.isfinite(cy) and 0.0 <= cx <= W - 1 and 0.0 <= cy <= H - 1):
+        raise ValueError(f"principal_point_px must lie on the sensor, cx in [0, {W - 1}] and cy in "
+                         f"[0, {H - 1}] px, got [{cx}, {cy}]")
+    return (cx, cy)
+
+
+def confidence_from_rel_std(rel_std: torch.Tensor, d_hat: torch.Tensor) -> torch.Tensor:
+    """1 / (1 + (rel_std / 0.1)^2) as float32 in [0, 1]; 0 where d_hat or rel_std is not finite."""
+    c = 1.0 / (1.0 + (rel_std.to(torch.float32) / 0.1) ** 2)
+    ok = torch.isfinite(d_hat) & torch.isfinite(c)
+    return torch.where(ok, c, torch.zeros_like(c)).clamp(0.0, 1.0)
+
+
 class DivergenceEstimator:
     """Base class of divergence estimators (stateful, batched).
 
@@ -40,6 +66,8 @@ class DivergenceEstimator:
         sensor_size: (W, H) in pixels.
         device: torch device of the state and the returned estimate.
         dt_s: control / frame interval, s.
+        principal_point_px: (cx, cy) focus of expansion in pixel coordinates (pixel centres at
+            integers), inside [0, W - 1] x [0, H - 1]; None = the sensor centre.
     """
 
     #: Whether ``update`` needs events; an estimator that says False lets the simulator skip
@@ -56,7 +84,7 @@ class DivergenceEstimator:
             cls.update = _checked_update(upd)
 
     def __init__(self, batch_size: int, sensor_size: Tuple[int, int], device: Any = "cpu",
-                 dt_s: float = 0.1, **params):
+                 dt_s: float = 0.1, principal_point_px: Optional[Sequence[float]] = None, **params):
         if int(batch_size) < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         if len(sensor_size) != 2 or min(sensor_size) < 1:
@@ -67,6 +95,7 @@ class DivergenceEstimator:
         self.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
         self.device = torch.device(device)
         self.dt_s = float(dt_s)
+        self.principal_point_px = resolve_principal_point(principal_point_px, self.sensor_size)
 
     def _mask(self, mask: Optional[torch.Tensor]) -> torch.Tensor:
         """Normalise a reset mask: None -> all True; checks shape (B,) bool."""
@@ -96,9 +125,19 @@ class DivergenceEstimator:
         """
         raise NotImplementedError
 
+    def confidence(self) -> torch.Tensor:
+        """How much the last estimate can be trusted, (B,) float32 in [0, 1]: 0 = no estimate (NaN)
+        or no information, 1 = as good as it gets. The default is 1 where the last estimate is
+        finite; estimators override it with their own measure (see the module doc)."""
+        d = getattr(self, "_d", None)
+        if d is None:
+            return torch.zeros(self.batch_size, dtype=torch.float32, device=self.device)
+        return torch.isfinite(d).to(torch.float32)
+
     def diagnostics(self) -> Dict[str, torch.Tensor]:
-        """What the estimator tracks, for logging (e.g. ``centroids`` (B, N, 2), ``n_tracked`` (B,))."""
-        return {}
+        """What the estimator tracks, for logging (e.g. ``centroids`` (B, N, 2), ``n_tracked`` (B,)).
+        Every built-in estimator includes ``confidence`` (B,) float32 in [0, 1]."""
+        return {"confidence": self.confidence()}
 
 
 def _checked_update(update):

@@ -1,14 +1,37 @@
 """``cmax``: divergence by contrast maximisation of radially warped events (beyond the paper).
 
 After McLeod, Meoni, Izzo et al., "Globally optimal event-based divergence estimation for ventral
-landing" (ECCV Workshops 2022): the events of the last ``window_ms`` are warped radially about
-the focus of expansion (the image centre for a nadir camera) for a candidate D, and the D that
-makes the warped count image sharpest (highest variance) is the estimate. The search is a
-batched grid over [d_min, d_max] followed by ``n_refine`` rounds of ``refine_points`` candidates
-within one grid step of the best, and a parabolic fit through the best three; every element and
-every candidate is scored at once (chunked only to bound memory). The returned D refers to the
-middle of the window. After a reset an element gives NaN until its window is at least half
-full. See :mod:`dvsland.estimators.contrast` for the warp.
+landing" (ECCV Workshops 2022): the events of a window are warped radially about the focus of
+expansion (the camera's principal point) for a candidate D, and the D that makes the warped event
+image sharpest is the estimate (:mod:`dvsland.estimators.contrast`).
+
+Per update and batch element, all elements at once:
+
+1. **Window.** The events of the last ``T`` seconds. With ``window_motion`` = kappa > 0 the window
+   adapts to the last estimate, T = kappa / |D| clipped to [``window_min_ms``, ``window_max_ms``]:
+   the scene then grows by about the same factor exp(kappa) within every window. At high altitude
+   (|D| ~ 0.02 1/s) this lengthens the window until features move by pixels (sub-pixel motion
+   makes the un-warped image win: events are quantised to pixels); near the ground it shortens
+   it, so D hardly changes inside it. ``window_ms`` is the window before the first estimate (and
+   always, with kappa = 0).
+2. **Thinning.** At most about ``max_events`` per element, kept by a hash of each event's own
+   fields (never its position in the batch), so the answer does not depend on event order.
+   Events are dithered within their pixel by the same hash.
+3. **Search.** An element without a previous estimate runs the global search: a grid of
+   ``n_grid`` over [``d_min``, ``d_max``], ``n_refine`` rounds of ``refine_points`` candidates
+   around the best. Then every element runs ``newton_iters`` Newton rounds on the score: three
+   candidates D0 - h, D0, D0 + h (h = ``step_motion`` / T), the vertex of the parabola through
+   their scores is the next D0 (at most 2 h away), h halves. Warm-started from the last
+   estimate, two rounds (6 warped images per element) suffice.
+4. **Lag.** The warp fits the D of the window middle, T / 2 before the end. With ``extrapolate``,
+   the slope of the last ``trend_steps`` window-middle estimates (least squares) carries the
+   estimate to the end of the interval.
+5. **Confidence.** The events are split in two halves (by hash); the Newton vertex of each half
+   from the same warped images gives sigma = |D_1 - D_2| / 2, the estimate's standard error.
+   ``confidence()`` = 1 / (1 + (sigma / (0.1 |D|))^2).
+
+After a reset an element gives NaN until its window is at least half full, and whenever it has
+fewer than ``min_events`` events in its window.
 """
 
 from __future__ import annotations
@@ -21,182 +44,394 @@ import torch
 from dvsland.checks import check_fields
 from dvsland.config.schema import CMaxConfig
 
-from .base import DivergenceEstimator, Truth
-from .contrast import warped_contrast
+from .base import DivergenceEstimator, Truth, confidence_from_rel_std
+from .contrast import event_hash, split_contrast
 from .registry import register_estimator
 
+_HASH_ONE = float(2 ** 31)
 
-def _parabola_offset(s_left: torch.Tensor, s_mid: torch.Tensor, s_right: torch.Tensor) -> torch.Tensor:
-    """Vertex offset (in grid steps, within [-0.5, 0.5]) of the parabola through three scores."""
+
+def _parabola_offset(s_left: torch.Tensor, s_mid: torch.Tensor, s_right: torch.Tensor,
+                     limit: float = 0.5) -> torch.Tensor:
+    """Vertex offset (in grid steps, within [-limit, limit]) of the parabola through three scores at
+    -1, 0, +1; where the three are not concave, ``limit`` towards the higher side (0 if equal)."""
     den = s_left - 2 * s_mid + s_right
     off = 0.5 * (s_left - s_right) / torch.where(den.abs() > 0, den, torch.ones_like(den))
-    return torch.where(den < 0, off.clamp(-0.5, 0.5), torch.zeros_like(off))
+    uphill = torch.sign(s_right - s_left) * limit
+    return torch.where(den < 0, off.clamp(-limit, limit), uphill)
 
 
 @register_estimator("cmax")
 class CMaxEstimator(DivergenceEstimator):
-    """Contrast-maximisation divergence estimator (global, no feature tracking).
+    """Contrast-maximisation divergence estimator (global, no feature tracking). See module doc.
 
     Args:
-        batch_size, sensor_size (W, H), device, dt_s: see :class:`DivergenceEstimator`.
-        window_ms: events of the last window_ms are warped (kept across steps when > dt).
-        d_min, d_max: searched range of D, 1/s (d_min < d_max).
-        n_grid: coarse grid size (>= 3).
-        n_refine: refinement rounds.
-        min_events: an element with fewer events in the window gets NaN.
-        refine_points: candidates per refinement round (odd, >= 3; not in paper).
-        blur_sigma_px: Gaussian blur of the warped image before the variance, px (0 = none).
-        max_events: per element at most about this many events are warped (each step's events
-            are thinned to max_events / (window / dt) by an even stride when stored); 0 = all.
-        dither: spread each event uniformly within its pixel (seeded) before warping. Without it
-            the un-warped D = 0 lands every event of a pixel on the same spot and wins whenever
-            the motion in the window is sub-pixel (high altitude).
-        seed: seed of the dither generator (drawn on CPU, then moved).
+        batch_size, sensor_size (W, H), device, dt_s, principal_point_px: see
+            :class:`DivergenceEstimator`.
+        window_ms: window before the first estimate (and always when window_motion = 0), ms.
+        window_motion: kappa = |D| T targeted by the adaptive window (0 = fixed window_ms).
+        window_min_ms, window_max_ms: bounds of the adaptive window, ms.
+        d_min, d_max: range of D of the global search, 1/s (d_min < d_max); an estimate outside
+            it is dropped (NaN) and the element searches globally again.
+        n_grid, n_refine, refine_points: global search (see module doc).
+        newton_iters: Newton rounds per update (>= 1).
+        step_motion: first Newton step h = step_motion / T, 1/s.
+        extrapolate: carry the window-middle estimate to the end of the interval (see doc).
+        trend_steps: estimates in the slope fit of ``extrapolate`` (>= 3).
+        min_events: an element with fewer events in its window gets NaN.
+        max_events: events warped per element (hash-thinned); 0 = all.
+        dither: spread each event uniformly within its pixel (by its hash) before warping.
+        seed: seed of the event hash.
+        radial_bin_px: flatten each element's event density over radius about the FoE in annuli
+            this wide, px (0 = off); see :meth:`_radial_weights`.
+        research_rel: search globally again when the half-split standard error exceeds this
+            fraction of max(|D|, 5 step_motion / T) (the warm start is not trusted then).
+        blur_sigma_px: kept for compatibility; must be 0 (the score is unblurred).
     """
 
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, window_ms: float = 1000.0,
                  d_min: float = -1.0, d_max: float = 0.5, n_grid: int = 21, n_refine: int = 2,
                  min_events: int = 50, refine_points: int = 9, blur_sigma_px: float = 0.0,
-                 max_events: int = 3000, dither: bool = True, seed: int = 0):
-        super().__init__(batch_size, sensor_size, device, dt_s)
+                 max_events: int = 4000, dither: bool = True, seed: int = 0, window_motion: float = 0.1,
+                 window_min_ms: float = 200.0, window_max_ms: float = 3000.0, newton_iters: int = 1,
+                 step_motion: float = 0.01, extrapolate: bool = True, trend_steps: int = 100,
+                 radial_bin_px: float = 8.0, research_rel: float = 0.5, principal_point_px=None):
+        super().__init__(batch_size, sensor_size, device, dt_s, principal_point_px=principal_point_px)
         # the ranges of the config schema (estimator.cmax), written once there
         check_fields(CMaxConfig, window_ms=window_ms, d_min=d_min, d_max=d_max, n_grid=n_grid, n_refine=n_refine,
                      min_events=min_events, refine_points=refine_points, blur_sigma_px=blur_sigma_px,
-                     max_events=max_events)
-        if not d_min < d_max:
-            raise ValueError(f"d_min must be < d_max, got d_min={d_min}, d_max={d_max}")
-        if int(refine_points) % 2 == 0:
-            raise ValueError(f"refine_points must be an odd integer >= 3, got {refine_points}")
+                     max_events=max_events, window_motion=window_motion, window_min_ms=window_min_ms,
+                     window_max_ms=window_max_ms, newton_iters=newton_iters, step_motion=step_motion,
+                     trend_steps=trend_steps, radial_bin_px=radial_bin_px, research_rel=research_rel)
+        checks = [("refine_points", int(refine_points) % 2 == 1, "an odd integer >= 3"),
+                  ("blur_sigma_px", blur_sigma_px == 0, "0 (the fast score has no blur)"),
+                  ("window_min_ms", window_min_ms <= window_max_ms, "<= window_max_ms")]
+        for name, ok, rng in checks:
+            if not ok:
+                raise ValueError(f"{name} must be {rng}, got {locals()[name]}")
+        if not (math.isfinite(d_min) and math.isfinite(d_max) and d_min < d_max):
+            raise ValueError(f"d_min must be < d_max (both finite), got d_min={d_min}, d_max={d_max}")
         self.window_us = int(round(float(window_ms) * 1000.0))
+        self.window_motion = float(window_motion)
+        self.window_min_s, self.window_max_s = float(window_min_ms) * 1e-3, float(window_max_ms) * 1e-3
         self.d_min, self.d_max = float(d_min), float(d_max)
         self.n_grid, self.n_refine = int(n_grid), int(n_refine)
         self.min_events, self.refine_points = int(min_events), int(refine_points)
-        self.blur_sigma_px, self.max_events = float(blur_sigma_px), int(max_events)
-        self.dither = bool(dither)
-        self._gen = torch.Generator(device="cpu").manual_seed(int(seed))
+        self.max_events, self.dither, self.seed = int(max_events), bool(dither), int(seed)
+        self.newton_iters, self.step_motion = int(newton_iters), float(step_motion)
+        self.extrapolate, self.trend_steps = bool(extrapolate), int(trend_steps)
+        self.research_rel = float(research_rel)
+        if not 0 <= radial_bin_px <= 1000:
+            raise ValueError(f"radial_bin_px must be in [0, 1000], got {radial_bin_px}")
+        self.radial_bin_px = float(radial_bin_px)
         W, H = self.sensor_size
-        # canvas margin: the largest radial displacement over half a window, plus one pixel
-        half_s = 0.5 * self.window_us * 1e-6
-        # bounded by one sensor size (canvas <= 3x the sensor per side): an extreme |D| * window
-        # (d_min = -100) would otherwise ask for an astronomically large canvas; events warped
-        # beyond the margin drop out of the image, which only lowers such candidates' contrast
-        grow = math.expm1(min(max(abs(self.d_min), abs(self.d_max)) * half_s, 50.0))
-        self.pad_px = min(int(math.ceil(grow * 0.5 * max(W, H))) + 1, max(W, H))
-        self._store: List[tuple] = []  # (b, x, y, t) of recent steps
-        B = self.batch_size
-        self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=self.device)
-        self._n_events = torch.zeros(B, dtype=torch.int64, device=self.device)
-        self._contrast = torch.zeros(B, dtype=torch.float32, device=self.device)
-        # time of the first update after a reset (-1 = none yet): no estimate until the window
-        # is at least half full (a 0.1 s window holds sub-pixel motion only)
-        self._t_start_us = torch.full((B,), -1, dtype=torch.int64, device=self.device)
+        cx, cy = self.principal_point_px
+        self._wt = None
+        if self.radial_bin_px > 0:  # sensor pixels per annulus about the FoE
+            yy, xx = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
+                                    indexing="ij")
+            rb = (torch.hypot(xx - cx, yy - cy) / self.radial_bin_px).floor().to(torch.int64).flatten()
+            self._n_rbins = int(rb.max()) + 1
+            self._px_per_rbin = torch.bincount(rb, minlength=self._n_rbins).to(torch.float64).to(self.device)
+        W, H = self.sensor_size
+        cx, cy = self.principal_point_px
+        #: farthest pixel centre from the FoE, px
+        self.r_max_px = math.hypot(max(cx, W - 1 - cx), max(cy, H - 1 - cy))
+        #: canvas margin is never more than this (a warp that sends events farther only loses them)
+        self.pad_cap_px = int(max(W, H))
+        # longest window ever needed, s (the store keeps this much)
+        self._keep_s = max(self.window_us * 1e-6, self.window_max_s if self.window_motion > 0 else 0.0)
+        # the stored events of recent steps, oldest first, in one ring-like buffer (no per-update
+        # concatenation): fields b, xy (2, n), t, key over [_lo, _hi); _steps: (start, latest t)
+        self._cap = 0
+        self._buf = self._empty_buf(0)
+        self._lo = self._hi = 0
+        self._steps: List[tuple] = []
+        B, dev = self.batch_size, self.device
+        self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
+        self._d_mid = torch.full((B,), float("nan"), dtype=torch.float64, device=dev)
+        self._sigma = torch.full((B,), float("nan"), dtype=torch.float64, device=dev)
+        self._n_events = torch.zeros(B, dtype=torch.int64, device=dev)
+        self._contrast = torch.zeros(B, dtype=torch.float32, device=dev)
+        self._window_s = torch.full((B,), self.window_us * 1e-6, dtype=torch.float64, device=dev)
+        self._t_start_us = torch.full((B,), -1, dtype=torch.int64, device=dev)
+        self._hist_t = torch.zeros(B, self.trend_steps, dtype=torch.float64, device=dev)
+        self._hist_d = torch.full((B, self.trend_steps), float("nan"), dtype=torch.float64, device=dev)
+        self._k = 0
+        self._global = torch.zeros(B, dtype=torch.bool, device=dev)
 
+    # ------------------------------------------------------------------ state
     def reset(self, mask: Optional[torch.Tensor] = None) -> None:
         mask = self._mask(mask)
-        self._store = [tuple(f[~mask[s[0]]] for f in s) for s in self._store]
+        if self._hi > self._lo:  # rebuild the buffer without the masked elements (rare)
+            live = [f[..., self._lo:self._hi] for f in self._buf]
+            keep = ~mask[live[0]]
+            starts = [st - self._lo for st, _ in self._steps] + [self._hi - self._lo]
+            n_keep = torch.cumsum(keep.to(torch.int64), 0)
+            new_starts = [int(n_keep[a - 1]) if a > 0 else 0 for a in starts]
+            steps = [(new_starts[i], self._steps[i][1]) for i in range(len(self._steps))
+                     if new_starts[i + 1] > new_starts[i]]
+            kept = [f[..., keep] for f in live]
+            self._buf, self._cap = self._empty_buf(0), 0
+            self._lo = self._hi = 0
+            self._steps = []
+            if kept[0].numel():
+                self._append(kept)
+                self._steps = steps
         self._d[mask] = float("nan")
+        self._d_mid[mask] = float("nan")
+        self._sigma[mask] = float("nan")
         self._n_events[mask] = 0
         self._contrast[mask] = 0.0
+        self._window_s[mask] = self.window_us * 1e-6
         self._t_start_us[mask] = -1
+        self._hist_d[mask] = float("nan")
 
-    def _window_events(self, events, t_us: int):
-        if events is not None and events.b.numel() > 0:
-            fields = tuple(getattr(events, f).to(self.device) for f in ("b", "x", "y", "t"))
-            self._store.append(self._cap_step(*fields))
-        t0 = t_us - self.window_us
-        self._store = [s for s in self._store if s[3].numel() > 0 and bool(s[3].max() > t0)]
-        if not self._store:
-            z = torch.zeros(0, dtype=torch.int64, device=self.device)
-            return z, z, z, z
-        b, x, y, t = (torch.cat(f) for f in zip(*self._store))
-        keep = (t > t0) & (t <= t_us) & (b >= 0) & (b < self.batch_size)
-        return b[keep], x[keep], y[keep], t[keep]
+    def _steps_per_window(self) -> torch.Tensor:
+        return (self._window_s / self.dt_s).clamp_min(1.0)
 
-    def _cap_step(self, b, x, y, t):
-        """Keep an even stride of at most max_events / (steps per window) events per element of
-        one step's events, so the window never holds much more than max_events per element."""
-        if self.max_events <= 0:
-            return b, x, y, t
-        steps = max(1, int(round(self.window_us / (self.dt_s * 1e6))))
-        cap = max(1, self.max_events // steps)
-        b_ok = b.clamp(0, self.batch_size - 1)
-        n_per = torch.bincount(b_ok, minlength=self.batch_size)[: self.batch_size]
-        if not bool((n_per > cap).any()):
-            return b, x, y, t
-        if b.numel() > 1 and not bool((b[1:] >= b[:-1]).all()):  # Events are sorted by (b, t); be safe
-            order = torch.argsort(b, stable=True)
-            b, x, y, t, b_ok = b[order], x[order], y[order], t[order], b_ok[order]
-        start = torch.cumsum(n_per, 0) - n_per
-        rank = torch.arange(b.numel(), device=b.device) - start[b_ok]
-        stride = (n_per + cap - 1) // cap
-        keep = (rank % stride[b_ok]) == 0
-        return b[keep], x[keep], y[keep], t[keep]
-
-    def _subsample(self, b, x, y, t, n_per):
-        """Keep an even stride of at most max_events events per element (no loops)."""
-        if self.max_events <= 0 or b.numel() == 0 or bool((n_per <= self.max_events).all()):
-            return b, x, y, t
-        order = torch.argsort(b, stable=True)
-        b, x, y, t = b[order], x[order], y[order], t[order]
-        start = torch.cumsum(n_per, 0) - n_per
-        rank = torch.arange(b.numel(), device=b.device) - start[b]
-        stride = (n_per + self.max_events - 1) // self.max_events
-        keep = (rank % stride[b]) == 0
-        return b[keep], x[keep], y[keep], t[keep]
-
-    def update(self, events, t_us: int, truth: Optional[Truth] = None) -> torch.Tensor:
-        B = self.batch_size
+    def _store_step(self, events) -> None:
+        """Keep the step's events that lie on the sensor, hash-thinned to about 1.25 max_events /
+        (steps per window) per element, with what every later update needs precomputed: element,
+        dithered position, time, and a 16-bit hash (window thinning) with the half bit."""
         dev = self.device
+        b, x, y, t = (getattr(events, f).to(dev) for f in ("b", "x", "y", "t"))
+        W, H = self.sensor_size
+        ok = (b >= 0) & (b < self.batch_size) & (x >= 0) & (x < W) & (y >= 0) & (y < H)
+        h = event_hash(b, x, y, t, self.seed)
+        if self.max_events > 0:
+            n_per = torch.bincount(torch.where(ok, b, torch.zeros_like(b)), weights=ok.to(torch.float64),
+                                   minlength=self.batch_size)[: self.batch_size]
+            cap = (1.25 * self.max_events / self._steps_per_window()).ceil()
+            p = (cap / n_per.clamp_min(1)).clamp(max=1.0)
+            ok &= (h & 0xFFFF).to(torch.float64) < p[b.clamp(0, self.batch_size - 1)] * 65536.0
+        keep = ok.nonzero().squeeze(1)
+        if keep.numel() == 0:
+            return
+        b, x, y, t, h = b[keep], x[keep], y[keep], t[keep], h[keep]
+        xy = torch.stack([x, y]).to(torch.float32)
+        h2 = event_hash(b, x, y, t, self.seed + 1)
+        if self.dither:  # uniform within the pixel: 8 and 7 fresh hash bits
+            xy += torch.stack([((h2 >> 16) & 0xFF).to(torch.float32) / 256.0,
+                               ((h2 >> 24) & 0x7F).to(torch.float32) / 128.0]) - 0.5
+        # window-thinning key in bits 0..14, half in bit 15
+        key = h2 & 0xFFFF
+        start = self._append((b, xy, t, key))
+        self._steps.append((start, int(t.max())))
+
+    def _empty_buf(self, n: int):
+        dev = self.device
+        i64 = dict(dtype=torch.int64, device=dev)
+        return (torch.empty(n, **i64), torch.empty(2, n, dtype=torch.float32, device=dev), torch.empty(n, **i64),
+                torch.empty(n, **i64))
+
+    def _append(self, fields) -> int:
+        """Write one step's fields at the end of the buffer (compacting / growing it when full);
+        returns the start index of the step."""
+        n = fields[0].numel()
+        if self._hi + n > self._cap:
+            live = self._hi - self._lo
+            cap = max(self._cap, 2 * (live + n), 4096)
+            new = self._empty_buf(cap)
+            for dst, src in zip(new, self._buf):
+                dst[..., :live] = src[..., self._lo:self._hi]
+            shift = self._lo
+            self._steps = [(st - shift, tm) for st, tm in self._steps]
+            self._buf, self._cap, self._lo, self._hi = new, cap, 0, live
+        for dst, src in zip(self._buf, fields):
+            dst[..., self._hi:self._hi + n] = src
+        start = self._hi
+        self._hi += n
+        return start
+
+    def _window_events(self, t_us: int):
+        """(b, xy (2, E), t, key) of the events in each element's window, thinned to max_events."""
+        keep_us = int(math.ceil(float(self._window_s.max()) * 1e6))
+        while self._steps and self._steps[0][1] <= t_us - keep_us:
+            self._steps.pop(0)
+            self._lo = self._steps[0][0] if self._steps else self._hi
+        if not self._steps:
+            self._lo = self._hi = 0
+            z = torch.zeros(0, dtype=torch.int64, device=self.device)
+            return z, torch.zeros(2, 0, device=self.device), z, z, torch.zeros(self.batch_size, dtype=torch.int64,
+                                                                               device=self.device)
+        b, xy_all, t, key = (f[..., self._lo:self._hi] for f in self._buf)
+        w_us = (self._window_s * 1e6).round().to(torch.int64)
+        inw = (t > t_us - w_us[b]) & (t <= t_us)
+        n_per = torch.bincount(b, weights=inw.to(torch.float32), minlength=self.batch_size)[: self.batch_size]
+        if self.max_events > 0:
+            p = (self.max_events / n_per.clamp_min(1)).clamp(max=1.0)
+            inw &= (key & 0x7FFF).to(torch.float32) < p[b] * 32768.0
+        sel = inw.nonzero().squeeze(1)
+        xy = xy_all.index_select(1, sel)
+        return b[sel], xy, t[sel], key[sel], n_per.round().to(torch.int64)
+
+    # ------------------------------------------------------------------ search
+    def _score(self, xs, ys, b, half, tau, cand, pad, half_window_s, wt=None):
+        cx, cy = self.principal_point_px
+        W, H = self.sensor_size
+        box = (pad - 0.5, pad + W - 0.5, pad - 0.5, pad + H - 0.5)
+        return split_contrast(xs, ys, b, half, tau, cand, (cx + pad, cy + pad), (H + 2 * pad, W + 2 * pad),
+                              box, half_window_s, wt)
+
+    def _pad_for(self, d_abs_max: float, window_s: float) -> int:
+        grow = math.expm1(min(d_abs_max * 0.5 * window_s, 20.0))
+        return int(min(math.ceil(grow * self.r_max_px) + 2, self.pad_cap_px))
+
+    def _global_search(self, xs, ys, b, half, tau, sel_el: torch.Tensor, win_s: torch.Tensor) -> torch.Tensor:
+        """Grid search (+ refinement) for elements ``sel_el`` (B,) bool; returns (B,) float64 D
+        (NaN elsewhere). xs, ys are sensor coordinates (no canvas offset)."""
+        B, dev = self.batch_size, self.device
+        idx = sel_el.nonzero().squeeze(1)
+        n = idx.numel()
+        remap = torch.full((B,), -1, dtype=torch.int64, device=dev)
+        remap[idx] = torch.arange(n, device=dev)
+        e = sel_el[b]
+        bs = remap[b[e]]
+        pad = self._pad_for(max(abs(self.d_min), abs(self.d_max)), float(win_s[idx].max()))
+        xe, ye = xs[e] + pad, ys[e] + pad
+        he, te = half[e], tau[e]
+        we = None if self._wt is None else self._wt[e]
+        grid = torch.linspace(self.d_min, self.d_max, self.n_grid, device=dev, dtype=torch.float64)
+        cand = grid.unsqueeze(0).expand(n, -1)
+        step = torch.full((n,), (self.d_max - self.d_min) / (self.n_grid - 1), device=dev, dtype=torch.float64)
+        score = self._score(xe, ye, bs, he, te, cand, pad, 0.5 * win_s[idx], we)[..., 0]
+        for _ in range(self.n_refine):
+            best = cand.gather(1, score.argmax(1, keepdim=True))
+            off = torch.linspace(-1.0, 1.0, self.refine_points, device=dev, dtype=torch.float64)
+            cand = best + step.unsqueeze(1) * off
+            step = step * 2.0 / (self.refine_points - 1)
+            score = self._score(xe, ye, bs, he, te, cand, pad, 0.5 * win_s[idx], we)[..., 0]
+        out = torch.full((B,), float("nan"), dtype=torch.float64, device=dev)
+        out[idx] = cand.gather(1, score.argmax(1, keepdim=True)).squeeze(1)
+        return out
+
+    # ------------------------------------------------------------------ step
+    @torch.no_grad()
+    def update(self, events, t_us: int, truth: Optional[Truth] = None) -> torch.Tensor:
+        B, dev = self.batch_size, self.device
         t_us = int(t_us)
-        b, x, y, t = self._window_events(events, t_us)
-        n_per = torch.bincount(b, minlength=B)[:B]
+        if events is not None and events.b.numel() > 0:
+            self._store_step(events)
+        b, xy, t, key, n_per = self._window_events(t_us)
         self._n_events = n_per
-        # the interval of this update began at the previous update (about t_us - dt)
         t_begin = t_us - int(round(self.dt_s * 1e6))
         self._t_start_us = torch.where(self._t_start_us < 0, torch.full_like(self._t_start_us, t_begin),
                                        self._t_start_us)
-        filled = (t_us - self._t_start_us) * 2 >= self.window_us
+        # half of the first window must have passed since the reset (later windows, longer or
+        # shorter, simply hold what there is)
+        filled = (t_us - self._t_start_us).to(torch.float64) * 2e-6 >= self.window_us * 1e-6 - 1e-9
         ok = (n_per >= self.min_events) & filled
+        nan = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
         if not bool(ok.any()):
-            self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
+            self._d, self._sigma = nan, torch.full_like(self._sigma, float("nan"))
             return self._d.clone()
-        sel = ok[b]
-        b, x, y, t = b[sel], x[sel], y[sel], t[sel]
-        b, x, y, t = self._subsample(b, x, y, t, torch.where(ok, n_per, torch.zeros_like(n_per)))
-        t_ref = t_us - self.window_us // 2
-        tau = (t - t_ref).to(torch.float64).mul(1e-6).to(torch.float32)
-        x = x.to(torch.float32)
-        y = y.to(torch.float32)
-        if self.dither:
-            u = torch.rand(2, x.numel(), generator=self._gen).to(dev) - 0.5
-            x = x + u[0]
-            y = y + u[1]
-        W, H = self.sensor_size
-        kw = dict(sensor_hw=(H, W), pad_px=self.pad_px, blur_sigma_px=self.blur_sigma_px)
-
-        grid = torch.linspace(self.d_min, self.d_max, self.n_grid, device=dev, dtype=torch.float32)
-        cand = grid.unsqueeze(0).expand(B, -1)
-        step = torch.full((B,), (self.d_max - self.d_min) / (self.n_grid - 1), device=dev)
-        score = warped_contrast(x, y, b, tau, cand, **kw)
-        for _ in range(self.n_refine):
-            best = cand.gather(1, score.argmax(1, keepdim=True))  # (B, 1)
-            off = torch.linspace(-1.0, 1.0, self.refine_points, device=dev)
-            cand = best + step.unsqueeze(1) * off
-            step = step * 2.0 / (self.refine_points - 1)
-            score = warped_contrast(x, y, b, tau, cand, **kw)
-        i = score.argmax(1)
-        G = cand.shape[1]
-        il, ir = (i - 1).clamp(0, G - 1), (i + 1).clamp(0, G - 1)
-        s = lambda j: score.gather(1, j.unsqueeze(1)).squeeze(1)  # noqa: E731
-        d_best = cand.gather(1, i.unsqueeze(1)).squeeze(1)
-        interior = (i > 0) & (i < G - 1)
-        spacing = (cand[:, -1] - cand[:, 0]) / (G - 1)
-        off = torch.where(interior, _parabola_offset(s(il), s(i), s(ir)), torch.zeros_like(d_best))
-        d = d_best + off * spacing
-        self._contrast = s(i)
-        self._d = torch.where(ok, d, torch.full_like(d, float("nan"))).to(torch.float32)
+        if not bool(ok.all()):
+            sel = ok[b].nonzero().squeeze(1)
+            b, xy, t, key = b[sel], xy[:, sel], t[sel], key[sel]
+        half = (key >> 15) & 1
+        win_s = self._window_s.clone()
+        t_ref_us = t_us - win_s * 0.5e6  # (B,) float64
+        tau = ((t - t_ref_us.round().to(torch.int64)[b]).to(torch.float32) * 1e-6)
+        xs, ys = xy[0], xy[1]
+        self._wt = self._radial_weights(xs, ys, b) if self.radial_bin_px > 0 else None
+        # start: last estimate (warm), else the global search
+        d0 = self._d_mid.clone()
+        need = ok & ~torch.isfinite(d0)
+        self._global = need
+        if bool(need.any()):
+            d0 = torch.where(need, self._global_search(xs, ys, b, half, tau, need, win_s), d0)
+        hstep = self.step_motion / win_s
+        d_abs = float(torch.where(ok, d0.abs() + 2 * hstep, torch.zeros_like(d0)).nan_to_num(0.0).max())
+        pad = self._pad_for(d_abs, float(win_s[ok].max()))
+        xc, yc = xs + pad, ys + pad
+        three = torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float64, device=dev)
+        d0 = d0.nan_to_num(0.0)
+        for it in range(self.newton_iters):
+            cand = d0.unsqueeze(1) + hstep.unsqueeze(1) * three
+            sc = self._score(xc, yc, b, half, tau, cand, pad, 0.5 * win_s, self._wt)  # (B, 3, 3)
+            last = it == self.newton_iters - 1
+            off = _parabola_offset(sc[:, 0, 0], sc[:, 1, 0], sc[:, 2, 0], 2.0)
+            d_new = d0 + off * hstep
+            if last:
+                d_halves = [d0 + _parabola_offset(sc[:, 0, k], sc[:, 1, k], sc[:, 2, k], 2.0) * hstep for k in (1, 2)]
+                self._sigma = (d_halves[0] - d_halves[1]).abs() * 0.5
+                self._contrast = sc[:, 1, 0].to(torch.float32)
+            d0, hstep = d_new, hstep * 0.5
+        inside = (d0 >= self.d_min) & (d0 <= self.d_max)
+        good = ok & inside
+        d_mid = torch.where(good, d0, torch.full_like(d0, float("nan")))
+        # keep the last estimate of elements with too few events this step (warm start later);
+        # drop it where the estimate left [d_min, d_max] (search globally next time)
+        self._d_mid = torch.where(ok, d_mid, self._d_mid)
+        # an estimate whose two halves disagree by more than ``research_rel`` of |D| is not trusted
+        # as a warm start: that element searches globally again next time
+        # (|D| is floored at 5 first Newton steps, so that D near 0 does not count as lost)
+        floor = 5.0 * self.step_motion / win_s
+        lost = ok & (self._sigma > self.research_rel * torch.maximum(d_mid.abs(), floor))
+        self._d_mid = torch.where(lost, torch.full_like(self._d_mid, float("nan")), self._d_mid)
+        # history for the lag correction: (window-middle time, estimate)
+        j = self._k % self.trend_steps
+        self._k += 1
+        self._hist_t[:, j] = t_ref_us * 1e-6
+        self._hist_d[:, j] = -1.0 / d_mid  # tau
+        d_out = d_mid
+        if self.extrapolate:
+            # time-to-contact tau = -1 / D, extrapolated linearly over the half window
+            tau_mid = -1.0 / d_mid
+            tau_end = tau_mid + self._slope() * (t_us * 1e-6 - self._hist_t[:, j])
+            safe = torch.isfinite(tau_end) & (tau_end * tau_mid > 0) & ((tau_end - tau_mid).abs() < 0.5 * tau_mid.abs())
+            d_out = torch.where(safe, -1.0 / tau_end, d_mid)
+        if self.window_motion > 0:
+            w = (self.window_motion / d_mid.abs().clamp_min(1e-9)).clamp(self.window_min_s, self.window_max_s)
+            self._window_s = torch.where(torch.isfinite(d_mid), w, self._window_s)
+        self._d = torch.where(good, d_out, torch.full_like(d_out, float("nan"))).to(torch.float32)
         return self._d.clone()
 
+    def _radial_weights(self, xs, ys, b) -> torch.Tensor:
+        """(E,) weights that flatten each element's event density over radius about the FoE.
+
+        The event rate of a pixel grows with its image speed, D r: events crowd towards the edges
+        of the sensor in a pattern fixed to the sensor, not to the scene, and such a pattern is
+        sharpest un-warped (D = 0), which pulls the estimate towards 0. Weighting each event by
+        the inverse of its element's event density in its annulus (``radial_bin_px`` wide)
+        removes that pull."""
+        cx, cy = self.principal_point_px
+        nb = self._n_rbins
+        rb = (torch.hypot(xs - cx, ys - cy) / self.radial_bin_px).floor().to(torch.int64).clamp(0, nb - 1)
+        cnt = torch.bincount(b * nb + rb, minlength=self.batch_size * nb)[: self.batch_size * nb]
+        dens = cnt.view(self.batch_size, nb).to(torch.float64) / self._px_per_rbin.clamp_min(1)
+        mean = dens.sum(1) / (dens > 0).sum(1).clamp_min(1)
+        w = (mean.unsqueeze(1) / dens.clamp_min(1e-12)).clamp(0.1, 10.0)
+        return w.view(-1)[b * nb + rb].to(torch.float32)
+
+    def _slope(self) -> torch.Tensor:
+        """Least-squares slope d tau / dt (B,) of the window-middle time-to-contact in the history
+        (0 where fewer than half of the history is filled or the sign of D changed in it)."""
+        ok = torch.isfinite(self._hist_d)
+        n = ok.sum(1).to(torch.float64)
+        w = ok.to(torch.float64)
+        tt = torch.where(ok, self._hist_t, torch.zeros_like(self._hist_t))
+        dd = torch.where(ok, self._hist_d, torch.zeros_like(self._hist_d))
+        tm = (tt * w).sum(1) / n.clamp_min(1)
+        dm = (dd * w).sum(1) / n.clamp_min(1)
+        ct = (tt - tm.unsqueeze(1)) * w
+        var = (ct * ct).sum(1)
+        slope = (ct * (dd - dm.unsqueeze(1))).sum(1) / var.clamp_min(1e-12)
+        same_sign = (torch.where(ok, torch.sign(self._hist_d), torch.zeros_like(self._hist_d)).sum(1).abs() == n)
+        use = (n >= max(3, self.trend_steps // 2)) & (var > 0) & same_sign
+        return torch.where(use, slope, torch.zeros_like(slope))
+
+    def confidence(self) -> torch.Tensor:
+        """(B,) float32: 1 / (1 + (sigma / (0.1 |D|))^2) from the half-split standard error sigma;
+        0 where the estimate is NaN."""
+        rel = self._sigma / self._d.to(torch.float64).abs().clamp_min(1e-3)
+        return confidence_from_rel_std(rel, self._d)
+
     def diagnostics(self):
-        """n_events (B,) events in the window; contrast (B,) best variance."""
-        return {"n_events": self._n_events.clone(), "contrast": self._contrast.clone()}
+        """n_events (B,) events in the window; contrast (B,) score at the estimate; window_s (B,)
+        current window, s; d_std (B,) float64 half-split standard error of D, 1/s; global_search
+        (B,) bool (this step searched globally); confidence (B,) in [0, 1]."""
+        return {"n_events": self._n_events.clone(), "contrast": self._contrast.clone(),
+                "window_s": self._window_s.clone(), "d_std": self._sigma.clone(),
+                "global_search": self._global.clone(), "confidence": self.confidence()}

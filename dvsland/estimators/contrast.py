@@ -14,7 +14,7 @@ per-element grid of candidate D.
 from __future__ import annotations
 
 import math
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -41,8 +41,9 @@ def radial_warp(x: torch.Tensor, y: torch.Tensor, dt_s: torch.Tensor, candidates
 
 
 def splat_bilinear(xw: torch.Tensor, yw: torch.Tensor, image_index: torch.Tensor, n_images: int,
-                   height: int, width: int) -> torch.Tensor:
-    """Accumulate unit-weight events into images with bilinear weights (one ``bincount``).
+                   height: int, width: int, weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Accumulate events (unit weight, or ``weight`` (E, G)) into images with bilinear weights
+    (one ``bincount``).
 
     Args:
         xw, yw: (E, G) float, coordinates (pixel centres at integers).
@@ -66,6 +67,8 @@ def splat_bilinear(xw: torch.Tensor, yw: torch.Tensor, image_index: torch.Tensor
     yi = y0 + dy
     wx = torch.where(dx == 1, fx, 1.0 - fx)
     wy = torch.where(dy == 1, fy, 1.0 - fy)
+    if weight is not None:
+        wx = wx * weight.reshape(1, -1).to(wx.dtype)
     n = n_images * height * width
     ok = (xi >= 0) & (xi < width) & (yi >= 0) & (yi < height)
     idx = torch.where(ok, base + yi * width + xi, torch.full_like(base, n))  # n = dump bin
@@ -109,7 +112,8 @@ def image_variance(images: torch.Tensor, blur_sigma_px: float = 0.0) -> torch.Te
 
 def warped_contrast(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor, dt_s: torch.Tensor,
                     candidates: torch.Tensor, sensor_hw: Tuple[int, int], pad_px: int = 0,
-                    blur_sigma_px: float = 0.0, max_samples: int = 2_000_000) -> torch.Tensor:
+                    blur_sigma_px: float = 0.0, max_samples: int = 2_000_000,
+                    centre_xy: Optional[Tuple[float, float]] = None) -> torch.Tensor:
     """Contrast (variance) of the warped count image for each element and candidate D.
 
     Args:
@@ -121,13 +125,16 @@ def warped_contrast(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor, dt_s: tor
         blur_sigma_px: blur before the variance (see :func:`image_variance`).
         max_samples: candidates are processed in chunks of at most this many (event, candidate)
             samples, to bound memory.
+        centre_xy: FoE (cx, cy) in sensor pixel coordinates (default the sensor centre).
 
     Returns:
         (B, G) float32 contrast.
     """
     B, G = candidates.shape
     H, W = int(sensor_hw[0]) + 2 * pad_px, int(sensor_hw[1]) + 2 * pad_px
-    centre = ((sensor_hw[1] - 1) / 2.0 + pad_px, (sensor_hw[0] - 1) / 2.0 + pad_px)
+    if centre_xy is None:
+        centre_xy = ((sensor_hw[1] - 1) / 2.0, (sensor_hw[0] - 1) / 2.0)
+    centre = (float(centre_xy[0]) + pad_px, float(centre_xy[1]) + pad_px)
     xs = x.to(torch.float32) + pad_px
     ys = y.to(torch.float32) + pad_px
     E = xs.numel()
@@ -143,4 +150,106 @@ def warped_contrast(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor, dt_s: tor
         img_idx = b.unsqueeze(-1) * (g1 - g0) + gi
         imgs = splat_bilinear(xw, yw, img_idx, B * (g1 - g0), H, W)
         out[:, g0:g1] = image_variance(imgs, blur_sigma_px).view(B, g1 - g0)
+    return out
+
+
+# ---------------------------------------------------------------------- fast path of ``cmax``
+
+def event_hash(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, seed: int = 0) -> torch.Tensor:
+    """A pseudo-random 31-bit integer per event from its fields (splitmix64-style mixing).
+
+    Depends only on the event (b, x, y, t) and ``seed``, never on the order of the events, so
+    thinning, dithering and half splits built on it give the same answer for any event order.
+
+    Args:
+        b, x, y, t: (E,) integer tensors.
+
+    Returns:
+        (E,) int64 in [0, 2^31).
+    """
+    h = (b.to(torch.int64) * 0x1F1F1F1F + x.to(torch.int64) * 0x2545F491 + y.to(torch.int64) * 0x9E3779B1
+         + t.to(torch.int64) * 0x6A09E667 + int(seed) * 0x3C6EF372)
+    # two rounds of xorshift-multiply (int64 products wrap, which is what a hash wants)
+    h = (h ^ (h >> 31)) * 0x7FB5D329728EA185
+    h = (h ^ (h >> 27)) * 0x81DADEF4BC2DD44D
+    h = h ^ (h >> 33)
+    return h & 0x7FFFFFFF
+
+
+def split_contrast(xc: torch.Tensor, yc: torch.Tensor, b: torch.Tensor, half: torch.Tensor, dt_s: torch.Tensor,
+                   candidates: torch.Tensor, centre_xy: Tuple[float, float], canvas_hw: Tuple[int, int],
+                   sensor_box: Tuple[float, float, float, float], half_window_s: torch.Tensor,
+                   event_weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Sharpness of the warped event image for each element and candidate D, for all events and
+    for each half of them, free of the field-of-view bias.
+
+    Events are warped radially about the focus of expansion, r_ref = r exp(D dt), and splatted
+    bilinearly (one ``bincount`` for all elements, candidates and halves). Only the part of the
+    scene that stays in view during the whole window counts: for a candidate D that is the sensor
+    box shrunk about the FoE by g = exp(|D| T / 2). (Counting everything biases the plain image
+    variance towards small |D|: with the true D, the earliest events of a descent warp outside
+    the latest field of view, so warps that keep every event overlapped win on event density
+    alone; on the rendered sites that was a steady 5 % under-estimate of |D|.) The score is the
+    index of dispersion of the counted image, sum(I^2) / sum(I) - sum(I) / area: 1 for events
+    without structure whatever their density, larger when they line up.
+
+    Args:
+        xc, yc: (E,) float32 event coordinates on the canvas, px.
+        b: (E,) int64 element index in [0, B).
+        half: (E,) int64 in {0, 1}, which half an event belongs to.
+        dt_s: (E,) float32 event time minus its element's reference time, s.
+        candidates: (B, G) candidate D, 1/s.
+        centre_xy: FoE (cx, cy) on the canvas, px.
+        canvas_hw: (Hc, Wc) canvas size.
+        sensor_box: (x_lo, x_hi, y_lo, y_hi) the sensor's outer edges on the canvas, px.
+        half_window_s: (B,) half of each element's window, s.
+
+    Returns:
+        (B, G, 3) float64 score of all events, of half 0 and of half 1 (0 without events).
+    """
+    B, G = candidates.shape
+    Hc, Wc = int(canvas_hw[0]), int(canvas_hw[1])
+    dev = candidates.device
+    out = torch.zeros(B, G, 3, dtype=torch.float64, device=dev)
+    if xc.numel() == 0:
+        return out
+    cand = candidates.to(torch.float32)
+    cx, cy = centre_xy
+    scale = torch.exp(cand[b] * dt_s.unsqueeze(1))  # (E, G)
+    xw = (xc - cx).unsqueeze(1) * scale + cx
+    yw = (yc - cy).unsqueeze(1) * scale + cy
+    x_lo, x_hi, y_lo, y_hi = sensor_box
+    ginv = torch.exp(-cand.abs() * half_window_s.to(torch.float32).unsqueeze(1))  # (B, G) = 1 / g
+    gi = ginv[b]
+    inside = ((xw >= cx + (x_lo - cx) * gi) & (xw <= cx + (x_hi - cx) * gi)
+              & (yw >= cy + (y_lo - cy) * gi) & (yw <= cy + (y_hi - cy) * gi))
+    area = ((x_hi - x_lo) * (y_hi - y_lo)) * (ginv.to(torch.float64) ** 2)  # (B, G) px^2
+    w = inside.to(torch.float32)
+    if event_weight is not None:
+        w = w * event_weight.to(torch.float32).unsqueeze(1)
+    # bilinear splat, one bincount; counted samples lie inside the sensor box, which the canvas
+    # holds with a margin, so clamping the corner index only moves weight-0 samples
+    x0 = xw.floor().clamp_(0, Wc - 2)
+    y0 = yw.floor().clamp_(0, Hc - 2)
+    fx = (xw - x0).clamp_(0, 1)
+    fy = (yw - y0).clamp_(0, 1)
+    img = (b.unsqueeze(1) * G + torch.arange(G, device=dev)) * 2 + half.unsqueeze(1)  # (E, G)
+    base = (img * Hc + y0.to(torch.int64)) * Wc + x0.to(torch.int64)
+    idx = torch.stack([base, base + 1, base + Wc, base + Wc + 1], -1)
+    wy1 = w * fy
+    wy0 = w - wy1
+    wts = torch.stack([wy0 - wy0 * fx, wy0 * fx, wy1 - wy1 * fx, wy1 * fx], -1)
+    n_img = B * G * 2
+    ims = torch.bincount(idx.view(-1), weights=wts.view(-1), minlength=n_img * Hc * Wc)
+    ims = ims.view(B, G, 2, Hc * Wc).to(torch.float32)
+    i0, i1 = ims[:, :, 0], ims[:, :, 1]
+    s0 = torch.linalg.vecdot(i0, i0).to(torch.float64)
+    s1 = torch.linalg.vecdot(i1, i1).to(torch.float64)
+    s01 = torch.linalg.vecdot(i0, i1).to(torch.float64)
+    n = ims.sum(-1).to(torch.float64)  # (B, G, 2) counted weight per half
+    n0, n1 = n[..., 0], n[..., 1]
+    na = n0 + n1
+    out[..., 0] = (s0 + s1 + 2 * s01) / na.clamp_min(1e-9) - na / area
+    out[..., 1] = s0 / n0.clamp_min(1e-9) - n0 / area
+    out[..., 2] = s1 / n1.clamp_min(1e-9) - n1 / area
     return out

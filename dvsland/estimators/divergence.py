@@ -65,3 +65,44 @@ def _upper(n: int, device: str) -> torch.Tensor:
 @functools.lru_cache(maxsize=16)
 def _zero64(device: str) -> torch.Tensor:
     return torch.zeros((), dtype=torch.float64, device=device)
+
+
+def baseline_divergence(cur_xy: torch.Tensor, past_xy: torch.Tensor, lag: torch.Tensor, elapsed_s: torch.Tensor,
+                        min_length_px: float = 1e-6) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """D from pairs of tracked centroids over a per-pair baseline (a multi-step Eq. 8; not in paper).
+
+    For a pair (i, j) tracked for the last ``lag[b, i, j]`` steps, with l its length now and l' its
+    length ``lag`` steps ago, ``elapsed`` seconds earlier: D_ij = -log(l / l') / elapsed (exact for
+    a constant D; Eq. 8's (1 - l / l') / dt is its first-order form). The pairs are averaged with
+    inverse-variance weights (l' elapsed)^2: a centroid jitter of s px perturbs D_ij by about
+    s / (l' elapsed).
+
+    Args:
+        cur_xy: (B, N, 2) centroids now, px.
+        past_xy: (B, N, N, 2, 2) for each pair (i, j) the positions of i and j ``lag`` steps ago.
+        lag: (B, N, N) int64 steps; a pair counts where lag >= 1 and i < j.
+        elapsed_s: (B, N, N) float64 time between the two windows, s (> 0 where lag >= 1).
+
+    Returns:
+        d (B,) float32 (NaN without a pair), n_pairs (B,) int64, rel_std (B,) float64 standard
+        error of d relative to |d| from the weighted spread of the pairs (inf with one pair).
+    """
+    B, N = cur_xy.shape[:2]
+    c = cur_xy.to(torch.float64).nan_to_num(0.0)
+    l1 = torch.linalg.vector_norm(c.unsqueeze(2) - c.unsqueeze(1), dim=-1)  # (B, N, N)
+    p = past_xy.to(torch.float64).nan_to_num(0.0)
+    l0 = torch.linalg.vector_norm(p[..., 0, :] - p[..., 1, :], dim=-1)
+    use = (lag >= 1) & _upper(N, str(cur_xy.device)) & (l0 > min_length_px) & (l1 > min_length_px)
+    el = torch.where(use, elapsed_s.to(torch.float64), torch.ones_like(l0))
+    term = torch.where(use, -torch.log(l1.clamp_min(min_length_px) / l0.clamp_min(min_length_px)) / el,
+                       torch.zeros_like(l0))
+    w = torch.where(use, (l0 * el) ** 2, torch.zeros_like(l0))
+    n = use.sum((-1, -2))
+    ws = w.sum((-1, -2))
+    d = (term * w).sum((-1, -2)) / ws.clamp_min(1e-12)
+    var = (w * (term - d.view(B, 1, 1)) ** 2).sum((-1, -2)) / ws.clamp_min(1e-12)
+    n_eff = ws ** 2 / (w * w).sum((-1, -2)).clamp_min(1e-24)
+    se = torch.sqrt(var / (n_eff - 1).clamp_min(1e-12))
+    rel = torch.where(n > 1, se / d.abs().clamp_min(1e-6), torch.full_like(se, float("inf")))
+    d = torch.where(n > 0, d, torch.full_like(d, float("nan")))
+    return d.to(torch.float32), n, rel

@@ -31,9 +31,9 @@ import torch
 from dvsland.checks import check_fields
 from dvsland.config.schema import DPRConfig
 
-from .base import DivergenceEstimator, Truth
+from .base import DivergenceEstimator, Truth, confidence_from_rel_std
 from .density_peaks import density_peaks
-from .divergence import pairwise_divergence
+from .divergence import baseline_divergence, pairwise_divergence
 from .meanshift import meanshift_flat
 from .registry import register_estimator
 
@@ -57,19 +57,31 @@ class DPREstimator(DivergenceEstimator):
         nms_px: odd max-pool window of the DPR local maxima, px.
         pair_weighting: Eq. 8 average: "none" (the paper's plain mean over pairs) or "length"
             (pairs weighted by their length; not in paper).
+        baseline_steps: 1 = the paper's Eq. 8 between consecutive steps. k > 1 (not in paper):
+            each pair is compared with its own length up to k steps ago (as long as both
+            centroids were tracked since), D_ij = -log(l / l') / elapsed, averaged with
+            inverse-variance weights (l' elapsed)^2 (:func:`~.divergence.baseline_divergence`);
+            ``pair_weighting`` is then ignored. The estimate refers to about k dt / 2 before now.
+        principal_point_px: the focus of expansion. Eq. 8 uses only distances between
+            centroids, which a zoom about any point scales alike, so ``dpr`` needs no FoE; it is
+            accepted for the common interface.
+
+    ``confidence()``: 1 / (1 + (sigma_rel / 0.1)^2) from the relative standard error of the
+    pairs' mean (0 with fewer than two pairs or no estimate).
     """
 
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, n_max: int = 15,
                  n_min: int = 15, radius_px: float = 4.0, c_min: int = 3, r_min_px: float = 3.0,
                  memory_ms: float = 500.0, blur_sigma_px: float = 2.0, meanshift_iters: int = 20,
                  meanshift_tol_px: float = 0.01, merge_px: float = 1.0, nms_px: int = 3,
-                 pair_weighting: str = "none"):
-        super().__init__(batch_size, sensor_size, device, dt_s)
+                 pair_weighting: str = "none", baseline_steps: int = 1, principal_point_px=None):
+        super().__init__(batch_size, sensor_size, device, dt_s, principal_point_px=principal_point_px)
         # the ranges of the config schema (estimator.dpr), written once there
         check_fields(DPRConfig, n_max=n_max, n_min=n_min, radius_px=radius_px, c_min=c_min, r_min_px=r_min_px,
                      memory_ms=memory_ms, blur_sigma_px=blur_sigma_px, meanshift_iters=meanshift_iters,
                      meanshift_tol_px=meanshift_tol_px, merge_px=merge_px, nms_px=nms_px,
-                     pair_weighting=pair_weighting)
+                     pair_weighting=pair_weighting, baseline_steps=baseline_steps)
+        self.baseline_steps = int(baseline_steps)
         if int(nms_px) < 1 or int(nms_px) % 2 == 0:
             raise ValueError(f"nms_px must be an odd integer >= 1, got {nms_px}")
         self.n_max, self.n_min, self.c_min = int(n_max), int(n_min), int(c_min)
@@ -114,6 +126,14 @@ class DPREstimator(DivergenceEstimator):
         self._n_min_t = torch.tensor(float(self.n_min), dtype=torch.float32, device=dev)
         self._merge_t = torch.tensor(self.merge_px, dtype=torch.float32, device=dev)
         self._two_one = torch.tensor([2.0, 1.0], dtype=torch.float32, device=dev)
+        self._rel_std = torch.full((B,), float("inf"), dtype=torch.float64, device=dev)
+        # multi-step baseline: ring of the last k + 1 steps' centroids and window mean times, and
+        # for each slot the number of consecutive steps its centroid has been tracked
+        kb = self.baseline_steps + 1
+        self._hist = torch.full((B, kb, N, 2), float("nan"), dtype=torch.float32, device=dev)
+        self._hist_t = torch.zeros(B, kb, dtype=torch.float64, device=dev)
+        self._hist_ptr = 0
+        self._slot_age = torch.zeros(B, N, dtype=torch.int64, device=dev)
 
     # ------------------------------------------------------------------ state
     def reset(self, mask: Optional[torch.Tensor] = None) -> None:
@@ -128,6 +148,8 @@ class DPREstimator(DivergenceEstimator):
         self._n_pairs[mask] = 0
         self._d[mask] = float("nan")
         self._age[mask] = 0
+        self._rel_std[mask] = float("inf")
+        self._slot_age[mask] = 0
 
     def window_image(self) -> torch.Tensor:
         """The windowed count image over the last T, (B, H, W) float32 (a copy).
@@ -221,8 +243,26 @@ class DPREstimator(DivergenceEstimator):
         # While the ring fills after a reset the window's mean event time advances by dt / 2 per
         # step instead of dt: Eq. 8 then uses dt / 2 (not in paper; removes a x2 bias at start).
         self._age += 1
-        d, n_pairs = pairwise_divergence(prev, c, keep, dt, weighting=self.pair_weighting)
-        d = d * torch.where(self._age <= self.n_ring, self._two_one[0], self._two_one[1])
+        # window mean event time (the ring holds min(age, K) steps), s
+        t_mean = t_us * 1e-6 - self._age.clamp(max=self.n_ring).to(torch.float64) * (0.5 * dt)
+        kb = self.baseline_steps + 1
+        age_now = torch.where(keep, self._slot_age + 1, torch.zeros_like(self._slot_age)).clamp(max=self.baseline_steps)
+        lag = torch.minimum(age_now.unsqueeze(2), age_now.unsqueeze(1))  # (B, N, N)
+        ring = (self._hist_ptr - lag) % kb
+        hp = self._hist.permute(0, 2, 1, 3)  # (B, N, kb, 2)
+        past_i = hp.gather(2, ring.unsqueeze(-1).expand(-1, -1, -1, 2))
+        past_j = hp.gather(2, ring.transpose(1, 2).unsqueeze(-1).expand(-1, -1, -1, 2)).transpose(1, 2)
+        elapsed = t_mean.view(-1, 1, 1) - self._hist_t.gather(1, ring.flatten(1)).view_as(ring)
+        d_b, n_b, rel = baseline_divergence(c, torch.stack([past_i, past_j], 3), lag, elapsed)
+        if self.baseline_steps > 1:
+            d, n_pairs = d_b, n_b
+        else:  # the paper's Eq. 8 (rel from the same pairs over one step, for the confidence)
+            d, n_pairs = pairwise_divergence(prev, c, keep, dt, weighting=self.pair_weighting)
+            d = d * torch.where(self._age <= self.n_ring, self._two_one[0], self._two_one[1])
+        self._rel_std = rel
+        self._hist[:, self._hist_ptr] = torch.where(keep.unsqueeze(-1), c, self._nan)
+        self._hist_t[:, self._hist_ptr] = t_mean
+        self._slot_age = age_now
         self._centroids = torch.where(keep.unsqueeze(-1), c, self._nan)
         self._valid = keep
         self._counts = torch.where(keep, counts, self._zero)
@@ -244,6 +284,9 @@ class DPREstimator(DivergenceEstimator):
                 self._centroids[idx] = torch.where(ki.unsqueeze(-1), ci, self._nan)
                 self._valid[idx] = ki
                 self._counts[idx] = torch.where(ki, ni, self._zero)
+                self._hist[idx, self._hist_ptr] = self._centroids[idx]
+        self._slot_age = torch.where(need.unsqueeze(1), torch.zeros_like(self._slot_age), self._slot_age)
+        self._hist_ptr = (self._hist_ptr + 1) % (self.baseline_steps + 1)
         self._n_pairs = n_pairs
         self._d = d
         return d.clone()
@@ -251,7 +294,7 @@ class DPREstimator(DivergenceEstimator):
     def diagnostics(self):
         """centroids (B, N_max, 2) float32 (x, y) px, NaN = unused; n_tracked (B,) int64;
         reinit (B,) bool (DPR ran this step); counts (B, N_max) events within R; n_pairs (B,)
-        pairs used by Eq. 8; window_events (B,) events in the memory window."""
+        pairs used by Eq. 8; window_events (B,) events in the memory window; confidence (B,)."""
         return {
             "centroids": self._centroids.clone(),
             "n_tracked": self._valid.sum(1),
@@ -259,4 +302,9 @@ class DPREstimator(DivergenceEstimator):
             "counts": self._counts.clone(),
             "n_pairs": self._n_pairs.clone(),
             "window_events": self._window.sum((1, 2)),
+            "confidence": self.confidence(),
         }
+
+    def confidence(self) -> torch.Tensor:
+        """(B,) float32 in [0, 1] from the relative standard error of the pairs (see class doc)."""
+        return confidence_from_rel_std(self._rel_std, self._d)

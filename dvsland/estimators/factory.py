@@ -26,11 +26,13 @@ def estimator_params(cfg: Config, name: str | None = None) -> dict:
 def make_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: str | None = None, seed: int | None = None):
     """Instantiate the configured estimator for ``batch_size`` descents on ``device``.
 
-    The estimator receives ``dt_s`` (the frame interval) and ``seed`` in addition to its params
-    (each only where its constructor takes it; see :func:`get_estimator`).
+    The estimator receives ``dt_s`` (the frame interval), ``seed`` and ``principal_point_px`` (the
+    camera's focus of expansion, None = the sensor centre) in addition to its params (each only
+    where its constructor takes it; see :func:`get_estimator`).
     """
     name = name or cfg.estimator.name
     params = estimator_params(cfg, name)
     params.setdefault("dt_s", cfg.dt_s)
     params.setdefault("seed", cfg.simulation.seed if seed is None else seed)
+    params.setdefault("principal_point_px", cfg.camera.principal_point_px)
     return get_estimator(name, batch_size, (cfg.camera.width_px, cfg.camera.height_px), device, **params)

@@ -26,8 +26,8 @@ class OracleEstimator(DivergenceEstimator):
     """
 
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, noise_abs: float = 0.0,
-                 noise_rel: float = 0.0, delay_steps: int = 0, seed: int = 0):
-        super().__init__(batch_size, sensor_size, device, dt_s)
+                 noise_rel: float = 0.0, delay_steps: int = 0, seed: int = 0, principal_point_px=None):
+        super().__init__(batch_size, sensor_size, device, dt_s, principal_point_px=principal_point_px)
         # the ranges of the config schema (estimator.oracle), written once there
         check_fields(OracleConfig, noise_abs=noise_abs, noise_rel=noise_rel, delay_steps=delay_steps)
         self.noise_abs = float(noise_abs)
@@ -43,6 +43,8 @@ class OracleEstimator(DivergenceEstimator):
     def reset(self, mask: Optional[torch.Tensor] = None) -> None:
         mask = self._mask(mask)
         self._ring[:, mask] = float("nan")
+        if hasattr(self, "_d"):
+            self._d[mask] = float("nan")
 
     def update(self, events, t_us: int, truth: Optional[Truth] = None) -> torch.Tensor:
         if truth is None:
@@ -55,7 +57,18 @@ class OracleEstimator(DivergenceEstimator):
         n_slots = self.delay_steps + 1
         self._ring[self._k % n_slots] = d
         self._k += 1
-        return self._ring[self._k % n_slots].clone()
+        self._d = self._ring[self._k % n_slots].clone()
+        return self._d.clone()
+
+    def confidence(self) -> torch.Tensor:
+        """(B,) float32: 1 / (1 + (noise_rel / 0.1)^2) where the estimate is finite (additive noise
+        ignored), 0 where NaN."""
+        d = getattr(self, "_d", None)
+        if d is None:
+            return torch.zeros(self.batch_size, dtype=torch.float32, device=self.device)
+        c = torch.full_like(d, 1.0 / (1.0 + (self.noise_rel / 0.1) ** 2))
+        return torch.where(torch.isfinite(d), c, torch.zeros_like(c))
 
     def diagnostics(self):
-        return {"d_oracle": self._ring[(self._k - 1) % (self.delay_steps + 1)].clone()}
+        return {"d_oracle": self._ring[(self._k - 1) % (self.delay_steps + 1)].clone(),
+                "confidence": self.confidence()}

@@ -137,7 +137,7 @@ def get_estimator(name: str, batch_size: int, sensor_size: Tuple[int, int], devi
     """Build estimator ``name`` (see :func:`estimator_class`) for B = ``batch_size`` descents.
 
     ``params`` must be keyword parameters of the estimator's constructor (a misspelt one is a
-    ValueError listing the allowed ones), except ``dt_s`` and ``seed``, which are passed only
+    ValueError listing the allowed ones), except ``dt_s``, ``seed`` and ``principal_point_px``, which are passed only
     where the constructor takes them. A constructor with ``**kwargs`` gets everything.
 
     Raises:
@@ -154,7 +154,7 @@ def get_estimator(name: str, batch_size: int, sensor_size: Tuple[int, int], devi
 
 
 #: offered to every estimator by the factory; passed only to those whose constructor takes them
-CONTEXT_PARAMS = ("dt_s", "seed")
+CONTEXT_PARAMS = ("dt_s", "seed", "principal_point_px")
 
 
 def _parameters(cls) -> Tuple[List[str], bool]:
