@@ -241,7 +241,7 @@ def test_snn_corrupt_or_foreign_checkpoint_gives_a_clear_error(tmp_path):
         get_estimator("snn", 2, SENSOR, checkpoint=str(half))
     foreign = tmp_path / "foreign.pt"
     torch.save({"weights": torch.zeros(3)}, foreign)
-    with pytest.raises(ValueError, match="missing"):
+    with pytest.raises(ValueError, match="not a readable.*it has no"):
         get_estimator("snn", 2, SENSOR, checkpoint=str(foreign))
 
 
@@ -268,14 +268,16 @@ def test_snn_nan_after_many_empty_windows_and_back_with_events():
     assert torch.isfinite(d).all()
 
 
-def test_snn_ignores_events_off_the_sensor():
-    """Events with x >= W, y >= H, negative coordinates or b >= B are dropped and counted."""
-    est = get_estimator("snn", 2, SENSOR, warmup_steps=0)
+def test_snn_events_off_the_sensor_rule():
+    """Through update, events off the sensor or the batch are a clear error (the estimators' input
+    gate); the encoder itself ignores them and counts them, never indexing outside its table."""
     ev = _events(torch.tensor([0, 0, 1, 1, 5]), torch.tensor([10, 128, 300, 20, 3]),
                  torch.tensor([10, 5, 5, -1, 3]), torch.tensor([10, 20, 30, 40, 50]), torch.tensor([1, -1, 1, 1, 1]))
-    d = est.update(ev, 100_000)
-    assert d.shape == (2,) and torch.isfinite(d).all()
-    assert int(est.diagnostics()["dropped_events"]) == 4
+    est = get_estimator("snn", 2, SENSOR, warmup_steps=0)
+    with pytest.raises(ValueError, match="'b' must be in"):
+        est.update(ev, 100_000)
+    x = est.encoder.encode(ev, 0, 100_000, 2)
+    assert x.shape[0] == 2 and est.encoder.dropped == 4 and torch.isfinite(x).all()
 
 
 def test_snn_reports_spikes_and_synaptic_operations():

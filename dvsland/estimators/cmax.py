@@ -112,6 +112,7 @@ class CMaxEstimator(DivergenceEstimator):
         if not (math.isfinite(d_min) and math.isfinite(d_max) and d_min < d_max):
             raise ValueError(f"d_min must be < d_max (both finite), got d_min={d_min}, d_max={d_max}")
         self.window_us = int(round(float(window_ms) * 1000.0))
+        self._window_s_init = self.window_us * 1e-6
         self.window_motion = float(window_motion)
         self.window_min_s, self.window_max_s = float(window_min_ms) * 1e-3, float(window_max_ms) * 1e-3
         self.d_min, self.d_max = float(d_min), float(d_max)
@@ -139,6 +140,8 @@ class CMaxEstimator(DivergenceEstimator):
         self.r_max_px = math.hypot(max(cx, W - 1 - cx), max(cy, H - 1 - cy))
         #: canvas margin is never more than this (a warp that sends events farther only loses them)
         self.pad_cap_px = int(max(W, H))
+        #: widest canvas margin any search uses, px (the global search over [d_min, d_max])
+        self.pad_px = self._pad_for(max(abs(self.d_min), abs(self.d_max)), max(self._window_s_init, self.window_max_s))
         # longest window ever needed, s (the store keeps this much)
         self._keep_s = max(self.window_us * 1e-6, self.window_max_s if self.window_motion > 0 else 0.0)
         # the stored events of recent steps, oldest first, in one ring-like buffer (no per-update
