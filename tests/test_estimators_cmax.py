@@ -148,3 +148,20 @@ def test_cmax_new_parameter_errors():
                      (dict(blur_sigma_px=1.0), "blur_sigma_px")]:
         with pytest.raises(ValueError, match=name):
             get_estimator("cmax", 1, (W, H), **kw)
+
+
+def test_event_hash_accepts_any_seed():
+    """Campaign seeds are 63-bit: the per-event hash folds them (it overflowed before); seeds below
+    2^31 keep their old hash, so seeded results do not move."""
+    import torch
+
+    from dvsland.estimators.contrast import event_hash
+
+    b = torch.zeros(5, dtype=torch.int64)
+    x = torch.arange(5)
+    y = torch.arange(5) * 3
+    t = torch.arange(5) * 1000
+    for seed in (0, 7, 2**31 - 1, 2**62 + 12345, 2**63 - 1, -5):
+        h = event_hash(b, x, y, t, seed)
+        assert h.dtype == torch.int64 and bool(((h >= 0) & (h < 2**31)).all())
+    assert not torch.equal(event_hash(b, x, y, t, 2**62 + 1), event_hash(b, x, y, t, 2**62 + 2))
