@@ -79,3 +79,15 @@ class TestGroups:
         assert "H" in text and "0 %" in text
         md = format_group_table([row], ["site", "label", "estimator"], markdown=True)
         assert md.startswith("| site |")
+
+
+def test_wilson_ends_are_exact_and_contain_the_rate():
+    from dvsland.report.stats import wilson_interval
+
+    for n in (1, 3, 6, 16, 50, 900):
+        for k in (0, 1, n - 1, n):
+            if not 0 <= k <= n:
+                continue
+            lo, hi = wilson_interval(k, n)
+            assert lo <= k / n <= hi
+        assert wilson_interval(0, n)[0] == 0.0 and wilson_interval(n, n)[1] == 1.0

@@ -79,8 +79,9 @@ def campaign_figure(path, runs: List[dict], groups: List[dict], by: Sequence[str
             x = sites.index(g["site"]) - 0.4 + width * (j + 0.5)
             xs.append(x)
             ys.append(100 * g["success_rate"])
-            lo.append(100 * (g["success_rate"] - g["success_lo"]))
-            hi.append(100 * (g["success_hi"] - g["success_rate"]))
+            # Wilson bounds at k = 0 or n equal the rate up to rounding: clip the tiny negative rest
+            lo.append(max(0.0, 100 * (g["success_rate"] - g["success_lo"])))
+            hi.append(max(0.0, 100 * (g["success_hi"] - g["success_rate"])))
         ax1.errorbar(xs, ys, yerr=[lo, hi], fmt="o", color=c, capsize=3, ms=4, label=s or "all")
         for i, site in enumerate(sites):
             v = [abs(r["v_at_50m_mps"]) for r in runs
