@@ -8,12 +8,22 @@ settings from the config (``controller.<name>`` for built-ins, ``controller.para
 
 from __future__ import annotations
 
-from importlib import metadata
-from typing import Callable, Dict, List
+from typing import Callable, List
 
-_REGISTRY: Dict[str, Callable] = {}
-_ENTRY_POINT_GROUP = "dvsland.controllers"
-_entry_points_loaded = False
+from dvsland.plugins import PluginRegistry
+
+_PLUGINS = PluginRegistry("controller", "dvsland.controllers")
+_REGISTRY = _PLUGINS.entries
+_ENTRY_POINT_GROUP = _PLUGINS.group
+
+
+def _check_controller(name: str, cls) -> None:
+    if not hasattr(cls, "from_params"):
+        raise TypeError(f"controller {name!r}: {cls!r} needs a from_params(params, **options) classmethod")
+    try:
+        cls.controller_name = name  # what results.json reports as the run's controller
+    except (AttributeError, TypeError):
+        pass
 
 
 def register_controller(name: str) -> Callable:
@@ -26,55 +36,17 @@ def register_controller(name: str) -> Callable:
             @classmethod
             def from_params(cls, p, **options): ...
     """
-    if not isinstance(name, str) or not name:
-        raise ValueError(f"controller name must be a non-empty string, got {name!r}")
-
-    def deco(cls):
-        if not hasattr(cls, "from_params"):
-            raise TypeError(f"controller {name!r}: {cls!r} needs a from_params(params, **options) classmethod")
-        _REGISTRY[name] = cls
-        try:
-            cls.controller_name = name  # what results.json reports as the run's controller
-        except (AttributeError, TypeError):
-            pass
-        return cls
-
-    return deco
-
-
-def _load_entry_points() -> None:
-    global _entry_points_loaded
-    if _entry_points_loaded:
-        return
-    _entry_points_loaded = True
-    try:
-        eps = metadata.entry_points(group=_ENTRY_POINT_GROUP)
-    except TypeError:  # Python < 3.10 API
-        eps = metadata.entry_points().get(_ENTRY_POINT_GROUP, [])
-    for ep in eps:
-        if ep.name in _REGISTRY:
-            continue
-        try:
-            obj = ep.load()
-        except Exception as exc:  # a broken plug-in must not break dvsland
-            import warnings
-
-            warnings.warn(f"controller entry point {ep.name!r} ({ep.value}) failed to load: {exc}")
-            continue
-        _REGISTRY.setdefault(ep.name, obj)
+    return _PLUGINS.register(name, _check_controller)
 
 
 def refresh_entry_points() -> None:
     """Look for newly installed third-party controllers again."""
-    global _entry_points_loaded
-    _entry_points_loaded = False
-    _load_entry_points()
+    _PLUGINS.refresh()
 
 
 def available_controllers() -> List[str]:
     """Sorted names of every known controller (built-in, registered, entry points)."""
-    _load_entry_points()
-    return sorted(_REGISTRY)
+    return _PLUGINS.names()
 
 
 def controller_class(name: str):
@@ -83,10 +55,10 @@ def controller_class(name: str):
     Raises:
         ValueError: unknown name (the message lists the known ones).
     """
-    _load_entry_points()
-    if name not in _REGISTRY:
+    cls = _PLUGINS.lookup(name)
+    if cls is None:
         raise ValueError(f"unknown controller {name!r}; known controllers: {available_controllers()}")
-    return _REGISTRY[name]
+    return cls
 
 
 def get_controller(name: str, params, **options):

@@ -5,14 +5,14 @@ entry-point group for third-party packages, and import paths ``package.module:Cl
 from __future__ import annotations
 
 import inspect
-from importlib import metadata
 from typing import Any, Callable, Dict, List, Tuple
 
 from dvsland.checks import check_keys
+from dvsland.plugins import PluginRegistry
 
-_REGISTRY: Dict[str, Callable] = {}
-_ENTRY_POINT_GROUP = "dvsland.estimators"
-_entry_points_loaded = False
+_PLUGINS = PluginRegistry("estimator", "dvsland.estimators")
+_REGISTRY = _PLUGINS.entries
+_ENTRY_POINT_GROUP = _PLUGINS.group
 
 
 def register_estimator(name: str) -> Callable:
@@ -23,49 +23,17 @@ def register_estimator(name: str) -> Callable:
         @register_estimator("mine")
         class Mine(DivergenceEstimator): ...
     """
-    if not isinstance(name, str) or not name:
-        raise ValueError(f"estimator name must be a non-empty string, got {name!r}")
-
-    def deco(cls):
-        _REGISTRY[name] = cls
-        return cls
-
-    return deco
-
-
-def _load_entry_points() -> None:
-    global _entry_points_loaded
-    if _entry_points_loaded:
-        return
-    _entry_points_loaded = True
-    try:
-        eps = metadata.entry_points(group=_ENTRY_POINT_GROUP)
-    except TypeError:  # Python < 3.10 API
-        eps = metadata.entry_points().get(_ENTRY_POINT_GROUP, [])
-    for ep in eps:
-        if ep.name in _REGISTRY:
-            continue
-        try:
-            obj = ep.load()
-        except Exception as exc:  # a broken plug-in must not break dvsland
-            import warnings
-
-            warnings.warn(f"estimator entry point {ep.name!r} ({ep.value}) failed to load: {exc}")
-            continue
-        _REGISTRY.setdefault(ep.name, obj)
+    return _PLUGINS.register(name)
 
 
 def refresh_entry_points() -> None:
     """Look for newly installed third-party estimators again."""
-    global _entry_points_loaded
-    _entry_points_loaded = False
-    _load_entry_points()
+    _PLUGINS.refresh()
 
 
 def available_estimators() -> List[str]:
     """Sorted names of every known estimator (built-in, registered, entry points)."""
-    _load_entry_points()
-    return sorted(_REGISTRY)
+    return _PLUGINS.names()
 
 
 def _import_path(name: str):
@@ -123,9 +91,9 @@ def estimator_class(name: str) -> Callable:
     Raises:
         ValueError: unknown name (the message lists the known ones) or an import path that fails.
     """
-    _load_entry_points()
-    if name in _REGISTRY:
-        return _REGISTRY[name]
+    cls = _PLUGINS.lookup(name)
+    if cls is not None:
+        return cls
     if isinstance(name, str) and ":" in name:
         return _import_path(name)
     raise ValueError(f"unknown estimator {name!r}; known: {available_estimators()}, "
