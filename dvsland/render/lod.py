@@ -115,15 +115,23 @@ def prepare_levels(terrain: Terrain, params: LevelParams, disk_cache: bool = Tru
     lv = SiteLevels(terrain.name, irr, hgt, h0, terrain.sun_grid_angle_rad, time.perf_counter() - t0, "computed",
                     time.process_time() - c0)
     _MEMORY[key] = lv
-    if path is not None:
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".tmp{os.getpid()}")
-            torch.save({"irradiance": irr, "height_m": hgt, "h0_m": h0, "angle_rad": lv.angle_rad}, tmp)
-            os.replace(tmp, path)
-        except OSError:
-            pass
+    save_levels(path, lv)
     return lv
+
+
+def save_levels(path, lv: "SiteLevels") -> None:
+    """Write prepared levels to the disk cache atomically (tmp file + rename); ``path`` None or
+    an unwritable cache is skipped silently (the cache only saves time)."""
+    if path is None:
+        return
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".tmp{os.getpid()}")
+        torch.save({"irradiance": lv.irradiance, "height_m": lv.height_m, "h0_m": lv.h0_m,
+                    "angle_rad": lv.angle_rad}, tmp)
+        os.replace(tmp, path)
+    except OSError:
+        pass
 
 
 def _compute(terrain: Terrain, params: LevelParams, progress=None):

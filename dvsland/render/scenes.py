@@ -24,7 +24,7 @@ from dvsland.terrain.grid import Grid, compute_threads
 from dvsland.terrain.photometry import shade
 from dvsland.terrain.spec import load_spec
 
-from .lod import LevelParams, SiteLevels, _MEMORY, cache_dir
+from .lod import LevelParams, SiteLevels, _MEMORY, cache_dir, save_levels
 
 #: height and albedo fields per (spec without sun elevation, level params, level): float64 CPU
 _FIELDS: dict = {}
@@ -140,12 +140,5 @@ def prepare_scene_levels(terrain: Terrain, params: LevelParams, label: str, disk
                     time.process_time() - c0)
     lv.levels = None if full else (k_lo, k_hi)
     _MEMORY[key] = lv
-    if path is not None:
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".tmp{os.getpid()}")
-            torch.save({"irradiance": irr, "height_m": hgt, "h0_m": h0, "angle_rad": lv.angle_rad}, tmp)
-            os.replace(tmp, path)
-        except OSError:
-            pass
+    save_levels(path, lv)
     return lv
