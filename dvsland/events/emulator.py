@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 from typing import Optional, Tuple
 
 import numpy as np
@@ -254,7 +255,23 @@ class EventEmulator:
             raise ValueError(f"frames contain negative irradiance (min {lo}); irradiance must be >= 0")
         self._range_new = (lo, hi)
         # always a private float64 copy: it becomes state, and may be modified in place
+        spare = None if reset else self._take_spare(frames)
+        if spare is not None:
+            return spare.copy_(frames)
         return frames.to(device=self.device, dtype=torch.float64, copy=True)
+
+    def _take_spare(self, frames: torch.Tensor) -> Optional[torch.Tensor]:
+        """The level buffer of two steps ago, for the new frames' copy, when nothing outside the
+        emulator holds it (no reference, no view, no numpy array) and it fits; else None. On CPU a
+        fresh (B, H, W) float64 tensor per step costs more in page faults than the copy itself."""
+        spare, self._spare = getattr(self, "_spare", None), None
+        if spare is None or tuple(spare.shape) != tuple(frames.shape):
+            return None
+        try:  # 2 = the tensor's own reference + the temporary storage object
+            free = sys.getrefcount(spare) == 2 and torch._C._storage_Use_Count(spare.untyped_storage()._cdata) == 2
+        except Exception:  # private API missing: never reuse
+            free = False
+        return spare if free else None
 
     def _draw_mismatch(self, B: int, H: int, W: int) -> None:
         self._r_elem = self._bg_elem = None
@@ -403,7 +420,7 @@ class EventEmulator:
         if self._drift is not None:
             el = float(t1 - self._t_reset)
             l1 = l1.add(self._drift, alpha=el) if pmp.lowpass else l1.add_(self._drift, alpha=el)
-        d = l1 - self._lref
+        d = torch.sub(l1, self._lref, out=self._scratch(l1))  # scratch, overwritten below
         # candidate pixels (A,): a superset of those with >= 1 crossing (exact counts follow)
         if self._th_scalar:
             act = _candidates(d, self._th_on, self._th_off, 1.0 - 2 * LEVEL_TOL)  # sync
@@ -421,6 +438,9 @@ class EventEmulator:
             keys = parts[0] if len(parts) == 1 else torch.cat(parts)
             del parts
 
+        # the old level buffer becomes the next step's frame copy where nothing else can hold it
+        recycle = self.interpolation == "log" and not (pmp.lowpass or pmp.drift)
+        self._spare = self._l_prev if recycle else None
         self._l_prev = l1
         self._range = self._range_new
         if self.interpolation == "linear":
@@ -440,6 +460,14 @@ class EventEmulator:
         if keys is None or keys.numel() == 0:
             return Events.empty(dev)
         return layout.sort_decode(keys, b_shift, t0)
+
+    def _scratch(self, like: torch.Tensor) -> torch.Tensor:
+        """A (B, H, W) float64 work buffer kept across steps: a fresh full-size tensor per step
+        costs more in page faults (on CPU, above glibc's mmap threshold) than the arithmetic."""
+        buf = getattr(self, "_scratch_buf", None)
+        if buf is None or buf.shape != like.shape or buf.device != like.device:
+            buf = self._scratch_buf = torch.empty_like(like)
+        return buf
 
     def _pixel_events(self, act, l1, f1, t0: int, dt: float, b_shift: int) -> torch.Tensor:
         """Events of the candidate pixels ``act`` (A,) as sort keys; moves L_ref and t_last.
@@ -656,13 +684,14 @@ def _candidates(d: torch.Tensor, th_on, th_off, shrink: float) -> torch.Tensor:
     """Flat indices (int64) of pixels with d >= th_on * shrink or d <= -th_off * shrink.
 
     ``th_on``/``th_off`` are floats or (B, H, W) maps. On CPU with scalar thresholds this runs
-    in numpy (several times faster than the torch comparison + nonzero on 2 cores)."""
+    in numpy (several times faster than the torch comparison + nonzero on 2 cores) and may
+    overwrite ``d`` (a scratch buffer)."""
     scalar = not isinstance(th_on, torch.Tensor)
     if scalar and _cpu_fast_path(d):
         dn = d.numpy().reshape(-1)
         lo_on, lo_off = th_on * shrink, th_off * shrink
         if lo_on == lo_off:
-            mask = np.abs(dn) >= lo_on
+            mask = np.greater_equal(np.abs(dn, out=dn), lo_on)  # d is scratch: abs in place
         else:
             mask = (dn >= lo_on) | (dn <= -lo_off)
         return torch.from_numpy(np.flatnonzero(mask))
