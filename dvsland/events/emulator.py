@@ -501,17 +501,17 @@ class EventEmulator:
                 n_a, th_a, lref_a, self._l_prev.view(-1).index_select(0, act), l1_a, dt, tl_a, r,
                 self._spacing_may_bind)
             self._count_events(cnt)  # before any per-event allocation
-            cnti = cnt.to(torch.int64)
-            sel = _nonzero_1d(cnti > 0)  # pixels with >= 1 emitted event (sync)
+            # cnt holds whole numbers: compared as float64, converted only for the multi pixels
+            sel = _nonzero_1d(cnt > 0)  # pixels with >= 1 emitted event (sync)
             all_sel = sel.numel() == act.numel()
             # the first event of every pixel with cnt >= 1 (no per-event gather) ...
             f_sel = first if all_sel else first.index_select(0, sel)
             t_first = f_sel.add(0.5).floor_().clamp_(1.0, dt).to(torch.int64)
             parts = [t_first.bitwise_left_shift_(t_shift).add_(code_a if all_sel else code_a.index_select(0, sel))]
             # ... then the further events of the pixels with cnt >= 2
-            multi = _nonzero_1d(cnti > 1)
+            multi = _nonzero_1d(cnt > 1)
             if multi.numel() > 0:
-                parts.append(_extra_keys(multi, cnti, first, step_us, code_a, dt, t_shift))
+                parts.append(_extra_keys(multi, cnt, first, step_us, code_a, dt, t_shift))
             keys = torch.cat(parts) if len(parts) > 1 else parts[0]
         else:
             self._count_events(n_a)  # upper bound (refractory only drops), before the per-crossing loop
@@ -665,12 +665,12 @@ def _take(th, idx):
     return torch.full(idx.shape, th, dtype=torch.float64, device=idx.device)
 
 
-def _extra_keys(multi, cnti, first, step_us, code_a, dt: float, t_shift: int) -> torch.Tensor:
+def _extra_keys(multi, cnt, first, step_us, code_a, dt: float, t_shift: int) -> torch.Tensor:
     """Keys of the 2nd, 3rd, ... events of the pixels ``multi`` (indices into the candidates):
     event i of pixel a is at first[a] + i * step_us[a], i = 1..cnt[a]-1. A function of its own
     so that its per-event temporaries are freed on return; in-place ops keep the number of
     fresh (N,) allocations (page faults dominate at tens of millions of events) low."""
-    reps = cnti.index_select(0, multi).sub_(1)
+    reps = cnt.index_select(0, multi).to(torch.int64).sub_(1)  # cnt: (A,) float64 whole numbers
     seg = multi.repeat_interleave(reps)  # candidate index per event
     start = torch.cumsum(reps, 0).sub_(reps)
     i = torch.arange(1, seg.numel() + 1, device=seg.device).sub_(start.repeat_interleave(reps))
