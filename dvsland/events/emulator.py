@@ -58,8 +58,9 @@ LEVEL_TOL = 1e-9
 _INTERPOLATIONS = ("log", "linear")
 
 #: Candidate pixels processed per block on CPU (cache blocking; the result does not depend on it).
-#: 2^16 (512 KiB per float64 temporary): median step 35 % below 2^17 on dense frames, B = 18,
-#: 128x128, one thread, on a loaded 2-core machine (scripts/bench_v2e.py --frames synthetic).
+#: 2^16 (512 KiB per float64 temporary) beat 2^17 on dense 128x128 frames at B = 18, one thread,
+#: on a loaded 2-core machine (median 0.44-0.47 against 0.69 ms/frame in one session; the gain
+#: varies with the load, from none to that).
 _CPU_BLOCK = 1 << 16
 
 #: Use the CPU-only fast paths (numpy scan/sort, blocking) on CPU tensors. Tests switch it off
