@@ -185,7 +185,8 @@ def uniform_candidates(rngs: List[np.random.Generator], rate_hz: float, n_pix: i
         e = torch.empty(0, dtype=torch.int64)
         return e, e.clone(), torch.empty(0, dtype=torch.float64)
     pt = np.concatenate(pts) if len(pts) > 1 else pts[0]
-    flat, t_rel = np.divmod(pt, int(dt_us))
+    flat = pt // int(dt_us)  # pt >= 0: the same as np.divmod, about 2x faster (floor_divide by a
+    t_rel = pt - flat * int(dt_us)  # scalar is vectorised, divmod is not)
     u = np.concatenate(us) if len(us) > 1 else us[0]
     return torch.from_numpy(flat), torch.from_numpy(t_rel + 1), torch.from_numpy(u)
 
