@@ -41,15 +41,20 @@ def run_local(config: dict, shards: List[dict], workers: int = 1, keep_dirs: Opt
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    with ProcessPoolExecutor(max_workers=int(workers), mp_context=mp.get_context("spawn")) as pool:
-        futs = [pool.submit(run_shard, config, sh, kd) for sh, kd in zip(shards, keep_dirs)]
-        try:
-            for f in as_completed(futs):
-                yield f.result()
-        except BaseException:
-            for f in futs:
-                f.cancel()
-            raise
+    pool = ProcessPoolExecutor(max_workers=int(workers), mp_context=mp.get_context("spawn"))
+    futs = [pool.submit(run_shard, config, sh, kd) for sh, kd in zip(shards, keep_dirs)]
+    try:
+        for f in as_completed(futs):
+            yield f.result()
+    except BaseException:
+        # Ctrl-C / SIGTERM / a failing shard: stop now. Waiting for the running shards (minutes
+        # each) would leave the campaign deaf to the interrupt; finished shards are already on
+        # disk, and --resume runs the rest.
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            proc.terminate()
+        raise
+    pool.shutdown(wait=True)
 
 
 def run_ray(config: dict, shards: List[dict], workers: Optional[int] = None,
