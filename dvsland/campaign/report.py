@@ -133,6 +133,49 @@ def write_hparams(folder, groups: List[dict], by: Sequence[str]) -> Path:
     return folder
 
 
+def write_paper_pattern(folder, runs: List[dict], by: Sequence[str], figures: bool = True) -> dict:
+    """When the runs fly the paper's nine sites: its reported pattern beside the flown one pooled
+    over seeds and settings (``dvsland.report.paper_pattern``), one per series (the group keys
+    other than site and setting, e.g. the estimator): ``paper_pattern.txt`` / ``.md`` /
+    ``.json`` and ``figures/paper_pattern.png`` (``paper_pattern-<series>.png`` for several
+    series; not with ``figures=False``). Reads c2 and the success altitude from the campaign's ``config.yaml`` (a swept
+    ``controller.c2`` from the runs). Returns {name: path}; empty when the sites are not the paper's."""
+    import json
+
+    import yaml
+
+    from dvsland.report import paper_pattern as pp
+    from dvsland.report.stats import group_key
+
+    folder = Path(folder)
+    if not runs or not pp.applies(runs):
+        return {}
+    cfg = yaml.safe_load((folder / "config.yaml").read_text()) if (folder / "config.yaml").is_file() else {}
+    c2 = float((cfg.get("controller") or {}).get("c2", 0.25))
+    alt = float((cfg.get("simulation") or {}).get("success_altitude_m", 50.0))
+    keys = [k for k in by if k not in ("site", "label")]
+    series: dict = {}
+    for r in runs:
+        series.setdefault(_label(dict(zip(keys, group_key(r, keys))), keys), []).append(r)
+    texts, mds, data, out = [], [], {}, {}
+    for i, (name, rs) in enumerate(series.items()):
+        c2_s = float((rs[0].get("sweep") or {}).get("controller.c2", c2))
+        head = f"[{name}] " if name else ""
+        texts.append(head + pp.format_comparison(rs, c2_s, alt))
+        mds.append((f"**{name}**\n\n" if name else "") + pp.format_pooled_comparison(rs, c2_s, alt, markdown=True))
+        data[name or "all"] = {"c2": c2_s, "success_altitude_m": alt, "sites": pp.pooled_pattern(rs, c2_s, alt)}
+        if figures:
+            fig = "paper_pattern.png" if len(series) == 1 else f"paper_pattern-{i}.png"
+            (folder / "figures").mkdir(parents=True, exist_ok=True)
+            out[fig] = pp.paper_pattern_chart(rs, folder / "figures" / fig, c2_s, alt, pooled=True)
+    for ext, body in (("txt", "\n\n".join(texts)), ("md", "\n\n".join(mds))):
+        out[f"paper_pattern.{ext}"] = folder / f"paper_pattern.{ext}"
+        out[f"paper_pattern.{ext}"].write_text(body + "\n")
+    out["paper_pattern.json"] = folder / "paper_pattern.json"
+    out["paper_pattern.json"].write_text(json.dumps({"paper": pp.load_paper_pattern(), "flown": data}, indent=1))
+    return out
+
+
 def write_report(folder, runs: List[dict], groups: List[dict], by: Sequence[str], meta: dict,
                  figures: bool = True, tensorboard: bool = True) -> dict:
     """Write every merged output of a campaign into ``folder``; returns {name: path}."""
@@ -146,5 +189,7 @@ def write_report(folder, runs: List[dict], groups: List[dict], by: Sequence[str]
         out["figure"] = campaign_figure(folder / "figures" / "campaign.png", runs, groups, by)
     if tensorboard and groups:
         out["tb"] = write_hparams(folder, groups, by)
+    if runs:  # the paper's nine sites: its reported pattern beside the pooled flown one
+        out.update(write_paper_pattern(folder, runs, by, figures=figures))
     return out
 

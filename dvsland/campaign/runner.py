@@ -181,6 +181,8 @@ def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_
                            tensorboard=bool(log.get("tensorboard", True)))
     if not quiet:
         print(format_group_table(groups, by))
+        if "paper_pattern.txt" in outputs:  # the paper's nine sites: its pattern beside the pooled one
+            print(outputs["paper_pattern.txt"].read_text(), end="")
         rate = f", {dpm:.1f} descents/min" if dpm else ""
         print(f"{status}: {len(plan.shards) - len(missing)}/{len(plan.shards)} shards, {len(runs)} descents "
               f"({descents} run now in {run_s:.1f} s{rate}); output in {run_dir}")
