@@ -116,6 +116,7 @@ def pooled_pattern(runs: List[dict], c2: float, success_altitude_m: float = 50.0
 
 def _p(x: float) -> str:
     # whole percents, one decimal near 0 and 100 where rounding would hide the interval's width
+    x = round(x, 6)  # a Wilson bound of k = 0 or k = n is 0 or 1 up to rounding
     return f"{x:.1f}" if (0 < x < 1 or 99 < x < 100) else f"{x:.0f}"
 
 
