@@ -137,3 +137,17 @@ def test_paper_montecarlo_config_is_paper_plus_dispersions():
     text = (configs_dir() / "paper_montecarlo.yaml").read_text()
     section = text[text.index("\ndispersion:"):]
     assert all("not in paper" in line for line in section.strip().splitlines())
+
+
+def test_campaign_figure_with_no_or_all_successes(tmp_path):
+    # a group with 0 of n (or n of n) successes: its Wilson bound sits a rounding error past the
+    # rate; the error bars must still draw (matplotlib refuses negative lengths)
+    from dvsland.campaign.report import campaign_figure
+    from dvsland.report.stats import group_stats
+
+    runs = [{"site": s, "label": "set0", "estimator": "dpr", "outcome": o, "lowest_altitude_m": 60.0,
+             "v_at_50m_mps": None, "fuel_used_kg": 1.0} for s, o in (("A", "ascent"), ("B", "success"))
+            for _ in range(12)]
+    groups = group_stats(runs, ["site", "label", "estimator"])
+    assert groups[0]["success_lo"] > 0.0  # the rounding this guards against (0 of 12)
+    assert campaign_figure(tmp_path / "c.png", runs, groups, ["site", "label", "estimator"]).is_file()

@@ -222,7 +222,8 @@ def _lowest_altitude_panel(ax, runs: List[dict], sites: List[str], c2: float, su
             ax.bar(x[i], med, width, color=_COLOURS[main], edgecolor="k", lw=0.4, hatch="" if j == 0 else "//")
             if len(sel) > 1:
                 p10, p90 = np.maximum(np.percentile(lows, [10, 90]), 1.0)
-                ax.errorbar(x[i], med, yerr=[[med - p10], [p90 - med]], fmt="none", ecolor="k", lw=0.8, capsize=2)
+                ax.errorbar(x[i], med, yerr=[[max(med - p10, 0.0)], [max(p90 - med, 0.0)]], fmt="none", ecolor="k",
+                            lw=0.8, capsize=2)
     top = max([r.get("z0_m") or 1e4 for r in runs] + [success_altitude_m * 2])
     ax.axhline(success_altitude_m, color="k", ls="--", lw=0.8)
     ax.set_yscale("log")
@@ -250,8 +251,9 @@ def _pooled_panel(ax, runs: List[dict], sites: List[str], c2: float, success_alt
         ax.bar(x, frac, 0.6, bottom=bottom, color=_COLOURS[c], edgecolor="k", lw=0.4, label=c)
         bottom += frac
     rate = np.array([100 * pooled[s]["reached_rate"] for s in sites])
-    lo = rate - np.array([100 * pooled[s]["reached_lo"] for s in sites])
-    hi = np.array([100 * pooled[s]["reached_hi"] for s in sites]) - rate
+    # clipped: a Wilson bound at k = 0 or k = n may sit a rounding error past the rate
+    lo = np.maximum(rate - np.array([100 * pooled[s]["reached_lo"] for s in sites]), 0.0)
+    hi = np.maximum(np.array([100 * pooled[s]["reached_hi"] for s in sites]) - rate, 0.0)
     ax.errorbar(x, rate, yerr=[lo, hi], fmt="o", color="k", ms=3, capsize=3, lw=0.9, label="reached: 95 % CI")
     for i, s in enumerate(sites):
         ax.text(i, 103, f"paper:\n{paper['sites'].get(s, {}).get('pattern', '?')}\nn={pooled[s]['n']}",
