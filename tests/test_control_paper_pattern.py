@@ -149,5 +149,4 @@ def test_campaign_figure_with_no_or_all_successes(tmp_path):
              "v_at_50m_mps": None, "fuel_used_kg": 1.0} for s, o in (("A", "ascent"), ("B", "success"))
             for _ in range(12)]
     groups = group_stats(runs, ["site", "label", "estimator"])
-    assert groups[0]["success_lo"] > 0.0  # the rounding this guards against (0 of 12)
     assert campaign_figure(tmp_path / "c.png", runs, groups, ["site", "label", "estimator"]).is_file()
