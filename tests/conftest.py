@@ -35,3 +35,17 @@ def repo_root() -> Path:
 @pytest.fixture
 def paper_yaml() -> Path:
     return REPO / "configs" / "paper.yaml"
+
+
+# Property and fuzz tests: a fixed example sequence by default, so the default run (and CI) is
+# reproducible; set DVSLAND_HYPOTHESIS=explore for fresh random examples on each run.
+try:
+    import os as _os
+
+    from hypothesis import settings as _hyp_settings
+
+    _hyp_settings.register_profile("dvsland-default", derandomize=True, print_blob=True)
+    _hyp_settings.register_profile("explore", derandomize=False, print_blob=True)
+    _hyp_settings.load_profile("explore" if _os.environ.get("DVSLAND_HYPOTHESIS") == "explore" else "dvsland-default")
+except ImportError:  # hypothesis is a dev dependency; tests that need it import it themselves
+    pass
