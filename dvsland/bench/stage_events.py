@@ -47,18 +47,11 @@ def _sync(device):
 
 # ----------------------------------------------------------------------------- frames
 def synthetic_frames(B, H, W, n, omega, device, seed=0):
-    """Smooth drifting pattern, (n, B, H, W) float32 irradiance; log change per step ~ omega."""
-    g = torch.Generator().manual_seed(seed)
-    yy, xx = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
-                            indexing="ij")
-    ph = torch.rand(B, 1, 1, generator=g, dtype=torch.float64) * 6.283
-    kx = 0.05 + 0.1 * torch.rand(B, 1, 1, generator=g, dtype=torch.float64)
-    ky = 0.05 + 0.1 * torch.rand(B, 1, 1, generator=g, dtype=torch.float64)
-    out = []
-    for k in range(n):
-        s = torch.sin(kx * xx + ph + omega * k) * torch.cos(ky * yy - 0.7 * omega * k)
-        out.append((0.5 * torch.exp(1.5 * s) + 0.01).to(torch.float32))
-    return torch.stack(out).to(device)
+    """Smooth drifting pattern, (n, B, H, W) float32 irradiance on ``device``; log change per step
+    ~ omega (:func:`dvsland.events.benchmark.smooth_frames`, the same frames as the v2e comparison)."""
+    from dvsland.events.benchmark import smooth_frames
+
+    return smooth_frames(B, H, W, n, omega=omega, seed=seed).to(device)
 
 
 def calibrated_frames(B, H, W, n, target, device):
