@@ -286,16 +286,30 @@ class EventEmulator:
             self._th_off = self.threshold_off
             self._th_min = min(self.threshold, self.threshold_off)
             return
-        maps = torch.empty(B, 2, H, W, dtype=torch.float64)
-        for b in range(B):  # per-element seeds: element b's draw does not depend on B (reset only)
-            g = torch.Generator(device="cpu").manual_seed((self.seed * 1_000_003 + b) % (2 ** 63))
-            maps[b] = torch.randn(2, H, W, generator=g, dtype=torch.float64)
-        maps = (1.0 + self.mismatch_sigma * maps).clamp_(min=0.01).to(self.device)
+        sig = torch.full((B,), self.mismatch_sigma, dtype=torch.float64)
+        self._set_threshold_maps(self._mismatch_maps(B, H, W, sig, None))
+
+    def _mismatch_maps(self, B: int, H: int, W: int, sig: torch.Tensor, seeds) -> torch.Tensor:
+        """(B, 2, H, W) float64 CPU relative ON/OFF threshold maps, 1 + sig[b] N(0, 1) clamped at
+        0.01, element b drawn from its own seed (``seeds[b]``, or one derived from ``self.seed``
+        and b), so its map does not depend on B; all ones where sig[b] is 0. Reset only."""
+        maps = torch.ones(B, 2, H, W, dtype=torch.float64)
+        for b in range(B):
+            if float(sig[b]) > 0:
+                sd = int(seeds[b]) if seeds is not None else (self.seed * 1_000_003 + b) % (2 ** 63)
+                g = torch.Generator(device="cpu").manual_seed(sd)
+                maps[b] = (1.0 + float(sig[b]) * torch.randn(2, H, W, generator=g, dtype=torch.float64)).clamp_(min=0.01)
+        return maps
+
+    def _set_threshold_maps(self, maps: torch.Tensor) -> None:
+        """Per-pixel thresholds from relative maps (B, 2, H, W): ON/OFF maps, their minimum and
+        the candidate bounds of _candidates (computed once)."""
+        maps = maps.to(self.device)
         self._th_scalar = False
         self._th_on = self.threshold * maps[:, 0]
         self._th_off = self.threshold_off * maps[:, 1]
         self._th_min = min(float(self._th_on.min()), float(self._th_off.min()))
-        shrink = 1.0 - 2 * LEVEL_TOL  # the candidate bounds of _candidates, computed once
+        shrink = 1.0 - 2 * LEVEL_TOL
         self._cand_bounds = (self._th_on * shrink, self._th_off * -shrink)
 
     def _draw_elements(self, B: int, H: int, W: int) -> None:
@@ -307,23 +321,11 @@ class EventEmulator:
             raise ValueError(f"per-element values are for B={n}, the frames have B={B}")
         sig = e.get("mismatch_sigma")
         sig = torch.full((B,), self.mismatch_sigma, dtype=torch.float64) if sig is None else torch.from_numpy(sig)
-        seeds = e.get("element_seeds")
-        maps = torch.ones(B, 2, H, W, dtype=torch.float64)
-        for b in range(B):  # reset only: one mismatch map per element from its own seed
-            if float(sig[b]) > 0:
-                sd = int(seeds[b]) if seeds is not None else (self.seed * 1_000_003 + b) % (2 ** 63)
-                g = torch.Generator(device="cpu").manual_seed(sd)
-                maps[b] = (1.0 + float(sig[b]) * torch.randn(2, H, W, generator=g, dtype=torch.float64)).clamp_(min=0.01)
+        maps = self._mismatch_maps(B, H, W, sig, e.get("element_seeds"))
         scale = e.get("threshold_scale")
         if scale is not None:
             maps *= torch.from_numpy(scale)[:, None, None, None]
-        maps = maps.to(self.device)
-        self._th_scalar = False
-        self._th_on = self.threshold * maps[:, 0]
-        self._th_off = self.threshold_off * maps[:, 1]
-        self._th_min = min(float(self._th_on.min()), float(self._th_off.min()))
-        shrink = 1.0 - 2 * LEVEL_TOL  # the candidate bounds of _candidates, computed once
-        self._cand_bounds = (self._th_on * shrink, self._th_off * -shrink)
+        self._set_threshold_maps(maps)
         r = e.get("refractory_us")
         self._r_elem = None if r is None else torch.from_numpy(r).to(self.device)
         bg = e.get("background_rate_hz")
