@@ -99,3 +99,20 @@ def check_bounds(thrust_min_n: float, thrust_max_n: Optional[float], missing_pol
         raise ValueError(f"thrust_min_n must be >= 0, got {thrust_min_n}")
     if thrust_max_n is not None and thrust_max_n < thrust_min_n:
         raise ValueError(f"thrust_max_n must be >= thrust_min_n={thrust_min_n}, got {thrust_max_n}")
+
+
+def check_gain_and_target(kp, tau0_s, c2: float):
+    """``(kp, tau0_s)`` as float64 tensors on kp's device after the checks every tau*-tracking law
+    shares: c2 in (0, 1) and every Kp > 0 (ValueError naming the parameter).
+
+    Args:
+        kp: (B,) proportional gains, N/s (or anything ``torch.as_tensor`` takes).
+        tau0_s: (B,) initial time-to-contact of the target, s.
+        c2: the target's slope in tau*(t) = tau0 - c2 t.
+    """
+    if not 0 < c2 < 1:
+        raise ValueError(f"c2 must be in (0, 1), got {c2}")
+    kp = torch.as_tensor(kp, dtype=torch.float64)
+    if bool((kp <= 0).any()):
+        raise ValueError("kp must be > 0 for every element")
+    return kp, torch.as_tensor(tau0_s, dtype=torch.float64, device=kp.device)

@@ -20,7 +20,7 @@ from typing import Optional
 
 import torch
 
-from .base import ControlOutput, Controller, HoldLast, check_bounds
+from .base import ControlOutput, Controller, HoldLast, check_bounds, check_gain_and_target
 from .gain import div_loop_gain, gain_limit_altitude_m
 from .registry import register_controller
 
@@ -48,12 +48,7 @@ class DivPController(Controller):
                  thrust_max_n: Optional[float] = None, missing_policy: str = "hold", feedforward_mg: bool = False,
                  n_bin: Optional[Tensor] = None, dt_s: float = 0.1):
         check_bounds(thrust_min_n, thrust_max_n, missing_policy)
-        if not 0 < c2 < 1:
-            raise ValueError(f"c2 must be in (0, 1), got {c2}")
-        self.kp = torch.as_tensor(kp, dtype=torch.float64)
-        if bool((self.kp <= 0).any()):
-            raise ValueError("kp must be > 0 for every element")
-        self.tau0_s = torch.as_tensor(tau0_s, dtype=torch.float64, device=self.kp.device)
+        self.kp, self.tau0_s = check_gain_and_target(kp, tau0_s, c2)
         self.c2, self.g_mps2 = float(c2), float(g_mps2)
         self.missing_policy = missing_policy
         self.feedforward_mg = bool(feedforward_mg)

@@ -14,7 +14,7 @@ from typing import Optional
 
 import torch
 
-from .base import ControlOutput, Controller, HoldLast, check_bounds
+from .base import ControlOutput, Controller, HoldLast, check_bounds, check_gain_and_target
 from .gain import tau_loop_gain
 from .registry import register_controller
 
@@ -41,12 +41,7 @@ class TauPController(Controller):
     def __init__(self, kp: Tensor, tau0_s: Tensor, c2: float, g_mps2: float, thrust_min_n: float = 0.0,
                  thrust_max_n: Optional[float] = None, missing_policy: str = "hold", z0_m=None, v0_mps=None, m0_kg=None):
         check_bounds(thrust_min_n, thrust_max_n, missing_policy)
-        if not 0 < c2 < 1:
-            raise ValueError(f"c2 must be in (0, 1), got {c2}")
-        self.kp = torch.as_tensor(kp, dtype=torch.float64)
-        if bool((self.kp <= 0).any()):
-            raise ValueError("kp must be > 0 for every element")
-        self.tau0_s = torch.as_tensor(tau0_s, dtype=torch.float64, device=self.kp.device)
+        self.kp, self.tau0_s = check_gain_and_target(kp, tau0_s, c2)
         self.c2 = float(c2)
         self.g_mps2 = float(g_mps2)
         self.thrust_min_n = float(thrust_min_n)
