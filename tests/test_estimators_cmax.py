@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -165,3 +167,105 @@ def test_event_hash_accepts_any_seed():
         h = event_hash(b, x, y, t, seed)
         assert h.dtype == torch.int64 and bool(((h >= 0) & (h < 2**31)).all())
     assert not torch.equal(event_hash(b, x, y, t, 2**62 + 1), event_hash(b, x, y, t, 2**62 + 2))
+
+
+# ---------------------------------------------------------------- smoothing along the trend
+S = 128  # sensor side of the descent tests, px
+
+
+def _descent_events(offsets, z_of_t, t0_us, t1_us, per_blob=20, seed=0):
+    """Blob events of a vertical descent with altitude z_of_t(t_s) (any profile) on an S x S
+    sensor: an image point sits at r(t) = r(0) z(0) / z(t). Returns Events on the CPU."""
+    B, K, _ = offsets.shape
+    g = torch.Generator().manual_seed(seed)
+    n = K * per_blob
+    t_us = torch.randint(int(t0_us) + 1, int(t1_us) + 1, (B, n), generator=g)
+    scale = z_of_t(0.0) / z_of_t(t_us.to(torch.float64) * 1e-6)
+    pos = offsets[:, torch.arange(n) % K] * scale.unsqueeze(-1) + (S - 1) / 2.0
+    xy = torch.round(pos + 0.4 * torch.randn(B, n, 2, generator=g, dtype=torch.float64)).to(torch.int64)
+    ok = ((xy >= 0) & (xy < S)).all(-1)
+    b = torch.arange(B).view(B, 1).expand(B, n)
+    p = torch.ones(B, n, dtype=torch.int8)
+    return Events(b[ok], xy[..., 0][ok], xy[..., 1][ok], t_us[ok], p[ok], sort=True)
+
+
+def _fly(est, z_of_t, dz_of_t, steps, seed=0):
+    """Estimates (steps, B) and the true D = dz/dt / z at the end of each step (steps,)."""
+    offsets = blob_layout(est.batch_size, 150, (S, S), extent=0.6, seed=seed)
+    d, truth = [], []
+    for k in range(steps):
+        ev = _descent_events(offsets, z_of_t, k * 100_000, (k + 1) * 100_000, seed=k + 1000 * seed)
+        d.append(est.update(ev, (k + 1) * 100_000))
+        t = (k + 1) * 0.1
+        truth.append(dz_of_t(t) / z_of_t(t))
+    return torch.stack(d), torch.tensor(truth)
+
+
+_KW = dict(dt_s=0.1, window_ms=500.0, window_motion=0.1, window_min_ms=200.0, window_max_ms=1000.0,
+           min_events=20, trend_steps=40, d_min=-2.0, d_max=0.5)
+_PROFILES = {  # altitude z(t) (m) and its rate (m/s)
+    "constant_d": (lambda t: 100.0 * (math.exp(-0.15 * t) if isinstance(t, float) else torch.exp(-0.15 * t)),
+                   lambda t: -15.0 * math.exp(-0.15 * t)),
+    "constant_v": (lambda t: 100.0 - 10.0 * t, lambda t: -10.0),  # tau = z / v linear in t
+    "braking": (lambda t: 100.0 - 20.0 * t + 1.5 * t * t, lambda t: -20.0 + 3.0 * t),  # tau curved
+}
+
+
+def _errors(smooth_steps, profile, steps=50, batch=4):
+    z, dz = _PROFILES[profile]
+    est = get_estimator("cmax", batch, (S, S), "cpu", smooth_steps=smooth_steps, **_KW)
+    d, truth = _fly(est, z, dz, steps)
+    e = (d - truth.unsqueeze(1).float()) / truth.abs().unsqueeze(1).float()
+    return e[steps // 2:]  # the second half: the trend history is full
+
+
+@pytest.mark.parametrize("profile", ["constant_d", "constant_v"])
+def test_cmax_smoothing_has_no_lag(profile):
+    """Averaging along the trend line does not lag where tau is linear in t: on a constant-D zoom
+    and a constant-velocity descent the smoothed estimate's mean error stays within 1.5 % (a plain
+    average of the last 10 estimates would read |D| 9 % low on the second), and it scatters no
+    more than the unsmoothed one."""
+    e0, e1 = _errors(0, profile), _errors(10, profile)
+    assert torch.isfinite(e1).all()
+    assert e1.mean().abs() < 0.015, (e0.mean(), e1.mean())
+    assert e1.std() <= 1.1 * e0.std(), (e0.std(), e1.std())
+
+
+@pytest.mark.slow
+def test_cmax_smoothing_on_curved_tau_is_bounded():
+    """Where tau is not linear (braking towards hover, D from -0.2 to -0.13 1/s) the trend slope
+    lags, and the averaged estimates are older: the smoothed error grows but stays bounded
+    (measured: -4.5 % unsmoothed, -8.9 % with 10 steps)."""
+    e0, e1 = _errors(0, "braking"), _errors(10, "braking")
+    assert torch.isfinite(e1).all()
+    assert e1.mean().abs() < 0.12 and e1.mean().abs() < 2.5 * e0.mean().abs() + 0.01, (e0.mean(), e1.mean())
+
+
+def test_cmax_smoothing_resets_by_mask():
+    """A reset element forgets its history: the first estimate after the reset is the unsmoothed one
+    of a fresh estimator, the other elements keep their smoothed values."""
+    D = torch.tensor([-0.4, -0.4])
+    est = get_estimator("cmax", 2, (W, H), "cpu", dt_s=0.1, window_ms=300.0, min_events=20, trend_steps=10,
+                        smooth_steps=10)
+    _run(est, D, 15)
+    assert bool(torch.isfinite(est._hist_d).all())
+    est.reset(torch.tensor([True, False]))
+    assert bool(torch.isnan(est._hist_d[0]).all() and torch.isnan(est._hist_s[0]).all())
+    assert bool(torch.isfinite(est._hist_d[1]).all())
+    fresh = get_estimator("cmax", 2, (W, H), "cpu", dt_s=0.1, window_ms=300.0, min_events=20, trend_steps=10,
+                          smooth_steps=10)
+    ref = get_estimator("cmax", 2, (W, H), "cpu", dt_s=0.1, window_ms=300.0, min_events=20, trend_steps=10,
+                        smooth_steps=0)
+    for k in range(15, 18):
+        d = _run(est, D, 1, start=k)[0]
+        f = _run(fresh, D, 1, start=k)[0]
+        r = _run(ref, D, 1, start=k)[0]
+    # element 0 has 3 estimates since its reset: fewer than half the trend history, no smoothing
+    assert torch.isfinite(d).all()
+    assert torch.allclose(f[0], r[0]) and d[0] == f[0]
+
+
+def test_cmax_smoothing_parameter_errors():
+    for kw, name in [(dict(smooth_steps=-1), "smooth_steps"), (dict(smooth_steps=200, trend_steps=100), "smooth_steps")]:
+        with pytest.raises(ValueError, match=name):
+            get_estimator("cmax", 1, (W, H), **kw)

@@ -228,6 +228,11 @@ class CMaxConfig:
                                     "px (0 = off)", rng=(0.0, 1000.0))
     research_rel: float = opt(0.5, "search globally again when the estimate's half-split standard error exceeds "
                                    "this fraction of |D|", rng=(0.0, 1e9), open_lo=True)
+    smooth_steps: int = opt(20, "with extrapolate: average the last this many estimates along the trend line "
+                               "(0 or 1 = off; <= trend_steps)", rng=(0, 100000))
+    radial_power: float = opt(0.5, "exponent of the radial density flattening: weight = (mean density / "
+                                   "annulus density)^radial_power (0 = off, 1 = flat)", rng=(0.0, 2.0))
+    smooth_by_std: bool = opt(False, "weight the averaged estimates by 1 / their half-split variance")
 
 
 @dataclass

@@ -23,12 +23,17 @@ Per update and batch element, all elements at once:
    candidates D0 - h, D0, D0 + h (h = ``step_motion`` / T), the vertex of the parabola through
    their scores is the next D0 (at most 2 h away), h halves. Warm-started from the last
    estimate, two rounds (6 warped images per element) suffice.
-4. **Lag.** The warp fits the D of the window middle, T / 2 before the end. With ``extrapolate``,
-   the slope of the last ``trend_steps`` window-middle estimates (least squares) carries the
-   estimate to the end of the interval.
+4. **Lag and noise.** The warp fits the D of the window middle, T / 2 before the end. With
+   ``extrapolate``, the time-to-contact tau = -1 / D of the last ``trend_steps`` window-middle
+   estimates is fitted with a line (least squares); its slope carries the estimates to the end
+   of the interval, and the last ``smooth_steps`` of them, each carried along that slope, are
+   averaged (no lag where tau is linear in t, as in a tau-controlled descent).
 5. **Confidence.** The events are split in two halves (by hash); the Newton vertex of each half
-   from the same warped images gives sigma = |D_1 - D_2| / 2, the estimate's standard error.
-   ``confidence()`` = 1 / (1 + (sigma / (0.1 |D|))^2).
+   from the same warped images gives sigma = |D_1 - D_2| / 2, the standard error of one
+   estimate. Where the maximum is not bracketed (a score not concave, or a vertex outside the
+   three candidates) sigma is at least 2 h. ``diagnostics()["d_std"]`` = |D| times the RMS of
+   sigma / |D| over the estimates averaged in step 4; ``confidence()`` =
+   1 / (1 + (d_std / (0.1 |D|))^2).
 
 After a reset an element gives NaN until its window is at least half full, and whenever it has
 fewer than ``min_events`` events in its window.
@@ -86,6 +91,10 @@ class CMaxEstimator(DivergenceEstimator):
             this wide, px (0 = off); see :meth:`_radial_weights`.
         research_rel: search globally again when the half-split standard error exceeds this
             fraction of max(|D|, 5 step_motion / T) (the warm start is not trusted then).
+        smooth_steps: with ``extrapolate``, average this many of the last estimates along the
+            trend line (0 or 1 = off; <= trend_steps); also the span of the RMS in ``d_std``.
+        smooth_by_std: weight the averaged estimates by 1 / their relative variance.
+        radial_power: exponent of the radial density weights (0 = off, 1 = flat density).
         blur_sigma_px: kept for compatibility; must be 0 (the score is unblurred).
     """
 
@@ -95,15 +104,18 @@ class CMaxEstimator(DivergenceEstimator):
                  max_events: int = 4000, dither: bool = True, seed: int = 0, window_motion: float = 0.1,
                  window_min_ms: float = 200.0, window_max_ms: float = 3000.0, newton_iters: int = 1,
                  step_motion: float = 0.01, extrapolate: bool = True, trend_steps: int = 100,
-                 radial_bin_px: float = 8.0, research_rel: float = 0.5, principal_point_px=None):
+                 radial_bin_px: float = 8.0, research_rel: float = 0.5, smooth_steps: int = 20,
+                 smooth_by_std: bool = False, radial_power: float = 0.5, principal_point_px=None):
         super().__init__(batch_size, sensor_size, device, dt_s, principal_point_px=principal_point_px)
         # the ranges of the config schema (estimator.cmax), written once there
         check_fields(CMaxConfig, window_ms=window_ms, d_min=d_min, d_max=d_max, n_grid=n_grid, n_refine=n_refine,
                      min_events=min_events, refine_points=refine_points, blur_sigma_px=blur_sigma_px,
                      max_events=max_events, window_motion=window_motion, window_min_ms=window_min_ms,
                      window_max_ms=window_max_ms, newton_iters=newton_iters, step_motion=step_motion,
-                     trend_steps=trend_steps, radial_bin_px=radial_bin_px, research_rel=research_rel)
-        checks = [("refine_points", int(refine_points) % 2 == 1, "an odd integer >= 3"),
+                     trend_steps=trend_steps, radial_bin_px=radial_bin_px, research_rel=research_rel,
+                     smooth_steps=smooth_steps, radial_power=radial_power)
+        checks = [("smooth_steps", int(smooth_steps) <= int(trend_steps), "<= trend_steps"),
+                  ("refine_points", int(refine_points) % 2 == 1, "an odd integer >= 3"),
                   ("blur_sigma_px", blur_sigma_px == 0, "0 (the fast score has no blur)"),
                   ("window_min_ms", window_min_ms <= window_max_ms, "<= window_max_ms")]
         for name, ok, rng in checks:
@@ -122,9 +134,11 @@ class CMaxEstimator(DivergenceEstimator):
         self.newton_iters, self.step_motion = int(newton_iters), float(step_motion)
         self.extrapolate, self.trend_steps = bool(extrapolate), int(trend_steps)
         self.research_rel = float(research_rel)
+        self.smooth_steps, self.smooth_by_std = int(smooth_steps), bool(smooth_by_std)
         if not 0 <= radial_bin_px <= 1000:
             raise ValueError(f"radial_bin_px must be in [0, 1000], got {radial_bin_px}")
         self.radial_bin_px = float(radial_bin_px)
+        self.radial_power = float(radial_power)
         W, H = self.sensor_size
         cx, cy = self.principal_point_px
         self._wt = None
@@ -154,12 +168,16 @@ class CMaxEstimator(DivergenceEstimator):
         self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
         self._d_mid = torch.full((B,), float("nan"), dtype=torch.float64, device=dev)
         self._sigma = torch.full((B,), float("nan"), dtype=torch.float64, device=dev)
+        self._sigma_step = self._sigma.clone()
+        self._rel_std = self._sigma.clone()
+        self._bracketed = torch.zeros(B, dtype=torch.bool, device=dev)
         self._n_events = torch.zeros(B, dtype=torch.int64, device=dev)
         self._contrast = torch.zeros(B, dtype=torch.float32, device=dev)
         self._window_s = torch.full((B,), self.window_us * 1e-6, dtype=torch.float64, device=dev)
         self._t_start_us = torch.full((B,), -1, dtype=torch.int64, device=dev)
         self._hist_t = torch.zeros(B, self.trend_steps, dtype=torch.float64, device=dev)
         self._hist_d = torch.full((B, self.trend_steps), float("nan"), dtype=torch.float64, device=dev)
+        self._hist_s = torch.full((B, self.trend_steps), float("nan"), dtype=torch.float64, device=dev)
         self._k = 0
         self._global = torch.zeros(B, dtype=torch.bool, device=dev)
 
@@ -184,11 +202,14 @@ class CMaxEstimator(DivergenceEstimator):
         self._d[mask] = float("nan")
         self._d_mid[mask] = float("nan")
         self._sigma[mask] = float("nan")
+        self._sigma_step[mask] = float("nan")
+        self._rel_std[mask] = float("nan")
         self._n_events[mask] = 0
         self._contrast[mask] = 0.0
         self._window_s[mask] = self.window_us * 1e-6
         self._t_start_us[mask] = -1
         self._hist_d[mask] = float("nan")
+        self._hist_s[mask] = float("nan")
 
     def _steps_per_window(self) -> torch.Tensor:
         return (self._window_s / self.dt_s).clamp_min(1.0)
@@ -328,6 +349,7 @@ class CMaxEstimator(DivergenceEstimator):
         nan = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
         if not bool(ok.any()):
             self._d, self._sigma = nan, torch.full_like(self._sigma, float("nan"))
+            self._rel_std = torch.full_like(self._sigma, float("nan"))
             return self._d.clone()
         if not bool(ok.all()):
             sel = ok[b].nonzero().squeeze(1)
@@ -337,7 +359,7 @@ class CMaxEstimator(DivergenceEstimator):
         t_ref_us = t_us - win_s * 0.5e6  # (B,) float64
         tau = ((t - t_ref_us.round().to(torch.int64)[b]).to(torch.float32) * 1e-6)
         xs, ys = xy[0], xy[1]
-        self._wt = self._radial_weights(xs, ys, b) if self.radial_bin_px > 0 else None
+        self._wt = self._radial_weights(xs, ys, b) if self.radial_bin_px > 0 and self.radial_power > 0 else None
         # start: last estimate (warm), else the global search
         d0 = self._d_mid.clone()
         need = ok & ~torch.isfinite(d0)
@@ -360,6 +382,14 @@ class CMaxEstimator(DivergenceEstimator):
                 d_halves = [d0 + _parabola_offset(sc[:, 0, k], sc[:, 1, k], sc[:, 2, k], 2.0) * hstep for k in (1, 2)]
                 self._sigma = (d_halves[0] - d_halves[1]).abs() * 0.5
                 self._contrast = sc[:, 1, 0].to(torch.float32)
+                # the maximum is bracketed when the scores of all events and of both halves are
+                # concave with their vertex within the three candidates; where it is not, the
+                # estimate has not converged and is uncertain by at least the bracket, 2 h
+                den = sc[:, 0] - 2 * sc[:, 1] + sc[:, 2]  # (B, 3)
+                vtx = 0.5 * (sc[:, 0] - sc[:, 2]) / torch.where(den < 0, den, -torch.ones_like(den))
+                self._bracketed = ((den < 0) & (vtx.abs() <= 1.0)).all(1)
+                self._sigma_step = torch.where(self._bracketed, self._sigma,
+                                               torch.maximum(self._sigma, 2.0 * hstep))
             d0, hstep = d_new, hstep * 0.5
         inside = (d0 >= self.d_min) & (d0 <= self.d_max)
         good = ok & inside
@@ -376,13 +406,27 @@ class CMaxEstimator(DivergenceEstimator):
         # history for the lag correction: (window-middle time, estimate)
         j = self._k % self.trend_steps
         self._k += 1
-        self._hist_t[:, j] = t_ref_us * 1e-6
+        # tagged with the middle of the events actually held (the first windows after a reset
+        # are not full yet)
+        held_s = torch.minimum(win_s, (t_us - self._t_start_us).to(torch.float64) * 1e-6)
+        self._hist_t[:, j] = t_us * 1e-6 - 0.5 * held_s
         self._hist_d[:, j] = -1.0 / d_mid  # tau
+        # relative standard error of tau (= that of D)
+        self._hist_s[:, j] = self._sigma_step / d_mid.abs()
+        # relative standard error reported with the estimate: RMS over the estimates it averages
+        age = (j - torch.arange(self.trend_steps, device=dev)) % self.trend_steps
+        rs = torch.where((age < max(self.smooth_steps, 1)).unsqueeze(0), self._hist_s, torch.nan)
+        fin = torch.isfinite(rs)
+        rel_rms = ((rs.nan_to_num(0.0) ** 2).sum(1) / fin.sum(1).clamp_min(1)).sqrt()
+        self._rel_std = torch.where(fin.any(1) & torch.isfinite(d_mid), rel_rms, torch.full_like(rel_rms, float("nan")))
         d_out = d_mid
         if self.extrapolate:
             # time-to-contact tau = -1 / D, extrapolated linearly over the half window
             tau_mid = -1.0 / d_mid
-            tau_end = tau_mid + self._slope() * (t_us * 1e-6 - self._hist_t[:, j])
+            slope, trend = self._slope()
+            tau_end = tau_mid + slope * (t_us * 1e-6 - self._hist_t[:, j])
+            if self.smooth_steps > 1:  # only where the trend is known (no lag from averaging)
+                tau_end = torch.where(trend, self._smoothed_tau(slope, t_us * 1e-6, j), tau_end)
             safe = torch.isfinite(tau_end) & (tau_end * tau_mid > 0) & ((tau_end - tau_mid).abs() < 0.5 * tau_mid.abs())
             d_out = torch.where(safe, -1.0 / tau_end, d_mid)
         if self.window_motion > 0:
@@ -398,19 +442,21 @@ class CMaxEstimator(DivergenceEstimator):
         of the sensor in a pattern fixed to the sensor, not to the scene, and such a pattern is
         sharpest un-warped (D = 0), which pulls the estimate towards 0. Weighting each event by
         the inverse of its element's event density in its annulus (``radial_bin_px`` wide)
-        removes that pull."""
+        removes that pull. The weight is that inverse to the power ``radial_power``: 1 over-
+        corrects on the rendered sites (|D| read about 1 % high), 0.5 leaves no bias there."""
         cx, cy = self.principal_point_px
         nb = self._n_rbins
         rb = (torch.hypot(xs - cx, ys - cy) / self.radial_bin_px).floor().to(torch.int64).clamp(0, nb - 1)
         cnt = torch.bincount(b * nb + rb, minlength=self.batch_size * nb)[: self.batch_size * nb]
         dens = cnt.view(self.batch_size, nb).to(torch.float64) / self._px_per_rbin.clamp_min(1)
         mean = dens.sum(1) / (dens > 0).sum(1).clamp_min(1)
-        w = (mean.unsqueeze(1) / dens.clamp_min(1e-12)).clamp(0.1, 10.0)
+        w = (mean.unsqueeze(1) / dens.clamp_min(1e-12)).pow(self.radial_power).clamp(0.1, 10.0)
         return w.view(-1)[b * nb + rb].to(torch.float32)
 
-    def _slope(self) -> torch.Tensor:
+    def _slope(self):
         """Least-squares slope d tau / dt (B,) of the window-middle time-to-contact in the history
-        (0 where fewer than half of the history is filled or the sign of D changed in it)."""
+        (0 where fewer than half of the history is filled or the sign of D changed in it), and
+        (B,) bool where it is known (not 0 for those reasons)."""
         ok = torch.isfinite(self._hist_d)
         n = ok.sum(1).to(torch.float64)
         w = ok.to(torch.float64)
@@ -423,18 +469,33 @@ class CMaxEstimator(DivergenceEstimator):
         slope = (ct * (dd - dm.unsqueeze(1))).sum(1) / var.clamp_min(1e-12)
         same_sign = (torch.where(ok, torch.sign(self._hist_d), torch.zeros_like(self._hist_d)).sum(1).abs() == n)
         use = (n >= max(3, self.trend_steps // 2)) & (var > 0) & same_sign
-        return torch.where(use, slope, torch.zeros_like(slope))
+        return torch.where(use, slope, torch.zeros_like(slope)), use
+
+    def _smoothed_tau(self, slope: torch.Tensor, t_end_s: float, j: int) -> torch.Tensor:
+        """(B,) time-to-contact at ``t_end_s``: the mean over the last ``smooth_steps`` window-middle
+        estimates of tau_k + slope (t_end - t_k), i.e. the line of the trend slope through their
+        centroid (weights 1 / rel. std^2 with ``smooth_by_std``). No lag where tau is linear over
+        the trend history; NaN where none of them is finite. ``j`` is the newest history slot."""
+        age = (j - torch.arange(self.trend_steps, device=self.device)) % self.trend_steps
+        tau = self._hist_d + slope.unsqueeze(1) * (t_end_s - self._hist_t)
+        ok = torch.isfinite(tau) & (age < self.smooth_steps).unsqueeze(0)
+        w = ok.to(torch.float64)
+        if self.smooth_by_std:
+            rel = self._hist_s.nan_to_num(1.0).clamp_min(1e-3)
+            w = w / (rel * rel)
+        return (torch.where(ok, tau, torch.zeros_like(tau)) * w).sum(1) / w.sum(1)
 
     def confidence(self) -> torch.Tensor:
-        """(B,) float32: 1 / (1 + (sigma / (0.1 |D|))^2) from the half-split standard error sigma;
-        0 where the estimate is NaN."""
-        rel = self._sigma / self._d.to(torch.float64).abs().clamp_min(1e-3)
-        return confidence_from_rel_std(rel, self._d)
+        """(B,) float32: 1 / (1 + (d_std / (0.1 |D|))^2), d_std the RMS half-split standard error
+        (module doc, step 5); 0 where the estimate is NaN."""
+        return confidence_from_rel_std(self._rel_std, self._d)
 
     def diagnostics(self):
         """n_events (B,) events in the window; contrast (B,) score at the estimate; window_s (B,)
-        current window, s; d_std (B,) float64 half-split standard error of D, 1/s; global_search
-        (B,) bool (this step searched globally); confidence (B,) in [0, 1]."""
+        current window, s; d_std (B,) float64 standard error of D, 1/s (module doc, step 5; NaN
+        with the estimate); global_search (B,) bool (this step searched globally); bracketed (B,)
+        bool (this step's maximum lay within the Newton candidates); confidence (B,) in [0, 1]."""
         return {"n_events": self._n_events.clone(), "contrast": self._contrast.clone(),
-                "window_s": self._window_s.clone(), "d_std": self._sigma.clone(),
-                "global_search": self._global.clone(), "confidence": self.confidence()}
+                "window_s": self._window_s.clone(), "d_std": self._rel_std * self._d.to(torch.float64).abs(),
+                "global_search": self._global.clone(), "bracketed": self._bracketed.clone(),
+                "confidence": self.confidence()}
