@@ -269,3 +269,34 @@ def test_cmax_smoothing_parameter_errors():
     for kw, name in [(dict(smooth_steps=-1), "smooth_steps"), (dict(smooth_steps=200, trend_steps=100), "smooth_steps")]:
         with pytest.raises(ValueError, match=name):
             get_estimator("cmax", 1, (W, H), **kw)
+
+
+def test_cmax_confidence_low_on_structureless_events():
+    """Element 0 sees a textured zoom, element 1 as many events without any structure (uniform in
+    space and time): the second must not claim the confidence of the first, and its d_std must be
+    a large fraction of |D| wherever it gives an estimate."""
+    B, n = 2, 2000
+    offsets = blob_layout(B, 100, (S, S), extent=0.6, seed=5)
+    est = get_estimator("cmax", B, (S, S), "cpu", dt_s=0.1, window_ms=500.0, min_events=20)
+    z = lambda t: 100.0 - 10.0 * t  # noqa: E731
+    conf, dstd, d = [], [], []
+    for k in range(30):
+        tex = _descent_events(offsets, z, k * 100_000, (k + 1) * 100_000, per_blob=n // 100, seed=k)
+        tex = tex[tex.b == 0]
+        g = torch.Generator().manual_seed(10_000 + k)
+        m = len(tex)
+        flat = Events(torch.ones(m, dtype=torch.int64), torch.randint(0, S, (m,), generator=g),
+                      torch.randint(0, S, (m,), generator=g), torch.randint(k * 100_000 + 1, (k + 1) * 100_000 + 1,
+                                                                            (m,), generator=g),
+                      torch.ones(m, dtype=torch.int8))
+        ev = Events(torch.cat([tex.b, flat.b]), torch.cat([tex.x, flat.x]), torch.cat([tex.y, flat.y]),
+                    torch.cat([tex.t, flat.t]), torch.cat([tex.p, flat.p]), sort=True)
+        d.append(est.update(ev, (k + 1) * 100_000))
+        conf.append(est.confidence())
+        dstd.append(est.diagnostics()["d_std"])
+    conf, dstd, d = torch.stack(conf[10:]), torch.stack(dstd[10:]), torch.stack(d[10:])
+    assert (conf[:, 0] > 0.5).float().mean() > 0.9, conf[:, 0]
+    assert (conf[:, 1] < 0.5).float().mean() > 0.9, conf[:, 1]
+    assert conf[:, 1].median() < 0.5 * conf[:, 0].median()
+    fin = torch.isfinite(d[:, 1])
+    assert bool((dstd[fin, 1] > 0.1 * d[fin, 1].abs()).all()), (d[:, 1], dstd[:, 1])
