@@ -252,6 +252,8 @@ def test_cmax_smoothing_resets_by_mask():
     est.reset(torch.tensor([True, False]))
     assert bool(torch.isnan(est._hist_d[0]).all() and torch.isnan(est._hist_s[0]).all())
     assert bool(torch.isfinite(est._hist_d[1]).all())
+    dg = est.diagnostics()
+    assert est.confidence()[0] == 0 and torch.isnan(dg["d_std"][0]) and torch.isfinite(dg["d_std"][1])
     fresh = get_estimator("cmax", 2, (W, H), "cpu", dt_s=0.1, window_ms=300.0, min_events=20, trend_steps=10,
                           smooth_steps=10)
     ref = get_estimator("cmax", 2, (W, H), "cpu", dt_s=0.1, window_ms=300.0, min_events=20, trend_steps=10,
@@ -265,8 +267,17 @@ def test_cmax_smoothing_resets_by_mask():
     assert torch.allclose(f[0], r[0]) and d[0] == f[0]
 
 
+def test_cmax_new_fields_in_config_are_range_checked():
+    from dvsland.config import ConfigError, load_config
+
+    for key, val in [("smooth_steps", -3), ("radial_power", 3.0)]:
+        with pytest.raises((ConfigError, ValueError), match=key):
+            load_config("paper", overrides=[f"estimator.cmax.{key}={val}"])
+
+
 def test_cmax_smoothing_parameter_errors():
-    for kw, name in [(dict(smooth_steps=-1), "smooth_steps"), (dict(smooth_steps=200, trend_steps=100), "smooth_steps")]:
+    for kw, name in [(dict(smooth_steps=-1), "smooth_steps"), (dict(smooth_steps=200, trend_steps=100), "smooth_steps"),
+                     (dict(radial_power=-0.5), "radial_power"), (dict(radial_power=2.5), "radial_power")]:
         with pytest.raises(ValueError, match=name):
             get_estimator("cmax", 1, (W, H), **kw)
 
