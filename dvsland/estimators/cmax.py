@@ -408,9 +408,14 @@ class CMaxEstimator(DivergenceEstimator):
         self._k += 1
         # tagged with the middle of the events actually held (the first windows after a reset
         # are not full yet)
-        held_s = torch.minimum(win_s, (t_us - self._t_start_us).to(torch.float64) * 1e-6)
+        since_s = (t_us - self._t_start_us).to(torch.float64) * 1e-6
+        held_s = torch.minimum(win_s, since_s)
         self._hist_t[:, j] = t_us * 1e-6 - 0.5 * held_s
-        self._hist_d[:, j] = -1.0 / d_mid  # tau
+        # only estimates from full windows enter the trend: the first ones after a reset are
+        # from shorter windows, with less motion in them (read towards D = 0 at high altitude),
+        # and as tau = -1 / D they would tilt the trend line
+        full = since_s >= win_s - 1e-6
+        self._hist_d[:, j] = torch.where(full, -1.0 / d_mid, torch.full_like(d_mid, float("nan")))  # tau
         # relative standard error of tau (= that of D)
         self._hist_s[:, j] = self._sigma_step / d_mid.abs()
         # relative standard error reported with the estimate: RMS over the estimates it averages
