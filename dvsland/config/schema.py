@@ -232,6 +232,8 @@ class CMaxConfig:
                                "(0 or 1 = off; <= trend_steps)", rng=(0, 100000))
     radial_power: float = opt(0.5, "exponent of the radial density flattening: weight = (mean density / "
                                    "annulus density)^radial_power (0 = off, 1 = flat)", rng=(0.0, 2.0))
+    smooth_clip: float = opt(1.0, "keep the averaged estimate within this many standard errors of the unaveraged "
+                                  "one (bounds the lag where tau is not linear; 0 = no bound)", rng=(0.0, 100.0))
     smooth_by_std: bool = opt(False, "weight the averaged estimates by 1 / their half-split variance")
 
 

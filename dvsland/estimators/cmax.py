@@ -94,6 +94,8 @@ class CMaxEstimator(DivergenceEstimator):
         smooth_steps: with ``extrapolate``, average this many of the last estimates along the
             trend line (0 or 1 = off; <= trend_steps); also the span of the RMS in ``d_std``.
         smooth_by_std: weight the averaged estimates by 1 / their relative variance.
+        smooth_clip: keep the averaged value within this many standard errors (d_std) of the
+            unaveraged one, which bounds the lag where tau is not linear (0 = no bound).
         radial_power: exponent of the radial density weights (0 = off, 1 = flat density).
         blur_sigma_px: kept for compatibility; must be 0 (the score is unblurred).
     """
@@ -105,7 +107,8 @@ class CMaxEstimator(DivergenceEstimator):
                  window_min_ms: float = 200.0, window_max_ms: float = 3000.0, newton_iters: int = 1,
                  step_motion: float = 0.01, extrapolate: bool = True, trend_steps: int = 100,
                  radial_bin_px: float = 8.0, research_rel: float = 0.5, smooth_steps: int = 20,
-                 smooth_by_std: bool = False, radial_power: float = 0.5, principal_point_px=None):
+                 smooth_by_std: bool = False, radial_power: float = 0.5, smooth_clip: float = 1.0,
+                 principal_point_px=None):
         super().__init__(batch_size, sensor_size, device, dt_s, principal_point_px=principal_point_px)
         # the ranges of the config schema (estimator.cmax), written once there
         check_fields(CMaxConfig, window_ms=window_ms, d_min=d_min, d_max=d_max, n_grid=n_grid, n_refine=n_refine,
@@ -113,7 +116,7 @@ class CMaxEstimator(DivergenceEstimator):
                      max_events=max_events, window_motion=window_motion, window_min_ms=window_min_ms,
                      window_max_ms=window_max_ms, newton_iters=newton_iters, step_motion=step_motion,
                      trend_steps=trend_steps, radial_bin_px=radial_bin_px, research_rel=research_rel,
-                     smooth_steps=smooth_steps, radial_power=radial_power)
+                     smooth_steps=smooth_steps, radial_power=radial_power, smooth_clip=smooth_clip)
         checks = [("smooth_steps", int(smooth_steps) <= int(trend_steps), "<= trend_steps"),
                   ("refine_points", int(refine_points) % 2 == 1, "an odd integer >= 3"),
                   ("blur_sigma_px", blur_sigma_px == 0, "0 (the fast score has no blur)"),
@@ -135,6 +138,7 @@ class CMaxEstimator(DivergenceEstimator):
         self.extrapolate, self.trend_steps = bool(extrapolate), int(trend_steps)
         self.research_rel = float(research_rel)
         self.smooth_steps, self.smooth_by_std = int(smooth_steps), bool(smooth_by_std)
+        self.smooth_clip = float(smooth_clip)
         if not 0 <= radial_bin_px <= 1000:
             raise ValueError(f"radial_bin_px must be in [0, 1000], got {radial_bin_px}")
         self.radial_bin_px = float(radial_bin_px)
@@ -431,7 +435,11 @@ class CMaxEstimator(DivergenceEstimator):
             slope, trend = self._slope()
             tau_end = tau_mid + slope * (t_us * 1e-6 - self._hist_t[:, j])
             if self.smooth_steps > 1:  # only where the trend is known (no lag from averaging)
-                tau_end = torch.where(trend, self._smoothed_tau(slope, t_us * 1e-6, j), tau_end)
+                tau_s = self._smoothed_tau(slope, t_us * 1e-6, j)
+                if self.smooth_clip > 0:  # at most smooth_clip standard errors from this estimate
+                    lim = self.smooth_clip * self._rel_std * tau_end.abs()
+                    tau_s = torch.minimum(torch.maximum(tau_s, tau_end - lim), tau_end + lim)
+                tau_end = torch.where(trend & torch.isfinite(tau_s), tau_s, tau_end)
             safe = torch.isfinite(tau_end) & (tau_end * tau_mid > 0) & ((tau_end - tau_mid).abs() < 0.5 * tau_mid.abs())
             d_out = torch.where(safe, -1.0 / tau_end, d_mid)
         if self.window_motion > 0:
