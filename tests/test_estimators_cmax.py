@@ -234,11 +234,12 @@ def test_cmax_smoothing_has_no_lag(profile):
 @pytest.mark.slow
 def test_cmax_smoothing_on_curved_tau_is_bounded():
     """Where tau is not linear (braking towards hover, D from -0.2 to -0.13 1/s) the trend slope
-    lags, and the averaged estimates are older: the smoothed error grows but stays bounded
-    (measured: -4.5 % unsmoothed, -8.9 % with 10 steps)."""
+    lags, and the averaged estimates are older; smooth_clip keeps the average within one standard
+    error of the unaveraged estimate (measured: -4.4 % unaveraged, -5.4 % averaged over 10 steps
+    with the bound, -8.9 % without it)."""
     e0, e1 = _errors(0, "braking"), _errors(10, "braking")
     assert torch.isfinite(e1).all()
-    assert e1.mean().abs() < 0.12 and e1.mean().abs() < 2.5 * e0.mean().abs() + 0.01, (e0.mean(), e1.mean())
+    assert e1.mean().abs() < e0.mean().abs() + 0.025, (e0.mean(), e1.mean())
 
 
 def test_cmax_smoothing_resets_by_mask():
