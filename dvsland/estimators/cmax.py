@@ -27,7 +27,9 @@ Per update and batch element, all elements at once:
    ``extrapolate``, the time-to-contact tau = -1 / D of the last ``trend_steps`` window-middle
    estimates is fitted with a line (least squares); its slope carries the estimates to the end
    of the interval, and the last ``smooth_steps`` of them, each carried along that slope, are
-   averaged (no lag where tau is linear in t, as in a tau-controlled descent).
+   averaged (no lag where tau is linear in t, as in a tau-controlled descent); the average is kept
+   within ``smooth_clip`` standard errors (d_std, step 5) of the unaveraged estimate, which bounds
+   its lag where tau is curved. Only estimates from full windows enter the trend history.
 5. **Confidence.** The events are split in two halves (by hash); the Newton vertex of each half
    from the same warped images gives sigma = |D_1 - D_2| / 2, the standard error of one
    estimate. Where the maximum is not bracketed (a score not concave, or a vertex outside the
