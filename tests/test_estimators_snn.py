@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -324,3 +325,91 @@ def test_snn_nir_round_trip_reproduces_the_network(tmp_path):
             spikes += float(r["rate1"].sum() + r["rate2"].sum())
             assert torch.allclose(out[:, 0], d, rtol=1e-4, atol=1e-7), (k, out[:, 0], d)
     assert spikes > 0  # the comparison covered a spiking network, not a silent one
+
+
+# ---------------------------------------------------------------- dispersed data, held-out type, fast path
+def test_training_sites_hold_out_a_site_type():
+    from dvsland.estimators.snn.data import SITE_TYPES, training_sites
+
+    assert sorted("".join(SITE_TYPES.values())) == list("ABCDEFGHI")
+    for kind, letters in SITE_TYPES.items():
+        names = training_sites((1, 2), hold_out_type=kind)
+        assert len(names) == 2 * (9 - len(letters))
+        assert not any(n[0] in letters for n in names)
+    with pytest.raises(ValueError, match="hold_out_type"):
+        training_sites(hold_out_type="volcanic")
+
+
+def test_dispersed_training_sequences_draw_sun_and_sensor_and_skip_the_held_out_type():
+    from dvsland.config import load_config
+    from dvsland.estimators.snn.data import SITE_TYPES, make_sequences, training_sites
+
+    cfg = load_config(overrides=["camera.width_px=48", "camera.height_px=48"])
+    disp = load_config("configs/montecarlo.yaml").dispersion
+    enc = LogPolarEncoder((48, 48), n_rho=6, n_phi=8, r_min_px=6.0, r_max_px=24.0, n_sub=2)
+    sites = training_sites((1,), "ADG", hold_out_type="craters_rocks")
+    data = make_sequences(cfg, enc, sites, 6, 5, seed=3, dispersion=disp, sun_step_deg=3.0, progress=False)
+    assert data["x"].shape == (6, 5, 2, 2, 6, 8) and torch.isfinite(data["x"].float()).all()
+    assert not any(data["sites"][int(i)][0] in SITE_TYPES["craters_rocks"] for i in data["site"])
+    dr = data["dispersed"]
+    assert set(dr) == {"sun_elevation_deg", "threshold_scale", "mismatch_sigma", "background_rate_hz", "refractory_us"}
+    assert all(v.shape == (6,) for v in dr.values())
+    assert set(dr["sun_elevation_deg"].tolist()) <= {12.0, 15.0, 18.0}
+    assert ((dr["threshold_scale"] >= 0.85) & (dr["threshold_scale"] <= 1.15)).all()
+    assert ((dr["refractory_us"] >= 5.0) & (dr["refractory_us"] <= 50.0)).all()
+    assert len(set(dr["threshold_scale"].tolist())) == 6  # drawn per sequence
+    # same seed, same data (draws and events); without dispersion nothing is drawn
+    again = make_sequences(cfg, enc, sites, 6, 5, seed=3, dispersion=disp, sun_step_deg=3.0, progress=False)
+    assert torch.equal(again["x"], data["x"]) and np.array_equal(again["dispersed"]["refractory_us"], dr["refractory_us"])
+    plain = make_sequences(cfg, enc, sites, 6, 5, seed=3, progress=False)
+    assert plain["dispersed"] == {} and not torch.equal(plain["x"], data["x"])
+
+
+def test_inference_lif_step_equals_training_step_bit_for_bit():
+    from dvsland.estimators.snn.lif import lif_step_inference
+
+    g = torch.Generator().manual_seed(2)
+    p = LIFParameters(tau_mem_s=0.1, tau_syn_s=0.05, v_th=1.0)
+    st = lif_state((4, 3, 5))
+    st = type(st)(torch.rand(4, 3, 5, generator=g) * 1.5, torch.randn(4, 3, 5, generator=g))
+    k_mem = torch.rand(3, 1, generator=g) * 0.5
+    x = torch.randn(4, 3, 5, generator=g)
+    z_a, s_a = lif_step(x, st, p, 0.025, k_mem)
+    z_b, s_b = lif_step_inference(x, st, p, 0.025, k_mem)
+    assert torch.equal(z_a, z_b) and torch.equal(s_a.v, s_b.v) and torch.equal(s_a.i, s_b.i)
+    assert 0 < float(z_a.sum()) < z_a.numel()  # both cases present
+    # the whole network: no_grad (fast path) equals the autograd path
+    net = SpikingDivergenceNet(24, 24, dt_s=0.05, channels=(8, 16))
+    xs = torch.rand(2, 3, 2, 2, 24, 24, generator=g) * 0.2
+    outs = []
+    for grad in (True, False):
+        with torch.set_grad_enabled(grad):
+            s = net.initial_state(2)
+            for k in range(3):
+                d, s, _ = net.run_step(xs[:, k], s)
+            outs.append(d.detach())
+    assert torch.equal(outs[0], outs[1])
+
+
+def test_small_network_two_slices_shapes_and_reset_by_mask():
+    net = SpikingDivergenceNet(24, 24, dt_s=0.05, channels=(8, 16))
+    st = net.initial_state(3)
+    assert st.l1.v.shape == (3, 8, 24, 24) and st.l2.v.shape == (3, 16, 12, 24)
+    assert all(torch.isfinite(k).all() and (k > 0).all() and (k <= 0.5).all() for k in net._time_constants().values())
+    d, st, rates = net.run_step(torch.rand(3, 2, 2, 24, 24), st)
+    assert d.shape == (3,) and torch.isfinite(d).all() and rates["rate1"].shape == (3,)
+    st2 = net.reset(st, torch.tensor([True, False, False]))
+    assert st2.l2.i[0].abs().sum() == 0 and torch.equal(st2.l2.i[1:], st.l2.i[1:])
+
+
+def test_training_crop_steps():
+    from dvsland.estimators.snn.train import train
+
+    net = SpikingDivergenceNet(24, 24, dt_s=0.05, channels=(8, 16))
+    n, k = 8, 10
+    d = -torch.full((n, k), 0.1)
+    x = (torch.rand(n, k, 2, 2, 24, 24) * 0.2).half()
+    hist = train(net, {"x": x, "d": d}, epochs=1, batch=4, warmup_steps=2, crop_steps=4, log=lambda *a: None)
+    assert len(hist["epoch"]) == 1 and math.isfinite(hist["train_loss"][0])
+    with pytest.raises(ValueError, match="crop_steps"):
+        train(net, {"x": x, "d": d}, epochs=1, crop_steps=2, warmup_steps=2, log=lambda *a: None)

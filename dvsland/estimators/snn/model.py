@@ -22,9 +22,8 @@ from typing import NamedTuple
 
 import torch
 import torch.nn as nn
-import torch.nn.functional as F
 
-from .lif import LIFParameters, LIFState, LIState, li_step, lif_state, lif_step, reset_state
+from .lif import LIFParameters, LIFState, LIState, li_step, lif_state, lif_step, lif_step_inference, reset_state
 
 #: upper bound of a learned dt/tau (explicit Euler stays stable below 1)
 _K_MAX = 0.9
@@ -44,8 +43,9 @@ class SpikingDivergenceNet(nn.Module):
         super().__init__()
         c1, c2 = int(channels[0]), int(channels[1])
         self.n_rho, self.n_phi, self.dt_s, self.d_scale = int(n_rho), int(n_phi), float(dt_s), float(d_scale)
-        self.conv1 = nn.Conv2d(2, c1, (5, 3))
-        self.conv2 = nn.Conv2d(c1, c2, (5, 3), stride=(2, 1))
+        # zero padding of 2 in rho inside the convolutions, circular padding in phi by _pad
+        self.conv1 = nn.Conv2d(2, c1, (5, 3), padding=(2, 0))
+        self.conv2 = nn.Conv2d(c1, c2, (5, 3), stride=(2, 1), padding=(2, 0))
         # input gain (learned, log scale): a slice holds ~0.01 events per pixel on average, which
         # would leave every neuron silent (no spikes, hardly any surrogate gradient)
         self.log_in_gain = nn.Parameter(torch.tensor(float(in_gain)).log())
@@ -57,16 +57,19 @@ class SpikingDivergenceNet(nn.Module):
         self.p1 = LIFParameters(tau_mem_s=0.1, tau_syn_s=0.05, v_th=1.0)
         self.p2 = LIFParameters(tau_mem_s=0.5, tau_syn_s=0.1, v_th=1.0)
         self.po = LIFParameters(tau_mem_s=0.5, tau_syn_s=0.1)
-        for p in (self.p1, self.p2, self.po):
-            p.check_dt(self.dt_s)
         self.channels = (c1, c2)
         self.learn_tau = bool(learn_tau)
+        # the fixed time constants of p1 / p2 are used only without learn_tau (learned ones are
+        # bounded by construction: dt / tau < 0.9)
+        for p in (self.p1, self.p2, self.po) if not self.learn_tau else (self.po,):
+            p.check_dt(self.dt_s)
         if self.learn_tau:
             # per-channel membrane / synaptic time constants, learned (heterogeneous time constants
             # give neurons different delays, which motion detection needs); initialised log-spaced,
             # membranes over [0.05, 0.5] s (layer 1) and [0.1, 2] s (layer 2); synapses over
             # [0.025 s + dt, 0.25 s] and [0.05 s + dt, 1 s] (about half, and always longer than dt)
-            def raw(lo, hi, n):
+            def raw(lo, hi, n):  # never shorter than 2 dt (dt / tau <= 0.5 < _K_MAX)
+                lo, hi = max(lo, 2 * self.dt_s), max(hi, 4 * self.dt_s)
                 k = self.dt_s / torch.logspace(math.log10(lo), math.log10(hi), n)
                 return nn.Parameter(torch.logit(k / _K_MAX))
             self.raw_mem1, self.raw_syn1 = raw(0.05, 0.5, c1), raw(0.05 / 2 + self.dt_s, 0.25, c1)
@@ -74,9 +77,8 @@ class SpikingDivergenceNet(nn.Module):
 
     @staticmethod
     def _pad(x: torch.Tensor) -> torch.Tensor:
-        """Zero padding of 2 in rho, circular padding of 1 in phi."""
-        x = torch.cat([x[..., -1:], x, x[..., :1]], dim=-1)
-        return F.pad(x, (0, 0, 2, 2))
+        """Circular padding of 1 in phi (the zero padding of 2 in rho is the convolutions')."""
+        return torch.cat([x[..., -1:], x, x[..., :1]], dim=-1)
 
     def initial_state(self, batch_size: int, device=None) -> SNNState:
         c1, c2 = self.channels
@@ -106,8 +108,9 @@ class SpikingDivergenceNet(nn.Module):
         dt = self.dt_s
         k = self._time_constants() if k is None else k
         current = self.input_current(x) if current is None else current
-        z1, s1 = lif_step(current, state.l1, self.p1, dt, k.get("mem1"), k.get("syn1"))
-        z2, s2 = lif_step(self.conv2(self._pad(z1)), state.l2, self.p2, dt, k.get("mem2"), k.get("syn2"))
+        step = lif_step if torch.is_grad_enabled() else lif_step_inference
+        z1, s1 = step(current, state.l1, self.p1, dt, k.get("mem1"), k.get("syn1"))
+        z2, s2 = step(self.conv2(self._pad(z1)), state.l2, self.p2, dt, k.get("mem2"), k.get("syn2"))
         feat = z2.mean(dim=-1).flatten(1)  # (B, c2 * n_rho2)
         v, so = li_step(self.readout(feat), state.out, self.po, dt)
         rates = {"rate1": z1.mean(dim=(1, 2, 3)), "rate2": z2.mean(dim=(1, 2, 3))}

@@ -35,12 +35,16 @@ def sequence_loss(model: SpikingDivergenceNet, x: torch.Tensor, d: torch.Tensor,
 
 def train(model: SpikingDivergenceNet, data: dict, epochs: int = 10, batch: int = 32, lr: float = 3e-3,
           warmup_steps: int = 5, val_fraction: float = 0.1, seed: int = 0, log=print,
-          max_minutes: Optional[float] = None) -> dict:
+          max_minutes: Optional[float] = None, crop_steps: Optional[int] = None) -> dict:
     """Train in place on ``data`` (from :func:`dvsland.estimators.snn.data.make_sequences`); the last
-    ``val_fraction`` of the sequences is held out. Returns the history (per-epoch loss and
-    validation median |relative error|)."""
+    ``val_fraction`` of the sequences is held out. ``crop_steps``: train on a random window of this
+    many steps of each batch (the network starts from rest at the window's start: short sequences
+    cut from long ones, a cheap curriculum); validation always runs the whole sequences. Returns the
+    history (per-epoch loss and validation median |relative error|)."""
     x, d = data["x"], data["d"]
-    n = x.shape[0]
+    n, k_all = x.shape[0], x.shape[1]
+    if crop_steps is not None and not warmup_steps < int(crop_steps) <= k_all:
+        raise ValueError(f"crop_steps must be in ({warmup_steps}, {k_all}] (warm-up, sequence length), got {crop_steps}")
     n_val = max(1, int(round(n * val_fraction)))
     tr, va = torch.arange(n - n_val), torch.arange(n - n_val, n)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
@@ -55,7 +59,11 @@ def train(model: SpikingDivergenceNet, data: dict, epochs: int = 10, batch: int 
         tot, nb = 0.0, 0
         for a in range(0, len(perm), batch):
             idx = perm[a:a + batch]
-            loss, _ = sequence_loss(model, x[idx], d[idx], warmup_steps)
+            xb, db = x[idx], d[idx]
+            if crop_steps is not None and int(crop_steps) < k_all:
+                s0 = int(torch.randint(0, k_all - int(crop_steps) + 1, (1,), generator=g))
+                xb, db = xb[:, s0:s0 + int(crop_steps)], db[:, s0:s0 + int(crop_steps)]
+            loss, _ = sequence_loss(model, xb, db, warmup_steps)
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
