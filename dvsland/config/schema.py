@@ -315,6 +315,24 @@ class EfferenceConfig:
     gate_sigma: float = opt(5.0, "reject an estimate further than this many std. dev. from the prediction",
                             rng=(0.0, 1e6), open_lo=True)
     min_altitude_m: float = opt(1.0, "lowest altitude estimate, m", rng=(0.0, 1e5), open_lo=True)
+    prior_rel_sigma_v: Optional[float] = opt(None, "relative std. dev. of the prior on v; null = prior_rel_sigma",
+                                             rng=(0.0, 10.0), open_lo=True)
+    prior_state: str = opt("nominal", "prior (z0, v0): the site's nominal start (the craft does not know its "
+                           "dispersion) or the dispersed start itself", choices=("nominal", "dispersed"))
+    meas_noise: str = opt("fixed", "R of one D_hat: fixed (meas_sigma_rel, meas_sigma_abs) or confidence (plus the "
+                          "estimator's own error 0.1 sqrt(1/c - 1) from its confidence() c; c = 0: no update)",
+                          choices=("fixed", "confidence"))
+    huber_k: float = opt(0.0, "clip accepted innovations to this many std. dev. (Huber); 0 = off", rng=(0.0, 1e6))
+    max_step_rel: float = opt(0.0, "largest relative change of z_hat and v_hat in one update; 0 = off",
+                              rng=(0.0, 10.0))
+    cov_cap_rel: float = opt(0.0, "cap of the std. dev. of z and v relative to z_hat and |v_hat|; 0 = off",
+                             rng=(0.0, 100.0))
+    cauchy_c: float = opt(2.0, "efference_fit: scale of the Cauchy weight of an estimate, std. dev.",
+                          rng=(0.0, 1e6), open_lo=True)
+    iterations: int = opt(3, "efference_fit: Gauss-Newton rounds per control step", rng=(1, 100))
+    forget_s: float = opt(0.0, "efference_fit: an estimate's weight decays as exp(-age / forget_s), s; 0 = never",
+                          rng=(0.0, 1e6))
+    min_confidence: float = opt(0.0, "estimates whose confidence() is below this are not used", rng=(0.0, 1.0))
 
 
 @dataclass
@@ -335,7 +353,7 @@ class ControllerConfig:
     filter: str = opt("auto", "divergence filter: moving_average (mean of the last n_bin estimates), "
                       "efference (EKF with the known thrust; gives an altitude estimate), auto (efference "
                       "for a law that needs an altitude, else moving_average)",
-                      choices=("auto", "moving_average", "efference"))
+                      choices=("auto", "moving_average", "efference", "efference_fit"))
     div_p: DivPConfig = opt(None, "options of 'div_p'", factory=DivPConfig)
     div_gs: DivGSConfig = opt(None, "options of 'div_gs'", factory=DivGSConfig)
     efference: EfferenceConfig = opt(None, "options of the 'efference' filter", factory=EfferenceConfig)

@@ -4,10 +4,11 @@ Laws (``controller.name``): ``tau_p`` (paper Eq. 2 in tau-space), ``div_p`` (the
 implementation: proportional in divergence space), ``div_gs`` (gain scheduled on the
 efference-copy altitude, soft-landing profile); more with :func:`register_controller` or the
 ``dvsland.controllers`` entry-point group. Filters (``controller.filter``): ``moving_average``
-(the paper's) and ``efference`` (EKF fusing D_hat with the known thrust).
+(the paper's), ``efference`` (EKF fusing D_hat with the known thrust) and ``efference_fit`` (robust
+batch fit of the initial-state error to every D_hat so far).
 
 Public names: :func:`tau_target`, :func:`initial_ttc`, :func:`nan_moving_average`,
-:class:`MovingAverageFilter`, :class:`EfferenceFilter`, :class:`Controller`, :class:`ControlOutput`,
+:class:`MovingAverageFilter`, :class:`EfferenceFilter`, :class:`EfferenceFitFilter`, :class:`Controller`, :class:`ControlOutput`,
 :class:`DescentParams`, :class:`TauPController`, :class:`DivPController`, :class:`DivGSController`,
 :func:`register_controller`, :func:`available_controllers`, :func:`get_controller`,
 :func:`make_controller`, :func:`make_filter`, :func:`descent_params`, and the gain maths
@@ -15,7 +16,8 @@ Public names: :func:`tau_target`, :func:`initial_ttc`, :func:`nan_moving_average
 """
 
 from .base import ControlOutput, Controller
-from .efference import EfferenceFilter
+from .efference import EfferenceFilter, confidence_rel_sigma
+from .efference_fit import EfferenceFitFilter
 from .filter import MovingAverageFilter, nan_moving_average
 from .gain import critical_step_gain, div_loop_gain, gain_limit_altitude_m, tau_loop_gain
 from .params import DescentParams
@@ -28,6 +30,7 @@ from .div_gs import DivGSController, divergence_target  # noqa: E402 - registers
 from .factory import FILTER_NAMES, descent_params, filter_name, make_controller, make_filter  # noqa: E402
 
 __all__ = ["tau_target", "initial_ttc", "nan_moving_average", "MovingAverageFilter", "EfferenceFilter",
+           "EfferenceFitFilter", "confidence_rel_sigma",
            "Controller", "ControlOutput", "DescentParams", "TauPController", "DivPController", "DivGSController",
            "divergence_target", "register_controller", "available_controllers", "controller_class", "get_controller",
            "refresh_entry_points", "make_controller", "make_filter", "descent_params", "filter_name",

@@ -8,13 +8,14 @@ from typing import Optional
 import torch
 
 from .efference import EfferenceFilter
+from .efference_fit import EfferenceFitFilter
 from .filter import MovingAverageFilter
 from .params import DescentParams
 from .registry import controller_class
 
 #: Filters by name (``controller.filter``); ``auto`` picks ``efference`` for a law that needs an
 #: altitude estimate, else ``moving_average`` (the paper's filter).
-FILTERS = {"moving_average": MovingAverageFilter, "efference": EfferenceFilter}
+FILTERS = {"moving_average": MovingAverageFilter, "efference": EfferenceFilter, "efference_fit": EfferenceFitFilter}
 FILTER_NAMES = ("auto",) + tuple(FILTERS)
 
 
@@ -61,7 +62,7 @@ def filter_name(cfg, controller=None) -> str:
 def make_filter(cfg, params: DescentParams, controller=None):
     """The configured divergence filter; a law that needs an altitude gets one that provides it."""
     name = filter_name(cfg, controller)
-    options = dataclasses.asdict(cfg.controller.efference) if name == "efference" else {}
+    options = dataclasses.asdict(cfg.controller.efference) if name.startswith("efference") else {}
     filt = FILTERS[name].from_params(params, **options)
     if getattr(controller, "needs_altitude", False) and not getattr(filt, "provides_altitude", False):
         raise ValueError(f"controller {cfg.controller.name!r} needs an altitude estimate; controller.filter="

@@ -79,15 +79,15 @@ class MovingAverageFilter:
         return cls(p.n_bin, device=p.device)
 
     def update(self, d_hat: Tensor, mask: Optional[Tensor] = None, accel_mps2: Optional[Tensor] = None,
-               thrust_accel_mps2: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
+               thrust_accel_mps2: Optional[Tensor] = None, confidence: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
         """Push one estimate per element and return the filtered value.
 
         Args:
             d_hat: (B,) float estimates, 1/s; NaN = missing.
             mask: optional (B,) bool: only these elements take the new estimate (others keep
                 their history unchanged; frozen descents).
-            accel_mps2, thrust_accel_mps2: ignored (the efference-copy filter's inputs; the
-                same call serves both filters).
+            accel_mps2, thrust_accel_mps2, confidence: ignored (the efference-copy filter's
+                inputs; the same call serves both filters).
 
         Returns:
             (d_filtered (B,), n_used (B,) int64).

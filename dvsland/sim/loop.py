@@ -52,6 +52,35 @@ def sanitise_estimates(d_hat: torch.Tensor, abs_max: float = D_HAT_ABS_MAX):
 
 
 
+def _estimator_confidence(estimator, d_hat: torch.Tensor) -> torch.Tensor:
+    """The estimator's ``confidence()`` (B,) as float64 in [0, 1] on ``d_hat``'s device; 1 where an
+    estimator has no ``confidence()`` and its estimate is finite; 0 where ``d_hat`` is NaN (missing
+    or sanitised) or the confidence is not finite."""
+    fn = getattr(estimator, "confidence", None)
+    c = None if fn is None else fn()
+    if c is None:
+        c = torch.ones_like(d_hat)
+    c = torch.as_tensor(c).to(device=d_hat.device, dtype=torch.float64).reshape(d_hat.shape)
+    ok = torch.isfinite(d_hat) & torch.isfinite(c)
+    return torch.where(ok, c.clamp(0.0, 1.0), torch.zeros_like(c))
+
+
+def _nominal_params(params, layout):
+    """``params`` with the sites' undispersed initial state (z0, v0): the efference filter's prior
+    (a craft knows its planned start, not its dispersion). Unchanged when nothing is dispersed."""
+    import dataclasses
+
+    scale = {k: layout.dispersed.get(k) for k in ("z0_scale", "v0_scale")}
+    if all(v is None for v in scale.values()):
+        return params
+    z0, v0 = params.z0_m, params.v0_mps
+    if scale["z0_scale"] is not None:
+        z0 = z0 / torch.as_tensor(scale["z0_scale"], dtype=z0.dtype, device=z0.device)
+    if scale["v0_scale"] is not None:
+        v0 = v0 / torch.as_tensor(scale["v0_scale"], dtype=v0.dtype, device=v0.device)
+    return dataclasses.replace(params, z0_m=z0, v0_mps=v0)
+
+
 class StageTimer:
     """Accumulates wall seconds per stage; ``sync=True`` synchronises CUDA around each stage."""
 
@@ -117,7 +146,8 @@ class ClosedLoop:
 
             controller = build_controller(cfg, layout, dev)
         self.controller = controller
-        self.filter = make_filter(cfg, self.params, controller)
+        self.filter = make_filter(cfg, self.params if cfg.controller.efference.prior_state == "dispersed"
+                                  else _nominal_params(self.params, layout), controller)
         self._needs_altitude = bool(getattr(controller, "needs_altitude", False))
         sim = cfg.simulation
         self.n_steps_max = int(math.ceil(sim.t_max_s / self.dt_s - 1e-9))
@@ -196,6 +226,7 @@ class ClosedLoop:
                 d_hat = self.estimator.update(events, t_us, truth=truth)
             d_hat = d_hat.to(device=self.device, dtype=torch.float64)
             d_hat, bad = sanitise_estimates(d_hat)  # +-inf or absurd |D_hat| -> NaN, counted
+            conf = _estimator_confidence(self.estimator, d_hat)  # (B,) float64, 0 where no estimate
             self.n_sanitised += (bad & self.active).to(torch.int64)
             self.n_positive += ((d_hat > 0) & self.active).to(torch.int64)
         with tm("control"):
@@ -204,7 +235,7 @@ class ClosedLoop:
                 thrust_accel = self.last_thrust_n / self.last_mass_kg
                 accel = thrust_accel - float(self.cfg.dynamics.g_mps2)
             d_f, n_used = self.filter.update(d_hat, mask=self.active, accel_mps2=accel,
-                                             thrust_accel_mps2=thrust_accel)
+                                             thrust_accel_mps2=thrust_accel, confidence=conf)
             z_hat = getattr(self.filter, "altitude_m", None)
             if self._needs_altitude:
                 ctl = self.controller(t_s, d_f, self.m_kg, self.active, altitude_m=z_hat)
@@ -218,7 +249,7 @@ class ClosedLoop:
             self.traces.record(k, t_s=t_s, z_m=self.z_m, v_mps=self.v_mps, m_kg=self.m_kg, thrust_n=thrust,
                                d_true=truth.divergence, d_est=d_hat, d_filtered=d_f,
                                tau_target_s=ctl.tau_target_s, tau_hat_s=ctl.tau_hat_s,
-                               n_used=n_used.to(torch.float64), active=self.active, held=held,
+                               n_used=n_used.to(torch.float64), d_conf=conf, active=self.active, held=held,
                                **({} if z_hat is None else {"z_est_m": z_hat}))
         with tm("dynamics"):
             self.last_thrust_n, self.last_mass_kg = thrust, self.m_kg

@@ -12,7 +12,7 @@ import torch
 #: Per-step trace fields, each (steps, B). Row k holds the state at t_k and the command held
 #: over [t_k, t_k + dt); the last row is the final state (thrust NaN).
 TRACE_FIELDS = ("t_s", "z_m", "v_mps", "m_kg", "thrust_n", "d_true", "d_est", "d_filtered",
-                "tau_target_s", "tau_hat_s", "n_used", "z_est_m")
+                "tau_target_s", "tau_hat_s", "n_used", "z_est_m", "d_conf")
 TRACE_FLAGS = ("active", "held")
 
 
