@@ -224,3 +224,18 @@ def test_closed_loop_without_any_estimate_flies_on_the_efference_copy(tmp_path, 
     ma = simulate("realistic", estimator=_Blind(2), sites="D", quiet=True, out=tmp_path / "ma",
                   overrides=over + ["controller.filter=moving_average"])
     assert all(r["outcome"] != "success" for r in ma.runs)
+
+
+def test_montecarlo_efference_preset_is_montecarlo_with_its_law_and_filter():
+    from dvsland.config import config_to_dict
+
+    eff, mc = (config_to_dict(load_config(n)) for n in ("montecarlo_efference", "montecarlo"))
+    assert eff["name"] == "montecarlo_efference"
+    for section in mc:
+        if section not in ("name", "controller", "simulation"):
+            assert eff[section] == mc[section], section
+    sim_e, sim_m = dict(eff["simulation"]), dict(mc["simulation"])
+    assert sim_e.pop("t_max_s") == 300.0 and sim_m.pop("t_max_s") == 200.0 and sim_e == sim_m
+    c = eff["controller"]
+    assert (c["name"], c["filter"], c["efference"]["meas_noise"]) == ("div_gs", "efference_fit", "confidence")
+    assert c["thrust_max_n"] == mc["controller"]["thrust_max_n"] == 1e5
