@@ -239,3 +239,16 @@ def test_montecarlo_efference_preset_is_montecarlo_with_its_law_and_filter():
     c = eff["controller"]
     assert (c["name"], c["filter"], c["efference"]["meas_noise"]) == ("div_gs", "efference_fit", "confidence")
     assert c["thrust_max_n"] == mc["controller"]["thrust_max_n"] == 1e5
+
+
+def test_both_filters_build_from_the_shared_config_section_and_reject_unknown_options():
+    from dvsland.control import DescentParams, make_filter
+
+    p = DescentParams.simple([5e6], [5], 4000.0, -100.0)
+    for name, cls in (("efference", EfferenceFilter), ("efference_fit", EfferenceFitFilter)):
+        cfg = load_config("montecarlo_efference", [f"controller.filter={name}"])
+        assert isinstance(make_filter(cfg, p), cls)
+    with pytest.raises(TypeError, match="cauchy_c"):
+        EfferenceFilter(torch.tensor([1.0], dtype=F64), torch.tensor([-1.0], dtype=F64), 0.1, cauchy_c=2.0)
+    with pytest.raises(TypeError, match="huber_k"):
+        EfferenceFitFilter(torch.tensor([1.0], dtype=F64), torch.tensor([-1.0], dtype=F64), 0.1, huber_k=2.0)

@@ -48,6 +48,11 @@ import torch
 Tensor = torch.Tensor
 
 
+#: ``controller.efference`` options that are not this filter's (the loop's, and ``efference_fit``'s):
+#: one config section serves both filters
+_NOT_MINE = ("prior_state", "cauchy_c", "iterations", "forget_s")
+
+
 def confidence_rel_sigma(confidence: Tensor) -> Tensor:
     """Relative standard error sigma_rel = 0.1 sqrt(1/c - 1) of an estimate with confidence c,
     the inverse of the estimators' c = 1 / (1 + (sigma_rel / 0.1)^2).
@@ -94,7 +99,6 @@ class EfferenceFilter:
         max_step_rel: largest relative change of z_hat, v_hat per update (>= 0, 0 = off).
         cov_cap_rel: cap of the std. dev. of z and v relative to z_hat, |v_hat| (>= 0, 0 = off).
         min_confidence: estimates whose ``confidence`` is below this are not used (in [0, 1]).
-        **ignored: options of the ``efference_fit`` filter (one config section serves both).
     """
 
     provides_altitude = True
@@ -104,7 +108,7 @@ class EfferenceFilter:
                  meas_sigma_rel: float = 0.3, meas_sigma_abs: float = 0.005, gate_sigma: float = 5.0,
                  min_altitude_m: float = 1.0, prior_rel_sigma_v: Optional[float] = None,
                  meas_noise: str = "fixed", huber_k: float = 0.0, max_step_rel: float = 0.0,
-                 cov_cap_rel: float = 0.0, min_confidence: float = 0.0, **ignored):
+                 cov_cap_rel: float = 0.0, min_confidence: float = 0.0):
         z0 = torch.as_tensor(z0_m, dtype=torch.float64).reshape(-1)
         v0 = torch.as_tensor(v0_mps, dtype=torch.float64, device=z0.device).reshape(-1)
         if z0.shape != v0.shape:
@@ -143,7 +147,7 @@ class EfferenceFilter:
     def from_params(cls, p, **options) -> "EfferenceFilter":
         """From the loop's :class:`~dvsland.control.DescentParams` and the ``controller.efference`` options
         (``prior_state`` is the loop's: it decides which (z0, v0) ``p`` holds)."""
-        options = {k: v for k, v in options.items() if k != "prior_state"}
+        options = {k: v for k, v in options.items() if k not in _NOT_MINE}
         return cls(p.z0_m, p.v0_mps, p.dt_s, **options)
 
     # ------------------------------------------------------------------ state

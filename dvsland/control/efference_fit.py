@@ -43,6 +43,10 @@ from .efference import confidence_rel_sigma
 Tensor = torch.Tensor
 
 
+#: ``controller.efference`` options that are not this filter's (the loop's, and the EKF's)
+_NOT_MINE = ("prior_state", "accel_sigma_mps2", "accel_sigma_rel", "huber_k", "max_step_rel", "cov_cap_rel")
+
+
 class EfferenceFitFilter:
     """Batched robust MAP fit of the initial-state offset (dz, dv) to all D_hat so far.
 
@@ -63,7 +67,6 @@ class EfferenceFitFilter:
         forget_s: an estimate's weight decays as exp(-age / forget_s) (>= 0 s; 0 = never): old
             estimates fade, the posterior widens again and newer ones can correct the fit.
         min_confidence: estimates with a confidence below this are not used (in [0, 1]).
-        **ignored: options of the ``efference`` EKF that this filter does not use.
     """
 
     provides_altitude = True
@@ -72,7 +75,7 @@ class EfferenceFitFilter:
                  prior_rel_sigma_v: Optional[float] = None, meas_sigma_rel: float = 0.05,
                  meas_sigma_abs: float = 0.001, meas_noise: str = "fixed", gate_sigma: float = 5.0,
                  cauchy_c: float = 2.0, iterations: int = 3, min_altitude_m: float = 1.0,
-                 prior_scale: float = 1.0, forget_s: float = 0.0, min_confidence: float = 0.0, **ignored):
+                 prior_scale: float = 1.0, forget_s: float = 0.0, min_confidence: float = 0.0):
         z0 = torch.as_tensor(z0_m, dtype=torch.float64).reshape(-1)
         v0 = torch.as_tensor(v0_mps, dtype=torch.float64, device=z0.device).reshape(-1)
         if z0.shape != v0.shape:
@@ -111,7 +114,7 @@ class EfferenceFitFilter:
     @classmethod
     def from_params(cls, p, **options) -> "EfferenceFitFilter":
         """From the loop's :class:`~dvsland.control.DescentParams` and the ``controller.efference`` options."""
-        options = {k: v for k, v in options.items() if k != "prior_state"}
+        options = {k: v for k, v in options.items() if k not in _NOT_MINE}
         return cls(p.z0_m, p.v0_mps, p.dt_s, **options)
 
     # ------------------------------------------------------------------ state
