@@ -170,6 +170,29 @@ def test_fit_outvotes_a_burst_of_wrong_estimates():
     assert abs(f.altitude_m.item() / zs[-1].item() - 1) < 0.02
 
 
+def test_fit_with_forgetting_reads_a_bounded_history_and_agrees_with_the_whole_one():
+    """With forget_s the fit leaves out estimates older than 12 forget_s (weight < exp(-12)): the same
+    answer as the fit over the whole history, at a cost that stops growing with the flight."""
+    dt, n = 0.1, 400
+    z0, v0 = torch.tensor([4400.0, 4100.0], dtype=F64), torch.tensor([-104.0, -98.0], dtype=F64)
+    k = torch.arange(n, dtype=F64).unsqueeze(1)
+    accel = (1.0 + 0.8 * torch.sin(k * 0.07)).expand(n, 2)
+    zs, vs = _truth(z0, v0, accel, dt, n)
+    noise = 1.0 + 0.05 * torch.sin(k * 1.3) * torch.cos(k * 0.31)
+    d = vs[:n] / zs[:n] * noise
+    plan_z, plan_v = torch.tensor([4000.0, 4000.0], dtype=F64), torch.tensor([-100.0, -100.0], dtype=F64)
+    cut = EfferenceFitFilter(plan_z, plan_v, dt, prior_rel_sigma=0.1, meas_sigma_rel=0.05, forget_s=1.0)
+    whole = EfferenceFitFilter(plan_z, plan_v, dt, prior_rel_sigma=0.1, meas_sigma_rel=0.05, forget_s=1.0)
+    whole._cut_forget = 1e9  # never cut
+    for i in range(n):
+        a = None if i == 0 else accel[i - 1]
+        d_cut, _ = cut.update(d[i], accel_mps2=a)
+        d_whole, _ = whole.update(d[i], accel_mps2=a)
+        torch.testing.assert_close(d_cut, d_whole, rtol=1e-6, atol=0.0)
+    torch.testing.assert_close(cut.altitude_m, whole.altitude_m, rtol=1e-6, atol=0.0)
+    assert int(cut.n.min()) == n and math.ceil(cut._cut_forget * cut.forget_s / dt) < n  # the cut was active
+
+
 @pytest.mark.parametrize("field,value", [("huber_k", "-1"), ("max_step_rel", "-0.1"), ("cov_cap_rel", "-1"),
                                          ("min_confidence", "1.5"), ("meas_noise", "magic"), ("cauchy_c", "0"),
                                          ("iterations", "0"), ("forget_s", "-1"), ("prior_rel_sigma_v", "0"),

@@ -26,13 +26,17 @@ lock-out and no covariance that grows without measurements (theta is constant; P
 Model errors (thrust not applied as commanded, unknown mass) are outside the model: the filter
 assumes the dynamics of the simulator. Cost: O(steps so far) per element and step (the history is
 kept, 40 bytes per element and step): on one torch thread of a loaded 2-core CPU (load 7), median
-0.9 / 3.7 / 17 ms per step for B = 18 after 300 / 900 / 1800 steps (docs/controllers.md).
+0.9 / 3.7 / 17 ms per step for B = 18 after 300 / 900 / 1800 steps without forgetting
+(docs/controllers.md). With ``forget_s`` > 0 the fit reads only the last 12 forget_s of estimates
+(older ones weigh < exp(-12)), so the cost stops growing after 12 forget_s / dt steps.
 
 Output per step: the filtered divergence v_hat / z_hat (B,) float64, whether this step's estimate
 got weight > 0.5 (B,) int64, and :attr:`altitude_m` / :attr:`velocity_mps`.
 """
 
 from __future__ import annotations
+
+import math
 
 from typing import Optional, Tuple
 
@@ -70,6 +74,7 @@ class EfferenceFitFilter:
     """
 
     provides_altitude = True
+    _cut_forget = 12.0  # history older than this many forget_s is left out of the fit
 
     def __init__(self, z0_m: Tensor, v0_mps: Tensor, dt_s: float, prior_rel_sigma: float = 0.1,
                  prior_rel_sigma_v: Optional[float] = None, meas_sigma_rel: float = 0.05,
@@ -174,7 +179,13 @@ class EfferenceFitFilter:
     def _fit(self, mask: Tensor) -> Tensor:
         """Robust Gauss-Newton rounds on theta for the elements of ``mask``; returns the weights (N, B)."""
         n_max = int(self.n.max())
-        zdr, vdr, t, d, sig_c = (h[:n_max] for h in self._hist)
+        lo = 0
+        if self.forget_s > 0 and bool(mask.any()):
+            # rows older than 12 forget_s weigh < exp(-12) = 6e-6: left out, so the cost stops growing
+            # with the flight (cut only below every fitted element's own history: rows are per element)
+            window = int(math.ceil(self._cut_forget * self.forget_s / self.dt_s))
+            lo = max(0, int(self.n[mask].min()) - window)
+        zdr, vdr, t, d, sig_c = (h[lo:n_max] for h in self._hist)
         have = torch.isfinite(d)
         d0 = torch.where(have, d, 0.0)
         zdr, vdr, t = torch.where(have, zdr, 1e3), torch.where(have, vdr, 0.0), torch.where(have, t, 0.0)
@@ -217,7 +228,8 @@ class EfferenceFitFilter:
             theta = torch.where(mask, torch.stack([new_z, new_v]), theta)
             info = torch.where(mask, torch.stack([a, b, c]), info)
         self.theta, self.info = theta, info
-        return w * r  # the robust weights in [0, 1]
+        self._fit_lo = lo
+        return w * r  # the robust weights in [0, 1] of rows lo .. n_max - 1
 
     def update(self, d_hat: Tensor, mask: Optional[Tensor] = None, accel_mps2: Optional[Tensor] = None,
                thrust_accel_mps2: Optional[Tensor] = None,
@@ -262,7 +274,7 @@ class EfferenceFitFilter:
         if int(self.n.max()) == 0:
             return self.divergence, torch.zeros(B, dtype=torch.int64, device=dev)
         w = self._fit(m)
-        row = (self.n - 1).clamp_min(0)
+        row = (self.n - 1 - self._fit_lo).clamp(0, w.shape[0] - 1)
         w_now = w.gather(0, row.view(1, -1)).squeeze(0)
         used = m & torch.isfinite(d) & (w_now > 0.5)
         self.n_rejected += (m & torch.isfinite(d) & (w_now == 0)).to(torch.int64)
