@@ -34,6 +34,14 @@ class TestPlan:
         assert len({s.id for s in plan.shards}) == 12
         assert plan.shards[0].sweep == {"controller.c2": "0.4", "estimator.oracle.noise_rel": "0"}
 
+    def test_seed_offset_starts_the_seeds(self):
+        """--set simulation.seed_offset=K flies seeds K .. K + n_seeds - 1 (it used to be ignored)."""
+        cfg = _cfg()
+        cfg.simulation.seed_offset = 30
+        plan = make_plan(cfg, n_seeds=5, shard_seeds=2)
+        assert [(s.seed_offset, s.n_seeds) for s in plan.shards] == [(30, 2), (32, 2), (34, 1)]
+        assert plan.shard_config(plan.shards[1]).simulation.seed_offset == 32
+
     @pytest.mark.parametrize("sweep,match", [("controller.c2", "key=v1"), ("controller.c2=", "at least one"),
                                              ("controller.c2=2.0", "controller.c2"),
                                              ("simulation.n_seeds=1,2", "--n-seeds"),

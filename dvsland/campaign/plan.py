@@ -118,6 +118,7 @@ def make_plan(cfg: Config, sweeps: Sequence[str] = (), n_seeds: int = None, shar
         if k.startswith(("simulation.seed_offset", "simulation.n_seeds")):
             raise ValueError(f"--sweep {k}: the campaign sets the seeds; use --n-seeds")
         sw[k] = vals
+    first = int(cfg.simulation.seed_offset)  # --set simulation.seed_offset=K: seeds K .. K + n_seeds - 1
     base = config_to_dict(cfg)
     base["simulation"]["n_seeds"] = 1
     base["simulation"]["seed_offset"] = 0
@@ -131,8 +132,8 @@ def make_plan(cfg: Config, sweeps: Sequence[str] = (), n_seeds: int = None, shar
             check_names(config_from_dict(base, [f"{k}={v}" for k, v in point.items()]))
         except ConfigError as exc:
             raise ValueError(f"--sweep {point}: {exc}") from None
-        for k0 in range(0, n_seeds, shard_seeds):
-            n = min(shard_seeds, n_seeds - k0)
+        for k0 in range(first, first + n_seeds, shard_seeds):
+            n = min(shard_seeds, first + n_seeds - k0)
             idx = len(plan.shards)
             plan.shards.append(Shard(id=f"g{g:03d}-s{k0:05d}", index=idx, sweep=point, seed_offset=k0, n_seeds=n))
     return plan
