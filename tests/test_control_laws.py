@@ -97,6 +97,21 @@ class TestDivGS:
         f = ctl.loop_gain_fields(m, z)
         assert f["loop_gain"].item() == 0.5 and f["loop_gain_kind"] == "div"
 
+    def test_sink_rate_floor_by_hand(self):
+        """v_min_mps: below z_hat = v_min / d_final the target is the constant velocity -v_min (a_ref = 0);
+        above it, and on the TTC part, the law is unchanged."""
+        ctl = DivGSController(_t(40.0, 40.0, 40.0), 0.5, 1.62, lambda_per_s=0.5, d_final_per_s=0.03, v_min_mps=2.0)
+        plain = DivGSController(_t(40.0, 40.0, 40.0), 0.5, 1.62, lambda_per_s=0.5, d_final_per_s=0.03)
+        z, m, d_f = _t(20.0, 200.0, 20.0), _t(9000.0, 9000.0, 9000.0), _t(-0.04, -0.04, -0.04)
+        t = _t(100.0, 100.0, 0.0)  # final part, final part above the floor, TTC part
+        out, ref = ctl(t, d_f, m, altitude_m=z), plain(t, d_f, m, altitude_m=z)
+        expect = 9000 * 1.62 + 0.5 * 9000 * 20 * (-2.0 / 20 + 0.04)
+        assert out.thrust_n[0].item() == pytest.approx(expect)
+        assert out.tau_target_s[0].item() == pytest.approx(10.0)
+        assert out.thrust_n[1:].tolist() == pytest.approx(ref.thrust_n[1:].tolist())
+        with pytest.raises(ValueError, match="v_min_mps"):
+            DivGSController(_t(40.0), 0.5, 1.62, v_min_mps=-1.0)
+
     def test_needs_altitude(self):
         ctl = DivGSController(_t(40.0), 0.5, 1.62)
         assert ctl.needs_altitude

@@ -299,6 +299,9 @@ class DivGSConfig:
                               rng=(0.0, 100.0), open_lo=True)
     d_final_per_s: float = opt(0.03, "divergence of the final constant-divergence approach, 1/s (the speed "
                                "at altitude z is then d_final z: 1.5 m/s at 50 m)", rng=(0.0, 10.0), open_lo=True)
+    v_min_mps: float = opt(0.0, "lowest sink rate of the final approach, m/s (0 = none): the target is "
+                           "-max(d_final, v_min / z_hat), so a too-low altitude estimate cannot make the craft "
+                           "hover above the ground", rng=(0.0, 1000.0))
 
 
 @dataclass

@@ -17,7 +17,8 @@ holds that divergence (an exponential approach, v = -d_final z):
 so the speed at the success altitude z_s is d_final z_s (0.03 1/s x 50 m = 1.5 m/s) whatever the
 altitude estimate says: z_hat only scales the gain and the feed-forward a_ref (the deceleration
 the target needs: (1 - c2) D*^2 z_hat on the TTC part, D*^2 z_hat on the constant-divergence part).
-The constant-TTC-decrease descent alone reaches 50 m at 11-14 m/s on the paper's sites. A
+With ``v_min_mps`` > 0 the final approach is floored at that sink rate (constant velocity below
+z_hat = v_min / d_final). The constant-TTC-decrease descent alone reaches 50 m at 11-14 m/s on the paper's sites. A
 missing filtered estimate holds the last thrust (or hovers).
 """
 
@@ -66,14 +67,21 @@ class DivGSController(Controller):
         lambda_per_s: divergence-loop rate, 1/s (> 0; lambda dt well below 2).
         d_final_per_s: divergence of the final approach, 1/s (> 0): the speed at altitude z is
             then d_final z.
+        v_min_mps: lowest sink rate of the final approach, m/s (>= 0; 0 = none): the target becomes
+            D* = -max(d_final, v_min / z_hat), a constant-velocity descent once d_final z_hat < v_min.
+            An altitude estimate that is too low then cannot stop the craft above the ground (it
+            would hover, then climb, at v_hat = -d_final z_hat -> 0).
     """
 
     needs_altitude = True
 
     def __init__(self, tau0_s: Tensor, c2: float, g_mps2: float, thrust_min_n: float = 0.0,
                  thrust_max_n: Optional[float] = None, missing_policy: str = "hold", lambda_per_s: float = 1.0,
-                 d_final_per_s: float = 0.03):
+                 d_final_per_s: float = 0.03, v_min_mps: float = 0.0):
         check_bounds(thrust_min_n, thrust_max_n, missing_policy)
+        if not v_min_mps >= 0:
+            raise ValueError(f"v_min_mps must be >= 0, got {v_min_mps}")
+        self.v_min_mps = float(v_min_mps)
         for name, val in (("lambda_per_s", lambda_per_s), ("d_final_per_s", d_final_per_s)):
             if not val > 0:
                 raise ValueError(f"{name} must be > 0, got {val}")
@@ -107,6 +115,11 @@ class DivGSController(Controller):
         mg = m * self.g_mps2
         z = altitude_m.to(torch.float64).clamp_min(1.0)
         d_star, coef = divergence_target(t_s, self.tau0_s, self.c2, self.d_final_per_s)
+        if self.v_min_mps > 0:  # final approach (coef 1) floored at v_min: constant velocity, a_ref = 0
+            floor = -self.v_min_mps / z
+            use = (coef == 1.0) & (floor < d_star)
+            d_star = torch.where(use, floor, d_star)
+            coef = torch.where(use, 0.0, coef)
         usable = ~torch.isnan(d)
         a_ref = coef * d_star * d_star * z
         u = m * (self.g_mps2 + a_ref) + self.lambda_per_s * m * z * (d_star - torch.where(usable, d, 0.0))
