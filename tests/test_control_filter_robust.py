@@ -3,7 +3,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -275,3 +277,52 @@ def test_both_filters_build_from_the_shared_config_section_and_reject_unknown_op
         EfferenceFilter(torch.tensor([1.0], dtype=F64), torch.tensor([-1.0], dtype=F64), 0.1, cauchy_c=2.0)
     with pytest.raises(TypeError, match="huber_k"):
         EfferenceFitFilter(torch.tensor([1.0], dtype=F64), torch.tensor([-1.0], dtype=F64), 0.1, huber_k=2.0)
+
+
+def _slow_approach_with_a_biased_stretch(bias: float):
+    """A div_gs-like descent (D-I start, dispersed 6 % high and 3 % slow): TTC braking, then the constant
+    divergence approach of -0.03 1/s. The estimates are 3 % noisy with confidence 0.9, but at 150 m a 4 s
+    gap (confidence 0) is followed by 3 s of estimates ``bias`` times too large (as a lagging estimator
+    gives after the law changed the acceleration). Returns truth and inputs, one row per control step."""
+    dt, z, v = 0.1, 4000.0 * 1.06, -100.0 * 0.97
+    zs, vs, acc = [], [], []
+    while z > 50.0:
+        on_ttc = z > 2000.0 or v / z < -0.03
+        a = 0.5 * v * v / z if z > 2000.0 else (v * v / z if on_ttc else 0.0009 * z) + 0.5 * (-0.03 * z - v)
+        zs.append(z), vs.append(v), acc.append(a)
+        z, v = z + v * dt + 0.5 * a * dt * dt, v + a * dt
+    zs, vs, acc = (torch.tensor(x, dtype=F64) for x in (zs, vs, acc))
+    k = torch.arange(len(zs), dtype=F64)
+    d = vs / zs * (1 + 0.03 * torch.sin(k * 1.7) * torch.cos(k * 0.23))
+    conf = torch.full_like(d, 0.9)
+    i0 = int((zs < 150.0).nonzero()[0])
+    conf[i0 - 40:i0] = 0.0
+    d[i0:i0 + 30] *= bias
+    return dt, zs, vs, acc, d, conf
+
+
+@pytest.mark.parametrize("bias", [1.2, 1.3])
+def test_preset_fit_keeps_the_velocity_through_a_biased_stretch_near_the_ground(bias):
+    """The slow final approach (2 m/s) turns a velocity error of 2 m/s into an ascent. The fit of
+    ``configs/montecarlo_efference.yaml`` keeps every estimate (no forgetting): the braking higher up
+    fixed the scale, and a few seconds of biased estimates near the ground cannot move it. With the
+    earlier forget_s = 10 the same stretch pulled v_hat 1.6-2.6 m/s off (the scale information had
+    faded); closed loop, those were the ascents at 60-130 m."""
+    dt, zs, vs, acc, d, conf = _slow_approach_with_a_biased_stretch(bias)
+    opts = dataclasses.asdict(load_config("montecarlo_efference").controller.efference)
+    plan = SimpleNamespace(z0_m=torch.tensor([4000.0], dtype=F64), v0_mps=torch.tensor([-100.0], dtype=F64), dt_s=dt)
+
+    def worst_velocity_error(**over):
+        f = EfferenceFitFilter.from_params(plan, **{**opts, **over})
+        worst = 0.0
+        for i in range(len(zs)):
+            f.update(d[i:i + 1], accel_mps2=None if i == 0 else acc[i - 1:i], confidence=conf[i:i + 1])
+            if zs[i] < 300.0:
+                worst = max(worst, abs(f.velocity_mps.item() - vs[i].item()))
+        return worst, f
+
+    worst, f = worst_velocity_error()
+    assert worst < 0.5
+    assert abs(f.altitude_m.item() / zs[-1].item() - 1) < 0.05
+    forgetting, _ = worst_velocity_error(forget_s=10.0)
+    assert forgetting > 3 * worst  # why the preset does not forget
