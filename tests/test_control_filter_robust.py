@@ -287,8 +287,10 @@ def _slow_approach_with_a_biased_stretch(bias: float):
     dt, z, v = 0.1, 4000.0 * 1.06, -100.0 * 0.97
     zs, vs, acc = [], [], []
     while z > 50.0:
-        on_ttc = z > 2000.0 or v / z < -0.03
-        a = 0.5 * v * v / z if z > 2000.0 else (v * v / z if on_ttc else 0.0009 * z) + 0.5 * (-0.03 * z - v)
+        if z > 2000.0:  # TTC braking at c2 = 0.5: a = (1 - c2) v^2 / z
+            a = 0.5 * v * v / z
+        else:  # track D = -0.03 1/s (feed-forward D^2 z once there) with a 0.5 1/s velocity loop
+            a = (v * v / z if v / z < -0.03 else 0.0009 * z) + 0.5 * (-0.03 * z - v)
         zs.append(z)
         vs.append(v)
         acc.append(a)
