@@ -180,7 +180,7 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
         ConfigError: a stage name is not registered (see :func:`check_names`).
         ValueError: an estimator instance built for another batch size.
     """
-    from dvsland.sim.batch import BatchLayout, build_layout
+    from dvsland.layout.batch import BatchLayout, build_layout
 
     if isinstance(sites, BatchLayout):
         layout = sites
@@ -208,7 +208,7 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
 
 
 def _dispersed_scene_kwargs(cfg: Config, layout, renderer) -> dict:
-    """Renderer arguments of a batch with dispersed scenes (:mod:`dvsland.sim.dispersion`): its
+    """Renderer arguments of a batch with dispersed scenes (:mod:`dvsland.layout.dispersion`): its
     scenes' sites (variants), suns and altitude ranges (lazy levels of the fast renderer)."""
     if not layout.scenes_dispersed or not (renderer is None or isinstance(renderer, str)):
         return {}

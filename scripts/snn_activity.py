@@ -22,7 +22,7 @@ import torch
 def main(argv=None) -> int:
     from dvsland.config import load_config
     from dvsland.estimators.snn import SpikingEstimator
-    from dvsland.sim.batch import build_layout
+    from dvsland.layout.batch import build_layout
     from dvsland.stages import build_event_source
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

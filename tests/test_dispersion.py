@@ -13,7 +13,7 @@ import torch
 from dvsland.config import ConfigError, load_config
 from dvsland.config.schema import Dispersion
 from dvsland.sim import build_layout, simulate
-from dvsland.sim.dispersion import element_rng, sample_elements, sample_one
+from dvsland.layout.dispersion import element_rng, sample_elements, sample_one
 
 QUIET = ["logging.figures=false", "logging.tensorboard=false"]
 REF = Path(__file__).parent / "data" / "undispersed_runs_reference.json"

@@ -1,6 +1,6 @@
 """Validation of the ``dispersion`` config section (no torch: the config package stays light).
 
-The sampling itself lives in :mod:`dvsland.sim.dispersion`."""
+The sampling itself lives in :mod:`dvsland.layout.dispersion`."""
 
 from __future__ import annotations
 

@@ -410,7 +410,7 @@ class SimulationConfig:
 class Dispersion:
     """One dispersed parameter: off (the config's nominal value), fixed, uniform on [low, high],
     or normal (mean, std) clipped to [low, high]. Drawn per (site, seed index); see
-    :mod:`dvsland.sim.dispersion`."""
+    :mod:`dvsland.layout.dispersion`."""
 
     kind: str = opt("off", "distribution", choices=("off", "fixed", "uniform", "normal"))
     value: float = opt(0.0, "the value of 'fixed'", rng=(-1e9, 1e9))

@@ -310,7 +310,7 @@ def scene_keys(site_names, suns=None) -> list:
     if len(suns) != len(site_names):
         raise ValueError(f"suns must give one (elevation_deg, azimuth_offset_deg) per site, got {len(suns)} "
                          f"for {len(site_names)} sites")
-    from dvsland.sim.batch import scene_label
+    from dvsland.layout.batch import scene_label
 
     return [scene_label(n, None if e is None else float(e), float(a)) for n, (e, a) in zip(site_names, suns)]
 

@@ -1,6 +1,6 @@
 """Dispersed scenes for the fast renderer: a site (or variant ``A~k``) under another sun.
 
-A scene label is ``<site>[@el<deg>][@az<+deg>]`` (:func:`dvsland.sim.batch.scene_label`):
+A scene label is ``<site>[@el<deg>][@az<+deg>]`` (:func:`dvsland.layout.batch.scene_label`):
 ``E~2@el12@az+5`` is variant 2 of site E lit from 12 deg elevation, its sun azimuth turned by
 +5 deg. Preparing a scene's levels costs what preparing a site costs (about 2 s of CPU), except
 that scenes differing only in sun elevation share their height and albedo fields (the expensive

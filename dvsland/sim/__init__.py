@@ -5,7 +5,7 @@ Public names: :func:`simulate`, :class:`SimulationResult`, :class:`ClosedLoop`,
 """
 
 from .api import simulate
-from .batch import BatchLayout, build_layout, expand_seeds, setting_label
+from dvsland.layout import BatchLayout, build_layout, expand_seeds, setting_label
 from .loop import ClosedLoop
 from .result import TRACE_FIELDS, SimulationResult, TraceRecorder
 from .termination import OUTCOMES, termination_code

@@ -18,7 +18,7 @@ from dvsland.report import write_results_json, write_traces_npz
 from dvsland.runs import guarded_run, make_run_dir
 from dvsland.stages import build_stages, check_names
 
-from .batch import build_layout
+from dvsland.layout import build_layout
 from .callbacks import CallbackList, default_callbacks
 from .loop import ClosedLoop
 from .result import SimulationResult

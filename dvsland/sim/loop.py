@@ -22,7 +22,7 @@ from dvsland.control.gain import loop_gain_fields
 from dvsland.dynamics import LanderDynamics
 from dvsland.estimators import Truth
 
-from .batch import BatchLayout
+from dvsland.layout import BatchLayout
 from .result import TraceRecorder
 from .termination import INTERRUPTED, OUTCOMES, RUNNING, termination_code
 

@@ -54,7 +54,7 @@ def training_sites(variants: Sequence[int] = (1, 2), sites: str = "ABCDEFGHI",
 def _draw_dispersions(dispersion, n_seq: int, rng: np.random.Generator, sun_step_deg: Optional[float]) -> dict:
     """{name: (n_seq,) float64} draws of the enabled scene and sensor dispersions (sun elevation
     rounded to the step, clipped to [1, 90] deg)."""
-    from dvsland.sim.dispersion import sample_one
+    from dvsland.layout.dispersion import sample_one
 
     out = {}
     if dispersion is None or not dispersion.enabled:

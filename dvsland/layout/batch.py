@@ -4,7 +4,7 @@ Element ``b = (i_site * n_settings + i_setting) * n_seeds + i_seed``. Each eleme
 site, initial conditions, gains, filter length and its own seed (expanded from one master seed).
 
 With ``dispersion.enabled`` each element also carries its dispersed values (drawn per site and
-global seed index ``k = simulation.seed_offset + i_seed``, :mod:`dvsland.sim.dispersion`): its
+global seed index ``k = simulation.seed_offset + i_seed``, :mod:`dvsland.layout.dispersion`): its
 scene (terrain variant, sun), initial conditions and sensor parameters. With dispersions off and
 ``seed_offset = 0`` the layout is the one of a plain batch (the same element seeds as always).
 """
