@@ -16,7 +16,7 @@ so importing this module is cheap (no torch).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence, Union
+from typing import TYPE_CHECKING, Any, Callable, NamedTuple, Optional, Sequence, Union
 
 from dvsland.config import Config, ConfigError
 
@@ -137,21 +137,70 @@ def build_controller(cfg: Config, layout, device: Any = "cpu"):
 
 
 # ------------------------------------------------------------------ all of them
-@dataclass
-class Stages:
-    """What :func:`build_stages` returns.
+class LoopSettings(NamedTuple):
+    """The loop's constants, read once from the config (the loop itself never reads the config).
 
     Attributes:
+        dt_s: control step, s.
+        n_steps_max: steps in ``simulation.t_max_s``.
+        t_max_s, success_altitude_m, crash_divergence: termination thresholds (s, m, 1/s).
+        g_mps2: gravity, m/s^2 (the efference copy's acceleration is thrust/m - g).
+        mass_kg: initial mass, kg.
+        render_min_altitude_m, render_max_altitude_m: the renderer's altitude range, m (altitudes
+            are clamped into it before rendering).
+        estimator_name: the configured estimator's name (results and logs).
+    """
+
+    dt_s: float
+    n_steps_max: int
+    t_max_s: float
+    success_altitude_m: float
+    crash_divergence: float
+    g_mps2: float
+    mass_kg: float
+    render_min_altitude_m: float
+    render_max_altitude_m: float
+    estimator_name: str
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> "LoopSettings":
+        import math
+
+        sim, dt = cfg.simulation, float(cfg.dt_s)
+        return cls(dt_s=dt, n_steps_max=int(math.ceil(sim.t_max_s / dt - 1e-9)), t_max_s=float(sim.t_max_s),
+                   success_altitude_m=float(sim.success_altitude_m), crash_divergence=float(sim.crash_divergence),
+                   g_mps2=float(cfg.dynamics.g_mps2), mass_kg=float(cfg.dynamics.mass_kg),
+                   render_min_altitude_m=float(cfg.render.min_altitude_m),
+                   render_max_altitude_m=float(cfg.render.max_altitude_m), estimator_name=str(cfg.estimator.name))
+
+
+@dataclass
+class Stages:
+    """What :func:`build_stages` returns: every box of the loop, built once.
+
+    Attributes:
+        cfg: the resolved config the stages were built from (read, never written).
         layout: the batch layout (B elements).
         estimator: divergence estimator for B elements.
         events: :class:`EventSource`, or None when the estimator needs no events (``oracle``).
         controller: controller for the B elements.
+        filter: the divergence filter (moving average or efference-copy filter).
+        dynamics: :class:`dvsland.dynamics.LanderDynamics`.
+        params: :class:`dvsland.control.DescentParams` of the B elements.
+        settings: :class:`LoopSettings`.
+        device: torch device of the loop state.
     """
 
+    cfg: Any
     layout: Any
     estimator: Any
     events: Optional[EventSource]
     controller: Any
+    filter: Any = None
+    dynamics: Any = None
+    params: Any = None
+    settings: Optional[LoopSettings] = None
+    device: Any = "cpu"
 
     @property
     def renderer(self):
@@ -161,15 +210,23 @@ class Stages:
     def emulator(self):
         return self.events.emulator if self.events is not None else None
 
+    @property
+    def batch_size(self) -> int:
+        return int(self.layout.batch_size)
+
+    @property
+    def needs_events(self) -> bool:
+        return self.events is not None
+
 
 def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None, device: Any = "cpu", *,
                  estimator: Any = None, renderer: Any = None, controller: Any = None) -> Stages:
-    """Build the closed loop's stages for ``cfg``.
+    """Build the closed loop's stages for ``cfg``: the one place that wires them.
 
     Args:
         cfg: the resolved config.
-        sites: a :class:`dvsland.sim.BatchLayout`, or a subset of the configured sites (``"A,B"``
-            or a list; None = all), expanded by :func:`dvsland.sim.build_layout`.
+        sites: a :class:`dvsland.layout.BatchLayout`, or a subset of the configured sites (``"A,B"``
+            or a list; None = all), expanded by :func:`dvsland.layout.build_layout`.
         device: torch device.
         estimator: None (the configured one) or a ready estimator for B elements.
         renderer: None (``render.renderer``), a renderer name, or a renderer object; built only
@@ -178,16 +235,20 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
 
     Raises:
         ConfigError: a stage name is not registered (see :func:`check_names`).
-        ValueError: an estimator instance built for another batch size.
+        ValueError: an estimator instance built for another batch size; an estimator that needs
+            events without a renderer.
     """
-    from dvsland.layout.batch import BatchLayout, build_layout
+    import torch
+
+    from dvsland.control import descent_params, make_filter
+    from dvsland.dynamics import LanderDynamics
+    from dvsland.layout import BatchLayout, build_layout
 
     if isinstance(sites, BatchLayout):
         layout = sites
     else:
-        if isinstance(sites, str):
-            sites = sites.split(",")
-        layout = build_layout(cfg, sites)
+        layout = build_layout(cfg, sites.split(",") if isinstance(sites, str) else sites)
+    device = torch.device(device)
     B = layout.batch_size
     if estimator is None:
         est = build_estimator(cfg, B, device, seed=layout.noise_seed)
@@ -204,7 +265,29 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
             events.emulator.set_element_params(element_seeds=layout.seed, **layout.sensor)
     if controller is None:
         controller = build_controller(cfg, layout, device)
-    return Stages(layout, est, events, controller)
+    params = descent_params(cfg, layout, device)
+    prior = params if cfg.controller.efference.prior_state == "dispersed" else _nominal_params(params, layout)
+    filt = make_filter(cfg, prior, controller)
+    return Stages(cfg, layout, est, events, controller, filter=filt, dynamics=LanderDynamics.from_config(cfg.dynamics),
+                  params=params, settings=LoopSettings.from_config(cfg), device=device)
+
+
+def _nominal_params(params, layout):
+    """``params`` with the sites' undispersed initial state (z0, v0): the efference filter's prior
+    (a craft knows its planned start, not its dispersion). Unchanged when nothing is dispersed."""
+    import dataclasses
+
+    import torch
+
+    scale = {k: layout.dispersed.get(k) for k in ("z0_scale", "v0_scale")}
+    if all(v is None for v in scale.values()):
+        return params
+    z0, v0 = params.z0_m, params.v0_mps
+    if scale["z0_scale"] is not None:
+        z0 = z0 / torch.as_tensor(scale["z0_scale"], dtype=z0.dtype, device=z0.device)
+    if scale["v0_scale"] is not None:
+        v0 = v0 / torch.as_tensor(scale["v0_scale"], dtype=v0.dtype, device=v0.device)
+    return dataclasses.replace(params, z0_m=z0, v0_mps=v0)
 
 
 def _dispersed_scene_kwargs(cfg: Config, layout, renderer) -> dict:
@@ -229,5 +312,5 @@ def _dispersed_scene_kwargs(cfg: Config, layout, renderer) -> dict:
 #: ``f(altitude_m (B,), site_idx (B,) int64) -> (B, H, W)`` float32 frames (torch tensors)
 FrameSource = Callable[[Any, Any], Any]
 
-__all__ = ["Stages", "EventSource", "build_stages", "build_event_source", "build_estimator", "build_controller",
+__all__ = ["Stages", "LoopSettings", "EventSource", "build_stages", "build_event_source", "build_estimator", "build_controller",
            "available_controllers", "check_names", "FrameSource"]

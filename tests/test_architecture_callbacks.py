@@ -19,7 +19,8 @@ class Recorder(Callback):
     def on_start(self, loop):
         self.calls.append(("start", loop.step_index))
 
-    def on_step(self, loop):
+    def on_step(self, loop, out):
+        assert out.step == loop.step_index - 1
         self.calls.append(("step", loop.step_index))
         if self.fail_at is not None and loop.step_index == self.fail_at:
             raise RuntimeError("boom")
@@ -62,7 +63,7 @@ def test_default_callbacks_follow_logging_config(tmp_path):
 
     cfg = load_config("paper", ["estimator.name=oracle", "logging.quiet=true", "logging.tensorboard=false"])
     st = build_stages(cfg, "D")
-    loop = ClosedLoop(cfg, st.layout, st.estimator, controller=st.controller)
+    loop = ClosedLoop(st)
     names = [type(c).__name__ for c in default_callbacks(cfg, tmp_path, loop)]
     assert names == ["FiguresCallback"]
     cfg.logging.quiet, cfg.logging.tensorboard = False, True

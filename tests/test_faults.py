@@ -176,7 +176,7 @@ def test_duplicate_run_labels_rejected(labels):
 # ------------------------------------------------------------------ 7. interruption
 def test_sigterm_is_handled_like_ctrl_c(tmp_path):
     """SIGTERM left results.json at 'running' with no traces."""
-    def on_step(lp):
+    def on_step(lp, out):
         if lp.step_index == 3:
             os.kill(os.getpid(), signal.SIGTERM)
 

@@ -115,9 +115,10 @@ def test_active_mask_freezes_finished(tmp_path):
     # D-I finish (71 s) long before A-C (93 s): nothing about them may change afterwards
     snaps = {}
 
-    def on_step(loop):
-        if loop.step_index in (730, 800):
-            snaps[loop.step_index] = (loop.summaries(), loop.z_m.clone(), loop.v_mps.clone(), loop.m_kg.clone())
+    def on_step(loop, out):
+        st = loop.state
+        if st.step in (730, 800):
+            snaps[st.step] = (loop.summaries(), st.z_m.clone(), st.v_mps.clone(), st.m_kg.clone())
 
     r = _sim(tmp_path, sites="A,D", on_step=on_step)
     (s1, z1, v1, m1), (s2, z2, v2, m2) = snaps[730], snaps[800]
@@ -229,7 +230,7 @@ def test_cuda_matches_cpu(tmp_path):
 
 
 def test_ctrl_c_writes_results_and_cli_returns_130(tmp_path, monkeypatch):
-    def on_step(loop):
+    def on_step(loop, out):
         if loop.step_index == 7:
             raise KeyboardInterrupt
 

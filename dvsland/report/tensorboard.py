@@ -44,6 +44,10 @@ SCALAR_TAGS = {
     "tau_target_s": "ttc/target_s", "tau_hat_s": "ttc/estimated_s", "n_used": "control/n_used",
 }
 
+#: the per-step fields the logger reads from a StepOutput (besides t_s)
+TRACE_ROW_FIELDS = ("z_m", "v_mps", "m_kg", "thrust_n", "d_true", "d_est", "d_filtered", "tau_target_s", "tau_hat_s",
+                    "n_used", "active", "held")
+
 #: the HParams metrics of a closed-loop descent (scalar tag -> results.json key or a derived value)
 OUTCOME_METRICS = ("outcome/success", "outcome/t_end_s", "outcome/lowest_altitude_m", "outcome/v_end_mps",
                    "outcome/fuel_used_kg", "outcome/max_thrust_kN", "outcome/median_abs_rel_err")
@@ -191,7 +195,7 @@ def descent_layout() -> dict:
 
 
 class TensorBoardLogger:
-    """Writes a :class:`dvsland.sim.loop.ClosedLoop`'s traces and images as it flies.
+    """Writes a flight's scalars and images from its :class:`dvsland.sim.StepOutput` s as it flies.
 
     Args:
         log_dir: folder (``<run_dir>/tb``); if it already holds TensorBoard files the logger writes
@@ -217,6 +221,7 @@ class TensorBoardLogger:
         self.writers = [summary_writer(self.log_dir / run_folder_name(r)) for r in self.run_labels]
         self.top.add_custom_scalars(descent_layout())
         self._written_rows = 0
+        self._rows: List[dict] = []  # buffered step rows, written every flush_every steps
         self._closed = False
 
     def _wall(self, t_s: float) -> float:
@@ -280,33 +285,39 @@ class TensorBoardLogger:
             add_histogram_fixed(self.writers[b], "divergence/rel_error", r, flight_step(t_s[last, b]),
                                 self._wall(t_s[last, b]))
 
-    def on_step(self, loop) -> None:
-        """Call after each loop step: flushes scalars periodically, logs images every few seconds."""
-        k = loop.step_index  # rows [0, k) are recorded
-        if (k - 1) % self.image_every == 0:
-            self._images(loop, k - 1)
-        if k - self._written_rows >= self.flush_every:
-            self._flush_rows(loop, k)
+    def on_step(self, out) -> None:
+        """Call after each loop step with its :class:`dvsland.sim.StepOutput`: buffers the step's
+        scalars and writes them every ``flush_every`` steps; logs images every ``image_every`` steps."""
+        if out.step % self.image_every == 0:
+            self._images(out)
+        row = {k: getattr(out, k) for k in TRACE_ROW_FIELDS}
+        row["t_s"] = torch.full_like(out.z_m, float(out.t_s))
+        self._rows.append(row)
+        if len(self._rows) >= self.flush_every:
+            self._flush_buffered()
 
-    def _flush_rows(self, loop, stop_row: int) -> None:
-        if stop_row <= self._written_rows:
+    def _flush_buffered(self) -> None:
+        if not self._rows:
             return
-        tr = loop.traces.numpy(self._written_rows, stop_row)
+        tr = {k: torch.stack([torch.as_tensor(r[k], dtype=torch.float64 if k not in ("active", "held") else torch.bool)
+                              .to(r["z_m"].device).expand_as(r["z_m"]) for r in self._rows]).cpu().numpy()
+              for k in self._rows[0]}
         self.write_rows(tr, self._written_rows)
-        self._written_rows = stop_row
+        self._written_rows += len(self._rows)
+        self._rows = []
 
-    def _images(self, loop, row: int) -> None:
-        diag = {}
+    def _images(self, out) -> None:
         try:
-            diag = loop.estimator.diagnostics() or {}
+            diag = out.diagnostics() or {}
         except Exception:  # diagnostics are optional; never break the run for them
             diag = {}
+        row = out.step
         cents = diag.get("centroids")
         cents = cents.detach().cpu().numpy() if isinstance(cents, torch.Tensor) else None
-        active = loop.traces.flags["active"][row].cpu().numpy()
-        frames = loop.last_frames.detach().float().cpu().numpy() if loop.last_frames is not None else None
+        active = out.active.cpu().numpy()
+        frames = out.frames.detach().float().cpu().numpy() if out.frames is not None else None
         counts = None
-        ev = loop.last_events
+        ev = out.events
         if ev is not None and frames is not None and hasattr(ev, "to_count_image"):
             B, H, W = frames.shape
             counts = ev.to_count_image(B, H, W).detach().cpu().numpy()
@@ -363,24 +374,23 @@ class TensorBoardLogger:
                       step=[flight_step(t) for t in t_end])
 
     # -------------------------------------------------------------- end
-    def close(self, loop=None, table_markdown: Optional[str] = None) -> None:
-        """Write the remaining rows, the HParams of every descent (when ``loop`` is given), the
+    def close(self, result=None, table_markdown: Optional[str] = None, renderer: Optional[str] = None) -> None:
+        """Write the buffered rows, the rest of ``result.traces`` (the final state), the HParams of
+        every descent (when ``result``, a :class:`dvsland.sim.SimulationResult`, is given), the
         results table, and close every file (safe to call twice)."""
         if self._closed:
             return
         try:
-            if loop is not None:
-                self._flush_rows(loop, loop.traces.rows)
-                extra = {}
-                rend = getattr(getattr(getattr(loop, "cfg", None), "render", None), "renderer", None)
-                if rend is not None and getattr(loop, "renderer", None) is not None:
-                    extra["renderer"] = str(rend)
+            self._flush_buffered()
+            if result is not None:
+                traces = result.traces
+                n = traces["z_m"].shape[0] if traces else 0
+                if n > self._written_rows:
+                    self.write_rows({k: v[self._written_rows:] for k, v in traces.items()
+                                     if k in TRACE_ROW_FIELDS or k == "t_s"}, self._written_rows)
+                    self._written_rows = n
                 try:
-                    traces = loop.traces_numpy()
-                except Exception:  # a loop stand-in without traces: outcomes only
-                    traces = None
-                try:
-                    self.add_hparams(loop.summaries(), traces, extra)
+                    self.add_hparams(result.runs, traces, {"renderer": renderer} if renderer else {})
                 except Exception as exc:  # never lose the run's other outputs over its HParams
                     import warnings
 

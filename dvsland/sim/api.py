@@ -83,7 +83,8 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
         out: run folder (default ``<logging.root>/<name>-<UTC stamp>/``).
         quiet: no progress bar or printed table (overrides ``logging.quiet``).
         overrides: ``section.key=value`` strings applied to a config file.
-        on_step: optional callable ``f(loop)`` after every step (tests, custom logging).
+        on_step: optional callable ``f(loop, out)`` after every step, with the :class:`ClosedLoop` (its
+            ``state`` is the :class:`LoopState` after the step) and the step's :class:`StepOutput`.
         sync_timers: synchronise CUDA around the per-stage timers (profiling).
         controller: a controller name (sets ``controller.name``) or a :class:`dvsland.control.Controller`
             instance for the B elements
@@ -117,14 +118,13 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
         check_names(cfg)
     run_dir = make_run_dir(cfg, out)  # config.yaml first: a failing set-up still leaves it
     instance = estimator is not None and not isinstance(estimator, str)
+    est_name = cfg.estimator.name
+    if instance:  # the instance's own name in summaries; the config is final before the stages are built
+        est_name = type(estimator).__name__
+        cfg.estimator.name = getattr(estimator, "name", cfg.estimator.name)
     stages = build_stages(cfg, layout, dev, estimator=estimator if instance else None, renderer=renderer,
                           controller=controller)
-    est_name = cfg.estimator.name
-    if instance:
-        est_name = type(stages.estimator).__name__
-        cfg.estimator.name = getattr(stages.estimator, "name", cfg.estimator.name)
-    loop = ClosedLoop(cfg, layout, stages.estimator, stages.renderer, stages.emulator, dev,
-                      sync_timers=sync_timers, controller=stages.controller)
+    loop = ClosedLoop(stages, sync_timers=sync_timers)
     meta = _run_meta(cfg, est_name, dev, layout.batch_size, stages.events is not None)
     cbs = CallbackList([])
     try:

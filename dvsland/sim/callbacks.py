@@ -3,7 +3,9 @@
 A callback is any object with some of these methods (all optional, see :class:`Callback`):
 
 - ``on_start(loop)``: once, before the first step (the run folder and config.yaml exist);
-- ``on_step(loop)``: after every step (timed as the loop's ``logging`` stage);
+- ``on_step(loop, out)``: after every step (timed as the loop's ``logging`` stage), with the step's
+  typed :class:`dvsland.sim.StepOutput`; ``loop.state`` is the :class:`dvsland.sim.LoopState`
+  after the step;
 - ``on_end(loop, result)``: once, after results.json and traces.npz are written, also when the
   run was interrupted (``result.status``); it may add entries to ``result.timings_s``;
 - ``close()``: always, last (also after an exception), to release files.
@@ -30,7 +32,7 @@ class Callback:
     def on_start(self, loop) -> None:
         pass
 
-    def on_step(self, loop) -> None:
+    def on_step(self, loop, out) -> None:
         pass
 
     def on_end(self, loop, result) -> None:
@@ -41,13 +43,13 @@ class Callback:
 
 
 class StepFunction(Callback):
-    """Calls ``fn(loop)`` after every step (``simulate(on_step=fn)``)."""
+    """Calls ``fn(loop, out)`` after every step (``simulate(on_step=fn)``)."""
 
     def __init__(self, fn: Callable):
         self.fn = fn
 
-    def on_step(self, loop) -> None:
-        self.fn(loop)
+    def on_step(self, loop, out) -> None:
+        self.fn(loop, out)
 
 
 class TensorBoardCallback(Callback):
@@ -61,14 +63,16 @@ class TensorBoardCallback(Callback):
         self.tb = TensorBoardLogger(Path(run_dir) / "tb", run_labels, cfg.dt_s, scalar_every_s=lg.scalar_every_s,
                                     image_every_s=lg.image_every_s)
         self.tb.add_config(dump_config(cfg))
+        self.renderer = cfg.render.renderer
 
-    def on_step(self, loop) -> None:
-        self.tb.on_step(loop)
+    def on_step(self, loop, out) -> None:
+        self.tb.on_step(out)
 
     def on_end(self, loop, result) -> None:
         from dvsland.report import format_table
 
-        self.tb.close(loop, format_table(result.runs, markdown=True))
+        rend = self.renderer if result.runs and loop.stages.events is not None else None
+        self.tb.close(result, format_table(result.runs, markdown=True), renderer=rend)
 
     def close(self) -> None:
         self.tb.close()
@@ -87,10 +91,10 @@ class ProgressCallback(Callback):
         self.bar = tqdm(total=self.total, unit="step", desc=f"simulate B={self.batch_size}", leave=False,
                         file=sys.stderr)
 
-    def on_step(self, loop) -> None:
+    def on_step(self, loop, out) -> None:
         self.bar.update(1)
-        if loop.step_index % 10 == 0:
-            self.bar.set_postfix(t=f"{loop.t_s:.1f}s", active=int(loop.active.sum()))
+        if (out.step + 1) % 10 == 0:
+            self.bar.set_postfix(t=f"{out.t_s:.1f}s", active=int(out.active.sum()))
 
     def on_end(self, loop, result) -> None:
         self.close()
@@ -182,8 +186,8 @@ class CallbackList(Callback):
     def on_start(self, loop) -> None:
         self._call("on_start", loop)
 
-    def on_step(self, loop) -> None:
-        self._call("on_step", loop)
+    def on_step(self, loop, out) -> None:
+        self._call("on_step", loop, out)
 
     def on_end(self, loop, result) -> None:
         self._call("on_end", loop, result)

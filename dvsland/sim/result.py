@@ -42,6 +42,21 @@ class TraceRecorder:
             target[row] = v
         self.rows = max(self.rows, row + 1)
 
+    def record_output(self, out) -> None:
+        """Write one :class:`dvsland.sim.StepOutput` into row ``out.step``."""
+        extra = {} if out.z_est_m is None else {"z_est_m": out.z_est_m}
+        self.record(out.step, t_s=out.t_s, z_m=out.z_m, v_mps=out.v_mps, m_kg=out.m_kg, thrust_n=out.thrust_n,
+                    d_true=out.d_true, d_est=out.d_est, d_filtered=out.d_filtered, tau_target_s=out.tau_target_s,
+                    tau_hat_s=out.tau_hat_s, n_used=out.n_used, d_conf=out.d_conf, active=out.active,
+                    held=out.held, **extra)
+
+    def record_final(self, state, dt_s: float) -> None:
+        """Write the final :class:`dvsland.sim.LoopState` as row ``state.step`` (thrust NaN), if it fits."""
+        k = state.step
+        if k < self.n_rows:
+            self.record(k, t_s=k * dt_s, z_m=state.z_m, v_mps=state.v_mps, m_kg=state.m_kg,
+                        d_true=state.v_mps / state.z_m, active=state.active)
+
     def numpy(self, start: int = 0, stop: Optional[int] = None) -> Dict[str, np.ndarray]:
         """Rows [start, stop) (default all recorded) as numpy arrays."""
         stop = self.rows if stop is None else stop
