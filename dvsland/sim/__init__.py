@@ -1,14 +1,27 @@
 """The batched closed-loop descent simulator.
 
-Public names: :func:`simulate`, :class:`SimulationResult`, :class:`ClosedLoop`,
-:func:`build_layout`, :class:`BatchLayout`, :func:`termination_code`, :data:`OUTCOMES`.
+The loop is one typed state and one step: :func:`init_state` gives the :class:`LoopState` of B
+descents, :func:`loop_step` flies one control step and returns the next state and the step's
+:class:`StepOutput`. Everything that flies descents runs on it: :func:`simulate` (through the
+:class:`ClosedLoop` driver and its callbacks), campaigns, the bench, the open-loop evaluation, the
+datasets of :mod:`dvsland.data` and the environment of :mod:`dvsland.envs`.
+
+Public names: :func:`simulate`, :class:`SimulationResult`, :class:`ClosedLoop`, :class:`LoopState`,
+:class:`StepOutput`, :func:`init_state`, :func:`loop_step`, :func:`clone_state`, :func:`save_state`,
+:func:`load_state`, :class:`StaleStateError`, :func:`build_layout`, :class:`BatchLayout`,
+:func:`termination_code`, :data:`OUTCOMES`.
 """
 
-from .api import simulate
 from dvsland.layout import BatchLayout, build_layout, expand_seeds, setting_label
-from .loop import ClosedLoop
+
+from .api import simulate
+from .loop import ClosedLoop, run_summaries
 from .result import TRACE_FIELDS, SimulationResult, TraceRecorder
+from .state import LoopState, StaleStateError, clone_state, load_state, save_state
+from .step import StepOutput, init_state, loop_step
 from .termination import OUTCOMES, termination_code
 
-__all__ = ["simulate", "SimulationResult", "ClosedLoop", "BatchLayout", "build_layout", "expand_seeds",
-           "setting_label", "termination_code", "OUTCOMES", "TRACE_FIELDS", "TraceRecorder"]
+__all__ = ["simulate", "SimulationResult", "ClosedLoop", "LoopState", "StepOutput", "init_state", "loop_step",
+           "clone_state", "save_state", "load_state", "StaleStateError", "run_summaries", "BatchLayout",
+           "build_layout", "expand_seeds", "setting_label", "termination_code", "OUTCOMES", "TRACE_FIELDS",
+           "TraceRecorder"]
