@@ -290,18 +290,22 @@ class TensorBoardLogger:
         scalars and writes them every ``flush_every`` steps; logs images every ``image_every`` steps."""
         if out.step % self.image_every == 0:
             self._images(out)
-        row = {k: getattr(out, k) for k in TRACE_ROW_FIELDS}
-        row["t_s"] = torch.full_like(out.z_m, float(out.t_s))
-        self._rows.append(row)
+        z = out.z_m
+        row = [z.new_full(z.shape, float(out.t_s))]
+        for k in TRACE_ROW_FIELDS:
+            v = getattr(out, k)
+            row.append(v.to(z.dtype) if isinstance(v, torch.Tensor) else z.new_full(z.shape, float(v)))
+        self._rows.append(torch.stack(row))  # (1 + fields, B): one small copy per step
         if len(self._rows) >= self.flush_every:
             self._flush_buffered()
 
     def _flush_buffered(self) -> None:
         if not self._rows:
             return
-        tr = {k: torch.stack([torch.as_tensor(r[k], dtype=torch.float64 if k not in ("active", "held") else torch.bool)
-                              .to(r["z_m"].device).expand_as(r["z_m"]) for r in self._rows]).cpu().numpy()
-              for k in self._rows[0]}
+        block = torch.stack(self._rows, dim=1).cpu().numpy()  # (1 + fields, rows, B)
+        tr = {"t_s": block[0]}
+        for i, k in enumerate(TRACE_ROW_FIELDS, start=1):
+            tr[k] = block[i] != 0 if k in ("active", "held") else block[i]
         self.write_rows(tr, self._written_rows)
         self._written_rows += len(self._rows)
         self._rows = []
