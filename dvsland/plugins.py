@@ -71,3 +71,67 @@ class PluginRegistry:
         """The entry registered as ``name``, or None."""
         self.load_entry_points()
         return self.entries.get(name)
+
+
+# ------------------------------------------------------------------ the contract at the boundary
+class PluginError(ValueError):
+    """A stage plug-in (estimator, controller, filter) broke its contract or raised.
+
+    Attributes:
+        plugin: the plug-in's name as configured (``estimator.name``, ``controller.name``).
+        call: the call that failed (``__init__``, ``reset``, ``update``, ``confidence``, ``__call__``).
+        plugin_traceback: the plug-in's own traceback text when it raised, else "".
+    """
+
+    def __init__(self, plugin: str, call: str, message: str, plugin_traceback: str = ""):
+        self.plugin, self.call, self.plugin_traceback = str(plugin), str(call), plugin_traceback
+        super().__init__(f"plug-in {self.plugin!r}, call {self.call}: {message}")
+
+
+def call_plugin(plugin: str, call: str, fn: Callable, *args, **kwargs):
+    """``fn(*args, **kwargs)``; anything it raises (``SystemExit``, ``RecursionError`` and
+    ``MemoryError`` included; not Ctrl-C) becomes one :class:`PluginError` naming the plug-in and the
+    call, with the plug-in's traceback kept in ``plugin_traceback``."""
+    import traceback
+
+    try:
+        return fn(*args, **kwargs)
+    except PluginError:
+        raise
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - every failure of user code, one error
+        raise PluginError(plugin, call, f"raised {type(exc).__name__}: {_short(exc)}",
+                          traceback.format_exc(limit=-20)) from None
+
+
+def _short(exc: BaseException, limit: int = 300) -> str:
+    text = str(exc)
+    return text if len(text) <= limit else text[:limit] + " ..."
+
+
+def check_batch_tensor(value, batch_size: int, device, plugin: str, call: str, allow_none: bool = False):
+    """The (B,) floating tensor a plug-in returned, detached, or a :class:`PluginError` saying what
+    was expected and what came back (type, shape, dtype, device).
+
+    Args:
+        value: what the plug-in returned.
+        batch_size: B.
+        device: the loop's torch device (a CPU result for a CUDA loop and the reverse are errors).
+        plugin, call: for the message.
+        allow_none: None is accepted (returned as None), e.g. for ``confidence()``.
+    """
+    import torch
+
+    if value is None and allow_none:
+        return None
+    want = f"a torch.Tensor of shape ({batch_size},) with a floating dtype on {torch.device(device)}"
+    if not isinstance(value, torch.Tensor):
+        raise PluginError(plugin, call, f"expected {want}, got {type(value).__name__} {_short(repr(value), 80)}")
+    got = f"shape {tuple(value.shape)}, dtype {value.dtype}, device {value.device}"
+    if tuple(value.shape) != (batch_size,):
+        raise PluginError(plugin, call, f"expected {want}, got {got}")
+    if not value.dtype.is_floating_point:  # bool, int and complex are not divergences
+        raise PluginError(plugin, call, f"expected {want}, got {got}")
+    dev = torch.device(device)
+    if value.device.type != dev.type or None not in (value.device.index, dev.index) and value.device.index != dev.index:
+        raise PluginError(plugin, call, f"expected {want}, got {got}")
+    return value.detach()

@@ -129,18 +129,23 @@ def _finish_interrupted(run_dir: Path, exc: BaseException) -> None:
     """Give ``run_dir`` a results.json saying ``interrupted`` unless it already holds a final one."""
     from .report.results import read_results_json, write_results_json
 
+    from .plugins import PluginError
+
     path = run_dir / "results.json"
     error = f"{type(exc).__name__}: {exc}"
+    status = "failed" if isinstance(exc, PluginError) else "interrupted"  # a plug-in broke its contract
     try:
+        if isinstance(exc, PluginError) and exc.plugin_traceback:
+            (run_dir / "plugin_error.log").write_text(f"{exc}\n\n{exc.plugin_traceback}")
         if path.is_file():
             data = read_results_json(path)
             if data.get("status") not in ("running", None):
                 return  # the command wrote its own final status
             runs = data.pop("runs", [])
-            data.update(status="interrupted", error=data.get("error") or error, phase=data.get("phase", "run"))
+            data.update(status=status, error=data.get("error") or error, phase=data.get("phase", "run"))
             write_results_json(path, runs, **data)
         else:
-            write_results_json(path, [], status="interrupted", phase="setup", error=error)
+            write_results_json(path, [], status=status, phase="setup", error=error)
     except Exception:  # noqa: BLE001 - never hide the original error behind a bookkeeping one
         pass
 

@@ -251,7 +251,7 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
     device = torch.device(device)
     B = layout.batch_size
     if estimator is None:
-        est = build_estimator(cfg, B, device, seed=layout.noise_seed)
+        est = _build_plugin_estimator(cfg, B, device, layout.noise_seed)
     else:
         est = estimator
         if getattr(est, "batch_size", B) != B:
@@ -270,6 +270,22 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
     filt = make_filter(cfg, prior, controller)
     return Stages(cfg, layout, est, events, controller, filter=filt, dynamics=LanderDynamics.from_config(cfg.dynamics),
                   params=params, settings=LoopSettings.from_config(cfg), device=device)
+
+
+def _build_plugin_estimator(cfg: Config, batch_size: int, device, seed):
+    """The configured estimator; one built from an import path (``pkg.mod:Class``, ``file.py:Class``)
+    is user code: whatever its construction raises, or an object without ``update`` and ``reset``,
+    is one :class:`dvsland.plugins.PluginError` naming it."""
+    from dvsland.plugins import PluginError, call_plugin
+
+    name = cfg.estimator.name
+    if ":" not in name:  # a built-in or registered estimator: its own errors name its parameters
+        return build_estimator(cfg, batch_size, device, seed=seed)
+    est = call_plugin(name, "__init__", build_estimator, cfg, batch_size, device, seed=seed)
+    if not all(callable(getattr(est, m, None)) for m in ("update", "reset")):
+        raise PluginError(name, "__init__", f"expected a divergence estimator (an object with update() and "
+                                            f"reset()), got {type(est).__name__}")
+    return est
 
 
 def _nominal_params(params, layout):

@@ -13,6 +13,7 @@ import dvsland
 from dvsland.config import load_config
 from dvsland.dynamics import closed_form_state, closed_form_time_to_altitude
 from dvsland.estimators import make_estimator
+from dvsland.plugins import PluginError
 from dvsland.sim import OUTCOMES, build_layout, expand_seeds, setting_label, simulate
 
 QUIET = ["logging.figures=false", "logging.tensorboard=false"]
@@ -161,10 +162,11 @@ def test_raising_half_way_leaves_results_and_logs(tmp_path):
 
     est.update = update
     out = tmp_path / "crash"
-    with pytest.raises(_Boom):
+    with pytest.raises(PluginError, match="plug-in 'OracleEstimator', call update: raised _Boom: sensor died"):
         simulate(cfg, estimator=est, sites="A", out=out, quiet=True)
     res = json.loads((out / "results.json").read_text())
-    assert res["status"] == "interrupted" and "sensor died" in res["error"]
+    assert res["status"] == "failed" and "sensor died" in res["error"]
+    assert "_Boom" in (out / "plugin_error.log").read_text()
     assert {r["outcome"] for r in res["runs"]} == {"interrupted"}
     assert all(r["t_end_s"] == pytest.approx(3.0) for r in res["runs"])
     tr = np.load(out / "traces.npz")

@@ -26,7 +26,7 @@ from dvsland.dynamics import LanderDynamics, closed_form_time_to_altitude
 from dvsland.estimators import DivergenceEstimator, get_estimator, make_estimator
 from dvsland.events import EventEmulator
 from dvsland.sim import simulate
-from dvsland.sim.loop import D_HAT_ABS_MAX, sanitise_estimates
+from dvsland.sim.step import D_HAT_ABS_MAX, sanitise_estimates
 
 QUIET = ["logging.figures=false", "logging.tensorboard=false"]
 

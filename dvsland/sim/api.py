@@ -121,7 +121,7 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
     est_name = cfg.estimator.name
     if instance:  # the instance's own name in summaries; the config is final before the stages are built
         est_name = type(estimator).__name__
-        cfg.estimator.name = getattr(estimator, "name", cfg.estimator.name)
+        cfg.estimator.name = str(getattr(estimator, "name", None) or est_name)
     stages = build_stages(cfg, layout, dev, estimator=estimator if instance else None, renderer=renderer,
                           controller=controller)
     loop = ClosedLoop(stages, sync_timers=sync_timers)
@@ -138,7 +138,7 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
             cbs.on_start(loop)
             loop.run(cbs.on_step)
         except BaseException as exc:  # noqa: BLE001 - Ctrl-C too: write what we have, then re-raise
-            status, error, exc_to_raise = "interrupted", f"{type(exc).__name__}: {exc}", exc
+            status, error, exc_to_raise = _failure(exc, run_dir)
         loop_s = time.perf_counter() - t_loop
         # ---- write
         result = _write_outputs(loop, run_dir, meta, status, error, t_start,
@@ -150,6 +150,22 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
     if exc_to_raise is not None:
         raise exc_to_raise
     return result
+
+
+def _failure(exc: BaseException, run_dir: Path):
+    """(status, error text, the exception to re-raise) of a loop that ended in ``exc``: a plug-in
+    that broke its contract is ``failed`` (its own traceback goes to ``plugin_error.log``), anything
+    else (Ctrl-C, SIGTERM, a callback) ``interrupted``."""
+    from dvsland.plugins import PluginError
+
+    if isinstance(exc, PluginError):
+        if exc.plugin_traceback:
+            try:
+                (Path(run_dir) / "plugin_error.log").write_text(f"{exc}\n\n{exc.plugin_traceback}")
+            except OSError:
+                pass
+        return "failed", f"{type(exc).__name__}: {exc}", exc
+    return "interrupted", f"{type(exc).__name__}: {exc}", exc
 
 
 def _write_outputs(loop: ClosedLoop, run_dir: Path, meta: dict, status: str, error, t_start: float,

@@ -23,6 +23,7 @@ from typing import Any, Callable, NamedTuple, Optional, Tuple
 import torch
 
 from dvsland.estimators import Truth
+from dvsland.plugins import PluginError, call_plugin, check_batch_tensor
 
 from .state import LoopState, adopt_state, advance_generation, live_handle
 from .termination import RUNNING, termination_code
@@ -99,15 +100,21 @@ def sanitise_estimates(d_hat: torch.Tensor, abs_max: float = D_HAT_ABS_MAX):
     return torch.where(bad, torch.full_like(d_hat, float("nan")), d_hat), bad
 
 
-def estimator_confidence(estimator, d_hat: torch.Tensor) -> torch.Tensor:
+def estimator_confidence(estimator, d_hat: torch.Tensor, name: str = "estimator") -> torch.Tensor:
     """The estimator's ``confidence()`` (B,) as float64 in [0, 1] on ``d_hat``'s device; 1 where an
-    estimator has no ``confidence()`` and its estimate is finite; 0 where ``d_hat`` is NaN (missing
-    or sanitised) or the confidence is not finite."""
+    estimator has no ``confidence()`` (or it returns None) and its estimate is finite; 0 where
+    ``d_hat`` is NaN (missing or sanitised) or the confidence is not finite.
+
+    Raises:
+        PluginError: ``confidence()`` raised or returned something other than None or a (B,)
+            floating tensor on the loop's device (``name`` is the plug-in's name in the message).
+    """
     fn = getattr(estimator, "confidence", None)
-    c = None if fn is None else fn()
+    c = None if not callable(fn) else call_plugin(name, "confidence", fn)
+    c = check_batch_tensor(c, d_hat.shape[0], d_hat.device, name, "confidence", allow_none=True)
     if c is None:
         c = torch.ones_like(d_hat)
-    c = torch.as_tensor(c).to(device=d_hat.device, dtype=torch.float64).reshape(d_hat.shape)
+    c = c.to(dtype=torch.float64)
     ok = torch.isfinite(d_hat) & torch.isfinite(c)
     return torch.where(ok, c.clamp(0.0, 1.0), torch.zeros_like(c))
 
@@ -130,8 +137,9 @@ def init_state(stages, z_m=None, v_mps=None, m_kg=None) -> LoopState:
     z = _start("z_m", L.tensor("z0_m", dev, f64) if z_m is None else z_m, B, dev, positive=True)
     v = _start("v_mps", L.tensor("v0_mps", dev, f64) if v_mps is None else v_mps, B, dev)
     m = _start("m_kg", stages.settings.mass_kg if m_kg is None else m_kg, B, dev, positive=True)
-    for stage in (stages.estimator, stages.filter, stages.controller):
-        stage.reset(None)
+    names = (stages.settings.estimator_name, "filter", _controller_name(stages))
+    for name, stage in zip(names, (stages.estimator, stages.filter, stages.controller)):
+        call_plugin(name, "reset", stage.reset, None)
     zeros_i = torch.zeros(B, dtype=torch.int64, device=dev)
     zeros_f = torch.zeros(B, dtype=f64, device=dev)
     state = LoopState(step=0, z_m=z, v_mps=v, m_kg=m, active=torch.ones(B, dtype=torch.bool, device=dev),
@@ -140,6 +148,11 @@ def init_state(stages, z_m=None, v_mps=None, m_kg=None) -> LoopState:
                       n_sanitised=zeros_i.clone(), n_positive=zeros_i.clone(), last_thrust_n=None,
                       last_mass_kg=None, last_frames=None, stage_state=advance_generation(stages))
     return state
+
+
+def _controller_name(stages) -> str:
+    ctl = stages.controller
+    return str(getattr(ctl, "controller_name", None) or stages.cfg.controller.name)
 
 
 def _start(name: str, value, B: int, dev, positive: bool = False) -> torch.Tensor:
@@ -235,14 +248,16 @@ def _scene_index(stages) -> torch.Tensor:
 
 def _estimate(stages, state: LoopState, events, t_us: int):
     """(d_hat (B,) float64 sanitised, confidence (B,) float64, bad (B,) bool)."""
-    B, dev = state.batch_size, state.z_m.device
+    B, dev, name = state.batch_size, state.z_m.device, stages.settings.estimator_name
     if stages.events is not None and events is None:  # first frame: no events yet
         d_hat = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
     else:
-        d_hat = stages.estimator.update(events, t_us, truth=Truth(altitude_m=state.z_m, velocity_mps=state.v_mps))
-    d_hat = d_hat.to(device=dev, dtype=torch.float64)
+        truth = Truth(altitude_m=state.z_m, velocity_mps=state.v_mps)
+        d_hat = call_plugin(name, "update", stages.estimator.update, events, t_us, truth=truth)
+        d_hat = check_batch_tensor(d_hat, B, dev, name, "update")
+    d_hat = d_hat.to(dtype=torch.float64)
     d_hat, bad = sanitise_estimates(d_hat)  # +-inf or absurd |D_hat| -> NaN, counted
-    return d_hat, estimator_confidence(stages.estimator, d_hat), bad
+    return d_hat, estimator_confidence(stages.estimator, d_hat, name), bad
 
 
 def _control(stages, state: LoopState, d_hat, conf, t_s: float):
@@ -254,11 +269,14 @@ def _control(stages, state: LoopState, d_hat, conf, t_s: float):
     d_f, n_used = stages.filter.update(d_hat, mask=state.active, accel_mps2=accel,
                                        thrust_accel_mps2=thrust_accel, confidence=conf)
     z_hat = getattr(stages.filter, "altitude_m", None)
-    ctl = stages.controller
-    if getattr(ctl, "needs_altitude", False):
-        out = ctl(t_s, d_f, state.m_kg, state.active, altitude_m=z_hat)
-    else:
-        out = ctl(t_s, d_f, state.m_kg, state.active)
+    ctl, name = stages.controller, _controller_name(stages)
+    kw = {"altitude_m": z_hat} if getattr(ctl, "needs_altitude", False) else {}
+    out = call_plugin(name, "__call__", ctl, t_s, d_f, state.m_kg, state.active, **kw)
+    thrust = getattr(out, "thrust_n", None)
+    thrust = check_batch_tensor(thrust, state.batch_size, state.z_m.device, name, "__call__ (thrust_n)")
+    if bool(torch.isnan(thrust).any()):
+        raise PluginError(name, "__call__", "thrust_n is NaN; a law must command a number (hover or hold when "
+                                            "its input is missing)")
     return out, d_f, n_used, z_hat
 
 
