@@ -1,0 +1,232 @@
+"""dvsland.envs: the gymnasium vector env over the batched loop flies the descents of
+dvsland.simulate when fed the shipped controller's commands, follows gymnasium's API (check_env,
+NEXT_STEP autoreset, seeding) and refuses bad observation names and actions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+gym = pytest.importorskip("gymnasium")
+
+import dvsland  # noqa: E402
+from dvsland.envs import ENV_ID, LandingEnv, LandingVectorEnv  # noqa: E402
+from dvsland.sim import init_state, loop_step  # noqa: E402
+from dvsland.stages import build_stages  # noqa: E402
+
+QUIET = ["logging.tensorboard=false", "logging.figures=false", "render.threads=1"]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def fly_episode(env, policy=None, max_steps=100_000):
+    """Run one batch episode; ``policy(obs, info)`` -> actions (default: the controller's commands).
+    Returns (per-element outcome names, t_end_s, z_end_m, rewards summed) and the step count."""
+    obs, info = env.reset()
+    B = env.num_envs
+    outcome, t_end, z_end = [None] * B, np.full(B, np.nan), np.full(B, np.nan)
+    ret = np.zeros(B)
+    for n in range(max_steps):
+        act = info["controller_thrust_n"] if policy is None else policy(obs, info)
+        obs, rew, term, trunc, info = env.step(np.nan_to_num(act))
+        ret += rew
+        for b in np.flatnonzero(term | trunc):
+            outcome[b], t_end[b], z_end[b] = info["outcome"][b], info["t_s"][b], info["z_m"][b]
+        if all(o is not None for o in outcome):
+            return (outcome, t_end, z_end, ret), n + 1
+    raise AssertionError("episode did not end")
+
+
+@pytest.mark.parametrize("preset,overrides", [("paper", []), ("montecarlo_efference", ["simulation.n_seeds=2"])])
+def test_controller_commands_reproduce_simulate(tmp_path, preset, overrides):
+    """Raw thrust actions = info['controller_thrust_n']: same outcome, t_end and final altitude (bit
+    for bit) as dvsland.simulate, oracle estimator, sites D and H."""
+    env = LandingVectorEnv(config=preset, overrides=overrides + QUIET, sites="D,H", estimator="oracle",
+                           observation="oracle", action="thrust_n")
+    (outcome, t_end, z_end, _), _ = fly_episode(env)
+    res = dvsland.simulate(preset, estimator="oracle", sites="D,H", quiet=True, out=tmp_path / "run",
+                           overrides=overrides + QUIET)
+    assert [r["run"] for r in res.runs] == list(env.layout.run_label)
+    assert outcome == [r["outcome"] for r in res.runs]
+    np.testing.assert_allclose(t_end, [r["t_end_s"] for r in res.runs], rtol=0, atol=1e-9)
+    assert z_end.tolist() == [r["z_end_m"] for r in res.runs]
+    assert "success" in outcome
+
+
+def test_agent_thrust_flies_like_loop_step_with_that_thrust():
+    """An action other than the controller's command flies exactly loop_step(thrust=u)."""
+    env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D,E", estimator="oracle",
+                           observation="oracle", action="thrust_n")
+    stages = build_stages(env.stages.cfg, env.layout)  # a second, independent loop of the same batch
+    state = init_state(stages)
+    mg = stages.settings.mass_kg * stages.settings.g_mps2
+    _, info = env.reset()
+    rng = np.random.default_rng(0)
+    for k in range(60):
+        u = np.where(rng.random(env.num_envs) < 0.5, info["controller_thrust_n"], mg * rng.uniform(0.5, 1.5, 4))
+        _, _, _, _, info = env.step(u)
+        state, _ = loop_step(stages, state, thrust=torch.as_tensor(u))
+        np.testing.assert_array_equal(info["z_m"], state.z_m.numpy())
+        np.testing.assert_array_equal(info["v_mps"], state.v_mps.numpy())
+
+
+def test_normalised_thrust_maps_onto_the_engine_range():
+    env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle",
+                           num_envs=1)
+    spec = env.action_spec
+    mg3 = 3 * 10000.0 * 1.623  # paper: no thrust_max_n -> 3 m0 g
+    assert (spec.low, spec.high, spec.thrust_low_n) == (-1.0, 1.0, 0.0)
+    assert spec.thrust_high_n == pytest.approx(mg3)
+    env.reset()
+    for a, u in ((-1.0, 0.0), (1.0, mg3), (0.0, mg3 / 2)):
+        env.reset()
+        _, _, _, _, info = env.step(np.array([a]))
+        assert info["thrust_n"][0] == pytest.approx(u)
+    mc = LandingVectorEnv(config="montecarlo_efference", sites="D", estimator="oracle", observation="oracle",
+                          overrides=QUIET)
+    assert mc.action_spec.thrust_high_n == 100000.0
+
+
+@pytest.mark.filterwarnings("ignore:.*Box observation space (minimum|maximum) value")  # documented: unbounded
+def test_check_env_single_descent():
+    from gymnasium.utils.env_checker import check_env
+
+    env = gym.make(ENV_ID, config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle")
+    assert isinstance(env.unwrapped, LandingEnv)
+    check_env(env.unwrapped, skip_render_check=True)
+    env = gym.make(ENV_ID, config="montecarlo_efference", overrides=QUIET, sites="H", estimator="oracle",
+                   observation=["divergence", "oracle"], action="divergence_setpoint")
+    check_env(env.unwrapped, skip_render_check=True)
+
+
+def test_make_vec_and_batch_size_from_num_envs():
+    envs = gym.make_vec(ENV_ID, num_envs=3, vectorization_mode="vector_entry_point", config="paper",
+                        overrides=QUIET, sites="D,E", estimator="oracle", observation="oracle")
+    assert envs.num_envs == 3 and envs.observation_space.shape == (3, 4) and envs.action_space.shape == (3, 1)
+    # seed 0 of both sites and settings first: D x2 settings, then E
+    assert envs.unwrapped.layout.site == ["D", "D", "E"]
+    big = LandingVectorEnv(num_envs=6, config="paper", overrides=QUIET, sites="D", estimator="oracle",
+                           observation="oracle")
+    assert big.layout.batch_size == 6 and sorted(set(big.layout.seed_idx.tolist())) == [0, 1, 2]
+    obs, _ = big.reset(seed=0)
+    assert big.observation_space.contains(obs)
+
+
+def test_bad_names_and_actions_raise():
+    kw = dict(config="paper", overrides=QUIET, sites="D", estimator="oracle")
+    with pytest.raises(ValueError, match=r"observation must be one of \['events', 'divergence', 'oracle'\]"):
+        LandingVectorEnv(observation="depth", **kw)
+    with pytest.raises(ValueError, match=r"action must be one of \['thrust', 'thrust_n', 'divergence_setpoint'\]"):
+        LandingVectorEnv(observation="oracle", action="torque", **kw)
+    env = LandingVectorEnv(observation="oracle", **kw)
+    with pytest.raises(RuntimeError, match="before reset"):
+        env.step(np.zeros(env.num_envs))
+    env.reset()
+    with pytest.raises(ValueError, match="action must be finite"):
+        env.step(np.full(env.num_envs, np.nan))
+    with pytest.raises(ValueError, match=r"action \('thrust'\) must be in \[-1, 1\]"):
+        env.step(np.full(env.num_envs, 1.5))
+    with pytest.raises(ValueError, match=r"action must have shape \(2,\)"):
+        env.step(np.zeros(3))
+    with pytest.raises(ValueError, match="options are not supported"):
+        env.reset(options={"reset_mask": np.ones(2, bool)})
+    clip = LandingVectorEnv(observation="oracle", clip_actions=True, **kw)
+    clip.reset()
+    _, _, _, _, info = clip.step(np.full(clip.num_envs, 7.0))
+    assert np.allclose(info["thrust_n"], clip.action_spec.thrust_high_n)
+    with pytest.raises(ValueError, match="action must be finite"):
+        clip.step(np.full(clip.num_envs, np.inf))
+
+
+def test_seeding_is_deterministic_and_reseeds_the_dispersions():
+    kw = dict(config="montecarlo_efference", overrides=QUIET + ["simulation.n_seeds=3"], sites="D",
+              estimator="oracle", observation="oracle", action="thrust_n")
+    a, b = LandingVectorEnv(**kw), LandingVectorEnv(**kw)
+    obs_a, info_a = a.reset(seed=7)
+    obs_b, info_b = b.reset(seed=7)
+    np.testing.assert_array_equal(obs_a, obs_b)
+    np.testing.assert_array_equal(info_a["z_m"], info_b["z_m"])
+    for _ in range(20):
+        obs_a, ra, *_ , info_a = a.step(info_a["controller_thrust_n"])
+        obs_b, rb, *_ , info_b = b.step(info_b["controller_thrust_n"])
+        np.testing.assert_array_equal(obs_a, obs_b)
+        np.testing.assert_array_equal(ra, rb)
+    obs_c, info_c = a.reset(seed=8)  # another master seed: other dispersed initial altitudes
+    assert not np.array_equal(info_c["z_m"], info_b["z_m"])
+    obs_d, _ = a.reset()  # no seed: the same descents again
+    np.testing.assert_array_equal(obs_c, obs_d)
+
+
+def test_next_step_autoreset_waits_for_the_batch_and_replays_it():
+    """D (Kp4e6-n10) ends at 97.3 s, D (Kp5e6-n5) at 99.3 s: the first element's next step is its
+    reset observation, it then waits (reward 0, action ignored) until the batch restarts."""
+    env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle",
+                           action="thrust_n")
+    first, n_steps = fly_episode(env)
+    assert first[0] == ["success", "success"] and first[1].tolist() == pytest.approx([99.3, 97.3])
+    obs0, info = env.reset()
+    seen_end = np.zeros(2, bool)
+    for k in range(n_steps):
+        obs, rew, term, trunc, info = env.step(np.nan_to_num(info["controller_thrust_n"]))
+        waiting = info["waiting"]
+        assert not (waiting & (term | trunc)).any()
+        np.testing.assert_array_equal(obs[waiting], obs0[waiting])
+        assert (rew[waiting] == 0).all() and (info["thrust_n"][waiting] == 0).all()
+        assert (waiting == seen_end).all()  # waiting from the step after its end
+        seen_end |= term | trunc
+    assert seen_end.all()
+    obs, rew, term, trunc, info = env.step(np.zeros(2))  # the restart step: everyone waits
+    assert info["waiting"].all() and (rew == 0).all() and not (term | trunc).any()
+    np.testing.assert_array_equal(obs, obs0)
+    again, _ = fly_episode(env)
+    assert again[0] == first[0] and again[1].tolist() == first[1].tolist() and again[2].tolist() == first[2].tolist()
+
+
+def test_reward_terminal_terms():
+    env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle",
+                           action="thrust_n", reward={"tracking_weight": 0.0, "success_bonus": 5.0,
+                                                      "speed_penalty": 1.0, "failure_penalty": 3.0})
+    (outcome, _, _, ret), _ = fly_episode(env)
+    assert outcome == ["success", "success"]
+    obs, _ = env.reset()
+    for _ in range(1000):  # free fall: a crash, nothing but the failure penalty without tracking
+        obs, rew, term, trunc, info = env.step(np.zeros(2))
+        assert env.observation_space.contains(obs)
+        if term.all():
+            break
+    assert info["outcome"].tolist() == ["crash", "crash"] and rew.tolist() == [-3.0, -3.0]
+    assert ((ret > 5.0 - 1.0 * 10) & (ret < 5.0)).all()  # bonus minus a few m/s at 50 m
+    dense = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle")
+    dense.reset()
+    for _ in range(5):  # per step: -|D - D*| at the step's end (the next observation's first two fields)
+        obs, rew, *_ = dense.step(np.full(2, -0.2))
+        np.testing.assert_allclose(rew, -np.abs(obs[:, 0] - obs[:, 1]), rtol=1e-5)
+
+
+def test_divergence_setpoint_on_the_target_lands():
+    """Set-point = the observed D*(t): the set-point law lands D on the oracle."""
+    env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle",
+                           action="divergence_setpoint", num_envs=1)
+    (outcome, t_end, _, _), _ = fly_episode(env, policy=lambda obs, info: obs[:, 1])
+    assert outcome == ["success"]
+
+
+def test_events_and_divergence_observations():
+    env = LandingVectorEnv(config="paper", sites="D", estimator="cmax", num_envs=1,
+                           overrides=QUIET + ["camera.width_px=64", "camera.height_px=64"],
+                           observation=("events", "divergence"))
+    obs, info = env.reset(seed=0)
+    assert env.single_observation_space["events"].shape == (2, 64, 64)
+    assert obs["events"].sum() == 0  # no events before the second frame
+    for _ in range(35):
+        obs, rew, term, trunc, info = env.step(np.zeros(1))
+        assert env.observation_space.contains(obs)
+    assert obs["events"].sum() > 0
+    assert obs["divergence"][0, 1] > 0 and obs["divergence"][0, 0] < 0  # a confident negative D_hat
