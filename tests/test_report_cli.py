@@ -60,7 +60,7 @@ def test_evaluate_uses_torch_threads_and_quiet_prints_the_run_folder(tmp_path, c
     out = tmp_path / "ev"
     rc = main([*COMMANDS["evaluate"], "--warmup-steps", "0", "--no-figures", "--out", str(out), *SMALL,
                "--set", "simulation.torch_threads=3", "--quiet"])
-    # the first call is the run's setting (the fast renderer then switches threads inside its calls)
+    # the first call is the run's setting (render.threads = 1: the renderer leaves it alone)
     assert rc == 0 and calls[0] == 3
     assert capsys.readouterr().out.strip().splitlines() == [f"run folder: {out}"]
     calls.clear()

@@ -109,6 +109,10 @@ def markdown(report: dict, figures: Dict[str, str]) -> str:
                  f"{report.get('load_average_end')} at the end; torch {m['torch_version']}, device {m['device']}, "
                  f"{m['torch_threads']} torch thread(s), renderer threads {report['render_threads']}; "
                  f"git {m['git_commit']}.")
+    if report.get("overrides") or (report.get("sites") and len(report["sites"]) < 9):
+        lines.append(f"Sites {', '.join(report.get('sites') or [])}; overrides: "
+                     f"{', '.join(report.get('overrides') or []) or 'none'} (the method texts below describe "
+                     "the default run).")
     lines.append("")
     tr = report.get("tradeoff")
     if tr:

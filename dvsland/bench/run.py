@@ -71,7 +71,8 @@ def parse_what(what: Sequence[str]) -> List[str]:
 def run_bench(what: Sequence[str] = (), quick: bool = False, device="cpu", out: Optional[Path] = None,
               config=None, closed_loop_config="realistic", docs: Optional[Path] = None, threads: int = 1,
               render_threads: int = 1, estimators: Optional[Sequence[str]] = None, command: str = "",
-              closed_loop_estimators: Optional[Sequence[str]] = None, log=print) -> Dict:
+              closed_loop_estimators: Optional[Sequence[str]] = None, log=print,
+              overrides: Sequence[str] = (), sites: Optional[Sequence[str]] = None) -> Dict:
     """Run the benchmark and write its run folder; returns the report dict (``report['run_dir']``).
 
     Args:
@@ -85,6 +86,9 @@ def run_bench(what: Sequence[str] = (), quick: bool = False, device="cpu", out: 
         threads: torch threads; ``render_threads``: the fast renderer's threads inside a call.
         estimators: restrict the speed/error part to these registered names.
         closed_loop_estimators: specs flown in the closed loop (default: a set per mode).
+        overrides: ``section.key=value`` strings applied to both configs (``--set``).
+        sites: measure only these sites of both configs' ``simulation.sites`` (checked before the
+            run folder is made).
     """
     parts = parse_what(what)
     dev = torch.device(device)
@@ -94,8 +98,18 @@ def run_bench(what: Sequence[str] = (), quick: bool = False, device="cpu", out: 
         raise ValueError(f"device must be 'cpu' or 'cuda', got {device!r}")
     if int(threads) < 1 or int(render_threads) < 0:
         raise ValueError(f"threads must be >= 1 and render_threads >= 0, got {threads}, {render_threads}")
+    from dvsland.cli.common import restrict_sites
+
+    overrides = list(overrides or ())
+    if isinstance(config, Config):
+        cfg = config
+        if overrides:
+            raise ValueError("overrides apply to a config by name or path; edit a Config object directly")
+    else:
+        cfg = load_config(config, overrides)
+    cfg = restrict_sites(cfg, sites)
+    ccfg = restrict_sites(load_config(closed_loop_config, overrides), sites) if "closed_loop" in parts else None
     torch.set_num_threads(int(threads))
-    cfg: Config = load_config(config) if not isinstance(config, Config) else config
     cfg.render.threads = int(render_threads)
     cfg.simulation.device = str(dev)
     cfg.logging.quiet = True
@@ -103,6 +117,7 @@ def run_bench(what: Sequence[str] = (), quick: bool = False, device="cpu", out: 
     run_dir = make_run_dir(cfg, out)
     t_start = time.perf_counter()
     report = dict(command=command or "dvsland bench", quick=bool(quick), parts=parts,
+                  sites=[s.name for s in cfg.simulation.sites], overrides=overrides,
                   started_utc=datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"),
                   machine=machine_info(dev), render_threads=int(render_threads), run_dir=str(run_dir))
     from .report import write_report
@@ -124,7 +139,7 @@ def run_bench(what: Sequence[str] = (), quick: bool = False, device="cpu", out: 
             save()
         if "closed_loop" in parts:
             _part_closed_loop(report, closed_loop_config, dev, quick, run_dir, render_threads, log,
-                              closed_loop_estimators)
+                              closed_loop_estimators, ccfg)
             save()
         if "scaling" in parts:
             _part_scaling(report, cfg, dev, quick, log, "" if isinstance(config, Config) else (config or ""))
@@ -153,6 +168,10 @@ def _part_tradeoff(report, cfg, dev, quick, estimators, log):
 
     log("== speed against error (open loop; B = 18 timing)")
     confs = configurations(quick, estimators)
+    configured = [s.name for s in cfg.simulation.sites]
+    for c in confs:  # rows on a fixed pair of sites (pyrender) keep those of them that are configured
+        if c.sites:
+            c.sites = [s for s in c.sites if s in configured] or configured[:2]
     rows = run_tradeoff(cfg, confs, dev, quick=quick, log=log)
     seg = "segments of 12 steps, every 12th" if quick else "segments of 30 steps, every 4th"
     report["tradeoff"] = dict(rows=rows, method=(
@@ -168,11 +187,11 @@ def _part_tradeoff(report, cfg, dev, quick, estimators, log):
         f"under about 10 % are within their noise."))
 
 
-def _part_closed_loop(report, cl_config, dev, quick, run_dir, render_threads, log, ests=None):
+def _part_closed_loop(report, cl_config, dev, quick, run_dir, render_threads, log, ests=None, ccfg=None):
     from .closed_loop import run_closed_loop
 
     log("== closed loop (fixed seeds)")
-    ccfg = load_config(cl_config)
+    ccfg = load_config(cl_config) if ccfg is None else ccfg
     ccfg.render.threads = int(render_threads)
     ests = list(ests) if ests else (CLOSED_LOOP_QUICK if quick else CLOSED_LOOP_FULL)
     rows = run_closed_loop(ccfg, ests, Path(run_dir), device=dev, quick=quick, log=log)

@@ -1,4 +1,5 @@
-"""``dvsland bench [WHAT ...] [--quick] [--device cpu|cuda] [--out DIR] [--docs DIR]``.
+"""``dvsland bench [WHAT ...] [--quick] [--device cpu|cuda] [--threads N] [--sites A,B] [--set KEY=VALUE ...]
+[--out DIR] [--docs DIR]``.
 
 A thin command over :func:`dvsland.bench.run_bench`: speed against error, closed-loop success,
 scaling with B and the economies, written to one run folder (bench.json, bench.md, pareto.png,
@@ -12,6 +13,8 @@ import sys
 
 def register(subparsers) -> None:
     from dvsland.bench.run import CHOICES
+
+    from .common import add_sites_arg, add_threads_arg
 
     p = subparsers.add_parser(
         "bench", help="benchmarks: speed against error, closed loop, scaling, economies",
@@ -30,27 +33,34 @@ def register(subparsers) -> None:
     p.add_argument("--config", default=None, help="open-loop config (default paper)")
     p.add_argument("--closed-loop-config", default="realistic", help="closed-loop config (default realistic)")
     p.add_argument("--estimators", default=None, help="comma-separated registered names (default: all registered)")
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    p.add_argument("--render-threads", type=int, default=1,
-                   help="fast renderer threads inside a call (default 1; 0 = all cores)")
+    add_threads_arg(p, " (default 1)")
+    p.add_argument("--render-threads", type=int, default=None, metavar="N",
+                   help="fast renderer threads inside a call (default: --threads; 0 = all cores)")
+    add_sites_arg(p, "measure only these configured sites (simulation.sites of both configs)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config value of both configs (open and closed loop), e.g. --set "
+                        "emulator.threshold=0.15 (repeatable)")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from dvsland.bench import run_bench
-    from dvsland.cli.common import check_device
+    from dvsland.cli.common import check_device, parse_sites
 
     try:
         check_device(args.device, param="--device")
     except ValueError as exc:
         print(f"dvsland: error: {exc}", file=sys.stderr)
         return 2
+    sites = parse_sites(args.sites)  # checked against the configs by run_bench, before its run folder
+    threads = args.threads or 1
+    render_threads = threads if args.render_threads is None else args.render_threads
 
     est = [e.strip() for e in args.estimators.split(",") if e.strip()] if args.estimators else None
     command = "dvsland " + " ".join(sys.argv[1:]) if sys.argv and sys.argv[0].endswith("dvsland") else "dvsland bench"
     run_bench(args.what, quick=args.quick, device=args.device, out=args.out, config=args.config,
-              closed_loop_config=args.closed_loop_config, docs=args.docs, threads=args.threads,
-              render_threads=args.render_threads, estimators=est, command=command,
+              closed_loop_config=args.closed_loop_config, docs=args.docs, threads=threads,
+              render_threads=render_threads, estimators=est, command=command, overrides=args.overrides, sites=sites,
               log=(lambda *a, **k: None) if args.quiet else print)
     return 0

@@ -1,10 +1,10 @@
-"""``dvsland campaign CONFIG [--sweep key=v1,v2 ...] [--n-seeds N] [--executor local|ray]
-[--workers K] [--shard-seeds S] [--resume DIR] [--out DIR] [--set key=value ...] [--quiet]``:
+"""``dvsland campaign CONFIG [--sweep key=v1,v2 ...] [--n-seeds N] [--sites A,B] [--executor local|ray]
+[--workers K] [--threads N] [--shard-seeds S] [--resume DIR] [--out DIR] [--set key=value ...] [--quiet]``:
 a Monte Carlo campaign (grid x seeds in shards, merged report with success-rate intervals)."""
 
 from __future__ import annotations
 
-from .common import add_config_args, config_from_args
+from .common import add_config_args, add_sites_arg, add_threads_arg, config_from_args, parse_sites, restrict_sites
 
 
 def register(subparsers) -> None:
@@ -24,6 +24,8 @@ def register(subparsers) -> None:
                    help="local: here (--workers > 1: a process pool); ray: Ray tasks (local instance, or the "
                         "cluster at $RAY_ADDRESS)")
     p.add_argument("--workers", type=int, default=1, metavar="K", help="processes (local) or CPUs of a local Ray")
+    add_threads_arg(p, " (each worker)")
+    add_sites_arg(p, "fly only these configured sites (simulation.sites)")
     p.add_argument("--resume", default=None, metavar="DIR", help="resume the campaign in DIR (its plan and "
                    "config rule): run only the missing shards, then merge")
     p.add_argument("--estimator", default=None, metavar="NAME", help="divergence estimator (dpr, oracle, ...)")
@@ -35,10 +37,12 @@ def run_campaign_cmd(args) -> int:
     from dvsland.campaign import run_campaign
 
     cfg = None
+    sites = parse_sites(args.sites)  # before anything is loaded or written
     if args.resume is None:
-        cfg = config_from_args(args)
-    elif args.config or args.sweep or args.overrides:
-        print("dvsland campaign: resuming: the config, sweeps and seeds come from the campaign folder")
+        cfg = restrict_sites(config_from_args(args), sites)
+    elif args.config or args.sweep or args.overrides or sites or args.threads:
+        print("dvsland campaign: resuming: the config (sites and threads too), sweeps and seeds come from the "
+              "campaign folder")
     try:
         res = run_campaign(cfg, sweeps=args.sweep, n_seeds=args.n_seeds, executor=args.executor,
                            workers=args.workers, resume=args.resume, out=args.out, quiet=args.quiet,

@@ -4,7 +4,8 @@ open-loop evaluation of divergence estimators on the evaluation event streams.""
 
 from __future__ import annotations
 
-from .common import add_config_args, config_from_args
+from .common import (add_config_args, add_sites_arg, add_threads_arg, apply_threads, check_configured_sites,
+                     config_from_args, parse_sites)
 
 
 def register(subparsers) -> None:
@@ -21,7 +22,7 @@ def register(subparsers) -> None:
                         "values to compare variants side by side, e.g. 'cmax[window_ms=300;n_grid=21]' = that "
                         "estimator with --set estimator.cmax.window_ms=300 --set estimator.cmax.n_grid=21 "
                         "(same typing and range checks; separate them with ';')")
-    p.add_argument("--sites", default=None, metavar="A,B,...", help="only these configured sites")
+    add_sites_arg(p, "only these configured sites (simulation.sites)")
     p.add_argument("--segment-steps", type=int, default=0, metavar="N",
                    help="split the descents into segments of N steps (0 = whole descents)")
     p.add_argument("--stride", type=int, default=1, metavar="S", help="run every S-th segment (quick runs)")
@@ -29,9 +30,7 @@ def register(subparsers) -> None:
     p.add_argument("--warmup-steps", type=int, default=10, metavar="N",
                    help="steps at the start of each segment left out of the metrics (default 10)")
     p.add_argument("--device", default=None, metavar="DEVICE", help="torch device (default simulation.device)")
-    p.add_argument("--threads", type=int, default=None, metavar="N",
-                   help="torch CPU threads (default: simulation.torch_threads, 1 in the shipped configs; "
-                        "on a busy machine 1 is often fastest)")
+    add_threads_arg(p)
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--recording", default=None, metavar="PATH",
                    help="evaluate on a recorded event stream instead of rendered descents (.aedat4, .h5, .npz, "
@@ -62,24 +61,19 @@ def _split_estimators(text: str):
 
 
 def run_evaluate(args) -> int:
-    import torch
-
     from dvsland.config import dump_config
     from dvsland.evaluate import evaluate, format_table, write_outputs
     from dvsland.runs import make_run_dir
 
-    if args.threads is not None and args.threads < 1:
-        raise ValueError(f"--threads must be >= 1, got {args.threads}")
+    sites = parse_sites(args.sites)  # before anything is loaded or written
     if args.recording and (args.sites or args.segment_steps or args.stride != 1):
         raise ValueError("--sites, --segment-steps and --stride select rendered descents; they do not apply "
                          "to --recording")
     if not args.recording and (args.ground_truth or args.t_unit):
         raise ValueError("--ground-truth and --t-unit need --recording PATH")
     cfg = config_from_args(args)  # checks the device before the run folder exists
-    threads = args.threads if args.threads is not None else cfg.simulation.torch_threads
-    if threads > 0:  # --threads, else simulation.torch_threads (0 = torch's default)
-        torch.set_num_threads(threads)
-    sites = [s.strip() for s in args.sites.split(",") if s.strip()] if args.sites else None
+    check_configured_sites(cfg, sites)
+    apply_threads(cfg)  # --threads, else simulation.torch_threads (0 = torch's default)
     device = cfg.simulation.device
     run_dir = make_run_dir(cfg, args.out, kind="evaluate")
     quiet = bool(cfg.logging.quiet)

@@ -26,7 +26,8 @@ from typing import List
 import numpy as np
 import torch
 
-from .common import add_config_args, config_from_args
+from .common import add_config_args, add_threads_arg, apply_threads, config_from_args, parse_sites
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -37,7 +38,8 @@ def register(subparsers) -> None:
                     "log irradiance stretched between its 1st and 99.5th percentile (one stretch over the "
                     "montage, one over the GIF).")
     add_config_args(p)
-    p.add_argument("--sites", default=None, help="comma-separated sites (default: the config's sites)")
+    p.add_argument("--sites", default=None, metavar="A,B~1,...",
+                   help="comma-separated sites A-I or terrain variants such as A~1 (default: the config's sites)")
     p.add_argument("--altitudes", default="5000,1000,200,50", help="comma-separated altitudes, m")
     p.add_argument("--renderer", default=None, metavar="NAME",
                    help="renderer: fast, pyrender or a registered one (default: config render.renderer)")
@@ -47,6 +49,7 @@ def register(subparsers) -> None:
     p.add_argument("--gif-frames", type=int, default=60, help="frames of the descent GIF (0: no GIF)")
     p.add_argument("--scale", type=int, default=2, help="montage tile size, x 0.8 inch (default 2)")
     p.add_argument("--device", default=None, help="torch device (default: config simulation.device)")
+    add_threads_arg(p)
     p.set_defaults(func=run_render)
 
 
@@ -64,11 +67,10 @@ def run_render(args) -> int:
     from dvsland.report.images import annotated_gif, montage, to_display
     from dvsland.runs import make_run_dir
 
+    sites = parse_sites(args.sites)  # before anything is loaded or written
     cfg = config_from_args(args)
     quiet = cfg.logging.quiet
-    if args.sites:
-        sites = _parse_list(args.sites, "sites", str)
-    else:
+    if not sites:
         sites = list(dict.fromkeys(s.name for s in cfg.simulation.sites)) or ["A"]
     alts = _parse_list(args.altitudes, "altitudes")
     if not alts:
@@ -78,8 +80,10 @@ def run_render(args) -> int:
         if not rc.min_altitude_m <= a <= rc.max_altitude_m:
             raise ValueError(f"--altitudes: {a} m is outside [render.min_altitude_m, render.max_altitude_m] "
                              f"= [{rc.min_altitude_m}, {rc.max_altitude_m}]")
+    mesh_specs = [_parse_mesh_spec(spec, args.mesh_texels) for spec in args.export_mesh]
     name = args.renderer or rc.renderer
     device = args.device or cfg.simulation.device
+    apply_threads(cfg)
     run_dir = make_run_dir(cfg, args.out, kind="render")
     t0 = time.perf_counter()
     kwargs = {"progress": not quiet} if name == "fast" else {}
@@ -124,8 +128,8 @@ def run_render(args) -> int:
 
     # ---- meshes
     meshes: List[Path] = []
-    for spec in args.export_mesh:
-        meshes.append(_export_mesh(spec, renderer, cfg, run_dir, args.mesh_texels))
+    for site, alt_m in mesh_specs:
+        meshes.append(_export_mesh(site, alt_m, renderer, cfg, run_dir, args.mesh_texels))
 
     # ---- TensorBoard
     if cfg.logging.tensorboard:
@@ -151,16 +155,22 @@ def run_render(args) -> int:
     return 0
 
 
-def _export_mesh(spec: str, renderer, cfg, run_dir: Path, n: int) -> Path:
+def _parse_mesh_spec(spec: str, n: int) -> tuple:
+    """``SITE:ALTITUDE`` of --export-mesh, checked before the run folder is made."""
     try:
         site, alt = spec.split(":")
         alt_m = float(alt)
     except ValueError:
         raise ValueError(f"--export-mesh: expected SITE:ALTITUDE (e.g. A:200), got {spec!r}") from None
+    parse_sites(site, "--export-mesh")
     if not alt_m > 0:
         raise ValueError(f"--export-mesh: altitude must be > 0 m, got {alt_m}")
     if not 8 <= n <= 4096:
         raise ValueError(f"--mesh-texels must be in [8, 4096], got {n}")
+    return site.strip(), alt_m
+
+
+def _export_mesh(site: str, alt_m: float, renderer, cfg, run_dir: Path, n: int) -> Path:
     from dvsland.render.mesh import terrain_mesh
     from dvsland.terrain import load_site
 

@@ -1,9 +1,10 @@
 """``dvsland simulate [CONFIG] [--estimator NAME] [--controller NAME] [--renderer fast|pyrender] [--sites A,B,...]
-[--device cpu|cuda] [--out DIR] [--set key=value ...] [--quiet]``: fly the batched closed loop."""
+[--device cpu|cuda] [--threads N] [--out DIR] [--set key=value ...] [--quiet]``: fly the batched closed loop."""
 
 from __future__ import annotations
 
-from .common import add_config_args, config_from_args
+from .common import (add_config_args, add_sites_arg, add_threads_arg, check_configured_sites, config_from_args,
+                     parse_sites)
 
 
 def _estimator_names() -> str:
@@ -29,18 +30,21 @@ def register(subparsers) -> None:
                    help="thrust law (tau_p, div_p, div_gs, or a registered name); sets controller.name")
     p.add_argument("--renderer", default=None, metavar="NAME",
                    help="scene renderer: fast, pyrender or a registered one (default: render.renderer)")
-    p.add_argument("--sites", default=None, metavar="A,B,...", help="fly only these configured sites")
+    add_sites_arg(p, "fly only these configured sites (simulation.sites)")
     p.add_argument("--device", default=None, metavar="DEVICE",
                    help="torch device: cpu, cuda, cuda:0, ... (checked against this machine)")
+    add_threads_arg(p)
     p.set_defaults(func=run_simulate)
 
 
 def run_simulate(args) -> int:
     from dvsland.sim import simulate
 
+    sites = parse_sites(args.sites)  # before anything is loaded or written
     cfg = config_from_args(args, [f"controller.name={args.controller}"] if args.controller else [])
+    check_configured_sites(cfg, sites)
     try:
-        result = simulate(cfg, sites=args.sites, out=args.out)
+        result = simulate(cfg, sites=sites, out=args.out)
     except KeyboardInterrupt:
         print("dvsland: interrupted; results gathered so far were written", flush=True)
         return 130

@@ -132,8 +132,9 @@ class RenderConfig:
                          rng=(0.0, 1.0), open_lo=True)
     min_altitude_m: float = opt(10.0, "lowest altitude the renderer accepts, m", rng=(0.1, 1e5), open_lo=True)
     max_altitude_m: float = opt(20000.0, "highest altitude the renderer accepts, m", rng=(1.0, 1e6))
-    threads: int = opt(0, "CPU threads of the fast renderer's texture sampling, used inside render calls "
-                          "whatever simulation.torch_threads is; 0 = all cores (not in paper)", rng=(0, 1024))
+    threads: int = opt(1, "CPU threads of the fast renderer's texture sampling: 1 = one part, torch's thread "
+                          "count left alone; N > 1 or 0 (= all cores) switch torch to N threads inside each render "
+                          "call (not in paper; docs/howto/devices.md)", rng=(0, 1024))
 
 
 @dataclass

@@ -18,12 +18,14 @@ all sites sit side by side in two atlas textures (rows = sites, columns = levels
 Everything per frame is elementwise on (B, H, W) plus two ``grid_sample`` calls: no Python loop
 over the batch, no host sync besides the input checks.
 
-CPU threads: torch's CPU ``grid_sample`` runs its batch dimension in parallel and nothing else, and
-the atlas is one texture (batch 1), so a plain call uses one core. The sampling grid is split into
-``threads`` equal parts over an ``expand``-ed (not copied) atlas, and a render call runs with that
-many torch threads, then restores the caller's setting (``render.threads``, 0 = all cores). The
-closed loop keeps one torch thread for its many small ops (``simulation.torch_threads``) and still
-renders on every core.
+CPU threads (``render.threads``, docs/howto/devices.md): torch's CPU ``grid_sample`` runs its batch
+dimension in parallel and nothing else, and the atlas is one texture (batch 1), so a plain call uses
+one core. With ``render.threads: 1`` (the default) a render call samples in one part and leaves
+torch's thread count alone: the process's setting (``simulation.torch_threads``, ``--threads``)
+rules. Only when threads are asked for explicitly (``render.threads`` N > 1, or 0 = all cores) is
+the sampling grid split into that many equal parts over an ``expand``-ed (not copied) atlas, and the
+call runs with that many torch threads, then restores the caller's setting. On a shared machine
+extra threads cost more than they bring (docs/howto/devices.md has the measurement).
 """
 
 from __future__ import annotations
@@ -55,8 +57,10 @@ class FastRenderer(Renderer):
         chunk: frames per internal sub-batch (default 32 on CPU, 1024 on CUDA).
         blend_levels: trilinear blend of the two bracketing levels (default); False samples the
             nearest level only (an ablation: levels then pop during a descent).
-        threads: CPU threads used inside a render call (default ``render.threads``; 0 = all
-            cores). Ignored on CUDA.
+        threads: CPU threads used inside a render call (default ``render.threads``): 1 = one part,
+            torch's thread count left as the caller set it; N > 1 or 0 (= all cores) = the sampling
+            split in that many parts, torch switched to that many threads during the call and
+            restored afterwards. Ignored on CUDA.
 
     Attributes:
         prep_s: {site: wall seconds spent preparing its levels (0 when cached)}; prep_cpu_s the
@@ -76,6 +80,8 @@ class FastRenderer(Renderer):
         if threads < 0:
             raise ValueError(f"threads must be >= 0 (0 = all cores), got {threads}")
         self.threads = 1 if self.device.type != "cpu" else (threads or os.cpu_count() or 1)
+        # torch's global thread count is switched inside a call only when threads were asked for
+        self._switch_threads = self.device.type == "cpu" and threads != 1
         if parallax_iters < 0 or parallax_iters > 8:
             raise ValueError(f"parallax_iters must be in [0, 8], got {parallax_iters}")
         self.parallax_iters = int(parallax_iters)
@@ -220,6 +226,8 @@ class FastRenderer(Renderer):
         return lam.clamp(0.0, self.levels.n_levels - 1.0)
 
     def _render(self, altitude_m: torch.Tensor, site_idx: torch.Tensor) -> torch.Tensor:
+        if not self._switch_threads:
+            return self._render_batches(altitude_m, site_idx)
         prev = torch.get_num_threads()
         if self.threads == prev:
             return self._render_batches(altitude_m, site_idx)
