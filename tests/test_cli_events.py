@@ -84,3 +84,68 @@ def test_cli_events_fast_renderer(tmp_path):
     assert main(["events", "--site", "A", "--from-m", "1000", "--to-m", "950", "--out", str(out),
                  "--quiet", "--set", "camera.width_px=64", "--set", "camera.height_px=64"]) == 0
     assert len(load_events(out / "events.npz")) > 0
+
+
+# ------------------------------------------------------------------ several sites, per-frame ground truth
+SMALL = ["--set", "camera.width_px=32", "--set", "camera.height_px=24"]
+
+
+def test_cli_events_several_sites_and_variants(tmp_path, zoom_renderer):
+    out = tmp_path / "run"
+    assert main(["events", "--sites", "D,E~1", "--from-m", "1000", "--to-m", "950", "--out", str(out),
+                 "--quiet", *SMALL]) == 0
+    ev, meta = load_events(out / "events.npz", with_meta=True)
+    assert meta["batch_size"] == 2 and set(ev.b.unique().tolist()) == {0, 1}
+    summary = json.loads((out / "summary.json").read_text())
+    assert [s["site"] for s in summary["sites"]] == ["D", "E~1"]
+    assert sum(s["events"] for s in summary["sites"]) == summary["events"] == len(ev)
+    for s in ("D", "E~1"):
+        assert (out / f"event_frame_{s}.png").is_file() and (out / "tb" / s).is_dir()
+
+
+def test_cli_events_site_and_sites_together_refused(tmp_path, capsys):
+    assert main(["events", "--site", "A", "--sites", "B", "--out", str(tmp_path / "x")]) == 2
+    assert "--sites or --site" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("fmt", ["npz", "h5"])
+def test_events_file_carries_per_frame_ground_truth(tmp_path, zoom_renderer, fmt):
+    from dvsland.events import read_recording
+
+    out = tmp_path / "run"
+    assert main(["events", "--sites", "D,A", "--from-m", "1000", "--to-m", "950", "--format", fmt,
+                 "--out", str(out), "--quiet", *SMALL]) == 0
+    cfg = load_config("paper")
+    for b, site in enumerate(("D", "A")):
+        rec = read_recording(out / f"events.{fmt}", b=b)
+        t_us, z, v = frame_schedule(cfg, site, 1000.0, 950.0, with_velocity=True)
+        gt = rec.ground_truth
+        assert gt is not None and np.array_equal(gt.t_us, t_us)
+        np.testing.assert_allclose(gt.altitude_m, z)
+        np.testing.assert_allclose(gt.velocity_mps, v)
+        np.testing.assert_allclose(gt.divergence, v / z)
+        assert len(rec.events) == int((load_events(out / f"events.{fmt}").b == b).sum())
+
+
+def test_evaluate_reads_the_events_ground_truth_back(tmp_path, zoom_renderer):
+    """dvsland events -> dvsland evaluate --recording: scored without --ground-truth (the oracle is
+    exact against it); --ground-truth FILE still works and --element picks the second site."""
+    ev_dir = tmp_path / "events"
+    assert main(["events", "--sites", "D,A", "--from-m", "1000", "--to-m", "900", "--out", str(ev_dir),
+                 "--quiet", *SMALL]) == 0
+    path = ev_dir / "events.npz"
+    runs = {"auto": [], "side": ["--ground-truth", str(path)], "element": ["--element", "1"]}
+    for key, extra in runs.items():
+        out = tmp_path / key
+        assert main(["evaluate", "--recording", str(path), "--estimators", "oracle", "--warmup-steps", "1",
+                     "--no-figures", "--out", str(out), "--quiet", "--set", "logging.tensorboard=false",
+                     *extra]) == 0
+        res = json.loads((out / "evaluation.json").read_text())
+        assert res["has_ground_truth"] is True, key
+        e = res["estimators"]["oracle"]["all_sites"]
+        assert e["n_steps"] > 0 and e["median_abs_rel_err"] < 1e-6, key
+
+
+def test_evaluate_element_needs_recording(tmp_path, capsys):
+    assert main(["evaluate", "--element", "1", "--out", str(tmp_path / "x")]) == 2
+    assert "--element" in capsys.readouterr().err

@@ -13,7 +13,7 @@ from dvsland.cli import common
 from dvsland.cli.main import build_parser, main
 from dvsland.config import RenderConfig, configs_dir, load_config
 
-COMPUTING = ("simulate", "campaign", "evaluate", "bench", "render")
+COMPUTING = ("simulate", "campaign", "evaluate", "bench", "events", "render")
 
 
 # ------------------------------------------------------------------ threads
@@ -133,6 +133,7 @@ BAD_SITE = {
     "evaluate": ["evaluate", "--sites", "Q", "--estimators", "oracle"],
     "render": ["render", "--sites", "A,Q", "--altitudes", "100"],
     "render-mesh": ["render", "--sites", "A", "--altitudes", "100", "--export-mesh", "Q:200"],
+    "events": ["events", "--sites", "Q"],
     "events-site": ["events", "--site", "Q"],
     "bench": ["bench", "economies", "--sites", "Q"],
     "bench-variant": ["bench", "economies", "--sites", "A~2"],

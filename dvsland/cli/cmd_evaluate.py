@@ -37,7 +37,11 @@ def register(subparsers) -> None:
                         ".npy tonic array, .csv); intervals of 1/camera.frame_rate_hz")
     p.add_argument("--ground-truth", default=None, metavar="PATH",
                    help="with --recording: ground-truth side file (CSV/npz: t_us or t_s, and divergence or "
-                        "altitude_m + velocity_mps)")
+                        "altitude_m + velocity_mps); not needed for files written by dvsland events, which carry "
+                        "their per-frame ground truth")
+    p.add_argument("--element", type=int, default=0, metavar="B",
+                   help="with --recording: the batch element b of a dvsland events file with several (dvsland "
+                        "events --sites A,B writes b = 0, 1; default 0)")
     p.add_argument("--t-unit", default=None, choices=("ns", "us", "ms", "s"),
                    help="with --recording: unit of the time column (default: integers = us, fractions = s)")
     p.set_defaults(func=run_evaluate)
@@ -69,8 +73,10 @@ def run_evaluate(args) -> int:
     if args.recording and (args.sites or args.segment_steps or args.stride != 1):
         raise ValueError("--sites, --segment-steps and --stride select rendered descents; they do not apply "
                          "to --recording")
-    if not args.recording and (args.ground_truth or args.t_unit):
-        raise ValueError("--ground-truth and --t-unit need --recording PATH")
+    if not args.recording and (args.ground_truth or args.t_unit or args.element):
+        raise ValueError("--ground-truth, --t-unit and --element need --recording PATH")
+    if args.element < 0:
+        raise ValueError(f"--element must be >= 0, got {args.element}")
     cfg = config_from_args(args)  # checks the device before the run folder exists
     check_configured_sites(cfg, sites)
     apply_threads(cfg)  # --threads, else simulation.torch_threads (0 = torch's default)
@@ -82,7 +88,8 @@ def run_evaluate(args) -> int:
 
         res = evaluate_recording(cfg, args.recording, _split_estimators(args.estimators),
                                  warmup_steps=args.warmup_steps, max_steps=args.max_steps, device=device,
-                                 progress=not quiet, ground_truth=args.ground_truth, t_unit=args.t_unit)
+                                 progress=not quiet, ground_truth=args.ground_truth, t_unit=args.t_unit,
+                                 b=args.element)
     else:
         res = evaluate(cfg, _split_estimators(args.estimators), sites, segment_steps=args.segment_steps,
                        stride=args.stride, max_steps=args.max_steps, warmup_steps=args.warmup_steps,

@@ -7,6 +7,13 @@ the fields are datasets under ``/events`` and the metadata are attributes of tha
 the metadata are 0-d / 1-d arrays named ``meta_<key>``.
 
 x and y are stored as int16 (sensors up to 32767 px, as tonic) and come back as int64.
+
+Ground truth (optional, ``save_events(..., ground_truth=...)``): per batch element a time series
+of altitude, vertical velocity and divergence D = v / z, as arrays ``gt_b``, ``gt_t_us``,
+``gt_altitude_m``, ``gt_velocity_mps``, ``gt_divergence`` (npz) or datasets ``b``, ``t_us``, ...
+of a root group ``/ground_truth`` (HDF5). ``dvsland events`` writes one sample per frame;
+:func:`~dvsland.events.read_recording` (and so ``dvsland evaluate --recording``) reads it back
+for the element it reads; :func:`load_events` ignores it.
 """
 
 from __future__ import annotations
@@ -49,10 +56,38 @@ def _arrays(events: Events) -> Dict[str, np.ndarray]:
     return out
 
 
+def _ground_truth_arrays(ground_truth, batch_size: int) -> Dict[str, np.ndarray]:
+    """``gt_*`` arrays of a GroundTruth (element 0), a sequence of them (element = index) or a
+    mapping {b: GroundTruth}; empty for None."""
+    if ground_truth is None:
+        return {}
+    from .recording import GroundTruth
+
+    if isinstance(ground_truth, GroundTruth):
+        items = [(0, ground_truth)]
+    elif isinstance(ground_truth, dict):
+        items = sorted((int(b), g) for b, g in ground_truth.items())
+    else:
+        items = list(enumerate(ground_truth))
+    for b, g in items:
+        if not isinstance(g, GroundTruth):
+            raise ValueError(f"ground_truth[{b}] must be a GroundTruth, got {type(g).__name__}")
+        if not 0 <= b < max(batch_size, 1):
+            raise ValueError(f"ground_truth for element {b}, but batch_size is {batch_size}")
+    with_alt = all(g.altitude_m is not None for _, g in items)
+    out = {"gt_b": np.concatenate([np.full(len(g.t_us), b, np.int64) for b, g in items]),
+           "gt_t_us": np.concatenate([g.t_us for _, g in items]).astype(np.int64),
+           "gt_divergence": np.concatenate([g.divergence for _, g in items])}
+    if with_alt:
+        out["gt_altitude_m"] = np.concatenate([g.altitude_m for _, g in items])
+        out["gt_velocity_mps"] = np.concatenate([g.velocity_mps for _, g in items])
+    return out
+
+
 def save_events(path: PathLike, events: Events, sensor_size: Optional[Tuple[int, int]] = None,
                 batch_size: Optional[int] = None, threshold: Optional[float] = None,
                 threshold_off: Optional[float] = None, refractory_us: Optional[float] = None,
-                format: Optional[str] = None) -> Path:
+                format: Optional[str] = None, ground_truth=None) -> Path:
     """Write ``events`` to ``path`` (.npz or .h5; ``format`` overrides the suffix).
 
     Args:
@@ -60,6 +95,9 @@ def save_events(path: PathLike, events: Events, sensor_size: Optional[Tuple[int,
         sensor_size: (W, H) in pixels; stored as (W, H, 2). Default: max coordinate + 1.
         batch_size: B; default max b + 1.
         threshold, threshold_off, refractory_us: emulator settings stored as metadata (NaN if None).
+        ground_truth: optional :class:`~dvsland.events.GroundTruth` of element 0, a list of them
+            (one per element b, in order) or a dict {b: GroundTruth}; stored as described in the
+            module docstring and read back by :func:`~dvsland.events.read_recording`.
 
     Returns:
         The path written.
@@ -83,11 +121,12 @@ def save_events(path: PathLike, events: Events, sensor_size: Optional[Tuple[int,
         "threshold_off": np.float64(nan if threshold_off is None else threshold_off),
         "refractory_us": np.float64(nan if refractory_us is None else refractory_us),
     }
+    gt = _ground_truth_arrays(ground_truth, int(batch_size))
     path.parent.mkdir(parents=True, exist_ok=True)
     if fmt == "npz":
         with open(path, "wb") as fh:  # keep the exact name (np.savez appends .npz otherwise)
             np.savez(fh, **arrs, **{f"meta_{k}": v for k, v in meta.items()},
-                     meta_format=np.array(FORMAT_TAG))
+                     meta_format=np.array(FORMAT_TAG), **gt)
     else:
         import h5py
 
@@ -98,6 +137,10 @@ def save_events(path: PathLike, events: Events, sensor_size: Optional[Tuple[int,
             for k, v in meta.items():
                 g.attrs[k] = v
             g.attrs["format"] = FORMAT_TAG
+            if gt:
+                gg = h5.create_group("ground_truth")
+                for k, a in gt.items():
+                    gg.create_dataset(k[len("gt_"):], data=a)
     return path
 
 

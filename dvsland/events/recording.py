@@ -32,7 +32,9 @@ Ground truth: a time series of divergence D (1/s), or of altitude (m) and vertic
 from which D = v / z. In npz: arrays ``gt_t_us`` and ``gt_divergence`` or ``gt_altitude_m`` +
 ``gt_velocity_mps``; in HDF5: a group ``ground_truth`` with ``t_us`` and the same names without
 ``gt_``; or a side file (CSV with a header ``t_us|t_s,divergence`` or
-``t_us|t_s,altitude_m,velocity_mps``, or such an npz) passed as ``ground_truth=``.
+``t_us|t_s,altitude_m,velocity_mps``, or such an npz) passed as ``ground_truth=``. A ``gt_b``
+(``b``) array holds several batch elements' series: the rows of element ``b`` are read. Event files
+written by ``dvsland events`` carry their per-frame ground truth this way.
 """
 
 from __future__ import annotations
@@ -190,10 +192,18 @@ def _from_columns(cols: Dict[str, np.ndarray], sensor_size, t_unit, source, b=0)
     return ev, (int(sensor_size[0]), int(sensor_size[1]))
 
 
-def _gt_from_mapping(m, prefix: str, source: str) -> Optional[GroundTruth]:
+def _gt_from_mapping(m, prefix: str, source: str, b: int = 0) -> Optional[GroundTruth]:
     keys = set(m.keys())
     if f"{prefix}t_us" not in keys and f"{prefix}t_s" not in keys:
         return None
+    if f"{prefix}b" in keys:  # several batch elements (dvsland events files): element b's rows
+        rows = np.asarray(m[f"{prefix}b"]).reshape(-1) == int(b)
+        if not rows.any():
+            return None
+        m = {k: np.asarray(m[k]).reshape(-1)[rows] for k in keys
+             if k.startswith(prefix) and k != f"{prefix}b" and np.asarray(m[k]).ndim == 1
+             and len(np.asarray(m[k])) == len(rows)}
+        keys = set(m.keys())
     t = (np.asarray(m[f"{prefix}t_us"]) if f"{prefix}t_us" in keys
          else times_to_us(np.asarray(m[f"{prefix}t_s"]), "s", source))
     if f"{prefix}altitude_m" in keys and f"{prefix}velocity_mps" in keys:
@@ -205,20 +215,21 @@ def _gt_from_mapping(m, prefix: str, source: str) -> Optional[GroundTruth]:
 
 
 # ------------------------------------------------------------------------------- readers
-def read_ground_truth(path: PathLike) -> GroundTruth:
+def read_ground_truth(path: PathLike, b: int = 0) -> GroundTruth:
     """A ground-truth side file: CSV with a header (``t_us`` or ``t_s``; ``divergence`` or
-    ``altitude_m`` and ``velocity_mps``) or npz with those arrays (optionally ``gt_``-prefixed)."""
+    ``altitude_m`` and ``velocity_mps``) or npz with those arrays (optionally ``gt_``-prefixed;
+    a ``b`` / ``gt_b`` column selects element ``b``, as in dvsland events files)."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(path)
     if path.suffix.lower() == ".npz":
         with np.load(path, allow_pickle=False) as z:
-            gt = _gt_from_mapping(z, "gt_", str(path)) or _gt_from_mapping(z, "", str(path))
+            gt = _gt_from_mapping(z, "gt_", str(path), b) or _gt_from_mapping(z, "", str(path), b)
     else:
         cols = _read_table(path, header_required=True)
-        gt = _gt_from_mapping(cols, "", str(path))
+        gt = _gt_from_mapping(cols, "", str(path), b)
     if gt is None:
-        raise ValueError(f"{path}: no ground-truth time column (t_us or t_s)")
+        raise ValueError(f"{path}: no ground-truth time column (t_us or t_s)" + (f" for element b = {b}" if b else ""))
     return gt
 
 
@@ -273,7 +284,7 @@ def _read_h5(path: Path, t_unit, columns, b: int):
         g = h5.get("events")
         gt = None
         if "ground_truth" in h5:
-            gt = _gt_from_mapping({k: h5["ground_truth"][k][()] for k in h5["ground_truth"]}, "", src)
+            gt = _gt_from_mapping({k: h5["ground_truth"][k][()] for k in h5["ground_truth"]}, "", src, b)
         sensor = _sensor_from(h5.attrs, src)
         if isinstance(g, h5py.Group) and g.attrs.get("format", "") != "" and "b" in g:
             from .io import load_events
@@ -397,7 +408,7 @@ def read_recording(path, format: Optional[str] = None, ground_truth: Optional[Pa
                     cols = {k: z[k] for k in files if z[k].ndim == 1 and not k.startswith("gt_")}
                 ss = sensor_size or (tuple(int(v) for v in z["sensor_size"][:2]) if "sensor_size" in files else None)
                 ev, ss = _from_columns(cols, ss, t_unit, src)
-            gt = _gt_from_mapping(z, "gt_", src)
+            gt = _gt_from_mapping(z, "gt_", src, b)
     elif fmt == "npy":
         try:
             arr = np.load(path, allow_pickle=False)
@@ -414,7 +425,7 @@ def read_recording(path, format: Optional[str] = None, ground_truth: Optional[Pa
     if ss is None:
         ss = (int(ev.x.max()) + 1, int(ev.y.max()) + 1) if len(ev) else (1, 1)
     if ground_truth is not None:
-        gt = read_ground_truth(ground_truth)
+        gt = read_ground_truth(ground_truth, b)
     if device is not None:
         ev = ev.to(device)
     return Recording(ev, (int(ss[0]), int(ss[1])), gt, src, fmt, {"layout": layout})
