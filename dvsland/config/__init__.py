@@ -11,7 +11,8 @@ from .schema import (PAPER_INITIAL_CONDITIONS, SITE_NAMES, CameraConfig, CMaxCon
                      ControllerSetting,
                      DPRConfig, DynamicsConfig, EmulatorConfig, EstimatorConfig, LoggingConfig,
                      OracleConfig, RenderConfig, SimulationConfig, SiteConfig, SNNConfig)
-from .validate import ConfigError, build, validate_config
+from .errors import ConfigError
+from .validate import build, validate_config
 
 __all__ = [
     "Config", "CameraConfig", "RenderConfig", "EmulatorConfig", "EstimatorConfig", "DPRConfig",

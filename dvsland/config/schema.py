@@ -13,6 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
+from .errors import ConfigError
+
 INF = float("inf")
 
 #: Site names of the paper.
@@ -83,30 +85,25 @@ def _apply_sensor_preset(cam: "CameraConfig") -> None:
     the preset's is an error naming both (so a saved config reloads unchanged)."""
     import math
 
-    def bad(msg):
-        from .validate import ConfigError  # late: validate imports this module
-
-        return ConfigError(msg)
-
     if cam.sensor != "custom":
         if cam.sensor not in SENSOR_PRESETS:
-            raise bad(f"camera.sensor: {cam.sensor!r} is not allowed; choose one of "
-                      f"{sorted(SENSOR_PRESETS) + ['custom']}")
+            raise ConfigError(f"camera.sensor: {cam.sensor!r} is not allowed; choose one of "
+                              f"{sorted(SENSOR_PRESETS) + ['custom']}")
         w, h, pitch, focal = SENSOR_PRESETS[cam.sensor]
         for name, val, default in (("width_px", w, 128), ("height_px", h, 128), ("pixel_pitch_um", pitch, None)):
             cur = getattr(cam, name)
             if cur == default or cur is None:
                 setattr(cam, name, val)
             elif cur != val:
-                raise bad(f"camera.{name}: {cur} contradicts camera.sensor = {cam.sensor!r} ({val}); "
-                          f"set camera.sensor = 'custom' for another geometry")
+                raise ConfigError(f"camera.{name}: {cur} contradicts camera.sensor = {cam.sensor!r} ({val}); "
+                                  f"set camera.sensor = 'custom' for another geometry")
         if cam.focal_length_mm is None and focal is not None:
             cam.focal_length_mm = focal
     if cam.focal_length_mm is not None and cam.pixel_pitch_um is not None:
         fov = math.degrees(2 * math.atan(cam.width_px * cam.pixel_pitch_um * 1e-3 / (2 * cam.focal_length_mm)))
         if cam.fov_deg not in (60.0, fov) and abs(cam.fov_deg - fov) > 1e-9:
-            raise bad(f"camera.fov_deg: {cam.fov_deg} contradicts the lens ({cam.focal_length_mm} mm on "
-                      f"{cam.width_px} px of {cam.pixel_pitch_um} um give {fov:.4f} deg); set one of them")
+            raise ConfigError(f"camera.fov_deg: {cam.fov_deg} contradicts the lens ({cam.focal_length_mm} mm on "
+                              f"{cam.width_px} px of {cam.pixel_pitch_um} um give {fov:.4f} deg); set one of them")
         cam.fov_deg = fov
 
 

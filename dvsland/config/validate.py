@@ -15,11 +15,8 @@ from typing import Any, Optional
 
 from dvsland.checks import check_choice, check_range
 
+from .errors import ConfigError
 from .schema import LIST_ITEM_TYPES, Config
-
-
-class ConfigError(ValueError):
-    """A configuration value, key or file is not acceptable."""
 
 
 def _where(source: Optional[str]) -> str:
