@@ -9,19 +9,20 @@ Public names:
     save_events, load_events: .npz / .h5 files, exact round trip (:mod:`dvsland.events.io`).
     read_recording, write_recording, Recording, GroundTruth, read_ground_truth, write_ground_truth:
         recordings of others and for others: AEDAT4, HDF5, tonic arrays, npz, CSV
-        (:mod:`dvsland.events.recording`).
+        (:mod:`dvsland.events.recording`; ``GroundTruth`` in :mod:`dvsland.events.ground_truth`).
     validate_events, check_event_arrays, check_events, EventDataError: the one check of events on
-        the way in, for every reader and every estimator (:mod:`dvsland.events.validate`).
+        the way in, for every reader and every estimator (:mod:`dvsland.events.validate`;
+        ``validate_events``, which packs the checked columns into Events, in :mod:`dvsland.events.events`).
     PixelModelParams: the non-ideal pixel parts (:mod:`dvsland.events.pixel_model`).
 """
 
 from .emulator import LEVEL_TOL, EventEmulator
-from .events import TONIC_DTYPE, Events
+from .events import TONIC_DTYPE, Events, validate_events
+from .ground_truth import GroundTruth
 from .io import load_events, save_events
 from .pixel_model import PixelModelParams
-from .recording import (GroundTruth, Recording, read_ground_truth, read_recording, write_ground_truth,
-                        write_recording)
-from .validate import EventDataError, check_event_arrays, check_events, validate_events
+from .recording import Recording, read_ground_truth, read_recording, write_ground_truth, write_recording
+from .validate import EventDataError, check_event_arrays, check_events
 
 __all__ = ["Events", "EventEmulator", "LEVEL_TOL", "TONIC_DTYPE", "save_events", "load_events",
            "read_recording", "write_recording", "Recording", "GroundTruth", "read_ground_truth",

@@ -19,6 +19,8 @@ from typing import Iterable, Optional, Sequence, Tuple, Union
 import numpy as np
 import torch
 
+from .validate import EventDataError, check_event_arrays, check_event_columns, check_events
+
 DeviceLike = Union[str, torch.device, None]
 
 #: numpy dtype of tonic's event arrays as written by :meth:`Events.to_tonic`.
@@ -147,8 +149,6 @@ class Events:
                  width: Optional[int] = None) -> "Events":
         """Raise :class:`~dvsland.events.validate.EventDataError` (a ValueError) naming the field and
         its range when a value is out of range or the order is wrong; returns self."""
-        from .validate import EventDataError, check_events
-
         if len(self) == 0:
             return self
         check_events(self, batch_size, width=width, height=height, what="Events")
@@ -260,20 +260,45 @@ class Events:
     def from_tonic(cls, arr: np.ndarray, b: int = 0, device: DeviceLike = None) -> "Events":
         """Events from a tonic structured array (fields x, y, t, p; p in {0, 1} or bool, 0 = OFF,
         or already in {-1, +1}); all get batch index ``b``. Sorted by t (stable)."""
-        from .validate import EventDataError, check_event_arrays
-
         names = getattr(getattr(arr, "dtype", None), "names", None) or ()
         missing = [f for f in ("x", "y", "t", "p") if f not in names]
         if missing:
             raise EventDataError(f"tonic array must have fields x, y, t, p; missing {missing}")
         a = check_event_arrays({k: arr[k] for k in ("x", "y", "t", "p")}, polarity="any01pm1",
                                require_sorted=False, source="tonic array")
-        if int(b) < 0:
-            raise EventDataError(f"batch index b must be >= 0, got {b}")
-        n = len(a["t"])
-        dev = torch.device(device) if device is not None else torch.device("cpu")
-        return cls(b=torch.full((n,), int(b), dtype=torch.int64, device=dev),
-                   **{k: torch.as_tensor(a[k], device=dev) for k in ("x", "y", "t", "p")}, sort=True)
+        return _pack(a, b, device, "tonic array", sort=True, cls=cls)
+
+
+def _pack(cols: dict, b: int, device: DeviceLike, source: str, sort: bool = False, cls=None) -> Events:
+    """Checked numpy columns x, y, t, p as :class:`Events` (or ``cls``) of batch element ``b`` on ``device``."""
+    if int(b) < 0:
+        raise EventDataError(f"{source}: batch index b must be >= 0, got {b}")
+    dev = torch.device(device) if device is not None else torch.device("cpu")
+    n = len(cols["t"])
+    return (cls or Events)(b=torch.full((n,), int(b), dtype=torch.int64, device=dev),
+                           **{k: torch.as_tensor(cols[k], device=dev) for k in ("x", "y", "t", "p")}, sort=sort)
+
+
+def validate_events(x, y, t_us, p, sensor_size: Optional[Tuple[int, int]] = None, source: str = "events",
+                    b: int = 0, device: DeviceLike = None) -> Events:
+    """Check raw event columns and pack them into :class:`Events` (batch index ``b``), sorted by t.
+
+    Args:
+        x, y: (N,) integer-valued pixel column / row, >= 0 and < W / H when ``sensor_size`` is given.
+        t_us: (N,) integer-valued timestamps, µs (see :func:`dvsland.events.validate.times_to_us`).
+        p: (N,) polarity, either {0, 1} (0 = OFF; tonic, HDF5 and AEDAT files) or {-1, +1}
+            (dvsland), or bool (False = OFF).
+        sensor_size: (W, H) or None.
+        source: a name for the messages (file name).
+
+    Returns:
+        Events with b, x, y, t int64 and p int8 ±1, stably sorted by t when not already.
+
+    Raises:
+        EventDataError: (a ValueError) naming the field, the allowed range and the source (the
+            checks of :func:`dvsland.events.validate.check_event_columns`).
+    """
+    return _pack(check_event_columns(x, y, t_us, p, sensor_size, source), b, device, source)
 
 
 def _check_pos(name: str, v) -> None:

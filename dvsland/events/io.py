@@ -61,7 +61,7 @@ def _ground_truth_arrays(ground_truth, batch_size: int) -> Dict[str, np.ndarray]
     mapping {b: GroundTruth}; empty for None."""
     if ground_truth is None:
         return {}
-    from .recording import GroundTruth
+    from .ground_truth import GroundTruth
 
     if isinstance(ground_truth, GroundTruth):
         items = [(0, ground_truth)]
@@ -228,7 +228,6 @@ def _check_meta(raw: dict, path: Path) -> Dict[str, Any]:
     return meta
 
 
-# recordings of other tools (AEDAT4, HDF5 layouts, tonic, CSV): dvsland.events.recording
-from .recording import read_recording, write_recording  # noqa: E402
-
-__all__ = ["save_events", "load_events", "FORMAT_TAG", "read_recording", "write_recording", "EventDataError"]
+# recordings of other tools (AEDAT4, HDF5 layouts, tonic, CSV) are dvsland.events.recording, which
+# reads dvsland's own files through this module (dvsland.events.read_recording, write_recording)
+__all__ = ["save_events", "load_events", "FORMAT_TAG", "EventDataError"]

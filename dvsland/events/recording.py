@@ -48,8 +48,10 @@ from typing import Dict, Optional, Sequence, Tuple, Union
 import numpy as np
 import torch
 
-from .events import TONIC_DTYPE, Events
-from .validate import TIME_UNITS, times_to_us, validate_events
+from .events import TONIC_DTYPE, Events, validate_events
+from .ground_truth import GroundTruth
+from .io import load_events
+from .validate import TIME_UNITS, times_to_us
 
 PathLike = Union[str, Path]
 
@@ -62,65 +64,6 @@ _UNIT_OF_NAME = {"t_s": "s", "t_ms": "ms", "t_ns": "ns", "t_us": "us"}
 
 
 # ------------------------------------------------------------------------------ data types
-@dataclass
-class GroundTruth:
-    """A ground-truth time series of a recording.
-
-    Attributes:
-        t_us: (K,) int64 µs, increasing.
-        divergence: (K,) float64, D = v / z, 1/s (negative while descending).
-        altitude_m, velocity_mps: (K,) float64 or None (when only D is known).
-    """
-
-    t_us: np.ndarray
-    divergence: np.ndarray
-    altitude_m: Optional[np.ndarray] = None
-    velocity_mps: Optional[np.ndarray] = None
-
-    def __post_init__(self):
-        self.t_us = np.asarray(self.t_us).astype(np.int64).reshape(-1)
-        self.divergence = np.asarray(self.divergence, dtype=np.float64).reshape(-1)
-        K = len(self.t_us)
-        for name in ("divergence", "altitude_m", "velocity_mps"):
-            v = getattr(self, name)
-            if v is not None:
-                v = np.asarray(v, dtype=np.float64).reshape(-1)
-                setattr(self, name, v)
-                if len(v) != K:
-                    raise ValueError(f"ground truth {name} has {len(v)} samples, t_us has {K}")
-        if K == 0:
-            raise ValueError("ground truth needs at least one sample")
-        if K > 1 and np.any(np.diff(self.t_us) <= 0):
-            raise ValueError("ground truth t_us must be strictly increasing")
-
-    @classmethod
-    def from_altitude(cls, t_us, altitude_m, velocity_mps) -> "GroundTruth":
-        z = np.asarray(altitude_m, dtype=np.float64)
-        v = np.asarray(velocity_mps, dtype=np.float64)
-        if np.any(z <= 0):
-            raise ValueError("ground truth altitude_m must be > 0 (D = v / z)")
-        return cls(t_us, v / z, z, v)
-
-    def at(self, t_us) -> Dict[str, np.ndarray]:
-        """Linear interpolation at ``t_us`` (M,); NaN outside [t_us[0], t_us[-1]]. Returns
-        {"divergence", "altitude_m", "velocity_mps"} ((M,) float64; the last two NaN if unknown)."""
-        t = np.asarray(t_us, dtype=np.float64).reshape(-1)
-        out = {}
-        tt = self.t_us.astype(np.float64)
-        for name in ("divergence", "altitude_m", "velocity_mps"):
-            v = getattr(self, name)
-            out[name] = (np.interp(t, tt, v, left=np.nan, right=np.nan) if v is not None
-                         else np.full(t.shape, np.nan))
-        return out
-
-    def arrays(self, prefix: str = "") -> Dict[str, np.ndarray]:
-        out = {f"{prefix}t_us": self.t_us, f"{prefix}divergence": self.divergence}
-        if self.altitude_m is not None:
-            out[f"{prefix}altitude_m"] = self.altitude_m
-            out[f"{prefix}velocity_mps"] = self.velocity_mps
-        return out
-
-
 @dataclass
 class Recording:
     """One event camera's recording.
@@ -287,8 +230,6 @@ def _read_h5(path: Path, t_unit, columns, b: int):
             gt = _gt_from_mapping({k: h5["ground_truth"][k][()] for k in h5["ground_truth"]}, "", src, b)
         sensor = _sensor_from(h5.attrs, src)
         if isinstance(g, h5py.Group) and g.attrs.get("format", "") != "" and "b" in g:
-            from .io import load_events
-
             ev, meta = load_events(path, with_meta=True)
             ev = ev.select_batch(b)
             ev = Events(torch.zeros_like(ev.b), ev.x, ev.y, ev.t, ev.p)
@@ -392,8 +333,6 @@ def read_recording(path, format: Optional[str] = None, ground_truth: Optional[Pa
         with z:
             files = z.files
             if "meta_format" in files and "b" in files:
-                from .io import load_events
-
                 ev, meta = load_events(path, with_meta=True)
                 ev = ev.select_batch(b)
                 ev = Events(torch.zeros_like(ev.b), ev.x, ev.y, ev.t, ev.p)

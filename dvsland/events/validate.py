@@ -2,9 +2,12 @@
 arrays, and the events every estimator's ``update`` receives.
 
 Every reader (dvsland npz / HDF5 in :mod:`dvsland.events.io`; AEDAT4, HDF5 layouts, tonic, npz and
-CSV recordings in :mod:`dvsland.events.recording` through :func:`validate_events`; tonic arrays)
-passes its raw arrays through :func:`check_event_arrays` before building :class:`Events`; the
-estimators' ``update`` passes its events through :func:`checked_for_estimator`. A bad value is an
+CSV recordings in :mod:`dvsland.events.recording` through :func:`dvsland.events.validate_events`,
+which packs what :func:`check_event_columns` passed; tonic arrays) passes its raw arrays through
+:func:`check_event_arrays` before building :class:`~dvsland.events.Events`; the estimators'
+``update`` passes its events through :func:`checked_for_estimator`. This module sits below the
+:class:`~dvsland.events.Events` container: it checks arrays and duck-typed events and never builds
+``Events`` itself. A bad value is an
 :class:`EventDataError` (a ``ValueError``) that names the field, the allowed range and, for a
 file, the path; never a numpy or torch error from deep inside.
 
@@ -19,12 +22,10 @@ Rules (the dvsland conventions: ``b, x, y`` int64, ``t`` int64 µs, ``p`` int8 +
 
 from __future__ import annotations
 
-from typing import Mapping, Optional, Sequence, Tuple
+from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
-
-from .events import Events
 
 FIELDS = ("b", "x", "y", "t", "p")
 _I64 = np.iinfo(np.int64)
@@ -235,9 +236,10 @@ def times_to_us(t, unit: Optional[str], source: str = "events") -> np.ndarray:
     return out
 
 
-def validate_events(x, y, t_us, p, sensor_size: Optional[Tuple[int, int]] = None, source: str = "events",
-                    b: int = 0, device=None) -> Events:
-    """Check raw event columns and pack them into :class:`Events` (batch index ``b``), sorted by t.
+def check_event_columns(x, y, t_us, p, sensor_size: Optional[Tuple[int, int]] = None,
+                        source: str = "events") -> Dict[str, np.ndarray]:
+    """The checks of raw event columns on their way into :class:`~dvsland.events.Events` (what
+    :func:`dvsland.events.validate_events` packs).
 
     Args:
         x, y: (N,) integer-valued pixel column / row, >= 0 and < W / H when ``sensor_size`` is given.
@@ -248,7 +250,7 @@ def validate_events(x, y, t_us, p, sensor_size: Optional[Tuple[int, int]] = None
         source: a name for the messages (file name).
 
     Returns:
-        Events with b, x, y, t int64 and p int8 ±1, stably sorted by t when not already.
+        {"x", "y", "t", "p"}: numpy columns (int64, p int8 ±1), stably sorted by t when not already.
 
     Raises:
         EventDataError: (a ValueError) naming the field, the allowed range and the source (the
@@ -264,12 +266,7 @@ def validate_events(x, y, t_us, p, sensor_size: Optional[Tuple[int, int]] = None
     if n > 1 and np.any(t[1:] < t[:-1]):
         order = np.argsort(t, kind="stable")
         a = {k: v[order] for k, v in a.items()}
-    if int(b) < 0:
-        raise EventDataError(f"{source}: batch index b must be >= 0, got {b}")
-    dev = torch.device(device) if device is not None else torch.device("cpu")
-    return Events(b=torch.full((n,), int(b), dtype=torch.int64, device=dev),
-                  **{k: torch.as_tensor(a[k], device=dev) for k in ("x", "y", "t", "p")})
+    return a
 
-
-__all__ = ["EventDataError", "check_event_arrays", "check_events", "checked_for_estimator", "validate_events",
+__all__ = ["EventDataError", "check_event_arrays", "check_event_columns", "check_events", "checked_for_estimator",
            "times_to_us", "TIME_UNITS", "FIELDS"]
