@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import shutil
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Sequence
 
 from dvsland.report.results import write_json
 
@@ -95,6 +95,46 @@ def plot_pareto(rows: List[dict], path: Path, title: str) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7.5, frameon=False)
     fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+def plot_scaling(rows: Sequence[Dict], path, title: str) -> None:
+    """Two panels: ms per step of each stage against B (log-log), and peak memory against B
+    (the rows of :func:`dvsland.bench.scaling.run_scaling`)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    bs = [r["batch_size"] for r in rows]
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
+    per = [stage_ms(r) for r in rows]
+    kind = per[0][2] if per else "wall"
+    for k in STAGE_NAMES:
+        ys = [max(p[0][k], 1e-3) for p in per]
+        if any(p[0][k] > 0 for p in per):
+            a1.plot(bs, ys, "o-", label=k.replace("_", " + "))
+    a1.plot(bs, [p[1] for p in per], "k--", label="total")
+    if kind == "CPU":
+        a1.plot(bs, [r["ms_total"] for r in rows], "k:", label="total, wall (loaded machine)")
+    a1.set_xscale("log")
+    a1.set_yscale("log")
+    a1.set_xlabel("batch size B (descents)")
+    a1.set_ylabel(f"{kind} time per control step, ms")
+    a1.set_title(title, fontsize=9)
+    a1.legend(fontsize=8)
+    a1.grid(True, which="both", alpha=0.3)
+    mem = [(r["batch_size"], r["peak_memory_mib"]) for r in rows if r.get("peak_memory_mib") is not None]
+    if mem:
+        a2.plot([m[0] for m in mem], [max(m[1], 1e-1) for m in mem], "o-", color="tab:purple")
+    a2.set_xscale("log")
+    a2.set_yscale("log")
+    a2.set_xlabel("batch size B (descents)")
+    a2.set_ylabel("peak resident memory above the imports, MiB")
+    a2.set_title("CPU: fresh process, renderer atlas of 9 sites included", fontsize=9)
+    a2.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
@@ -274,8 +314,6 @@ def economy_lines(ec: dict) -> List[str]:
 def write_report(report: dict, run_dir: Path, docs_dir: Optional[Path] = None) -> Dict[str, Path]:
     """Write bench.json, bench.md and the figures into ``run_dir``; with ``docs_dir`` also
     ``benchmarks.md`` and its figures there. Returns {kind: path}."""
-    from .scaling import plot_scaling
-
     run_dir = Path(run_dir)
     paths = {"json": run_dir / "bench.json", "md": run_dir / "bench.md"}
     figs = {}

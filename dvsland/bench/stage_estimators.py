@@ -26,7 +26,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import time
+from typing import Callable, List, Optional
 
 import numpy as np
 import torch
@@ -76,7 +78,23 @@ def time_estimator(cfg, name, B, device, steps, warmup, events_per_element, seed
                 finite_fraction=finite, threads=torch.get_num_threads())
 
 
-def main(argv=None) -> int:
+def _evaluation_argv(args) -> List[str]:
+    """The ``dvsland evaluate`` command line of ``--eval`` (with ``--eval-args``, ``--out``, ``--threads``)."""
+    argv = ["evaluate", "--estimators", "dpr,dpr[pair_weighting=length],cmax"] + shlex.split(args.eval_args)
+    if args.out:
+        argv += ["--out", args.out]
+    if args.threads:
+        argv += ["--threads", str(args.threads)]
+    return argv
+
+
+def main(argv=None, run_command: Optional[Callable[[List[str]], int]] = None) -> int:
+    """The benchmark's command line (``argv``, default ``sys.argv[1:]``).
+
+    ``run_command`` runs a ``dvsland`` command line (``dvsland.cli.main.main``, which
+    ``scripts/bench_estimators.py`` passes in): ``--eval`` needs it, since the bench sits below the
+    command line and does not import it.
+    """
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--config", default=None, help="YAML config (default configs/paper.yaml)")
     ap.add_argument("--estimators", default="dpr,cmax,oracle")
@@ -91,6 +109,8 @@ def main(argv=None) -> int:
     ap.add_argument("--eval-args", default="", help="e.g. '--segment-steps 20 --stride 10' for a quick sample")
     ap.add_argument("--out", default=None, help="run folder of --eval")
     args = ap.parse_args(argv)
+    if args.eval and run_command is None:
+        ap.error("--eval runs `dvsland evaluate`: use scripts/bench_estimators.py --eval (or run the command)")
     if args.threads:
         torch.set_num_threads(args.threads)
     cfg = load_config(args.config)
@@ -110,16 +130,7 @@ def main(argv=None) -> int:
                       flush=True)
     out = {"timings": rows, "torch_threads": torch.get_num_threads(), "torch": torch.__version__}
     if args.eval:
-        import shlex
-
-        from dvsland.cli.main import main as cli_main
-
-        argv = ["evaluate", "--estimators", "dpr,dpr[pair_weighting=length],cmax"] + shlex.split(args.eval_args)
-        if args.out:
-            argv += ["--out", args.out]
-        if args.threads:
-            argv += ["--threads", str(args.threads)]
-        cli_main(argv)
+        run_command(_evaluation_argv(args))
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=2)

@@ -71,9 +71,9 @@ def calibrated_frames(B, H, W, n, target, device):
 def descent_frames(B, n, device, camera=None):
     """Fast-renderer frames along the oracle descent (sites A-I cycled over the batch, each
     element started at a different phase), (n, B, H, W); see
-    :func:`dvsland.events.benchmark.descent_frames`. None if the renderer is unavailable."""
+    :func:`dvsland.bench.frames.descent_frames`. None if the renderer is unavailable."""
     try:
-        from dvsland.events.benchmark import descent_frames as frames_along_descent
+        from .frames import descent_frames as frames_along_descent
     except Exception:  # pragma: no cover - renderer not installed
         return None
     return frames_along_descent(B, n, camera).to(device)

@@ -34,7 +34,9 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(args.threads)
     from dvsland.config import CameraConfig
-    from dvsland.events.benchmark import bench_noise, bench_vs_v2e, descent_frames, format_results, smooth_frames
+    from dvsland.events.benchmark import bench_noise, bench_vs_v2e, format_results, smooth_frames
+
+    from .frames import descent_frames
 
     if args.v2e_dir is None:
         from dvsland.config import repo_root

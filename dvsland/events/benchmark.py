@@ -59,29 +59,6 @@ def load_v2e(v2e_dir) -> type:
     return V2EEmulator
 
 
-def descent_frames(B: int, n: int, camera=None, sites=None) -> torch.Tensor:
-    """Fast-renderer frames along the oracle descent, (n, B, H, W) float32: sites A-I cycled over
-    the batch, element b started at fraction b / B of its descent."""
-    from dvsland.config import PAPER_INITIAL_CONDITIONS, SITE_NAMES, CameraConfig
-    from dvsland.dynamics import closed_form_state, closed_form_time_to_altitude
-    from dvsland.render import get_renderer
-
-    camera = camera or CameraConfig()
-    names = list(sites or SITE_NAMES)
-    r = get_renderer("fast", names, camera)
-    site_idx = torch.arange(B) % len(names)
-    c2 = 0.5
-    ics = [PAPER_INITIAL_CONDITIONS[names[i].split("~")[0]] for i in site_idx.tolist()]
-    t_end = torch.tensor([closed_form_time_to_altitude(50.0, z0, v0, c2) for z0, v0 in ics])  # time to 50 m
-    t_start = (torch.arange(B, dtype=torch.float64) / B) * (t_end - n * DT_US * 1e-6).clamp(min=0)
-    out = []
-    for k in range(n):
-        t = (t_start + k * DT_US * 1e-6).tolist()
-        z = torch.tensor([float(closed_form_state(tb, z0, v0, c2)[0]) for tb, (z0, v0) in zip(t, ics)])
-        out.append(r.render(z.float(), site_idx))
-    return torch.stack(out)
-
-
 def smooth_frames(B: int, H: int, W: int, n: int, omega: float = 0.1, seed: int = 0) -> torch.Tensor:
     """A smooth drifting pattern, (n, B, H, W) float32 irradiance; the log change per frame grows
     with ``omega`` (0.1 gives about 0.5 events per pixel per frame at threshold 0.1)."""
@@ -258,4 +235,4 @@ def format_results(res_v2e: Optional[dict], res_noise: Optional[dict]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["bench_vs_v2e", "bench_noise", "load_v2e", "descent_frames", "smooth_frames", "format_results", "NOISY"]
+__all__ = ["bench_vs_v2e", "bench_noise", "load_v2e", "smooth_frames", "format_results", "NOISY"]
