@@ -6,6 +6,10 @@ from typing import Dict, Sequence, Tuple
 
 import numpy as np
 
+#: the sites the accuracy target applies to (H and I are nearly featureless): the "sites A-G" of
+#: the evaluation's summary and of its TensorBoard histograms
+TARGET_SITES: Tuple[str, ...] = ("A", "B", "C", "D", "E", "F", "G")
+
 #: altitude bands (label, low m, high m): error is also reported per band
 BANDS: Tuple[Tuple[str, float, float], ...] = (("> 2 km", 2000.0, np.inf), ("2 km - 500 m", 500.0, 2000.0),
                                                ("< 500 m", 0.0, 500.0))

@@ -450,7 +450,7 @@ def write_evaluation_tensorboard(log_dir, res, cfg_yaml: Optional[str] = None,
                     w.add_scalar(f"divergence/site_{site}", float(dh[i, k]), steps[k],
                                  walltime=start + float(desc.t_s[k]))
         hps, mets, ws = [], [], []
-        from dvsland.evaluate.run import TARGET_SITES
+        from dvsland.estimators.metrics import TARGET_SITES  # below the evaluation, which fills ``res``
 
         target = np.array([s in TARGET_SITES for s in desc.sites])
         for name, dh in res.d_hat.items():
