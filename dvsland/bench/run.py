@@ -98,7 +98,7 @@ def run_bench(what: Sequence[str] = (), quick: bool = False, device="cpu", out: 
         raise ValueError(f"device must be 'cpu' or 'cuda', got {device!r}")
     if int(threads) < 1 or int(render_threads) < 0:
         raise ValueError(f"threads must be >= 1 and render_threads >= 0, got {threads}, {render_threads}")
-    from dvsland.cli.common import restrict_sites
+    from dvsland.config.sites import restrict_sites
 
     overrides = list(overrides or ())
     if isinstance(config, Config):

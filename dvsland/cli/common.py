@@ -7,6 +7,7 @@ import os
 from typing import List, Optional, Sequence
 
 from dvsland.config import Config, load_config
+from dvsland.config.sites import check_configured_sites, restrict_sites  # noqa: F401  (the commands' names)
 
 
 def add_config_args(parser: argparse.ArgumentParser, out: bool = True) -> None:
@@ -111,29 +112,6 @@ def parse_sites(text: Optional[str], param: str = "--sites") -> Optional[List[st
     if dup:
         raise ValueError(f"{param}: {', '.join(dup)} named twice")
     return names
-
-
-def check_configured_sites(cfg: Config, sites: Optional[Sequence[str]], param: str = "--sites") -> None:
-    """Commands that fly the config's descents (simulate, campaign, evaluate, bench) take only sites
-    of ``simulation.sites``; ValueError naming ``param``, the site and the configured ones."""
-    if sites is None:
-        return
-    known = list(dict.fromkeys(s.name for s in cfg.simulation.sites))
-    for n in sites:
-        if n not in known:
-            why = (" (a terrain variant: render and events take variants; campaigns fly them through "
-                   "dispersion.terrain_variants)" if "~" in n else "")
-            raise ValueError(f"{param}: site {n!r} is not in the config's simulation.sites {known}{why}")
-
-
-def restrict_sites(cfg: Config, sites: Optional[Sequence[str]], param: str = "--sites") -> Config:
-    """``cfg`` with ``simulation.sites`` cut to ``sites`` (in the config's order), after
-    :func:`check_configured_sites`; ``cfg`` unchanged for None."""
-    if sites is None:
-        return cfg
-    check_configured_sites(cfg, sites, param)
-    cfg.simulation.sites = [s for s in cfg.simulation.sites if s.name in set(sites)]
-    return cfg
 
 
 def available_devices() -> List[str]:
