@@ -1,9 +1,17 @@
-"""Load YAML configs into validated dataclasses; apply ``--set key=value`` overrides; dump."""
+"""Load YAML configs into validated dataclasses; apply ``--set key=value`` overrides; dump.
+
+A config file may name its base with ``extends: <preset name or path>`` and give only what
+differs: the base is resolved first (it may extend another), then the file is merged over it,
+mappings key by key (deeply), lists and other values replaced whole. A name or a relative path is
+looked up next to the extending file first, then among the shipped presets. :func:`resolve_config`
+returns the merged mapping and, for each value, the file (or ``--set``) it came from.
+"""
 
 from __future__ import annotations
 
 import copy
 import dataclasses
+import os
 import typing
 from importlib import resources
 from pathlib import Path
@@ -59,6 +67,105 @@ def read_yaml(path: PathLike) -> dict:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: the top level must be a mapping of sections")
     return data
+
+
+#: the key naming a config's base
+EXTENDS_KEY = "extends"
+#: origin of a value no file and no --set gave
+DEFAULT_ORIGIN = "default"
+
+
+def _find_base(name, where: Path) -> Path:
+    """The file ``extends: name`` in the file ``where`` names: next to ``where`` first (with or
+    without ``.yaml``), then a shipped preset."""
+    if not isinstance(name, str) or not name.strip():
+        raise ConfigError(f"{where}: '{EXTENDS_KEY}' must name a preset or a YAML file, got {name!r}")
+    p = Path(name.strip()).expanduser()
+    if not p.is_absolute():
+        for cand in (where.parent / p, where.parent / (str(p) + ".yaml")):
+            if cand.is_file():
+                return cand
+    elif p.is_file():
+        return p
+    try:
+        return resolve_config_path(name.strip())
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {EXTENDS_KEY}: {name!r}: {exc}") from None
+
+
+def _leaves(data, prefix: tuple = ()):
+    """Dotted paths of the values of a nested mapping (a list is one value)."""
+    if isinstance(data, dict) and data:
+        for k, v in data.items():
+            yield from _leaves(v, prefix + (str(k),))
+    elif prefix:
+        yield prefix
+
+
+def _merge(base: dict, over: dict) -> dict:
+    """``over`` merged into a copy of ``base``: mappings key by key, everything else replaced."""
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def _display_path(path: Path) -> str:
+    """A file as an origin names it: a shipped preset as ``dvsland/configs/<name>.yaml``, another
+    file relative to the working directory when inside it, else absolute."""
+    path = Path(path).resolve()
+    shipped = configs_dir().resolve()
+    if path.parent == shipped:
+        return f"dvsland/configs/{path.name}"
+    try:
+        rel = os.path.relpath(path)
+    except ValueError:  # another drive
+        return str(path)
+    return rel if not rel.startswith("..") else str(path)
+
+
+def resolve_config(path: PathLike, _chain: tuple = ()) -> tuple:
+    """Read a config file and the chain of files it ``extends``.
+
+    Returns:
+        ``(data, origins)``: the merged raw mapping (without ``extends``) and {dotted path: the
+        file that set it} for every value a file gives.
+
+    Raises:
+        ConfigError: a file that is missing or not a mapping, an ``extends`` that names nothing,
+            or a cycle (the message lists the chain).
+    """
+    path = Path(path)
+    key = path.resolve()
+    if key in _chain:
+        names = " -> ".join(str(p) for p in (*_chain, key))
+        raise ConfigError(f"{path}: '{EXTENDS_KEY}' makes a cycle: {names}")
+    data = read_yaml(path)
+    base_name = data.pop(EXTENDS_KEY, None)
+    origin = _display_path(path)
+    own = {".".join(p): origin for p in _leaves(data)}
+    if base_name is None:
+        return data, own
+    base, origins = resolve_config(_find_base(base_name, path), (*_chain, key))
+    for p in list(origins):  # a value this file replaces whole (a list, a section set to null ...)
+        if any(p == q or p.startswith(q + ".") for q in own):
+            del origins[p]
+    origins.update(own)
+    return _merge(base, data), origins
+
+
+def origin_of(origins: dict, dotted: str) -> str:
+    """Where the value at ``dotted`` (``camera.fov_deg``, ``simulation.sites.0.z0_m``) came from:
+    the longest recorded prefix's origin, else ``default``."""
+    parts = dotted.split(".")
+    for n in range(len(parts), 0, -1):
+        o = origins.get(".".join(parts[:n]))
+        if o is not None:
+            return o
+    return DEFAULT_ORIGIN
 
 
 def _resolve_path(cls, keys: list, text: str):
@@ -142,18 +249,35 @@ def load_config(path: Optional[PathLike] = None, overrides: Iterable[str] = ()) 
     Raises:
         ConfigError: unknown key, wrong type, or value out of range (message names it).
     """
+    cfg, _ = load_config_with_origins(path, overrides)
+    return cfg
+
+
+def load_config_with_origins(path: Optional[PathLike] = None, overrides: Iterable[str] = ()) -> tuple:
+    """:func:`load_config`, and where each value came from.
+
+    Returns:
+        ``(cfg, origins)``: the validated :class:`Config` and {dotted path: origin}, the origin
+        being a file of the ``extends`` chain or ``--set key=value``; look a value up with
+        :func:`origin_of` (values nobody set are ``default``).
+    """
     if path is None:
         default = configs_dir() / "paper.yaml"
         path = default if default.is_file() else None
     if path is not None:
         path = resolve_config_path(path)
-    data = read_yaml(path) if path is not None else {}
+    data, origins = resolve_config(path) if path is not None else ({}, {})
     overrides = list(overrides or ())
     source = str(path) if path is not None else "defaults"
     if overrides:
         source += " with --set overrides"
     data = apply_overrides(data, overrides)
-    return validate_config(data, source=source)
+    for text in overrides:
+        key = ".".join(k for k in text.split("=", 1)[0].strip().split(".") if k)
+        for p in [p for p in origins if p == key or p.startswith(key + ".")]:
+            del origins[p]
+        origins[key] = f"--set {text.strip()}"
+    return validate_config(data, source=source), origins
 
 
 def config_to_dict(cfg) -> dict:
@@ -167,3 +291,36 @@ def dump_config(cfg, path: Optional[PathLike] = None) -> str:
     if path is not None:
         Path(path).write_text(text)
     return text
+
+
+def _flow(value) -> str:
+    """One YAML value on one line (flow style)."""
+    return yaml.safe_dump(value, default_flow_style=True, sort_keys=False, width=1 << 30).strip().removesuffix("\n...").strip()
+
+
+def dump_config_with_origins(cfg, origins: dict) -> str:
+    """YAML of ``cfg`` (as :func:`dump_config`, one value per line) with a comment after each value
+    naming where it came from (:func:`load_config_with_origins`): a file of the ``extends`` chain,
+    ``--set key=value`` or ``default``. The text loads back to the same config; a list item changed
+    by ``--set`` names that too."""
+    lines = []
+
+    def walk(node, path, indent):
+        pad = "  " * indent
+        for k, v in node.items():
+            dotted = ".".join((*path, str(k)))
+            if isinstance(v, dict) and v:
+                lines.append(f"{pad}{k}:")
+                walk(v, (*path, str(k)), indent + 1)
+            elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+                lines.append(f"{pad}{k}:  # {origin_of(origins, dotted)}")
+                for i, item in enumerate(v):
+                    sub = [f"{p}" for p in origins if p.startswith(f"{dotted}.{i}.") or p == f"{dotted}.{i}"]
+                    note = f"  # {', '.join(origins[p] for p in sub)}" if sub else ""
+                    lines.append(f"{pad}- {_flow(item)}{note}")
+            else:
+                lines.append(f"{pad}{k}: {_flow(v)}  # {origin_of(origins, dotted)}")
+
+    walk(config_to_dict(cfg), (), 0)
+    return "\n".join(lines) + "\n"
+
