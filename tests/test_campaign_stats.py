@@ -29,6 +29,29 @@ class TestWilson:
         lo, hi = wilson_interval(k, n)
         assert lo == pytest.approx(ci.low, abs=1e-12) and hi == pytest.approx(ci.high, abs=1e-12)
 
+    @pytest.mark.parametrize("n", [1, 2, 7, 18, 1000])
+    def test_ends_exact(self, n):
+        """k = 0 starts at exactly 0, k = n ends at exactly 1, the other end is scipy's."""
+        stats = pytest.importorskip("scipy.stats")
+        lo, hi = wilson_interval(0, n)
+        assert lo == 0.0 and hi == pytest.approx(stats.binomtest(0, n).proportion_ci(method="wilson").high, abs=1e-15)
+        lo, hi = wilson_interval(n, n)
+        assert hi == 1.0 and lo == pytest.approx(stats.binomtest(n, n).proportion_ci(method="wilson").low, abs=1e-15)
+        assert isinstance(lo, float) and isinstance(hi, float)
+
+    def test_one_implementation(self):
+        from dvsland.bench import wilson_interval as bench_wilson
+
+        assert bench_wilson is wilson_interval
+        assert all(math.isnan(x) for x in bench_wilson(0, 0))
+
+    def test_other_confidence(self):
+        stats = pytest.importorskip("scipy.stats")
+        ci = stats.binomtest(3, 9).proportion_ci(confidence_level=0.9, method="wilson")
+        assert wilson_interval(3, 9, confidence=0.9) == pytest.approx((ci.low, ci.high), abs=1e-15)
+        assert wilson_interval(3, 9, 0.9)[1] - wilson_interval(3, 9, 0.9)[0] < (
+            wilson_interval(3, 9)[1] - wilson_interval(3, 9)[0])
+
     def test_edges_and_errors(self):
         assert all(math.isnan(x) for x in wilson_interval(0, 0))
         lo, hi = wilson_interval(0, 10)
@@ -37,6 +60,8 @@ class TestWilson:
             wilson_interval(5, 3)
         with pytest.raises(ValueError, match="confidence"):
             wilson_interval(1, 3, confidence=1.5)
+        with pytest.raises(ValueError, match="integers"):
+            wilson_interval(1.5, 3)
 
 
 def _runs():

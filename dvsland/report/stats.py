@@ -21,47 +21,37 @@ GROUP_KEYS = ("site", "label", "estimator")
 
 
 def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple:
-    """Wilson score interval of a binomial proportion.
+    """Wilson score interval of a binomial proportion: the one implementation in dvsland (campaign
+    groups, the paper pattern and the benchmark's closed-loop table all use it).
+
+    ``scipy.stats.binomtest(k, n).proportion_ci(method="wilson")``; at k = 0 the low end is exactly
+    0 and at k = n the high end exactly 1.
 
     Args:
-        successes: k, 0 <= k <= n.  n: trials (0 gives (nan, nan)).
+        successes: k, 0 <= k <= n.
+        n: trials, >= 0. n = 0 gives (nan, nan): with no trials there is no rate (k / n is NaN
+            too), and the strict JSON files write both as null.
         confidence: two-sided level in (0, 1).
 
     Returns:
-        (low, high) in [0, 1].
+        (low, high) as floats in [0, 1], or (nan, nan) for n = 0.
+
+    Raises:
+        ValueError: k or n negative, k > n, or confidence outside (0, 1).
     """
     if not (0 < confidence < 1):
         raise ValueError(f"confidence must be in (0, 1), got {confidence}")
-    if n < 0 or successes < 0 or successes > n:
-        raise ValueError(f"need 0 <= successes <= n, got successes={successes}, n={n}")
-    if n == 0:
+    k, n_ = int(successes), int(n)
+    if k != successes or n_ != n or n_ < 0 or k < 0 or k > n_:
+        raise ValueError(f"need integers 0 <= successes <= n, got successes={successes}, n={n}")
+    if n_ == 0:
         return (math.nan, math.nan)
-    z = _norm_ppf(0.5 + confidence / 2)
-    p = successes / n
-    denom = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    # exact ends at k = 0 and k = n (the formula leaves ~1e-17 of rounding there)
-    lo = 0.0 if successes == 0 else max(0.0, centre - half)
-    hi = 1.0 if successes == n else min(1.0, centre + half)
+    from scipy.stats import binomtest
+
+    ci = binomtest(k, n_).proportion_ci(confidence_level=confidence, method="wilson")
+    lo = 0.0 if k == 0 else min(1.0, max(0.0, float(ci.low)))
+    hi = 1.0 if k == n_ else min(1.0, max(0.0, float(ci.high)))
     return (lo, hi)
-
-
-def _norm_ppf(q: float) -> float:
-    """Standard normal quantile (scipy when present, else bisection on erf)."""
-    try:
-        from scipy.stats import norm
-
-        return float(norm.ppf(q))
-    except ImportError:  # pragma: no cover - scipy is a dependency
-        lo, hi = -10.0, 10.0
-        for _ in range(200):
-            mid = 0.5 * (lo + hi)
-            if 0.5 * (1 + math.erf(mid / math.sqrt(2))) < q:
-                lo = mid
-            else:
-                hi = mid
-        return 0.5 * (lo + hi)
 
 
 def _spread(values: Sequence[float]) -> Dict[str, Optional[float]]:
