@@ -187,3 +187,25 @@ def test_file_errors(tmp_path):
     np.savez(tmp_path / "other.npz", a=np.zeros(3))
     with pytest.raises(ValueError, match="not a dvsland events file"):
         load_events(tmp_path / "other.npz")
+
+
+# ------------------------------------------------------------------ count-image order, unpacking
+def test_count_image_polarity_order_tonic():
+    ev = Events(b=[0, 0, 0, 1], x=[0, 1, 1, 2], y=[0, 0, 0, 1], t=[1, 2, 3, 4], p=[1, -1, -1, 1])
+    ours = ev.to_count_image(2, 2, 3)
+    tonic = ev.to_count_image(2, 2, 3, polarity_order="tonic")
+    assert ours[0, 0, 0, 0] == 1 and ours[0, 1, 0, 1] == 2  # channel 0 = ON
+    assert torch.equal(tonic, ours.flip(1))                  # tonic: channel 0 = OFF, 1 = ON
+    assert torch.equal(ev.to_count_image(2, 2, 3, polarity_order="dvsland"), ours)
+    with pytest.raises(ValueError, match="polarity_order"):
+        ev.to_count_image(2, 2, 3, polarity_order="on_first")
+
+
+def test_count_image_tonic_order_matches_tonic_arrays():
+    """Channel c of the tonic order holds the events whose tonic polarity index p01 is c."""
+    ev = Events(b=[0] * 5, x=[0, 1, 2, 2, 0], y=[0, 0, 1, 1, 1], t=[1, 2, 3, 4, 5], p=[1, -1, 1, 1, -1])
+    arr, _ = ev.to_tonic(0, height=2, width=3)
+    img = ev.to_count_image(1, 2, 3, polarity_order="tonic")[0]
+    ref = np.zeros((2, 2, 3), np.float32)
+    np.add.at(ref, (arr["p"].astype(int), arr["y"].astype(int), arr["x"].astype(int)), 1)
+    assert np.array_equal(img.numpy(), ref)

@@ -2,7 +2,8 @@
 
 Public names:
     Events: packed events (b, x, y int64; t int64 µs; p int8 ±1) sorted by (b, t), with count
-        images (B, 2, H, W; channel 0 = ON), voxel grids and tonic interop.
+        images (B, 2, H, W; channel 0 = ON, the opposite of tonic's ToFrame), voxel grids and
+        tonic interop.
     EventEmulator: exact batched DVS emulator (reset(frames, t_us); step(frames, t_us) -> Events).
     LEVEL_TOL: tolerance (in thresholds) when counting level crossings.
     TONIC_DTYPE: numpy dtype of tonic event arrays (x, y int16, t int64, p int8 OFF=0/ON=1).

@@ -6,7 +6,9 @@ Conventions (docs/events.md):
   (int64 so they index tensors directly), ``t``: int64 microseconds, ``p``: int8 polarity,
   +1 = ON (brighter), -1 = OFF (darker).
 - Events are sorted by (b, t); ties keep their order of generation (stable sorts only).
-- Count images are (B, 2, H, W) float32 with channel 0 = ON, channel 1 = OFF.
+- Count images are (B, 2, H, W) float32 with channel 0 = ON, channel 1 = OFF: the opposite of
+  tonic's ``ToFrame`` (channel 0 = OFF, 1 = ON); ``to_count_image(..., polarity_order="tonic")``
+  gives tonic's order.
 - Voxel grids are (B, n_bins, H, W) float32, polarity-signed (+1 / -1), bilinear in time (E2VID).
 - tonic interop: numpy structured arrays with fields x, y (int16), t (int64 µs), p (int8, OFF = 0,
   ON = 1) and ``sensor_size = (W, H, 2)``.
@@ -183,17 +185,27 @@ class Events:
         if bool(bad):
             self.validate(batch_size, height, width)  # raises with the offending field
 
-    def to_count_image(self, batch_size: int, height: int, width: int) -> torch.Tensor:
-        """Per-pixel event counts, (B, 2, H, W) float32; channel 0 = ON, channel 1 = OFF.
+    def to_count_image(self, batch_size: int, height: int, width: int,
+                       polarity_order: str = "dvsland") -> torch.Tensor:
+        """Per-pixel event counts, (B, 2, H, W) float32.
+
+        Channel order: with ``polarity_order="dvsland"`` (the default, which every dvsland
+        estimator and figure expects) channel 0 = ON, channel 1 = OFF. This is the **opposite**
+        of tonic's ``ToFrame`` (channel 0 = OFF, channel 1 = ON, its polarity index); pass
+        ``polarity_order="tonic"`` to get tonic's order, e.g. for a network trained on tonic
+        frames. Either way the channel of an event is fixed by its sign, never by its position.
 
         Built with one ``bincount`` (no loops). The sum over the image equals ``len(self)``.
         Events outside the (B, H, W) range raise ValueError.
         """
+        if polarity_order not in ("dvsland", "tonic"):
+            raise ValueError(f"polarity_order must be 'dvsland' (channel 0 = ON) or 'tonic' (channel 0 = OFF), "
+                             f"got {polarity_order!r}")
         for n, v in (("batch_size", batch_size), ("height", height), ("width", width)):
             _check_pos(n, v)
         B, H, W = int(batch_size), int(height), int(width)
         self._check_bounds(B, H, W)
-        ch = (self.p < 0).to(torch.int64)
+        ch = ((self.p < 0) if polarity_order == "dvsland" else (self.p > 0)).to(torch.int64)
         idx = self._flat_index(B, 2, ch, H, W)
         counts = torch.bincount(idx, minlength=B * 2 * H * W)
         return counts.to(torch.float32).view(B, 2, H, W)
