@@ -209,3 +209,22 @@ def test_count_image_tonic_order_matches_tonic_arrays():
     ref = np.zeros((2, 2, 3), np.float32)
     np.add.at(ref, (arr["p"].astype(int), arr["y"].astype(int), arr["x"].astype(int)), 1)
     assert np.array_equal(img.numpy(), ref)
+
+
+def test_unpacking_events_says_what_happened(tmp_path):
+    from dvsland.events import load_events, save_events
+
+    ev = Events(b=[0, 0], x=[0, 1], y=[0, 0], t=[1, 2], p=[1, -1])
+    path = save_events(tmp_path / "e.npz", ev, sensor_size=(2, 1))
+    with pytest.raises(TypeError, match=r"with_meta=True") as exc:
+        events, meta = load_events(path)  # noqa: F841
+    assert "must be 1-D" not in str(exc.value)
+    events, meta = load_events(path, with_meta=True)  # the fix the message names
+    assert events == ev and meta["sensor_size"] == (2, 1, 2)
+    with pytest.raises(TypeError, match="not iterable"):
+        list(ev)
+    with pytest.raises(TypeError, match=r"events\[1:2\]"):
+        ev[1]
+    with pytest.raises(TypeError, match="slice"):
+        ev[torch.tensor(0)]
+    assert len(ev[1:2]) == 1 and len(ev[torch.tensor([0, 1])]) == 2

@@ -104,8 +104,24 @@ class Events:
         """``{'b': ..., 'x': ..., 'y': ..., 't': ..., 'p': ...}``."""
         return {k: getattr(self, k) for k in _FIELDS}
 
+    def __iter__(self):
+        # without this, Python iterates through __getitem__(0), (1), ... and the first call fails
+        # with "field 'b' must be 1-D, got shape ()", which says nothing about the real mistake
+        raise TypeError(
+            "Events is not iterable and does not unpack. If this came from `events, meta = "
+            "load_events(path)`: load_events returns Events alone unless with_meta=True; write "
+            "`events, meta = load_events(path, with_meta=True)` or `events = load_events(path)`. "
+            "For the columns use events.b, .x, .y, .t, .p or events.fields(); for a subset, events[mask] "
+            "or events[i:j].")
+
     def __getitem__(self, index) -> "Events":
-        """Select events by a boolean mask (N,) or an index tensor / slice (order is kept as given)."""
+        """Select events by a boolean mask (N,) or an index tensor / slice (order is kept as given).
+        A single integer is refused (the result would not be an event list): use ``ev[i:i + 1]``."""
+        if isinstance(index, (int, np.integer)) or (isinstance(index, torch.Tensor) and index.dim() == 0):
+            raise TypeError(f"Events[{int(index)}]: select events with a slice (events[{int(index)}:{int(index) + 1}]), "
+                            "a boolean mask or an index tensor; a single integer would give no event list. "
+                            "(Unpacking Events, as in `events, meta = load_events(path)`, also ends here: "
+                            "load_events returns (events, meta) only with with_meta=True.)")
         if isinstance(index, torch.Tensor) and index.dtype == torch.bool:
             if index.shape != self.t.shape:
                 raise ValueError(f"mask must have shape ({len(self)},), got {tuple(index.shape)}")

@@ -149,9 +149,10 @@ def load_events(path: PathLike, device=None, format: Optional[str] = None,
     """Read events written by :func:`save_events`.
 
     Returns:
-        :class:`Events` (fields as int64 / int8, on ``device``), or ``(events, meta)`` with
+        :class:`Events` (fields as int64 / int8, on ``device``), or ``(events, meta)`` only with
         ``with_meta=True``; ``meta`` has sensor_size (W, H, 2) tuple, batch_size int, threshold,
-        threshold_off, refractory_us floats (NaN = not stored).
+        threshold_off, refractory_us floats (NaN = not stored). ``events, meta = load_events(p)``
+        without ``with_meta=True`` is a TypeError that says so (Events does not unpack).
     """
     path = Path(path)
     fmt = _fmt(path, format)
