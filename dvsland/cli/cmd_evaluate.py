@@ -21,7 +21,8 @@ def register(subparsers) -> None:
                    help="estimators to compare (default dpr,cmax); a name may carry its own parameter "
                         "values to compare variants side by side, e.g. 'cmax[window_ms=300;n_grid=21]' = that "
                         "estimator with --set estimator.cmax.window_ms=300 --set estimator.cmax.n_grid=21 "
-                        "(same typing and range checks; separate them with ';')")
+                        "(same typing and range checks; separate them with ';'); 'ALIAS=NAME' shows NAME (a "
+                        "registered name, a spec or an import path 'package.module:Class') as ALIAS everywhere")
     add_sites_arg(p, "only these configured sites (simulation.sites)")
     p.add_argument("--segment-steps", type=int, default=0, metavar="N",
                    help="split the descents into segments of N steps (0 = whole descents)")
@@ -64,12 +65,37 @@ def _split_estimators(text: str):
     return [s.strip() for s in out if s.strip()]
 
 
+def estimator_specs(text: str) -> list:
+    """The ``--estimators`` list: each item as given (``dpr``, ``cmax[window_ms=300]``), or, for an
+    item with an alias (``mine=pkg.mod:Class``, ``fast=dpr[baseline_steps=5]``), a tuple (alias,
+    name, parameter overrides) so that the alias is its label in every table, JSON key, figure
+    and TensorBoard folder. Labels must differ."""
+    from dvsland.estimators.registry import split_alias
+    from dvsland.evaluate.run import parse_estimator_spec
+
+    out, labels = [], []
+    for item in _split_estimators(text):
+        alias, spec = split_alias(item)
+        if alias is None:
+            out.append(item)
+            labels.append(parse_estimator_spec(item)[0])
+        else:
+            _, name, over = parse_estimator_spec(spec)
+            out.append((alias, name, over))
+            labels.append(alias)
+    dup = sorted({x for x in labels if labels.count(x) > 1})
+    if dup:
+        raise ValueError(f"--estimators: {', '.join(dup)} named twice; give each its own alias (ALIAS=NAME)")
+    return out
+
+
 def run_evaluate(args) -> int:
     from dvsland.config import dump_config
     from dvsland.evaluate import evaluate, format_table, write_outputs
     from dvsland.runs import make_run_dir
 
     sites = parse_sites(args.sites)  # before anything is loaded or written
+    specs = estimator_specs(args.estimators)
     if args.recording and (args.sites or args.segment_steps or args.stride != 1):
         raise ValueError("--sites, --segment-steps and --stride select rendered descents; they do not apply "
                          "to --recording")
@@ -86,12 +112,12 @@ def run_evaluate(args) -> int:
     if args.recording:
         from dvsland.evaluate import evaluate_recording
 
-        res = evaluate_recording(cfg, args.recording, _split_estimators(args.estimators),
+        res = evaluate_recording(cfg, args.recording, specs,
                                  warmup_steps=args.warmup_steps, max_steps=args.max_steps, device=device,
                                  progress=not quiet, ground_truth=args.ground_truth, t_unit=args.t_unit,
                                  b=args.element)
     else:
-        res = evaluate(cfg, _split_estimators(args.estimators), sites, segment_steps=args.segment_steps,
+        res = evaluate(cfg, specs, sites, segment_steps=args.segment_steps,
                        stride=args.stride, max_steps=args.max_steps, warmup_steps=args.warmup_steps,
                        device=device, progress=not quiet)
     paths = write_outputs(res, run_dir, figures=not args.no_figures and cfg.logging.figures)

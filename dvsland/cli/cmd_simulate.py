@@ -25,7 +25,8 @@ def register(subparsers) -> None:
     add_config_args(p)
     p.add_argument("--estimator", default=None, metavar="NAME",
                    help=f"divergence estimator: {_estimator_names()}; or a class by import path, "
-                        "'package.module:Class' or 'path/to/file.py:Class' (default: estimator.name)")
+                        "'package.module:Class' or 'path/to/file.py:Class'; 'ALIAS=...' shows it as ALIAS in "
+                        "tables and figures (default: estimator.name)")
     p.add_argument("--controller", default=None, metavar="NAME",
                    help="thrust law (tau_p, div_p, div_gs, or a registered name); sets controller.name")
     p.add_argument("--renderer", default=None, metavar="NAME",

@@ -7,7 +7,7 @@ from typing import Any
 
 from dvsland.config import Config
 
-from .registry import get_estimator
+from .registry import get_estimator, split_alias
 
 
 def estimator_params(cfg: Config, name: str | None = None) -> dict:
@@ -17,7 +17,8 @@ def estimator_params(cfg: Config, name: str | None = None) -> dict:
     any other estimator takes the free-form ``estimator.params``.
     """
     name = name or cfg.estimator.name
-    section = getattr(cfg.estimator, name, None)
+    _, spec = split_alias(name)  # 'fast=dpr' takes estimator.dpr
+    section = getattr(cfg.estimator, spec, None)
     if dataclasses.is_dataclass(section):
         return dataclasses.asdict(section)
     return dict(cfg.estimator.params)

@@ -1,11 +1,17 @@
 """Estimators by name: built-ins, ``@register_estimator``, the ``dvsland.estimators``
 entry-point group for third-party packages, and import paths ``package.module:Class`` or
-``path/to/file.py:Class`` for a user's class that is neither registered nor installed."""
+``path/to/file.py:Class`` for a user's class that is neither registered nor installed.
+
+Any of these may carry a short name, an alias: ``mine=pkg.mod:Class`` (or ``fast=dpr``). The
+alias is what tables, JSON keys, figures and TensorBoard show (:func:`estimator_label`); the part
+after ``=`` is what is built.
+"""
 
 from __future__ import annotations
 
 import inspect
-from typing import Any, Callable, Dict, List, Tuple
+import re
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from dvsland.checks import check_keys
 from dvsland.plugins import PluginRegistry
@@ -34,6 +40,43 @@ def refresh_entry_points() -> None:
 def available_estimators() -> List[str]:
     """Sorted names of every known estimator (built-in, registered, entry points)."""
     return _PLUGINS.names()
+
+
+_ALIAS = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]*")
+
+
+def split_alias(name: str) -> Tuple[Optional[str], str]:
+    """``"mine=pkg.mod:Class"`` -> ``("mine", "pkg.mod:Class")``; a name without an alias ->
+    ``(None, name)``. Only an ``=`` before any ``[`` separates an alias (``cmax[window_ms=300]``
+    has none).
+
+    Raises:
+        ValueError: an alias that is not a plain name (letters, digits, ``_ . -``; not starting
+            with a digit), an empty estimator after ``=``, or an alias that is itself a known
+            estimator other than the one it names.
+    """
+    if not isinstance(name, str) or "=" not in name.split("[", 1)[0]:
+        return None, name
+    alias, spec = (x.strip() for x in name.split("=", 1))
+    if not _ALIAS.fullmatch(alias):
+        raise ValueError(f"estimator {name!r}: the alias {alias!r} before '=' must be a plain name (letters, digits, "
+                         f"'_', '.', '-'), e.g. 'mine=package.module:Class'")
+    if not spec:
+        raise ValueError(f"estimator {name!r}: nothing after '=': write ALIAS=NAME or ALIAS=package.module:Class")
+    base = spec.split("[", 1)[0].strip()
+    if alias != base and _PLUGINS.lookup(alias) is not None:
+        raise ValueError(f"estimator {name!r}: the alias {alias!r} is already a registered estimator; choose another")
+    return alias, spec
+
+
+def estimator_label(name) -> str:
+    """The name an estimator is shown by: its alias (``mine`` for ``mine=pkg.mod:Class``), else
+    the name as given. Never raises (display only)."""
+    try:
+        alias, _ = split_alias(name)
+    except ValueError:
+        return str(name)
+    return alias if alias is not None else str(name)
 
 
 def _import_path(name: str):
@@ -86,18 +129,20 @@ def _import_path(name: str):
 
 def estimator_class(name: str) -> Callable:
     """The class (or factory) of estimator ``name``: a registered name, an entry point, or an
-    import path ``package.module:Class`` / ``path/to/file.py:Class``.
+    import path ``package.module:Class`` / ``path/to/file.py:Class``, each optionally behind an
+    alias ``ALIAS=...`` (:func:`split_alias`).
 
     Raises:
         ValueError: unknown name (the message lists the known ones) or an import path that fails.
     """
+    _, name = split_alias(name)
     cls = _PLUGINS.lookup(name)
     if cls is not None:
         return cls
     if isinstance(name, str) and ":" in name:
         return _import_path(name)
     raise ValueError(f"unknown estimator {name!r}; known: {available_estimators()}, "
-                     f"or an import path 'package.module:Class'")
+                     f"or an import path 'package.module:Class' (optionally named: 'alias=package.module:Class')")
 
 
 def get_estimator(name: str, batch_size: int, sensor_size: Tuple[int, int], device: Any = "cpu",

@@ -11,7 +11,7 @@ import numpy as np
 from dvsland.dynamics import closed_form_state
 
 from .style import label
-from .tensorboard import run_folder_name
+from .tensorboard import _estimator_label, run_folder_name
 
 
 def _plt():
@@ -45,7 +45,8 @@ def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: f
     fig, ax = _fig if _fig is not None else _descent_axes()
     for a in ax:
         a.cla()
-    title = f"{run.get('run', b)}  ({run['estimator']}): {run['outcome']} at {run['t_end_s']:.1f} s, " \
+    est = _estimator_label(run["estimator"])
+    title = f"{run.get('run', b)}  ({est}): {run['outcome']} at {run['t_end_s']:.1f} s, " \
             f"lowest {run['lowest_altitude_m']:.0f} m, loop gain λ = " \
             f"{'-' if run.get('loop_gain') is None else format(run['loop_gain'], '.3g')} 1/s"
     fig.suptitle(title, fontsize=9)

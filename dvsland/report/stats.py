@@ -64,13 +64,18 @@ def _spread(values: Sequence[float]) -> Dict[str, Optional[float]]:
 
 def group_key(run: dict, by: Sequence[str]) -> tuple:
     """The values of ``by`` for one run (missing keys give None); ``sweep.<key>`` reads the run's
-    ``sweep`` dict."""
+    ``sweep`` dict. An estimator with an alias (``mine=pkg.mod:Class``) is its alias."""
+    from dvsland.estimators.registry import estimator_label
+
     out = []
     for k in by:
         if k.startswith("sweep."):
-            out.append((run.get("sweep") or {}).get(k[len("sweep."):]))
+            v = (run.get("sweep") or {}).get(k[len("sweep."):])
         else:
-            out.append(run.get(k))
+            v = run.get(k)
+        if k in ("estimator", "sweep.estimator.name") and isinstance(v, str):
+            v = estimator_label(v)  # 'mine=pkg.mod:Class' is shown (and grouped) as 'mine'
+        out.append(v)
     return tuple(out)
 
 

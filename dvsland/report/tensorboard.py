@@ -364,7 +364,7 @@ class TensorBoardLogger:
             h = {"site": str(r.get("site", "")), "setting": str(r.get("label", "")), "kp_n_per_s": float(r.get("kp", 0)),
                  # the seed's index (the 64-bit seed itself is in results.json: a float64 hparam rounds it)
                  "n_bin": int(r.get("n_bin", 0)), "seed_index": int(r.get("seed_index", 0)),
-                 "estimator": str(r.get("estimator", ""))}
+                 "estimator": _estimator_label(str(r.get("estimator", "")))}
             h.update(extra or {})
             hps.append(h)
             thrust = r.get("max_thrust_n")
@@ -513,3 +513,11 @@ def write_events_tensorboard(log_dir, t_us: np.ndarray, altitude_m: np.ndarray, 
             img = np.asarray(last_frame)
             w.add_image("frames/last", img, last, walltime=wall, dataformats="HWC" if img.ndim == 3 else "HW")
     return log_dir
+
+
+def _estimator_label(name: str) -> str:
+    """The estimator's alias where it has one (``mine`` for ``mine=pkg.mod:Class``)."""
+    from dvsland.estimators.registry import estimator_label
+
+    return estimator_label(name)
+
