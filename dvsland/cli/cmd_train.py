@@ -1,0 +1,234 @@
+"""``dvsland train [CONFIG] [--out PATH] [--overwrite-shipped] [--sites A~1,...] [--n-seq N] [--steps K]
+[--epochs E] [--init CKPT] [--threads N] [--set key=value ...] [--quiet]``: train the spiking
+divergence estimator (``snn``) and write its checkpoint.
+
+Data: constant-divergence descents and climbs on held-out terrain (site variants A~1 ... I~2,
+never the nine evaluation sites, unless ``--sites`` names others), rendered by the fast renderer
+and turned into events by the config's emulator; model: :mod:`dvsland.estimators.snn`; training:
+:func:`dvsland.estimators.snn.train.train`. The checkpoint holds the weights, the encoder and
+model settings, the training settings and the history.
+
+Where it goes: ``--out PATH`` (a ``.pt`` file), or by default a new run folder
+``<logging.root>/<name>-train-<UTC stamp>/`` with ``snn.pt``, ``train.json`` and ``config.yaml``.
+A path inside the installed package (the shipped ``snn_default.pt``) is refused unless
+``--overwrite-shipped`` is given, and any other existing file unless ``--overwrite``: both are
+checked before any data is made.
+
+The options are added by :func:`add_train_arguments` in three groups (data, model, training), the
+one place to extend them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+import time
+from pathlib import Path
+
+from .common import add_config_args, add_threads_arg, apply_threads, config_from_args, parse_sites
+
+#: checkpoint file name in a default run folder
+CHECKPOINT_NAME = "snn.pt"
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "train", help="train the spiking estimator (snn) and write its checkpoint",
+        description="Train the spiking divergence estimator on descents over held-out terrain and write its "
+                    "checkpoint: to --out PATH, or into a new run folder under logs/ (snn.pt, train.json, "
+                    "config.yaml). The shipped checkpoint inside the package is only replaced with "
+                    "--overwrite-shipped. Use the result with --set estimator.snn.checkpoint=PATH.")
+    add_config_args(p, out=False)
+    add_train_arguments(p)
+    p.set_defaults(func=run_train)
+
+
+def add_train_arguments(p: argparse.ArgumentParser) -> None:
+    """Every option of ``dvsland train`` (besides CONFIG and --set): output, data, model, training."""
+    out = p.add_argument_group("output")
+    out.add_argument("--out", default=None, metavar="PATH",
+                     help="checkpoint file to write (.pt); default: logs/<name>-train-<UTC stamp>/snn.pt")
+    out.add_argument("--overwrite-shipped", action="store_true",
+                     help="allow --out inside the installed dvsland package (the shipped snn_default.pt)")
+    out.add_argument("--overwrite", action="store_true", help="allow --out to replace an existing file of yours")
+    out.add_argument("--quiet", action="store_true", help="print only the checkpoint path")
+    add_threads_arg(out)
+
+    data = p.add_argument_group("data")
+    data.add_argument("--sites", default=None, metavar="A~1,B~2,...",
+                      help="training terrains (sites or variants; default: the variants ~1 and ~2 of A-I, "
+                           "never the evaluation sites themselves)")
+    data.add_argument("--hold-out-type", default=None, choices=("craters", "craters_rocks", "rocky", "featureless"),
+                      help="leave every site of this type out of the default training terrains")
+    data.add_argument("--n-seq", type=int, default=1280, metavar="N", help="sequences (default 1280)")
+    data.add_argument("--steps", type=int, default=20, metavar="K", help="control steps per sequence (default 20)")
+    data.add_argument("--c2-max", type=float, default=0.0,
+                      help="descents follow tau = tau0 - c2 t with c2 in [0, C2_MAX] (0 = constant D)")
+    data.add_argument("--dispersion", default=None, metavar="CONFIG",
+                      help="draw each sequence's sun elevation and sensor from this config's dispersion section, "
+                           "e.g. montecarlo")
+    data.add_argument("--sun-step", type=float, default=None,
+                      help="round dispersed sun elevations to this step, deg (default: the config's sun_step_deg)")
+    data.add_argument("--seed", type=int, default=0, help="seed of the data (and of the weights unless --train-seed)")
+    data.add_argument("--data-cache", default=None, metavar="PATH",
+                      help="torch file of the generated sequences: loaded when it exists and matches, else written")
+
+    model = p.add_argument_group("model")
+    model.add_argument("--channels", default="16,32", help="LIF channels of the two layers (new networks only)")
+    model.add_argument("--n-sub", type=int, default=4, help="network steps (time slices) per control step")
+    model.add_argument("--init", default=None, metavar="CKPT", help="start from this checkpoint's weights (fine-tuning)")
+
+    tr = p.add_argument_group("training")
+    tr.add_argument("--epochs", type=int, default=14)
+    tr.add_argument("--batch", type=int, default=32)
+    tr.add_argument("--lr", type=float, default=3e-3)
+    tr.add_argument("--crop-steps", type=int, default=None,
+                    help="train on random windows of this many steps (validation on whole sequences)")
+    tr.add_argument("--warmup-steps", type=int, default=5, help="steps at the start of a sequence not scored")
+    tr.add_argument("--train-seed", type=int, default=None,
+                    help="seed of the weights and the batch order (default --seed; the data keep --seed)")
+    tr.add_argument("--max-minutes", type=float, default=None, help="stop training after this long")
+
+
+def package_dir() -> Path:
+    """The installed ``dvsland`` package folder (what ``--overwrite-shipped`` guards)."""
+    import dvsland
+
+    return Path(dvsland.__file__).resolve().parent
+
+
+def check_out_path(out, overwrite_shipped: bool = False, overwrite: bool = False) -> Path:
+    """The checkpoint path ``--out`` names, checked before any work.
+
+    Raises:
+        ValueError: a path inside the installed package without ``overwrite_shipped``, an existing
+            file without ``overwrite``, a folder, or a parent that is a file.
+    """
+    path = Path(out).expanduser()
+    if str(out).strip() == "":
+        raise ValueError("--out: empty path")
+    resolved = path.resolve()
+    pkg = package_dir()
+    if (resolved == pkg or pkg in resolved.parents) and not overwrite_shipped:
+        raise ValueError(f"--out {out}: this is inside the installed dvsland package ({pkg}); training would "
+                         f"replace a shipped file. Write elsewhere (default: a run folder under logs/), or pass "
+                         f"--overwrite-shipped to replace it on purpose")
+    if path.is_dir():
+        raise ValueError(f"--out {out}: is a folder; give the checkpoint file, e.g. {path / CHECKPOINT_NAME}")
+    if path.exists() and not overwrite and not (overwrite_shipped and pkg in resolved.parents):
+        raise ValueError(f"--out {out}: the file exists; pass --overwrite to replace it")
+    for parent in path.parents:
+        if parent.exists() and not parent.is_dir():
+            raise ValueError(f"--out {out}: {parent} is a file, not a folder")
+    return path
+
+
+def _check_numbers(args) -> None:
+    for name, v, lo in (("--n-seq", args.n_seq, 2), ("--steps", args.steps, 2), ("--epochs", args.epochs, 1),
+                        ("--batch", args.batch, 1), ("--n-sub", args.n_sub, 1)):
+        if v < lo:
+            raise ValueError(f"{name} must be >= {lo}, got {v}")
+    if not 0 <= args.warmup_steps < args.steps:
+        raise ValueError(f"--warmup-steps must be in [0, --steps), got {args.warmup_steps} with --steps {args.steps}")
+    if not args.lr > 0:
+        raise ValueError(f"--lr must be > 0, got {args.lr}")
+    try:
+        channels = tuple(int(c) for c in args.channels.split(","))
+    except ValueError:
+        channels = ()
+    if len(channels) != 2 or min(channels) < 1:
+        raise ValueError(f"--channels must be two positive integers, e.g. 16,32; got {args.channels!r}")
+
+
+def _sequences():
+    """The module that makes the training sequences (``make_sequences``, ``training_sites``)."""
+    try:
+        return importlib.import_module("dvsland.data.snn_sequences")
+    except ModuleNotFoundError as exc:  # trees before the sequences moved to dvsland.data
+        if exc.name not in ("dvsland.data", "dvsland.data.snn_sequences"):
+            raise
+        return importlib.import_module("dvsland.estimators.snn.data")
+
+
+def run_train(args) -> int:
+    import torch
+
+    from dvsland.config import load_config
+    from dvsland.estimators.snn import LogPolarEncoder, SpikingDivergenceNet, save_checkpoint
+    from dvsland.estimators.snn.train import train
+    from dvsland.report.results import write_json
+    from dvsland.runs import make_run_dir
+
+    # ---- every check before any data is made or any file is written
+    _check_numbers(args)
+    sites = parse_sites(args.sites)
+    out = check_out_path(args.out, args.overwrite_shipped, args.overwrite) if args.out is not None else None
+    cfg = config_from_args(args)
+    dispersion = load_config(args.dispersion).dispersion if args.dispersion else None
+    log = (lambda *a, **k: None) if args.quiet else print
+    apply_threads(cfg)
+    seqs = _sequences()
+    if sites is None:
+        sites = seqs.training_sites(hold_out_type=args.hold_out_type)
+    elif args.hold_out_type:
+        raise ValueError("--hold-out-type picks from the default training terrains; leave it out with --sites")
+    if out is None:
+        run_dir = make_run_dir(cfg, None, kind="train")
+        out = run_dir / CHECKPOINT_NAME
+    else:
+        run_dir = None
+
+    train_seed = args.seed if args.train_seed is None else args.train_seed
+    torch.manual_seed(train_seed)
+    prior, ck = {}, None
+    if args.init:
+        ck = torch.load(args.init, map_location="cpu", weights_only=True)
+        prior = ck.get("meta", {})
+    n_sub = int(ck["encoder"]["n_sub"]) if ck else args.n_sub
+    channels = tuple(ck["model"]["channels"]) if ck else tuple(int(c) for c in args.channels.split(","))
+    enc = LogPolarEncoder((cfg.camera.width_px, cfg.camera.height_px), n_sub=n_sub)
+    t0 = time.perf_counter()
+    key = {"n_seq": args.n_seq, "steps": args.steps, "seed": args.seed, "c2_max": args.c2_max, "sites": sites,
+           "dispersion": args.dispersion, "sun_step": args.sun_step, "n_sub": n_sub,
+           "camera": [cfg.camera.width_px, cfg.camera.height_px]}
+    data = None
+    if args.data_cache and Path(args.data_cache).is_file():
+        cached = torch.load(args.data_cache, map_location="cpu", weights_only=False)
+        if cached.get("key") == key:
+            data = cached["data"]
+            log(f"data: loaded {args.data_cache}")
+        else:
+            log(f"data: {args.data_cache} was made with other settings; regenerating")
+    if data is None:
+        data = seqs.make_sequences(cfg, enc, sites, args.n_seq, args.steps, seed=args.seed, c2_max=args.c2_max,
+                                   dispersion=dispersion, sun_step_deg=args.sun_step, progress=not args.quiet)
+        if args.data_cache:
+            torch.save({"key": key, "data": data}, args.data_cache)
+    t_data = time.perf_counter() - t0
+    log(f"data: {args.n_seq} sequences x {args.steps} steps on {', '.join(sites)} in {t_data:.0f} s; "
+        f"mean events/px/step {float(data['x'].float().mean()) * enc.n_sub:.3f}")
+    model = SpikingDivergenceNet(enc.n_rho, enc.n_phi, dt_s=cfg.dt_s / enc.n_sub, channels=channels)
+    if ck:
+        model.load_state_dict(ck["state_dict"])
+        log(f"starting from {args.init} ({prior.get('epochs_run', '?')} epochs)")
+    hist = train(model, data, epochs=args.epochs, batch=args.batch, lr=args.lr, warmup_steps=args.warmup_steps,
+                 seed=train_seed, max_minutes=args.max_minutes, crop_steps=args.crop_steps, log=log)
+    meta = {"sites": sites, "hold_out_type": args.hold_out_type, "dispersion": args.dispersion,
+            "sun_step": args.sun_step, "n_seq": args.n_seq, "steps": args.steps, "crop_steps": args.crop_steps,
+            "c2_max": args.c2_max, "epochs_run": len(hist["epoch"]), "batch": args.batch, "lr": args.lr,
+            "warmup_steps": args.warmup_steps, "seed": args.seed, "train_seed": train_seed,
+            "data_seconds": t_data, "train_seconds": hist["seconds"][-1] if hist["seconds"] else 0.0,
+            "history": hist, "init": args.init, "prior": {k: v for k, v in prior.items() if k != "prior"},
+            "config": cfg.name, "command": "dvsland " + " ".join(sys.argv[1:]) if sys.argv else "dvsland train"}
+    save_checkpoint(out, model, enc, meta)
+    if run_dir is not None:
+        write_json(run_dir / "train.json", {k: v for k, v in meta.items()})
+    if args.quiet:
+        print(out)
+    else:
+        print(f"wrote {out}")
+        print(json.dumps({k: v for k, v in meta.items() if k != "history"}))
+        print(f"use it: dvsland evaluate --estimators snn --set estimator.snn.checkpoint={out}")
+    return 0
