@@ -110,6 +110,57 @@ def test_evaluate_small_run_and_outputs(cfg, tmp_path, one_thread):
     assert npz["d_hat_dpr"].shape == (2, 11)
 
 
+@pytest.mark.parametrize("integrator", ["exact", "euler"])
+def test_evaluation_flies_the_closed_form_on_loop_step(cfg, integrator, one_thread):
+    """The evaluation descents fly on loop_step with the tracking thrust: the altitudes are the closed
+    form's (to rounding), the truth is the loop's v / z (Euler's velocity is the forward difference),
+    and the oracle, reading that truth, scores zero."""
+    import copy
+
+    c = copy.deepcopy(cfg)
+    c.dynamics.integrator = integrator
+    res = evaluate(c, ["oracle"], sites=["A", "D"], max_steps=300, warmup_steps=2, progress=False)
+    s = res.summary
+    assert s["flight"].startswith("loop_step") and s["integrator"] == integrator
+    assert s["trajectory_max_rel_dz"] < 1e-12
+    ref = closed_form_descents(c, ["A", "D"], max_steps=300)
+    sc = res.scored
+    assert sc.sum() == 2 * (300 - 2)
+    rel = np.abs(res.descents.divergence[sc] / ref.divergence[sc] - 1.0)
+    assert rel.max() < (1e-4 if integrator == "exact" else 3e-3)  # Euler: D of the next step's motion
+    assert s["estimators"]["oracle"]["all_sites"]["median_abs_rel_err"] < 1e-6
+    assert (res.n_events[:, 1:] == 0).all()  # the oracle needs no events: none were made
+
+
+def test_tracking_thrust_lands_on_the_profile():
+    """One loop step with tracking_thrust reaches the profile's next altitude (exact) or, with the
+    Euler step, the velocity that reaches the one after (and start_velocity the first)."""
+    import torch
+
+    from dvsland.config import load_config
+    from dvsland.evaluate.reference import start_velocity, tracking_thrust
+    from dvsland.sim import init_state, loop_step
+    from dvsland.stages import build_stages
+
+    for integrator in ("exact", "euler", "substeps"):
+        c = load_config(None, ["estimator.name=oracle", f"dynamics.integrator={integrator}", "dynamics.substeps=4"])
+        stages = build_stages(c, "A,D")  # B = 4: two sites x two settings
+        dt = stages.settings.dt_s
+        t = torch.arange(6, dtype=torch.float64) * dt
+        z0 = torch.tensor([[5000.0], [5000.0], [900.0], [40.0]], dtype=torch.float64)
+        rate = torch.tensor([[-0.03], [-0.3], [0.05], [0.5]], dtype=torch.float64)  # descents and climbs
+        z = z0 * torch.exp(rate * t)  # constant D
+        m = torch.full((4,), 1e4, dtype=torch.float64)
+        v0 = start_velocity(stages.dynamics, z[:, 0], rate[:, 0] * z[:, 0], z[:, 1], m, dt)
+        state = init_state(stages, z_m=z[:, 0], v_mps=v0, m_kg=m)
+        for k in range(3):
+            u = tracking_thrust(stages, state, z[:, k + 1], z[:, k + 2])
+            assert (u > 0).all()
+            state, out = loop_step(stages, state, thrust=u)
+            state = state._replace(active=torch.ones_like(state.active))  # a climb reads as an ascent
+            assert torch.allclose(state.z_m, z[:, k + 1], rtol=1e-12, atol=0), (integrator, k)
+
+
 def test_evaluate_bad_args(cfg):
     with pytest.raises(ValueError, match="estimators"):
         evaluate(cfg, [], frame_source=lambda a, s: None)

@@ -1,16 +1,21 @@
 """Open-loop evaluation: run estimators side by side on the evaluation event streams.
 
 The evaluation set (deterministic): for every site, the closed-form oracle-controlled descent
-(:mod:`.trajectory`) sampled at the frame rate down to the success altitude; frames from the
-renderer (``render.renderer`` of the config, default "fast"); events from the configured
-:class:`~dvsland.events.EventEmulator` (seeded with ``simulation.seed``). Every estimator sees
-the same events in the same order; ``update`` is timed (with a device sync).
+(:mod:`.trajectory`) flown on :func:`dvsland.sim.loop_step` with the thrust that tracks it
+(:func:`dvsland.evaluate.reference.tracking_thrust`) down to the success altitude. Each estimator
+flies it in its own loop (the stages of :func:`dvsland.stages.build_stages`: the config's renderer,
+built once and shared, default "fast"; the configured :class:`~dvsland.events.EventEmulator`,
+seeded with ``simulation.seed``): the thrust does not depend on the estimate, so every estimator
+sees the same altitudes and the same events, and its ``D_hat`` is the loop's ``d_est``, scored
+against the loop's ``d_true``. The estimate stage is timed (with a device sync).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence
 
@@ -19,8 +24,7 @@ import torch
 
 from dvsland.config import Config, build, config_to_dict
 from dvsland.config.validate import check_config
-from dvsland.estimators import Truth
-from dvsland.stages import FrameSource, build_estimator, build_event_source
+from dvsland.stages import FrameSource, build_estimator, build_stages
 
 from .metrics import band_metrics, divergence_metrics
 from .trajectory import Descents, closed_form_descents, segment_schedule
@@ -127,29 +131,80 @@ def summarise(res: EvaluationResult, info: Optional[dict] = None) -> dict:
     return out
 
 
+def flight_config(cfg: Config, sites: Sequence[str], n_steps: int) -> Config:
+    """A copy of ``cfg`` that flies one element per site, in the order of ``sites``, for ``n_steps``
+    (+2) steps: the first controller setting, one seed, no dispersion, and no end but the success
+    altitude (the evaluation descents end there; ``crash_divergence`` and ``t_max_s`` are lifted)."""
+    fc = copy.deepcopy(cfg)
+    specs = {s.name: s for s in fc.simulation.sites}
+    fc.simulation.sites = [specs[n] for n in sites]
+    fc.controller.settings = list(fc.controller.settings)[:1]
+    fc.simulation.n_seeds = 1
+    if hasattr(fc.simulation, "seed_offset"):
+        fc.simulation.seed_offset = 0
+    if getattr(fc, "dispersion", None) is not None:
+        fc.dispersion.enabled = False
+    fc.simulation.crash_divergence = 1e3
+    fc.simulation.t_max_s = max(float(fc.simulation.t_max_s), (int(n_steps) + 2) * float(fc.dt_s))
+    return fc
+
+
+class _EstimateTimer:
+    """``loop_step`` timer: wall ms of each ``estimate`` stage (device synchronised), the others untimed."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+        self.last_ms = 0.0
+
+    def __call__(self, stage: str):
+        return _Timed(self) if stage == "estimate" else nullcontext()
+
+
+class _Timed:
+    def __init__(self, owner: _EstimateTimer):
+        self.owner = owner
+
+    def __enter__(self):
+        _sync(self.owner.device)
+        self.t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        _sync(self.owner.device)
+        self.owner.last_ms = (time.perf_counter() - self.t0) * 1e3
+        return False
+
+
 def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Optional[Sequence[str]] = None,
              *, segment_steps: int = 0, stride: int = 1, max_steps: Optional[int] = None, warmup_steps: int = 10,
              device="cpu", frame_source: Optional[FrameSource] = None, progress: bool = True) -> EvaluationResult:
     """Run ``estimators`` open loop on the evaluation streams of ``sites``.
 
     Args:
-        cfg: config (sites, camera, render, emulator, estimator parameters, seed).
+        cfg: config (sites, camera, render, emulator, dynamics, estimator parameters, seed).
         estimators: names (see :func:`dvsland.estimators.available_estimators`); parameters from
             ``cfg.estimator.<name>`` (or ``cfg.estimator.params`` for third-party ones). A name
             may carry overrides, ``"cmax[window_ms=500;n_grid=21]"`` (see
             :func:`parse_estimator_spec`), to compare variants side by side.
         sites: site names (default: all of ``cfg.simulation.sites``); they form one batch.
         segment_steps, stride: quick runs: keep every ``stride``-th segment of ``segment_steps``
-            steps, resetting emulator and estimators at each kept segment (0 / 1 = the whole
-            descent in one go).
+            steps; each kept segment starts a new flight (:func:`dvsland.sim.init_state` at the
+            descent's state there: emulator and estimator reset) (0 / 1 = the whole descent in one go).
         max_steps: truncate the descents.
         warmup_steps: steps at the start of each segment left out of the metrics.
         device: torch device of renderer, emulator and estimators.
         frame_source: ``f(altitude_m (B,), site_idx (B,)) -> (B, H, W)`` frames; default the
             config's renderer for ``sites``.
         progress: tqdm progress bar.
+
+    The returned ``descents`` hold the flown altitudes and velocities (the truth of the scores);
+    ``summary['trajectory_max_rel_dz']`` is their largest relative deviation from the closed form.
     """
     from dvsland.config import validate_config
+    from dvsland.dynamics import closed_form_state
+    from dvsland.layout import build_layout
+
+    from .reference import fly_profile
 
     cfg = validate_config(cfg)  # the same check as a config file (a hand-edited Config included)
     device = torch.device(device)
@@ -159,8 +214,6 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
         raise ValueError(f"warmup_steps must be >= 0, got {warmup_steps}")
     desc = closed_form_descents(cfg, sites, max_steps=max_steps)
     B, K = len(desc.sites), desc.n_steps
-    source = build_event_source(cfg, desc.sites, device, renderer=frame_source)
-    site_idx = torch.arange(B, device=device)
     specs = [parse_estimator_spec(e) for e in estimators]
     ests = {}
     for label, name, over in specs:
@@ -169,42 +222,76 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
         # built once, from its variant config (the plain config may not even construct)
         ests[label] = build_estimator(variant_config(cfg, name, over, label), B, device, name=name)
     estimators = list(ests)
+    # the profile, two steps past the end (the tracking thrust looks ahead), unclamped
+    site_cfg = {s.name: s for s in cfg.simulation.sites}
+    t_ref = np.arange(K + 3) * float(cfg.dt_s)
+    z_ref = np.stack([closed_form_state(t_ref, site_cfg[n].z0_m, site_cfg[n].v0_mps, float(cfg.controller.c2))[0]
+                      for n in desc.sites])
+    f64 = dict(dtype=torch.float64, device=device)
+    z_ref_t = torch.as_tensor(z_ref, **f64)
+    fcfg = flight_config(cfg, desc.sites, K)
+    layout = build_layout(fcfg, desc.sites)
+    renderer = frame_source
+    if renderer is None and any(getattr(e, "needs_events", True) for e in ests.values()):
+        from dvsland.render import get_renderer  # one renderer shared by every estimator's stages
+
+        renderer = get_renderer(cfg.render.renderer, desc.sites, cfg.camera, cfg.render, device=device)
     d_hat = {n: np.full((B, K + 1), np.nan) for n in estimators}
     times: Dict[str, List[float]] = {n: [] for n in estimators}
     scored = np.zeros((B, K + 1), dtype=bool)
     n_events = np.full((B, K + 1), -1, dtype=np.int64)
-    alt = torch.as_tensor(desc.altitude_m, dtype=torch.float32)
-    t_us = np.round(desc.t_s * 1e6).astype(np.int64)
+    alt, vel, valid = desc.altitude_m.copy(), desc.velocity_mps.copy(), desc.valid.copy()
+    z_end = float(cfg.simulation.success_altitude_m)
     segs = segment_schedule(K, segment_steps, stride)
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=sum(len(s) for s in segs), desc="evaluate", unit="step")
-    for seg in segs:
-        k0 = seg.start - 1
-        source.reset(alt[:, k0].to(device), site_idx, int(t_us[k0]))
-        for est in ests.values():
-            est.reset()
-        for k in seg:
-            _, ev = source.step(alt[:, k].to(device), site_idx, int(t_us[k]))
-            n_events[:, k] = ev.batch_counts(B).cpu().numpy()
-            truth = Truth(torch.as_tensor(desc.altitude_m[:, k], device=device),
-                          torch.as_tensor(desc.velocity_mps[:, k], device=device))
-            for name, est in ests.items():
-                _sync(device)
-                t0 = time.perf_counter()
-                d = est.update(ev, int(t_us[k]), truth)
-                _sync(device)
-                times[name].append((time.perf_counter() - t0) * 1e3)
-                d_hat[name][:, k] = d.detach().double().cpu().numpy()
-            scored[:, k] = desc.valid[:, k] & (k - seg.start >= warmup_steps)
-            if bar is not None:
-                bar.update(1)
+        bar = tqdm(total=len(estimators) * sum(len(s) for s in segs), desc="evaluate", unit="step")
+    timer = _EstimateTimer(device)
+    m0 = torch.full((B,), float(fcfg.dynamics.mass_kg), **f64)
+    have_events = False
+    for i_est, (name, est) in enumerate(ests.items()):
+        ecfg = copy.deepcopy(fcfg)
+        ecfg.estimator.name = dict((lab, n) for lab, n, _ in specs)[name]  # the loop's messages name it
+        stages = build_stages(ecfg, layout, device, estimator=est, renderer=renderer)
+        first = i_est == 0  # the flight does not depend on the estimator: recorded once
+        count = stages.events is not None and not have_events  # events counted once
+        for seg in segs:
+            k0 = seg.start - 1  # each segment: a new flight from the descent's state at frame k0
+            z_seg = z_ref_t[:, k0:seg.stop + 2].clone()
+            z_seg[:, 0] = torch.as_tensor(desc.altitude_m[:, k0], **f64)  # held at z_end past the end
+            v_seg = torch.as_tensor(desc.velocity_mps[:, k0], **f64)
+            for k, out in zip(range(k0, seg.stop), fly_profile(stages, z_seg, v_seg, m0, timer=timer)):
+                if k == k0:
+                    continue  # the first frame of a segment: no events yet, not scored
+                times[name].append(timer.last_ms)
+                d_hat[name][:, k] = out.d_est.detach().cpu().numpy()
+                if first:
+                    alt[:, k], vel[:, k] = out.z_m.cpu().numpy(), out.v_mps.cpu().numpy()
+                    valid[:, k] = (out.active & (out.z_m > z_end)).cpu().numpy()
+                    scored[:, k] = valid[:, k] & (k - seg.start >= warmup_steps)
+                if count:
+                    n_events[:, k] = out.events.batch_counts(B).cpu().numpy()
+                if bar is not None:
+                    bar.update(1)
+        have_events = have_events or count
     if bar is not None:
         bar.close()
-    res = EvaluationResult(desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events)
-    info = dict(trajectory="closed_form", n_steps=K, steps_run=int(sum(len(s) for s in segs)),
+    if not have_events:  # no estimator needed events: none were made
+        for seg in segs:
+            n_events[:, seg.start:seg.stop] = 0
+    run = np.zeros(K + 1, dtype=bool)
+    for seg in segs:
+        run[seg.start:seg.stop] = True
+    flown = valid & run[None, :]
+    rel_dz = np.abs(alt - z_ref[:, :K + 1]) / z_ref[:, :K + 1]
+    flown_desc = Descents(desc.sites, desc.t_s, alt, vel, valid)
+    res = EvaluationResult(flown_desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events)
+    info = dict(trajectory="closed_form", flight="loop_step, tracking thrust",
+                integrator=str(cfg.dynamics.integrator),
+                trajectory_max_rel_dz=float(rel_dz[flown].max()) if flown.any() else 0.0,
+                n_steps=K, steps_run=int(sum(len(s) for s in segs)),
                 segment_steps=int(segment_steps), stride=int(stride), warmup_steps=int(warmup_steps),
                 device=str(device), torch_threads=torch.get_num_threads(), estimators_run=list(estimators))
     res.summary = summarise(res, info)
