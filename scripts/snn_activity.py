@@ -5,8 +5,9 @@
 
 Flies the closed-form descent of the paper's law (perfect sensing: s = 1 + c2 v0 t / z0,
 z = z0 s^(1/c2)) of each site of configs/paper.yaml (one element per site, the first
-controller setting's initial conditions), renders it with the fast renderer, runs the estimator
-on the events and prints the mean and median over elements and steps (after the warm-up) of
+controller setting's initial conditions) on ``loop_step`` with the thrust that tracks it
+(:func:`dvsland.evaluate.reference.fly_profile`), renders it with the fast renderer, runs the
+estimator inside the loop, and prints the mean and median over elements and steps (after the warm-up) of
 ``diagnostics()['spikes']`` and ``['synops']``, beside the neurons of the network and the
 multiply-accumulates of the same network run densely.
 """
@@ -21,9 +22,12 @@ import torch
 
 def main(argv=None) -> int:
     from dvsland.config import load_config
+    from dvsland.dynamics import closed_form_state
     from dvsland.estimators.snn import SpikingEstimator
-    from dvsland.layout.batch import build_layout
-    from dvsland.stages import build_event_source
+    from dvsland.evaluate.reference import fly_profile
+    from dvsland.evaluate.run import flight_config
+    from dvsland.layout import build_layout
+    from dvsland.stages import build_stages
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--checkpoint", default="")
@@ -36,27 +40,20 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     cfg = load_config()
     cfg.render.threads = args.threads
-    lay = build_layout(cfg, args.sites.split(",") if args.sites else None)
-    first = np.unique(lay.site_idx, return_index=True)[1]  # one element per site
-    site_idx = torch.as_tensor(lay.site_idx[first])
-    z0, v0 = lay.z0_m[first], lay.v0_mps[first]
-    b = len(first)
-    c2, dt = cfg.controller.c2, cfg.dt_s
-    src = build_event_source(cfg, lay.site_names, "cpu", renderer="fast")
+    sites = args.sites.split(",") if args.sites else [s.name for s in cfg.simulation.sites]
+    fcfg = flight_config(cfg, sites, args.steps)  # one element per site, the first setting
+    fcfg.render.renderer = "fast"
+    lay = build_layout(fcfg, sites)
+    b, c2, dt = lay.batch_size, cfg.controller.c2, cfg.dt_s
     est = SpikingEstimator(b, (cfg.camera.width_px, cfg.camera.height_px), dt_s=dt, checkpoint=args.checkpoint)
-
-    def z_at(t):
-        s = np.maximum(1.0 + c2 * v0 * t / z0, 1e-6)
-        return torch.as_tensor(z0 * s ** (1.0 / c2), dtype=torch.float32)
-
-    src.reset(z_at(0.0), site_idx, 0)
+    stages = build_stages(fcfg, lay, "cpu", estimator=est)
+    t = np.arange(args.steps + 3) * dt
+    z = np.stack([closed_form_state(t, z0, v0, c2)[0] for z0, v0 in zip(lay.z0_m, lay.v0_mps)])
     spikes, synops = [], []
-    for k in range(1, args.steps + 1):
-        t_us = int(round(k * dt * 1e6))
-        _, ev = src.step(z_at(k * dt), site_idx, t_us)
-        est.update(ev, t_us)
+    # the closed-form descent on loop_step (tracking thrust); step k >= 1 updates the estimator
+    for k, out in enumerate(fly_profile(stages, np.maximum(z, 1e-3), lay.v0_mps)):
         if k > est.warmup_steps:
-            dg = est.diagnostics()
+            dg = out.diagnostics()
             spikes.append(dg["spikes"].numpy())
             synops.append(dg["synops"].numpy())
     sp, so = np.concatenate(spikes), np.concatenate(synops)

@@ -181,7 +181,7 @@ def test_snn_from_config():
 
 def test_training_sequences_follow_the_descent_law_on_held_out_terrain():
     from dvsland.config import load_config
-    from dvsland.estimators.snn.data import make_sequences, training_sites
+    from dvsland.data.snn_sequences import make_sequences, training_sites
 
     assert training_sites((1,), "AE") == ["A~1", "E~1"]
     cfg = load_config(overrides=["camera.width_px=48", "camera.height_px=48"])
@@ -218,7 +218,7 @@ def test_snn_cuda_matches_cpu():
 
 def test_training_sequence_errors():
     from dvsland.config import load_config
-    from dvsland.estimators.snn.data import make_sequences
+    from dvsland.data.snn_sequences import make_sequences
 
     cfg = load_config()
     enc = LogPolarEncoder(SENSOR)
@@ -342,7 +342,7 @@ def test_training_sites_hold_out_a_site_type():
 
 def test_dispersed_training_sequences_draw_sun_and_sensor_and_skip_the_held_out_type():
     from dvsland.config import load_config
-    from dvsland.estimators.snn.data import SITE_TYPES, make_sequences, training_sites
+    from dvsland.data.snn_sequences import SITE_TYPES, make_sequences, training_sites
 
     cfg = load_config(overrides=["camera.width_px=48", "camera.height_px=48"])
     disp = load_config("configs/montecarlo.yaml").dispersion

@@ -36,8 +36,9 @@ def sequence_loss(model: SpikingDivergenceNet, x: torch.Tensor, d: torch.Tensor,
 def train(model: SpikingDivergenceNet, data: dict, epochs: int = 10, batch: int = 32, lr: float = 3e-3,
           warmup_steps: int = 5, val_fraction: float = 0.1, seed: int = 0, log=print,
           max_minutes: Optional[float] = None, crop_steps: Optional[int] = None) -> dict:
-    """Train in place on ``data`` (from :func:`dvsland.estimators.snn.data.make_sequences`); the last
-    ``val_fraction`` of the sequences is held out. ``crop_steps``: train on a random window of this
+    """Train in place on ``data`` (``x``, ``d``; made above this layer, e.g. by
+    :func:`dvsland.data.snn_sequences.make_sequences`); the last ``val_fraction`` of the sequences
+    is held out. ``crop_steps``: train on a random window of this
     many steps of each batch (the network starts from rest at the window's start: short sequences
     cut from long ones, a cheap curriculum); validation always runs the whole sequences. Returns the
     history (per-epoch loss and validation median |relative error|)."""
