@@ -70,7 +70,7 @@ def _small_cfg():
 def test_time_stages_keys_and_values(estimator, device):
     cfg = _small_cfg()
     r = time_stages(cfg, 5, device, estimator, n_steps=2, warmup=1, fractions=(0.5,), frame_source=_Frames())
-    assert r["batch_size"] == 5 and r["steps_timed"] == 2
+    assert r["batch_size"] == 5 and r["steps_timed"] == 2 and r["controller"] == "div_p"
     assert set(r["ms"]) == {"render", "emulate", "estimate", "control_dynamics"}
     assert all(v >= 0 and math.isfinite(v) for v in r["ms"].values())
     assert r["ms_total"] == pytest.approx(sum(r["ms"].values()))
@@ -78,6 +78,27 @@ def test_time_stages_keys_and_values(estimator, device):
         assert r["ms"]["render"] == 0 and r["ms"]["emulate"] == 0 and not r["needs_events"]
     else:
         assert r["ms"]["render"] > 0 and r["events_per_step"] > 0
+
+
+@pytest.mark.parametrize("controller", ["div_p", "tau_p"])
+def test_time_stages_runs_the_loop_with_the_configured_controller(controller, monkeypatch):
+    """time_stages flies loop_step (its stage timer) with the controller named by controller.name."""
+    import dvsland.sim as sim
+
+    cfg = load_config(None, ["camera.width_px=32", "camera.height_px=32", "estimator.dpr.n_min=3",
+                             f"controller.name={controller}"])
+    calls = []
+    real = sim.loop_step
+
+    def spy(stages, state, thrust=None, timer=None):
+        calls.append((type(stages.controller).controller_name, thrust is None, timer is not None))
+        return real(stages, state, thrust=thrust, timer=timer)
+
+    monkeypatch.setattr(sim, "loop_step", spy)
+    r = time_stages(cfg, 3, "cpu", "dpr", n_steps=2, warmup=1, fractions=(0.2, 0.6), frame_source=_Frames())
+    assert r["controller"] == controller and r["steps_timed"] == 4
+    assert calls and all(c == (controller, True, True) for c in calls)  # closed loop, timed by the loop
+    assert r["ms"]["control_dynamics"] > 0
 
 
 def test_time_stages_bad_input():

@@ -177,10 +177,11 @@ def _part_tradeoff(report, cfg, dev, quick, estimators, log):
     report["tradeoff"] = dict(rows=rows, method=(
         f"Open-loop error of D along the closed-form oracle descents of sites A-I (`dvsland.evaluate`, "
         f"{seg}, the first 5 steps of each segment not scored), over sites A-G; coverage = scored steps "
-        f"with an estimate. Time per control step: B = 18 descents (sites x 2), median over "
-        f"{'4' if quick else '10'} timed steps at 30 % and 80 % of the descents, renderer + emulator + "
-        f"estimator + filter/controller/dynamics; `oracle` needs no events, so it pays no render or "
-        f"emulation. Settings rows change one thing against `dpr` (row `dpr`: threshold 0.1, 128x128, fast "
+        f"with an estimate. Time per control step: B = 18 descents (sites x 2) flown on `loop_step` "
+        f"(the stages of `build_stages`, the configured controller), median over "
+        f"{'4' if quick else '10'} timed steps from 30 % and 80 % of the descents, by the loop's stage "
+        f"timer: render + emulate + estimate + control/dynamics; `oracle` needs no events, so it pays no "
+        f"render or emulation. Settings rows change one thing against `dpr` (row `dpr`: threshold 0.1, 128x128, fast "
         f"renderer; at 64x64 the pixel-based dpr parameters are left as they are); the two renderer rows "
         f"use sites A and E only (pyrender renders frame by frame: in --quick "
         f"its time is one timed step, its error a short sample). Times come from a few steps: differences "
@@ -212,7 +213,7 @@ def _part_scaling(report, cfg, dev, quick, log, config_name=""):
     rows = run_scaling(cfg, batches, dev, "dpr", quick=quick, log=log, memory_batches=mem_b, config_name=config_name)
     report["scaling"] = dict(rows=rows, batches=list(batches), method=(
         f"`dpr` on B descents (element b flies site b mod 9), B = {', '.join(map(str, batches))}"
-        f"; median ms per control step of each stage over "
+        f"; median ms per control step of each stage of `loop_step` (the configured controller) over "
         f"{'1 (B >= 256) or 4' if quick else '4 (B >= 256) or 10'} timed steps after a warm-up, at "
         f"{'50 %' if quick else '30 % and 80 %'} of the descents. Peak memory: on the CPU, the peak resident "
         f"set of a fresh process flying B descents for two steps minus its resident set after the imports "

@@ -1,15 +1,20 @@
 """Time per control step of each stage of the loop, and peak memory, for a batch of B descents.
 
-The batch follows the closed-form oracle descents of the configured sites (element ``b`` flies
-site ``b mod n_sites`` with controller setting ``(b // n_sites) mod n_settings``), starting at
-fractions of the way down (``fractions``): the event rate grows as the descent goes on, so one
-point would not be typical. At each start the emulator and estimator are reset; the first
-``warmup`` steps are not timed (the ring fills, the estimator initialises). Timed per step:
+The batch flies on :func:`dvsland.sim.loop_step` with the stages of
+:func:`dvsland.stages.build_stages` (the configured renderer, emulator, filter, controller by
+``controller.name`` and dynamics; the estimator from the spec). Element ``b`` flies site
+``b mod n_sites`` with controller setting ``(b // n_sites) mod n_settings``. Each segment starts a
+closed-loop flight at a fraction of the way down the site's closed-form oracle descent
+(``fractions``: the event rate grows as the descent goes on, so one point would not be typical),
+planned from there (the controller's initial state is that point); :func:`dvsland.sim.init_state`
+resets every stage, and the first ``warmup`` steps are not timed (the ring fills, the estimator
+initialises). Timed per step, by the loop's own stage timer (``loop_step(..., timer=...)``):
 
 - ``render``: the renderer's frames (B, H, W);
 - ``emulate``: :meth:`dvsland.events.EventEmulator.step`;
-- ``estimate``: the estimator's ``update``;
-- ``control_dynamics``: moving-average filter + Eq. 2 controller + exact dynamics step.
+- ``estimate``: the estimator's ``update`` (with the loop's sanitising and confidence);
+- ``control_dynamics``: the loop's ``control`` (filter + controller) and ``dynamics`` (step,
+  termination, bookkeeping) stages.
 
 Estimators that need no events (``needs_events = False``) skip render and emulate (as the
 closed loop does). CUDA is synchronised around each stage. Peak memory (CUDA only): ``torch.cuda.max_memory_allocated``
@@ -19,6 +24,7 @@ minus the allocation before. On the CPU a long-lived process keeps freed memory 
 
 from __future__ import annotations
 
+import copy
 import math
 import statistics
 import time
@@ -29,13 +35,14 @@ import numpy as np
 import torch
 
 from dvsland.config import Config
-from dvsland.control import MovingAverageFilter, TauPController, initial_ttc
-from dvsland.dynamics import LanderDynamics
-from dvsland.estimators import Truth, make_estimator
+from dvsland.estimators import make_estimator
 from dvsland.evaluate.run import parse_estimator_spec, variant_config
 from dvsland.evaluate.trajectory import closed_form_descents
 
 STAGE_NAMES = ("render", "emulate", "estimate", "control_dynamics")
+#: the loop's stages (``loop_step``'s timer names) behind each column of :data:`STAGE_NAMES`
+LOOP_STAGES = {"render": ("render",), "emulate": ("emulate",), "estimate": ("estimate",),
+               "control_dynamics": ("control", "dynamics")}
 
 
 def _sync(device: torch.device) -> None:
@@ -92,6 +99,77 @@ class PeakMemory:
         return False
 
 
+class StepTimer:
+    """``loop_step`` timer: wall and process-CPU ms of each stage of the current step (CUDA
+    synchronised around each stage); :meth:`take` returns them and starts the next step."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+        self.wall: Dict[str, float] = {}
+        self.cpu: Dict[str, float] = {}
+
+    def __call__(self, stage: str):
+        return _StageClock(self, stage)
+
+    def take(self):
+        wall, cpu = self.wall, self.cpu
+        self.wall, self.cpu = {}, {}
+        return wall, cpu
+
+
+class _StageClock:
+    def __init__(self, timer: StepTimer, stage: str):
+        self.timer, self.stage = timer, stage
+
+    def __enter__(self):
+        _sync(self.timer.device)
+        self.t0, self.c0 = time.perf_counter(), time.process_time()
+        return self
+
+    def __exit__(self, *exc):
+        _sync(self.timer.device)
+        t, c = self.timer, self.stage
+        t.wall[c] = t.wall.get(c, 0.0) + (time.perf_counter() - self.t0) * 1e3
+        t.cpu[c] = t.cpu.get(c, 0.0) + (time.process_time() - self.c0) * 1e3
+        return False
+
+
+def bench_layout(cfg: Config, batch_size: int, sites: Optional[Sequence[str]] = None, z0_m=None, v0_mps=None):
+    """The bench's batch layout: element ``b`` flies site ``b mod n_sites`` with controller setting
+    ``(b // n_sites) mod n_settings`` (plain sites, no dispersion), starting at ``z0_m``, ``v0_mps``
+    ((B,) arrays; default the sites' initial conditions)."""
+    from dvsland.layout import build_layout
+    from dvsland.layout.batch import expand_seeds
+
+    plain = copy.deepcopy(cfg)
+    if sites is not None:  # in the order given (build_layout keeps the config's order)
+        specs = {s.name: s for s in plain.simulation.sites}
+        plain.simulation.sites = [specs[n] for n in sites]
+    plain.simulation.n_seeds = 1
+    if hasattr(plain.simulation, "seed_offset"):
+        plain.simulation.seed_offset = 0
+    if getattr(plain, "dispersion", None) is not None:
+        plain.dispersion.enabled = False
+    base = build_layout(plain, sites)  # site-major: (i_site * n_settings + i_setting)
+    n_sites, n_set = len(base.site_names), len(plain.controller.settings)
+    b = np.arange(int(batch_size))
+    idx = (b % n_sites) * n_set + (b // n_sites) % n_set
+    lay = copy.deepcopy(base)
+    for name in ("site", "label"):
+        setattr(lay, name, [getattr(base, name)[i] for i in idx])
+    for name in ("site_idx", "setting_idx", "seed_idx", "kp", "n_bin", "z0_m", "v0_mps"):
+        setattr(lay, name, np.asarray(getattr(base, name))[idx])
+    lay.run_label = [f"{base.run_label[i]}/b{j}" for j, i in enumerate(idx)]
+    lay.seed = expand_seeds(plain.simulation.seed, len(idx))
+    lay.scene = list(lay.site)
+    lay.scene_idx = np.asarray(lay.site_idx, np.int64).copy()
+    if z0_m is not None:
+        lay.z0_m = np.asarray(z0_m, np.float64)
+    if v0_mps is not None:
+        lay.v0_mps = np.asarray(v0_mps, np.float64)
+    return plain, lay
+
+
 def time_stages(cfg: Config, batch_size: int, device="cpu", estimator="dpr", n_steps: int = 8, warmup: int = 3,
                 fractions: Sequence[float] = (0.3, 0.8), sites: Optional[Sequence[str]] = None,
                 renderer=None, frame_source=None) -> Dict:
@@ -113,9 +191,10 @@ def time_stages(cfg: Config, batch_size: int, device="cpu", estimator="dpr", n_s
         cpu_ms {stage: median process CPU ms per step}, cpu_ms_total (with one torch thread, the
         cost on an idle core; meaningless on CUDA),
         events_per_step (mean over timed steps, all elements), peak_memory_mib, steps_timed,
-        needs_events.
+        needs_events, controller, ended (descents that ended during a segment: they stop rendering).
     """
-    from dvsland.events import EventEmulator
+    from dvsland.sim import init_state, loop_step
+    from dvsland.stages import build_stages
 
     B = int(batch_size)
     if B < 1:
@@ -127,86 +206,41 @@ def time_stages(cfg: Config, batch_size: int, device="cpu", estimator="dpr", n_s
     dev = torch.device(device)
     desc = closed_form_descents(cfg, sites)
     n_sites = len(desc.sites)
-    settings = list(cfg.controller.settings)
-    b = np.arange(B)
-    site_of = b % n_sites
-    setting_of = (b // n_sites) % len(settings)
+    site_of = np.arange(B) % n_sites
     last_valid = desc.valid.sum(1) - 1  # index of the last frame above the success altitude, per site
     est = build_estimator(cfg, estimator, B, dev)
     needs_events = bool(getattr(est, "needs_events", True))
+    timer = StepTimer(dev)
+    ms = {k: [] for k in STAGE_NAMES}
+    cpu = {k: [] for k in STAGE_NAMES}  # process CPU time: the uncontended cost on a shared machine
+    n_events, ended, ctl_name = [], 0, None
     with PeakMemory(dev) as mem:
-        if needs_events and frame_source is None:
-            if renderer is None:
+        if needs_events:
+            if frame_source is not None:
+                renderer = frame_source
+            elif renderer is None:  # built once, shared by the segments' stages
                 from dvsland.render import get_renderer
 
                 renderer = get_renderer(cfg.render.renderer, desc.sites, cfg.camera, cfg.render, device=dev)
-            frame_source = renderer.render
-        emu = EventEmulator.from_config(cfg.emulator, device=dev, seed=cfg.simulation.seed) if needs_events else None
-        site_idx = torch.as_tensor(site_of, device=dev)
-        kp = torch.as_tensor([settings[i].kp for i in setting_of], dtype=torch.float64, device=dev)
-        n_bin = torch.as_tensor([settings[i].n_bin for i in setting_of], dtype=torch.int64, device=dev)
-        specs = {s.name: s for s in cfg.simulation.sites}
-        z0 = torch.as_tensor([specs[desc.sites[i]].z0_m for i in site_of], dtype=torch.float64, device=dev)
-        v0 = torch.as_tensor([specs[desc.sites[i]].v0_mps for i in site_of], dtype=torch.float64, device=dev)
-        c = cfg.controller
-        filt = MovingAverageFilter(n_bin, device=dev)
-        ctl = TauPController(kp, initial_ttc(z0, v0), c.c2, cfg.dynamics.g_mps2, c.thrust_min_n, c.thrust_max_n,
-                             c.missing_policy)
-        dyn = LanderDynamics.from_config(cfg.dynamics)
-        m = torch.full((B,), float(cfg.dynamics.mass_kg), dtype=torch.float64, device=dev)
-        active = torch.ones(B, dtype=torch.bool, device=dev)
-        ms = {k: [] for k in STAGE_NAMES}
-        cpu = {k: [] for k in STAGE_NAMES}  # process CPU time: the uncontended cost on a shared machine
-        n_events = []
-        dt = float(cfg.dt_s)
-        seg_us = (warmup + n_steps + 2) * int(round(dt * 1e6))
-        for i_seg, frac in enumerate(fractions):
+        for frac in fractions:
             k0 = np.floor(frac * np.maximum(last_valid - n_steps - warmup - 1, 0)).astype(np.int64)
-            est.reset(None)
-            filt.reset(None)
-            ctl.reset(None)
+            fcfg, layout = bench_layout(cfg, B, desc.sites, desc.altitude_m[site_of, k0[site_of]],
+                                        desc.velocity_mps[site_of, k0[site_of]])
+            stages = build_stages(fcfg, layout, dev, estimator=est, renderer=renderer if needs_events else None)
+            ctl_name = getattr(stages.controller, "controller_name", type(stages.controller).__name__)
+            state = init_state(stages)  # every stage reset; the plan starts here
             for j in range(warmup + n_steps + 1):
-                kk = k0[site_of] + j
-                z = torch.as_tensor(desc.altitude_m[site_of, kk], device=dev)
-                v = torch.as_tensor(desc.velocity_mps[site_of, kk], device=dev)
-                t_us = 1_000_000 + i_seg * seg_us + int(round(j * dt * 1e6))  # time keeps increasing
-                timed = j > warmup
-                ev = None
-                if needs_events:
-                    _sync(dev)
-                    t0, c0 = time.perf_counter(), time.process_time()
-                    frames = frame_source(z.to(torch.float32), site_idx)
-                    _sync(dev)
-                    t1, c1 = time.perf_counter(), time.process_time()
-                    if j == 0:
-                        emu.reset(frames, t_us)
-                    else:
-                        ev = emu.step(frames, t_us)
-                    _sync(dev)
-                    t2, c2 = time.perf_counter(), time.process_time()
-                    if timed:
-                        ms["render"].append((t1 - t0) * 1e3)
-                        ms["emulate"].append((t2 - t1) * 1e3)
-                        cpu["render"].append((c1 - c0) * 1e3)
-                        cpu["emulate"].append((c2 - c1) * 1e3)
-                        n_events.append(len(ev))
-                if j == 0:
-                    continue  # the first frame has no events yet
-                _sync(dev)
-                t0, c0 = time.perf_counter(), time.process_time()
-                d_hat = est.update(ev, t_us, Truth(z, v)).to(device=dev, dtype=torch.float64)
-                _sync(dev)
-                t1, c1 = time.perf_counter(), time.process_time()
-                d_f, _ = filt.update(d_hat, mask=active)
-                out = ctl(j * dt, d_f, m, active)
-                dyn.step(z, v, m, out.thrust_n, dt)
-                _sync(dev)
-                t2, c2 = time.perf_counter(), time.process_time()
-                if timed:
-                    ms["estimate"].append((t1 - t0) * 1e3)
-                    ms["control_dynamics"].append((t2 - t1) * 1e3)
-                    cpu["estimate"].append((c1 - c0) * 1e3)
-                    cpu["control_dynamics"].append((c2 - c1) * 1e3)
+                state, out = loop_step(stages, state, timer=timer)
+                wall, proc = timer.take()
+                if j <= warmup:
+                    continue  # step 0 has no events yet; then the warm-up
+                for col, parts in LOOP_STAGES.items():
+                    if any(p in wall for p in parts):
+                        ms[col].append(sum(wall.get(p, 0.0) for p in parts))
+                        cpu[col].append(sum(proc.get(p, 0.0) for p in parts))
+                if out.events is not None:
+                    n_events.append(len(out.events))
+            ended += int((~state.active).sum())
     med = {k: (statistics.median(v) if v else 0.0) for k, v in ms.items()}
     cpu_med = {k: (statistics.median(v) if v else 0.0) for k, v in cpu.items()}
     totals = [sum(ms[k][i] if ms[k] else 0.0 for k in STAGE_NAMES) for i in range(len(ms["estimate"]))]
@@ -215,7 +249,8 @@ def time_stages(cfg: Config, batch_size: int, device="cpu", estimator="dpr", n_s
                 ms_p90_total=float(np.percentile(totals, 90)) if totals else math.nan,
                 events_per_step=float(np.mean(n_events)) if n_events else 0.0,
                 peak_memory_mib=mem.mib if dev.type == "cuda" else None,
-                steps_timed=len(ms["estimate"]), torch_threads=torch.get_num_threads())
+                steps_timed=len(ms["estimate"]), torch_threads=torch.get_num_threads(), controller=ctl_name,
+                ended=ended)
 
 
 _MEMORY_SCRIPT = r"""
