@@ -3,12 +3,17 @@
 Every command makes its folder with :func:`make_run_dir`, the one output-folder guard: an empty
 ``--out``, a path that is a file, a folder that cannot be created (``/proc/x``), a run name that
 would leave ``logging.root`` (``../../x``) and a folder that already holds a run are refused
-with a :class:`RunDirError` (a ``ValueError``) that says why and what to do.
+with a :class:`RunDirError` (a ``ValueError``) that says why and what to do. It claims the folder
+atomically (an exclusive create of ``.dvsland-run``; a new folder under ``logging.root`` by an
+exclusive ``mkdir``), so of two commands started together on one folder the second is refused.
+Files are written atomically (:func:`dvsland.report.results.atomic_write_bytes`); a full disk or a
+read-only file system is one :class:`RunWriteError` naming the path.
 
 :func:`guarded_run` wraps a command (``dvsland.simulate``, every CLI sub-command): SIGTERM is
 turned into ``KeyboardInterrupt`` (so a ``kill`` is handled like Ctrl-C), and a run folder made
 during the call that has no final ``results.json`` gets one saying ``status: "interrupted"``
 (with the phase, set-up or run, and the error), so nothing already written is lost.
+:func:`deferred_interrupts` holds Ctrl-C / SIGTERM back while such a final file is written.
 """
 
 from __future__ import annotations
@@ -17,14 +22,18 @@ import datetime as _dt
 import functools
 import os
 import signal
+import socket
 import threading
 from pathlib import Path
 from typing import List, Optional, Union
 
 from .config import Config, ConfigError, dump_config
+from .report.results import RunWriteError, atomic_write_text
 
+#: the file a command creates exclusively to claim its run folder (it stays: the folder is taken)
+CLAIM_FILE = ".dvsland-run"
 #: files whose presence marks a folder as holding a dvsland run
-RUN_MARKERS = ("config.yaml", "results.json", "tb", "evaluation.json", "traces.npz")
+RUN_MARKERS = ("config.yaml", "results.json", "tb", "evaluation.json", "traces.npz", CLAIM_FILE)
 
 
 class RunDirError(ValueError):
@@ -41,7 +50,8 @@ def check_out_dir(out: Union[str, Path], overwrite: bool = False) -> Path:
 
     Raises:
         RunDirError: empty path, an existing file, a folder holding an earlier run (unless
-            ``overwrite``), or a folder the OS will not create.
+            ``overwrite``), a folder another command claimed first, or a folder the OS will not
+            create.
     """
     if out is None or str(out).strip() == "":
         raise RunDirError("--out: the output folder must not be empty (leave --out out for "
@@ -51,21 +61,57 @@ def check_out_dir(out: Union[str, Path], overwrite: bool = False) -> Path:
         raise RunDirError(f"--out {run_dir}: exists and is not a folder")
     if run_dir.is_dir() and not overwrite:
         held = [m for m in RUN_MARKERS if (run_dir / m).exists()]
+        if held == [CLAIM_FILE]:
+            raise _claimed(run_dir)
         if held:
             raise RunDirError(f"--out {run_dir}: already holds a run ({', '.join(held)}); choose a new folder "
                               f"or remove it (dvsland never mixes the files of two runs)")
     _mkdir(run_dir)
+    _claim(run_dir, overwrite)
     return run_dir
 
 
-def _mkdir(path: Path) -> None:
+def _mkdir(path: Path, exclusive: bool = False) -> None:
+    """Create ``path`` (and its parents); ``exclusive``: FileExistsError when it exists."""
     try:
-        path.mkdir(parents=True, exist_ok=True)
-        probe = path / ".dvsland-write-test"
-        probe.write_text("")
-        probe.unlink()
+        if exclusive:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            os.mkdir(path)
+        else:
+            path.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        if exclusive:
+            raise
+        raise RunDirError(f"cannot write the run folder {path}: a file of that name exists") from None
     except OSError as exc:
         raise RunDirError(f"cannot write the run folder {path}: {exc.strerror or exc}") from None
+
+
+def _claimed(run_dir: Path) -> RunDirError:
+    try:
+        owner = (run_dir / CLAIM_FILE).read_text().strip() or "unknown"
+    except OSError:
+        owner = "unknown"
+    return RunDirError(f"--out {run_dir}: another dvsland command claimed this folder first ({owner}); choose "
+                       f"a new folder (two runs never write into one folder)")
+
+
+def _claim(run_dir: Path, overwrite: bool = False) -> None:
+    """Create ``run_dir/.dvsland-run`` exclusively (``O_EXCL``): the atomic claim of the folder,
+    and the probe that it can be written. ``overwrite`` replaces an earlier claim."""
+    flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if overwrite else os.O_EXCL)
+    try:
+        fd = os.open(run_dir / CLAIM_FILE, flags, 0o644)
+    except FileExistsError:
+        raise _claimed(run_dir) from None
+    except OSError as exc:
+        raise RunDirError(f"cannot write the run folder {run_dir}: {exc.strerror or exc}") from None
+    try:
+        os.write(fd, f"pid {os.getpid()} on {socket.gethostname()} at {utc_stamp()}\n".encode())
+    except OSError as exc:
+        raise RunDirError(f"cannot write the run folder {run_dir}: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
 
 
 def make_run_dir(cfg: Config, out: Optional[Union[str, Path]] = None, kind: str = "",
@@ -99,16 +145,26 @@ def make_run_dir(cfg: Config, out: Optional[Union[str, Path]] = None, kind: str 
         base = root / f"{name}-{utc_stamp()}"
         if os.path.commonpath([os.path.abspath(base), os.path.abspath(root)]) != os.path.abspath(root):
             raise RunDirError(f"name: {cfg.name!r} would put the run folder outside logging.root = {root}")
-        run_dir, i = base, 1
-        while run_dir.exists():
-            run_dir = Path(f"{base}-{i}")
-            i += 1
-        _mkdir(run_dir)
+        run_dir = _new_folder(base)
     else:
         run_dir = check_out_dir(out, overwrite)
-    dump_config(cfg, run_dir / "config.yaml")
+    atomic_write_text(run_dir / "config.yaml", dump_config(cfg))  # RunWriteError names the path
     for frame in _GUARDS.stack:
         frame.append(run_dir)
+    return run_dir
+
+
+def _new_folder(base: Path) -> Path:
+    """Create and claim ``base`` or, when it exists (another command in the same second),
+    ``base-1``, ``base-2``...: each by an exclusive ``mkdir``, so two commands never share one."""
+    run_dir, i = base, 1
+    while True:
+        try:
+            _mkdir(run_dir, exclusive=True)
+            break
+        except FileExistsError:
+            run_dir, i = Path(f"{base}-{i}"), i + 1
+    _claim(run_dir)
     return run_dir
 
 
@@ -180,4 +236,32 @@ def guarded_run(fn):
     return wrapper
 
 
-__all__ = ["make_run_dir", "check_out_dir", "guarded_run", "utc_stamp", "RunDirError", "RUN_MARKERS"]
+class deferred_interrupts:  # noqa: N801 - used like a function: ``with deferred_interrupts():``
+    """Hold SIGINT and SIGTERM back inside the block and raise KeyboardInterrupt once it ends
+    (unless it ends in an exception of its own), so a final file (results.json after an
+    interrupt) is written whole even when Ctrl-C is pressed again. Main thread only; elsewhere
+    it does nothing."""
+
+    _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __enter__(self):
+        self.caught, self.old = [], {}
+        if threading.current_thread() is threading.main_thread():
+            for s in self._SIGNALS:
+                try:
+                    self.old[s] = signal.signal(s, lambda signum, frame: self.caught.append(signum))
+                except (ValueError, OSError):  # not allowed here (embedded interpreters)
+                    pass
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        for s, old in self.old.items():
+            signal.signal(s, old if old is not None else signal.SIG_DFL)
+        if self.caught and exc_type is None:
+            raise KeyboardInterrupt(f"{signal.Signals(self.caught[0]).name} while the results were written "
+                                    f"(they were written first)")
+        return False
+
+
+__all__ = ["make_run_dir", "check_out_dir", "guarded_run", "utc_stamp", "RunDirError", "RunWriteError",
+           "RUN_MARKERS", "CLAIM_FILE", "deferred_interrupts"]

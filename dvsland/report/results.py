@@ -1,14 +1,68 @@
-"""results.json and traces.npz of a run (written atomically: a crash never leaves half a file)."""
+"""results.json and traces.npz of a run, written atomically: the bytes go to a temporary file in
+the same folder, which then replaces the target (``os.replace``), so a crash, a full disk or a
+read-only file system leaves the previous complete file or none, never half a file. A failed
+write is one :class:`RunWriteError` naming the path and the reason."""
 
 from __future__ import annotations
 
+import errno as _errno
+import io
 import json
 import math
 import os
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Union
 
 import numpy as np
+
+
+class RunWriteError(ValueError):
+    """An output file could not be written (full disk, read-only file system, ...). The message
+    names the path and the reason; ``path`` and ``errno`` keep them. A ``ValueError``, so the CLI
+    prints it as one line."""
+
+    def __init__(self, path, exc: OSError):
+        self.path, self.errno = Path(path), exc.errno
+        code = _errno.errorcode.get(exc.errno, "") if exc.errno else ""
+        reason = f"{exc.strerror or exc}" + (f" ({code})" if code else "")
+        super().__init__(f"cannot write {self.path}: {reason}; the previous version of the file, if any, is "
+                         f"unchanged (free space or choose another output folder, then run again)")
+
+
+def atomic_write_bytes(path, data: Union[bytes, bytearray, memoryview], fsync: bool = False) -> Path:
+    """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``.
+
+    Raises:
+        RunWriteError: any OSError (ENOSPC, EROFS, EACCES, ...); the temporary file is removed and
+            ``path`` keeps its previous content (or stays absent).
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            view = memoryview(data).cast("B")
+            while view:
+                view = view[os.write(fd, view):]
+            if fsync:
+                os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException as exc:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        if isinstance(exc, OSError):
+            raise RunWriteError(path, exc) from None
+        raise
+    return path
+
+
+def atomic_write_text(path, text: str, fsync: bool = False) -> Path:
+    """:func:`atomic_write_bytes` of ``text`` as UTF-8."""
+    return atomic_write_bytes(path, text.encode("utf-8"), fsync=fsync)
 
 
 def _clean(x):
@@ -34,19 +88,14 @@ def to_json(obj, indent: int = 2) -> str:
 
 
 def write_json(path, obj, indent: int = 2) -> Path:
-    """Write ``obj`` as strict JSON (see :func:`to_json`) via a temporary file and a rename, so a
-    crash never leaves half a file. The one JSON writer of dvsland: results.json, evaluation.json,
-    bench and summary files."""
-    path = Path(path)
-    text = to_json(obj, indent)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-    return path
+    """Write ``obj`` as strict JSON (see :func:`to_json`) via :func:`atomic_write_text`, so a
+    crash or a full disk never leaves half a file (:class:`RunWriteError` names the path). The
+    one JSON writer of dvsland: results.json, evaluation.json, bench and summary files."""
+    return atomic_write_text(path, to_json(obj, indent))
 
 
 def write_results_json(path, runs: List[dict], **meta) -> Path:
-    """Write ``{"runs": runs, **meta}`` to ``path`` (strict JSON, via a temporary file and rename)."""
+    """Write ``{"runs": runs, **meta}`` to ``path`` (strict JSON, atomically: :func:`write_json`)."""
     return write_json(path, {"runs": runs, **meta})
 
 
@@ -57,8 +106,6 @@ def read_results_json(path) -> dict:
 
 def write_traces_npz(path, traces: Dict[str, np.ndarray]) -> Path:
     """Write per-step traces (steps x runs arrays, plus label arrays) to ``path`` (.npz)."""
-    path = Path(path)
-    tmp = path.with_name(path.stem + ".tmp.npz")
-    np.savez_compressed(tmp, **traces)
-    os.replace(tmp, path)
-    return path
+    buf = io.BytesIO()  # compressed in memory, then one atomic write (RunWriteError on failure)
+    np.savez_compressed(buf, **traces)
+    return atomic_write_bytes(path, buf.getbuffer())
