@@ -112,7 +112,7 @@ class SiteConfig:
     """One landing site and the initial conditions of its descent."""
 
     name: str = opt("A", "site name; its terrain spec is configs/sites/<name>.yaml", choices=SITE_NAMES)
-    z0_m: float = opt(10000.0, "initial altitude above the landing point, m", rng=(0.0, 100000.0), open_lo=True)
+    z0_m: float = opt(10000.0, "initial altitude above the landing point, m", rng=(1.0, 100000.0))
     v0_mps: float = opt(-200.0, "initial vertical velocity, m/s (negative = descending)",
                         rng=(-10000.0, 0.0), open_hi=True)
 
@@ -131,7 +131,7 @@ class RenderConfig:
     max_altitude_m: float = opt(20000.0, "highest altitude the renderer accepts, m", rng=(1.0, 1e6))
     threads: int = opt(1, "CPU threads of the fast renderer's texture sampling: 1 = one part, torch's thread "
                           "count left alone; N > 1 or 0 (= all cores) switch torch to N threads inside each render "
-                          "call (not in paper; docs/howto/devices.md)", rng=(0, 1024))
+                          "call (not in paper; docs/howto/devices.md)", rng=(0, 256))
 
 
 @dataclass
@@ -204,7 +204,8 @@ class CMaxConfig:
     window_ms: float = opt(1000.0, "event window warped per estimate, ms", rng=(1.0, 10000.0))
     d_min: float = opt(-1.0, "lowest divergence searched, 1/s", rng=(-100.0, 0.0))
     d_max: float = opt(0.5, "highest divergence searched, 1/s", rng=(0.0, 100.0))
-    n_grid: int = opt(21, "coarse grid size of the D search", rng=(3, 10000))
+    n_grid: int = opt(21, "coarse grid size of the D search (memory: one warped image per candidate; 2001 = "
+                      "steps of 0.1 1/s over the widest [d_min, d_max])", rng=(3, 2001))
     n_refine: int = opt(2, "refinement rounds around the best grid value", rng=(0, 20))
     min_events: int = opt(50, "fewer events in the window than this gives NaN", rng=(1, 10**9))
     refine_points: int = opt(9, "odd number of candidates per refinement round", rng=(3, 1001))
@@ -366,8 +367,8 @@ class DynamicsConfig:
     """Vertical 1-D lander dynamics (paper Eq. 1)."""
 
     g_mps2: float = opt(1.62, "gravity, m/s^2 (Moon)", rng=(0.0, 100.0), open_lo=True)
-    g0_mps2: float = opt(9.81, "standard gravity for Isp, m/s^2", rng=(0.0, 100.0), open_lo=True)
-    isp_s: float = opt(600.0, "specific impulse, s", rng=(0.0, 1e5), open_lo=True)
+    g0_mps2: float = opt(9.81, "standard gravity for Isp, m/s^2", rng=(0.1, 100.0))
+    isp_s: float = opt(600.0, "specific impulse, s", rng=(1.0, 1e5))
     mass_kg: float = opt(10000.0, "initial mass, kg (not in paper)", rng=(0.0, 1e9), open_lo=True)
     dry_mass_kg: float = opt(1000.0, "dry mass: thrust ends when reached, kg (not in paper)",
                              rng=(0.0, 1e9), open_lo=True)
@@ -398,7 +399,7 @@ class SimulationConfig:
                            "(a campaign shard); dispersion draws depend on the seed index, not the batch",
                            rng=(0, 2**62))
     torch_threads: int = opt(1, "torch CPU threads set for the run; 0 = leave torch's default (1 measured "
-                             "fastest on 2 cores: the per-step ops are small)", rng=(0, 1024))
+                             "fastest on 2 cores: the per-step ops are small)", rng=(0, 256))
     max_memory_gb: float = opt(0.0, "refuse a run whose estimated peak memory (per-pixel state of every "
                                "descent plus emulator.max_events_per_step events) exceeds this, GiB; 0 = 80 % "
                                "of this machine's memory (not in paper)", rng=(0.0, 1e6))

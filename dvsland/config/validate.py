@@ -209,6 +209,20 @@ SITE_BYTES_PER_PX = 2400
 STATE_BYTES_PER_PX = 300
 #: bytes per event at the emulator's peak (keys, sort, decoded Events)
 BYTES_PER_EVENT = 48
+#: peak bytes per texel of one terrain level in preparation (float64 fields over the tile and its
+#: shadow pad; measured 195-462 B on site A at 512-2048 texels); levels are prepared one at a time
+PREP_BYTES_PER_TEXEL = 480
+#: bytes per texel of a prepared scene's tiles (irradiance and height, float32, and the atlas copy);
+#: a tile is about 3 x camera.width_px texels wide, so a wide camera needs far more than its pixels
+ATLAS_BYTES_PER_TEXEL = 16
+#: bytes per canvas pixel, candidate and element of the cmax search (one warped image per half,
+#: float64 then float32; measured 5.4-7 B), and per event and candidate (its warped positions)
+CMAX_BYTES_PER_CANVAS_PX = 8
+CMAX_BYTES_PER_EVENT = 40
+#: longest run name / label after the folder-name mapping, characters (file names: <= 255 bytes)
+MAX_NAME_CHARS = 120
+#: longest path the OS takes (PATH_MAX) and longest single name in it (NAME_MAX), bytes
+MAX_PATH_BYTES, MAX_FILE_NAME_BYTES = 4096, 255
 
 _DEVICE_RE = re.compile(r"^(cpu|cuda(:\d+)?)$")
 
@@ -257,6 +271,9 @@ def check_run_name(name: str, what: str = "name") -> None:
     if not name or name in (".", "..") or "/" in name or "\\" in name or "\0" in name or name.strip() != name:
         raise ConfigError(f"{what}: {name!r} is not allowed; a run name must be a plain folder name "
                           f"(no '/', '\\\\', '..', leading or trailing spaces; not empty)")
+    if len(name.encode()) > MAX_NAME_CHARS:
+        raise ConfigError(f"{what}: {len(name)} characters ({name[:40]!r}...) is too long for a folder name; "
+                          f"allowed 1 to {MAX_NAME_CHARS} characters")
 
 
 def setting_label(kp: float, n_bin: int, label: str = "") -> str:
@@ -290,6 +307,10 @@ def _check_labels(cfg: Config, w: str) -> None:
                               f"{same}; run labels name TensorBoard folders and figures, so they must be "
                               f"unique after replacing characters outside [A-Za-z0-9_.+-] by '_'")
         seen[key] = (i, lab)
+        if len(key.encode()) > MAX_NAME_CHARS:
+            raise ConfigError(f"controller.settings[{i}].label{w}: {len(lab)} characters ({lab[:40]!r}...) is too "
+                              f"long; a label names TensorBoard folders and figures: allowed up to "
+                              f"{MAX_NAME_CHARS} characters")
 
 
 def _check_estimator_sections(cfg: Config, w: str) -> None:
@@ -301,6 +322,19 @@ def _check_estimator_sections(cfg: Config, w: str) -> None:
     if cm.refine_points % 2 == 0:
         raise ConfigError(f"estimator.cmax.refine_points{w}: {cm.refine_points} must be odd; "
                           f"allowed odd integers in [3, 1001]")
+    if 0 < cm.radial_bin_px < 0.01:
+        raise ConfigError(f"estimator.cmax.radial_bin_px{w}: {cm.radial_bin_px!r} px is too fine an annulus; "
+                          f"allowed 0 (off) or [0.01, 1000] px")
+    _check_path_size(cfg.estimator.snn.checkpoint, f"estimator.snn.checkpoint{w}")
+
+
+def _check_path_size(path: str, what: str) -> None:
+    """A path longer than the OS takes (PATH_MAX, NAME_MAX per name) is a ConfigError naming it."""
+    parts = [len(p.encode()) for p in str(path).split("/")]
+    if len(str(path).encode()) > MAX_PATH_BYTES or max(parts, default=0) > MAX_FILE_NAME_BYTES:
+        raise ConfigError(f"{what}: a path of {len(str(path))} characters ({str(path)[:40]!r}...) is too long; "
+                          f"allowed up to {MAX_PATH_BYTES} bytes, each folder or file name up to "
+                          f"{MAX_FILE_NAME_BYTES} bytes")
 
 
 def memory_limit_bytes(cfg: Config) -> float:
@@ -315,31 +349,59 @@ def memory_limit_bytes(cfg: Config) -> float:
     return 0.8 * total
 
 
-def estimate_run_bytes(cfg: Config, n_sites: Optional[int] = None, batch_size: Optional[int] = None) -> float:
-    """Rough peak memory of a simulation, bytes: per-pixel state of every site and every descent,
-    plus one step's events at the cap (``emulator.max_events_per_step``). ``n_sites`` and
-    ``batch_size`` default to the whole configured experiment."""
+def memory_parts(cfg: Config, n_sites: Optional[int] = None, batch_size: Optional[int] = None) -> dict:
+    """Rough peak memory of a simulation by part, bytes: ``pixels`` (per-pixel state of every site
+    and descent, or the prepared terrain tiles of every scene where they are larger: a wide camera),
+    ``terrain`` (one level in preparation), ``events`` (one step's events at
+    ``emulator.max_events_per_step``) and ``cmax`` (the cmax search: a warped image per element and
+    candidate). ``n_sites`` and ``batch_size`` default to the whole configured experiment."""
+    from dvsland.render.lod import level_params_for
+
     n_sites = len({s.name for s in cfg.simulation.sites}) if n_sites is None else int(n_sites)
-    B = (len(cfg.simulation.sites) * len(cfg.controller.settings) * cfg.simulation.n_seeds
-         if batch_size is None else int(batch_size))
-    px = float(cfg.camera.width_px * cfg.camera.height_px)
-    ev = getattr(cfg.emulator, "max_events_per_step", 0) or 0
-    return px * (n_sites * SITE_BYTES_PER_PX + B * STATE_BYTES_PER_PX) + float(ev) * BYTES_PER_EVENT
+    B = _batch(cfg, batch_size)
+    W, H = cfg.camera.width_px, cfg.camera.height_px
+    lp = level_params_for(cfg.camera, cfg.render)
+    tex = float(lp.tile_size) ** 2
+    site = max(SITE_BYTES_PER_PX * float(W * H), lp.n_levels * tex * ATLAS_BYTES_PER_TEXEL)
+    parts = {"pixels": n_sites * site + B * STATE_BYTES_PER_PX * float(W * H),
+             "terrain": tex * PREP_BYTES_PER_TEXEL,
+             "events": float(getattr(cfg.emulator, "max_events_per_step", 0) or 0) * BYTES_PER_EVENT, "cmax": 0.0}
+    if cfg.estimator.name == "cmax":
+        cm, pad = cfg.estimator.cmax, max(W, H)  # the canvas margin is at most the sensor size
+        G = max(cm.n_grid, cm.refine_points)
+        parts["cmax"] = B * G * (float(W + 2 * pad) * (H + 2 * pad) * CMAX_BYTES_PER_CANVAS_PX
+                                 + (cm.max_events or 4000) * CMAX_BYTES_PER_EVENT)
+    return parts
+
+
+def _batch(cfg: Config, batch_size: Optional[int]) -> int:
+    return (len(cfg.simulation.sites) * len(cfg.controller.settings) * cfg.simulation.n_seeds
+            if batch_size is None else int(batch_size))
+
+
+def estimate_run_bytes(cfg: Config, n_sites: Optional[int] = None, batch_size: Optional[int] = None) -> float:
+    """Rough peak memory of a simulation, bytes: the sum of :func:`memory_parts`."""
+    return float(sum(memory_parts(cfg, n_sites, batch_size).values()))
 
 
 def check_memory(cfg: Config, n_sites: Optional[int] = None, batch_size: Optional[int] = None,
                  source: Optional[str] = None) -> None:
-    """ConfigError when :func:`estimate_run_bytes` exceeds :func:`memory_limit_bytes`. The simulator
-    runs it on the batch it is about to build (after ``--sites``), before the run folder is made;
+    """ConfigError when :func:`estimate_run_bytes` exceeds :func:`memory_limit_bytes`, naming the
+    parts. The simulator runs it on the batch it is about to build (after ``--sites``), before the
+    run folder is made, a campaign on each grid point's largest shard before its plan is saved;
     it depends on the machine, so loading a config does not."""
-    need, limit = estimate_run_bytes(cfg, n_sites, batch_size), memory_limit_bytes(cfg)
-    if need > limit:
-        B = (len(cfg.simulation.sites) * len(cfg.controller.settings) * cfg.simulation.n_seeds
-             if batch_size is None else int(batch_size))
-        raise ConfigError(
-            f"simulation.max_memory_gb{_where(source)}: this run needs about {need / 2 ** 30:.1f} GiB "
-            f"({cfg.camera.width_px}x{cfg.camera.height_px} px x ({SITE_BYTES_PER_PX} B per site + "
-            f"{STATE_BYTES_PER_PX} B per descent, B = {B}), plus emulator.max_events_per_step = "
-            f"{getattr(cfg.emulator, 'max_events_per_step', 0)} x {BYTES_PER_EVENT} B), above the limit of "
-            f"{limit / 2 ** 30:.1f} GiB; use fewer sites, settings "
-            f"or seeds, a smaller camera, a lower emulator.max_events_per_step, or raise simulation.max_memory_gb")
+    parts, limit = memory_parts(cfg, n_sites, batch_size), memory_limit_bytes(cfg)
+    need = sum(parts.values())
+    if need <= limit:
+        return
+    gib = {k: f"{v / 2 ** 30:.1f} GiB" for k, v in parts.items()}
+    cm = cfg.estimator.cmax
+    raise ConfigError(
+        f"simulation.max_memory_gb{_where(source)}: this run needs about {need / 2 ** 30:.1f} GiB, above the limit of "
+        f"{limit / 2 ** 30:.1f} GiB: {gib['pixels']} for the {cfg.camera.width_px}x{cfg.camera.height_px} px camera "
+        f"(terrain tiles and {SITE_BYTES_PER_PX} B per pixel per site + {STATE_BYTES_PER_PX} B per pixel per "
+        f"descent, B = {_batch(cfg, batch_size)}), {gib['terrain']} to prepare a terrain level, {gib['events']} for "
+        f"emulator.max_events_per_step = {getattr(cfg.emulator, 'max_events_per_step', 0)} x {BYTES_PER_EVENT} B"
+        + (f", {gib['cmax']} for the cmax search (estimator.cmax.n_grid = {cm.n_grid})" if parts["cmax"] else "")
+        + "; use fewer sites, settings or seeds, a smaller camera, a lower emulator.max_events_per_step or "
+          "estimator.cmax.n_grid, or raise simulation.max_memory_gb")

@@ -49,12 +49,56 @@ def save_checkpoint(path, model: SpikingDivergenceNet, encoder: LogPolarEncoder,
                 "meta": meta}, path)
 
 
+def _short(path) -> str:
+    text = str(path)
+    return text if len(text) <= 120 else f"{text[:60]}...{text[-40:]} ({len(text)} characters)"
+
+
+def _check_path(path: Path) -> None:
+    """ValueError naming estimator.snn.checkpoint for a path the OS refuses (too long) or a missing file."""
+    try:
+        found = path.is_file()
+    except (OSError, ValueError) as exc:  # ENAMETOOLONG, a NUL byte, ...
+        raise ValueError(f"estimator.snn.checkpoint: {_short(path)}: {getattr(exc, 'strerror', None) or exc}; expected "
+                         f"the path of a checkpoint file (at most 4096 characters, each folder or file name at "
+                         f"most 255 bytes)") from None
+    if not found:
+        raise ValueError(f"estimator.snn.checkpoint: file not found: {_short(path)} (train one with "
+                         f"scripts/train_snn.py)")
+
+
+def check_state_dict(path, state: dict, model: torch.nn.Module) -> None:
+    """Every tensor of a checkpoint's ``state`` against ``model``: the same names, shapes and
+    floating dtypes, and only finite values. ValueError naming the checkpoint file and the tensor."""
+    if not isinstance(state, dict):
+        raise ValueError(f"estimator.snn.checkpoint: {_short(path)}: its state_dict is a {type(state).__name__}, "
+                         f"expected a mapping of tensor names to tensors")
+    want = model.state_dict()
+    missing, extra = sorted(set(want) - set(state)), sorted(set(state) - set(want))
+    if missing or extra:
+        raise ValueError(f"estimator.snn.checkpoint: {_short(path)}: tensors missing {missing[:5]}, unexpected "
+                         f"{extra[:5]}; expected exactly the tensors of the network it describes")
+    for name, ref in want.items():
+        t = state[name]
+        if not isinstance(t, torch.Tensor) or not t.is_floating_point():
+            what = f"a {t.dtype} tensor" if isinstance(t, torch.Tensor) else f"a {type(t).__name__}"
+            raise ValueError(f"estimator.snn.checkpoint: {_short(path)}: tensor '{name}' is {what}, expected a "
+                             f"floating-point tensor of shape {tuple(ref.shape)}")
+        if tuple(t.shape) != tuple(ref.shape):
+            raise ValueError(f"estimator.snn.checkpoint: {_short(path)}: tensor '{name}' has shape {tuple(t.shape)}, "
+                             f"expected {tuple(ref.shape)} (the network its encoder and model fields describe)")
+        bad = int((~torch.isfinite(t)).sum())
+        if bad:
+            raise ValueError(f"estimator.snn.checkpoint: {_short(path)}: tensor '{name}' holds {bad} NaN or infinite "
+                             f"values of {t.numel()}; expected finite weights (a damaged or diverged training)")
+
+
 def load_checkpoint(path=None, sensor_size=(128, 128), dt_s: float = 0.1, device="cpu", principal_point_px=None):
     """(model, encoder, meta) from ``path`` (default: the shipped checkpoint). Raises ValueError with
-    the path for a missing, corrupt or foreign file."""
+    the path for a missing, corrupt or foreign file, a path the OS refuses, and tensors of the wrong
+    name, shape or dtype or with NaN / inf values (:func:`check_state_dict`, naming the tensor)."""
     path = Path(path) if path else DEFAULT_CHECKPOINT
-    if not path.is_file():
-        raise ValueError(f"estimator.snn.checkpoint: file not found: {path} (train one with scripts/train_snn.py)")
+    _check_path(path)
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
     except Exception:  # any failure to read untrusted bytes (the unpickler raises KeyError, IndexError, ...)
@@ -86,6 +130,12 @@ def load_checkpoint(path=None, sensor_size=(128, 128), dt_s: float = 0.1, device
                               principal_point_px=principal_point_px)
         model = SpikingDivergenceNet(e["n_rho"], e["n_phi"], dt_s=dt_s / e["n_sub"], channels=m["channels"],
                                      d_scale=m["d_scale"], learn_tau=learn_tau)
+    except Exception as exc:
+        first = (str(exc).splitlines() or [""])[0][:200]
+        raise ValueError(f"estimator.snn.checkpoint: {path}: its encoder or model description does not make a "
+                         f"network ({type(exc).__name__}: {first})") from None
+    check_state_dict(path, ck["state_dict"], model)
+    try:
         model.load_state_dict(ck["state_dict"])
     except Exception as exc:
         first = (str(exc).splitlines() or [""])[0][:200]
