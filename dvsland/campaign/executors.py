@@ -8,11 +8,18 @@ or joins the cluster named by the ``RAY_ADDRESS`` environment variable (``ray st
 one node, ``ray start --address=HEAD:6379`` on the others; on SLURM, Ray's own
 ``ray start`` recipe in an sbatch script). Shard results travel back to the driver, so the
 workers need no shared file system.
+
+Local workers die with their driver: each sets ``PR_SET_PDEATHSIG`` (Linux) and watches its
+parent's pid, so a driver killed with SIGKILL (no clean-up of its own) leaves no worker running.
 """
 
 from __future__ import annotations
 
 import os
+import signal
+import sys
+import threading
+import time
 from typing import Iterator, List, Optional
 
 from .shard import run_shard
@@ -29,6 +36,49 @@ def ray_available() -> bool:
     return True
 
 
+#: seconds between two checks of a worker that its driver is still alive
+PARENT_POLL_S = 0.5
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Process-pool initializer: end this worker as soon as its driver ``parent_pid`` is gone
+    (SIGKILL included): the kernel's parent-death signal on Linux, and a thread that polls the
+    parent pid everywhere (the signal follows the thread that started the worker)."""
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent_pid:  # the driver died while this worker started
+        os._exit(1)
+    threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True, name="dvsland-parent-watch").start()
+
+
+def _watch_parent(parent_pid: int) -> None:
+    while True:
+        time.sleep(PARENT_POLL_S)
+        if os.getppid() != parent_pid:
+            os._exit(1)
+
+
+def make_pool(workers: int):
+    """A spawned process pool of ``workers`` processes that die with this process."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    return ProcessPoolExecutor(max_workers=int(workers), mp_context=mp.get_context("spawn"),
+                               initializer=_die_with_parent, initargs=(os.getpid(),))
+
+
+def _stop_pool(pool) -> None:
+    """Cancel what has not started and terminate the workers now (no waiting for a shard)."""
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        proc.terminate()
+
+
 def run_local(config: dict, shards: List[dict], workers: int = 1, keep_dirs: Optional[List[Optional[str]]] = None
               ) -> Iterator[dict]:
     """Shards one after another (``workers <= 1``) or in a process pool of ``workers`` processes
@@ -38,21 +88,21 @@ def run_local(config: dict, shards: List[dict], workers: int = 1, keep_dirs: Opt
         for sh, kd in zip(shards, keep_dirs):
             yield run_shard(config, sh, kd)
         return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import as_completed
 
-    pool = ProcessPoolExecutor(max_workers=int(workers), mp_context=mp.get_context("spawn"))
-    futs = [pool.submit(run_shard, config, sh, kd) for sh, kd in zip(shards, keep_dirs)]
+    from dvsland.runs import deferred_interrupts
+
+    pool = make_pool(workers)
     try:
+        futs = [pool.submit(run_shard, config, sh, kd) for sh, kd in zip(shards, keep_dirs)]
         for f in as_completed(futs):
             yield f.result()
     except BaseException:
         # Ctrl-C / SIGTERM / a failing shard: stop now. Waiting for the running shards (minutes
         # each) would leave the campaign deaf to the interrupt; finished shards are already on
-        # disk, and --resume runs the rest.
-        pool.shutdown(wait=False, cancel_futures=True)
-        for proc in list((getattr(pool, "_processes", None) or {}).values()):
-            proc.terminate()
+        # disk, and --resume runs the rest. A second Ctrl-C waits until the workers are told.
+        with deferred_interrupts():
+            _stop_pool(pool)
         raise
     pool.shutdown(wait=True)
 

@@ -7,7 +7,7 @@ import math
 from pathlib import Path
 from typing import List, Sequence
 
-from dvsland.report.results import write_results_json
+from dvsland.report.results import RunWriteError, atomic_write_text, write_results_json
 from dvsland.report.stats import format_group_table, write_csv
 
 #: flat columns of runs.csv (nested dicts are flattened as sweep.<k> and dispersion.<k>)
@@ -34,8 +34,11 @@ def write_tables(folder, runs: List[dict], groups: List[dict]) -> List[Path]:
     folder = Path(folder)
     rows = flat_runs(runs)
     paths = [folder / "runs.csv", folder / "groups.csv"]
-    write_csv(paths[0], rows)
-    write_csv(paths[1], groups)
+    for path, data in zip(paths, (rows, groups)):
+        try:
+            write_csv(path, data)
+        except OSError as exc:  # a full disk: one error naming the file
+            raise RunWriteError(path, exc) from None
     try:
         import pyarrow as pa
         import pyarrow.parquet as pq
@@ -44,7 +47,10 @@ def write_tables(folder, runs: List[dict], groups: List[dict]) -> List[Path]:
     for name, data in (("runs", rows), ("groups", groups)):
         cols = sorted({k for r in data for k in r}, key=lambda k: list(data[0]).index(k) if k in data[0] else 1e9)
         table = pa.table({c: [r.get(c) for r in data] for c in cols})
-        pq.write_table(table, folder / f"{name}.parquet")
+        try:
+            pq.write_table(table, folder / f"{name}.parquet")
+        except OSError as exc:
+            raise RunWriteError(folder / f"{name}.parquet", exc) from None
         paths.append(folder / f"{name}.parquet")
     return paths
 
@@ -169,22 +175,25 @@ def write_paper_pattern(folder, runs: List[dict], by: Sequence[str], figures: bo
             (folder / "figures").mkdir(parents=True, exist_ok=True)
             out[fig] = pp.paper_pattern_chart(rs, folder / "figures" / fig, c2_s, alt, pooled=True)
     for ext, body in (("txt", "\n\n".join(texts)), ("md", "\n\n".join(mds))):
-        out[f"paper_pattern.{ext}"] = folder / f"paper_pattern.{ext}"
-        out[f"paper_pattern.{ext}"].write_text(body + "\n")
-    out["paper_pattern.json"] = folder / "paper_pattern.json"
-    out["paper_pattern.json"].write_text(json.dumps({"paper": pp.load_paper_pattern(), "flown": data}, indent=1))
+        out[f"paper_pattern.{ext}"] = atomic_write_text(folder / f"paper_pattern.{ext}", body + "\n")
+    text = json.dumps({"paper": pp.load_paper_pattern(), "flown": data}, indent=1)
+    out["paper_pattern.json"] = atomic_write_text(folder / "paper_pattern.json", text)
     return out
 
 
 def write_report(folder, runs: List[dict], groups: List[dict], by: Sequence[str], meta: dict,
-                 figures: bool = True, tensorboard: bool = True) -> dict:
-    """Write every merged output of a campaign into ``folder``; returns {name: path}."""
+                 figures: bool = True, tensorboard: bool = True, results: bool = True) -> dict:
+    """Write every merged output of a campaign into ``folder`` (``results``: results.json too;
+    the campaign writes it first itself); returns {name: path}. Text files are written
+    atomically; a full disk is one RunWriteError naming the file."""
     folder = Path(folder)
-    out = {"results": write_results_json(folder / "results.json", runs, groups=groups, group_by=list(by), **meta)}
+    out = {"results": folder / "results.json"}
+    if results:
+        write_results_json(folder / "results.json", runs, groups=groups, group_by=list(by), **meta)
     for p in write_tables(folder, runs, groups):
         out[p.name] = p
-    (folder / "table.txt").write_text(format_group_table(groups, by) + "\n")
-    (folder / "table.md").write_text(format_group_table(groups, by, markdown=True) + "\n")
+    atomic_write_text(folder / "table.txt", format_group_table(groups, by) + "\n")
+    atomic_write_text(folder / "table.md", format_group_table(groups, by, markdown=True) + "\n")
     if figures and runs:
         out["figure"] = campaign_figure(folder / "figures" / "campaign.png", runs, groups, by)
     if tensorboard and groups:

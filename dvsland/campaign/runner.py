@@ -4,13 +4,18 @@ Campaign folder (``logs/<name>-campaign-<UTC stamp>/`` or ``out``)::
 
     config.yaml        the resolved base config, written before any work
     campaign.json      the plan: base config, sweeps, seeds, shards
-    shards/<id>.json   one file per finished shard, written atomically (tmp + os.replace)
+    shards/<id>.json   one file per finished shard, written atomically (tmp + os.replace), with
+                       the config_hash of what it flew
+    shards/rejected/   damaged shard files and shards of another config, moved aside on resume
     results.json       merged runs + per-group statistics (status complete / interrupted)
     runs.csv, groups.csv, table.txt, table.md, figures/campaign.png, tb/ (HParams)
+    .dvsland-run, .campaign.lock   the folder's claim and the running campaign's lock
 
 An interrupted campaign keeps its config, plan and finished shards; ``resume`` runs only the
-shards without a file and then merges all of them in plan order, so the merged runs and groups
-equal those of an uninterrupted campaign.
+shards without a good file (missing, damaged or of another config: reported on stderr and
+re-run) and then merges all of them in plan order, so the merged runs and groups equal those of
+an uninterrupted campaign. After Ctrl-C, results.json is written first, with a second Ctrl-C held
+back until it is on disk.
 """
 
 from __future__ import annotations
@@ -21,17 +26,21 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import List, Optional, Sequence
+from typing import List, Optional, Sequence, Tuple
 
 from dvsland import __version__
 from dvsland.config import Config
 from dvsland.report.stats import default_group_keys, format_group_table, group_stats
-from dvsland.runs import make_run_dir
+from dvsland.runs import RunWriteError, deferred_interrupts, make_run_dir
 
 from .executors import EXECUTORS, run_local, run_ray
-from .plan import CampaignPlan, make_plan
+from .plan import CampaignPlan, Shard, config_digest, make_plan, shard_hash
 
 SHARDS_DIR = "shards"
+#: where damaged or foreign shard files are moved (kept, never merged)
+REJECTED_DIR = "rejected"
+#: the lock a running campaign holds in its folder (a second writer is refused)
+LOCK_FILE = ".campaign.lock"
 
 
 @dataclass
@@ -55,39 +64,134 @@ def shard_path(run_dir, shard_id: str) -> Path:
 
 
 def write_shard(run_dir, result: dict) -> Path:
-    """Write one shard result atomically (a kill never leaves half a file)."""
-    from dvsland.report.results import _clean
+    """Write one shard result atomically (a kill or a full disk never leaves half a file;
+    RunWriteError names the path)."""
+    from dvsland.report.results import _clean, atomic_write_text
 
     path = shard_path(run_dir, result["id"])
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(f".json.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(_clean(result)))
-    os.replace(tmp, path)
-    return path
+    return atomic_write_text(path, json.dumps(_clean(result)))
 
 
-def read_shard(run_dir, shard_id: str) -> Optional[dict]:
-    """A finished shard's result, or None when its file is missing or unreadable."""
-    path = shard_path(run_dir, shard_id)
+def shard_problem(d, shard: Shard, expected_hash: str) -> Optional[str]:
+    """None when ``d`` (a shard file's content) is a complete result of ``shard`` flown with the
+    plan's config (:func:`~.plan.shard_hash` ``expected_hash``); else why it is not."""
+    if not isinstance(d, dict):
+        return f"holds a JSON {type(d).__name__}, not a shard result (an object)"
+    if d.get("status") != "complete":
+        return f"its status is {d.get('status')!r}, not 'complete'"
+    if (d.get("id"), d.get("seed_offset"), d.get("n_seeds")) != (shard.id, shard.seed_offset, shard.n_seeds):
+        return (f"it is shard {d.get('id')!r} of seeds {d.get('seed_offset')} + {d.get('n_seeds')}, not "
+                f"{shard.id!r} of seeds {shard.seed_offset} + {shard.n_seeds}")
+    runs = d.get("runs")
+    if not isinstance(runs, list) or not runs:
+        return "it holds no runs" if not runs else f"its runs are a JSON {type(runs).__name__}, not a list"
+    if not all(isinstance(r, dict) and isinstance(r.get("outcome"), str) and "site" in r for r in runs):
+        return "its runs are of the wrong type (expected objects with 'site' and 'outcome')"
+    got = d.get("config_hash")
+    if got != expected_hash:
+        return ("it has no config hash (written by an older dvsland)" if got is None else
+                f"it was flown with a different config (config hash {got}, the plan's {expected_hash})")
+    return None
+
+
+def read_shard_file(run_dir, shard: Shard, expected_hash: str) -> Tuple[Optional[dict], Optional[str]]:
+    """(result, None) for a good shard file; (None, None) when there is none; (None, why) when
+    it is unreadable, damaged or of another config."""
+    path = shard_path(run_dir, shard.id)
     if not path.is_file():
-        return None
+        return None, None
     try:
         d = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    return d if d.get("status") == "complete" else None
+    except (OSError, ValueError) as exc:
+        return None, f"it is not readable JSON ({type(exc).__name__}: {str(exc)[:120]})"
+    why = shard_problem(d, shard, expected_hash)
+    return (None, why) if why else (d, None)
+
+
+def read_shard(run_dir, shard_id: str, plan: Optional[CampaignPlan] = None) -> Optional[dict]:
+    """A finished shard's result, or None when its file is missing, damaged or (with ``plan``) of
+    another config."""
+    if plan is None:
+        try:
+            d = json.loads(shard_path(run_dir, shard_id).read_text())
+        except (OSError, ValueError):
+            return None
+        return d if isinstance(d, dict) and d.get("status") == "complete" else None
+    sh = next((s for s in plan.shards if s.id == shard_id), None)
+    return None if sh is None else read_shard_file(run_dir, sh, shard_hash(config_digest(plan.config), asdict(sh)))[0]
+
+
+def reject_shard(run_dir, shard_id: str) -> Path:
+    """Move a damaged or foreign shard file to ``shards/rejected/`` (kept, never merged)."""
+    src = shard_path(run_dir, shard_id)
+    folder = src.parent / REJECTED_DIR
+    folder.mkdir(parents=True, exist_ok=True)
+    dst, i = folder / src.name, 1
+    while dst.exists():
+        dst, i = folder / f"{shard_id}-{i}.json", i + 1
+    os.replace(src, dst)
+    return dst
+
+
+def check_shards(plan: CampaignPlan, run_dir, quiet: bool = False) -> Tuple[List[Shard], List[dict]]:
+    """(shards to run, rejected): every shard without a good file is to run; a damaged or foreign
+    file is reported on stderr (naming the shard and why), moved to ``shards/rejected/`` and its
+    shard re-run."""
+    digest = config_digest(plan.config)
+    todo, rejected = [], []
+    for sh in plan.shards:
+        d, why = read_shard_file(run_dir, sh, shard_hash(digest, asdict(sh)))
+        if d is not None:
+            continue
+        todo.append(sh)
+        if why:
+            moved = reject_shard(run_dir, sh.id)
+            rejected.append({"id": sh.id, "reason": why, "moved_to": str(moved)})
+            print(f"dvsland campaign: warning: shard {sh.id} ({shard_path(run_dir, sh.id)}): {why}; moved to "
+                  f"{moved}, re-running the shard", file=sys.stderr, flush=True)
+    return todo, rejected
 
 
 def merge(plan: CampaignPlan, run_dir) -> tuple:
-    """(runs in plan order, ids of missing shards)."""
+    """(runs in plan order, ids of missing shards); a shard whose file is damaged or of another
+    config counts as missing."""
+    digest = config_digest(plan.config)
     runs, missing = [], []
     for sh in plan.shards:
-        d = read_shard(run_dir, sh.id)
+        d, _ = read_shard_file(run_dir, sh, shard_hash(digest, asdict(sh)))
         if d is None:
             missing.append(sh.id)
         else:
             runs.extend(d["runs"])
     return runs, missing
+
+
+def lock_campaign(run_dir):
+    """Hold an exclusive lock on ``run_dir/.campaign.lock`` (released when the returned file is
+    closed or the process ends); ValueError when another campaign process holds it."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock
+        return None
+    path = Path(run_dir) / LOCK_FILE
+    try:
+        f = open(path, "a+")
+    except OSError as exc:
+        raise RunWriteError(path, exc) from None
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.seek(0)
+        owner = f.read().strip() or "another process"
+        f.close()
+        raise ValueError(f"{run_dir}: another dvsland campaign is running in this folder ({owner}); wait for it "
+                         f"to end (or stop it), then --resume") from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
+    f.flush()
+    return f
 
 
 def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_seeds: Optional[int] = None,
@@ -119,20 +223,45 @@ def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_
     if int(workers) < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     t0 = time.perf_counter()
+    plan, run_dir, lock = _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out)
+    try:
+        todo, rejected = check_shards(plan, run_dir, quiet)
+        n_done_before = len(plan.shards) - len(todo)
+        if max_shards is not None:
+            todo = todo[:max(0, int(max_shards))]
+        fly = _fly(plan, run_dir, todo, executor, workers, keep_runs, quiet, n_done_before)
+        session = {"executor": executor, "workers": int(workers), "t0": t0, "rejected": rejected}
+        return _finish(plan, run_dir, fly, session, quiet)
+    finally:
+        if lock is not None:
+            lock.close()
+
+
+def _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out):
+    """(plan, folder, lock): a checked plan from ``resume``'s campaign.json, or a new plan (checked
+    before its folder is made) saved in a new folder; the folder's lock held."""
     if resume is not None:
         run_dir = Path(resume)
         plan = CampaignPlan.load(run_dir)
+        lock = lock_campaign(run_dir)
     else:
         if config is None:
             raise ValueError("run_campaign needs a config (or resume=FOLDER)")
         plan = make_plan(config, sweeps, n_seeds, shard_seeds)
-        run_dir = make_run_dir(config, out, kind="campaign")  # config.yaml first
+        run_dir = make_run_dir(config, out, kind="campaign")  # claimed atomically; config.yaml first
+        lock = lock_campaign(run_dir)
         plan.save(run_dir)
-    (run_dir / SHARDS_DIR).mkdir(parents=True, exist_ok=True)
-    todo = [sh for sh in plan.shards if read_shard(run_dir, sh.id) is None]
-    n_done_before = len(plan.shards) - len(todo)
-    if max_shards is not None:
-        todo = todo[:max(0, int(max_shards))]
+    try:
+        (run_dir / SHARDS_DIR).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RunWriteError(run_dir / SHARDS_DIR, exc) from None
+    return plan, run_dir, lock
+
+
+def _fly(plan: CampaignPlan, run_dir: Path, todo: List[Shard], executor: str, workers: int, keep_runs: bool,
+         quiet: bool, n_done_before: int) -> dict:
+    """Run the shards ``todo``, writing each result as it arrives. Returns {status, exc, descents,
+    n_run, run_s}; Ctrl-C or an error ends it with status ``interrupted`` (``exc`` to re-raise)."""
     keep = [str(run_dir / SHARDS_DIR / sh.id) if keep_runs else None for sh in todo]
     shard_dicts = [asdict(sh) for sh in todo]
     pbar = None
@@ -140,8 +269,9 @@ def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_
         from tqdm.auto import tqdm
 
         pbar = tqdm(total=len(plan.shards), initial=n_done_before, unit="shard", desc="campaign", file=sys.stderr)
-    status, exc_to_raise, descents, n_run = "complete", None, 0, 0
+    out = {"status": "complete", "exc": None, "descents": 0, "n_run": 0}
     t_run = time.perf_counter()
+    it = None
     try:
         it = (run_local(plan.config, shard_dicts, workers, keep) if executor == "local"
               else run_ray(plan.config, shard_dicts, workers, keep))
@@ -149,47 +279,65 @@ def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_
             if res.get("status") != "complete":
                 raise RuntimeError(f"shard {res['id']} ended {res.get('status')!r}")
             write_shard(run_dir, res)
-            n_run += 1
-            descents += len(res["runs"])
+            out["n_run"] += 1
+            out["descents"] += len(res["runs"])
             if pbar is not None:
                 pbar.update(1)
                 minutes = (time.perf_counter() - t_run) / 60
-                pbar.set_postfix(descents_per_min=f"{descents / minutes:.1f}" if minutes > 0 else "-")
+                pbar.set_postfix(descents_per_min=f"{out['descents'] / minutes:.1f}" if minutes > 0 else "-")
     except BaseException as exc:  # noqa: BLE001 - Ctrl-C too: keep what is done, report it, re-raise
-        status, exc_to_raise = "interrupted", exc
+        out.update(status="interrupted", exc=exc)
     finally:
+        if it is not None:
+            it.close()  # a failed write ends the executor too (its workers stopped)
         if pbar is not None:
             pbar.close()
-    run_s = time.perf_counter() - t_run
-    runs, missing = merge(plan, run_dir)
-    if status == "complete" and missing:
-        status = "incomplete"
-    by = default_group_keys(runs)
-    groups = group_stats(runs, by)
-    wall = time.perf_counter() - t0
-    dpm = descents / (run_s / 60) if run_s > 0 and descents else None
-    meta = {"status": status, "n_shards": len(plan.shards), "n_shards_done": len(plan.shards) - len(missing),
-            "missing_shards": missing, "sweeps": plan.sweeps, "n_seeds": plan.n_seeds, "shard_seeds": plan.shard_seeds,
-            "executor": executor, "workers": int(workers), "session": {
-                "shards_run": n_run, "descents_run": descents, "wall_time_s": wall, "shards_time_s": run_s,
-                "descents_per_min": dpm}, "dvsland_version": __version__,
-            "error": None if exc_to_raise is None else f"{type(exc_to_raise).__name__}: {exc_to_raise}"}
+    out["run_s"] = time.perf_counter() - t_run
+    return out
+
+
+def _finish(plan: CampaignPlan, run_dir: Path, fly: dict, session: dict, quiet: bool) -> CampaignResult:
+    """Merge the shard files and write the report; results.json first, with Ctrl-C / SIGTERM held
+    back until it is written (:func:`~dvsland.runs.deferred_interrupts`), so a second Ctrl-C
+    during an interrupted campaign's clean-up still leaves it. Re-raises ``fly["exc"]``."""
+    from dvsland.report.results import write_results_json
+
     from .report import write_report
 
+    with deferred_interrupts():
+        runs, missing = merge(plan, run_dir)
+        status = "incomplete" if fly["status"] == "complete" and missing else fly["status"]
+        by = default_group_keys(runs)
+        groups = group_stats(runs, by)
+        wall = time.perf_counter() - session["t0"]
+        dpm = fly["descents"] / (fly["run_s"] / 60) if fly["run_s"] > 0 and fly["descents"] else None
+        exc = fly["exc"]
+        meta = {"status": status, "n_shards": len(plan.shards), "n_shards_done": len(plan.shards) - len(missing),
+                "missing_shards": missing, "rejected_shards": session["rejected"], "sweeps": plan.sweeps,
+                "n_seeds": plan.n_seeds, "shard_seeds": plan.shard_seeds, "executor": session["executor"],
+                "workers": session["workers"], "session": {
+                    "shards_run": fly["n_run"], "descents_run": fly["descents"], "wall_time_s": wall,
+                    "shards_time_s": fly["run_s"], "descents_per_min": dpm}, "dvsland_version": __version__,
+                "error": None if exc is None else f"{type(exc).__name__}: {exc}"}
+        write_results_json(run_dir / "results.json", runs, groups=groups, group_by=list(by), **meta)
     log = plan.config.get("logging", {})
-    outputs = write_report(run_dir, runs, groups, by, meta, figures=bool(log.get("figures", True)) and status != "interrupted",
-                           tensorboard=bool(log.get("tensorboard", True)))
+    outputs = write_report(run_dir, runs, groups, by, meta, tensorboard=bool(log.get("tensorboard", True)),
+                           figures=bool(log.get("figures", True)) and status != "interrupted", results=False)
     if not quiet:
-        print(format_group_table(groups, by))
-        if "paper_pattern.txt" in outputs:  # the paper's nine sites: its pattern beside the pooled one
-            print(outputs["paper_pattern.txt"].read_text(), end="")
-        rate = f", {dpm:.1f} descents/min" if dpm else ""
-        print(f"{status}: {len(plan.shards) - len(missing)}/{len(plan.shards)} shards, {len(runs)} descents "
-              f"({descents} run now in {run_s:.1f} s{rate}); output in {run_dir}")
-        if missing:
-            print(f"{len(missing)} shards missing: dvsland campaign --resume {run_dir}")
-    if exc_to_raise is not None:
-        raise exc_to_raise
+        _print_summary(plan, run_dir, runs, groups, by, outputs, status, missing, fly, dpm)
+    if exc is not None:
+        raise exc
     return CampaignResult(run_dir=run_dir, runs=runs, groups=groups, group_by=by, status=status,
-                          n_shards=len(plan.shards), n_shards_run=n_run, wall_time_s=wall, descents_per_min=dpm,
-                          outputs=outputs)
+                          n_shards=len(plan.shards), n_shards_run=fly["n_run"], wall_time_s=wall,
+                          descents_per_min=dpm, outputs=outputs)
+
+
+def _print_summary(plan, run_dir, runs, groups, by, outputs, status, missing, fly, dpm) -> None:
+    print(format_group_table(groups, by))
+    if "paper_pattern.txt" in outputs:  # the paper's nine sites: its pattern beside the pooled one
+        print(outputs["paper_pattern.txt"].read_text(), end="")
+    rate = f", {dpm:.1f} descents/min" if dpm else ""
+    print(f"{status}: {len(plan.shards) - len(missing)}/{len(plan.shards)} shards, {len(runs)} descents "
+          f"({fly['descents']} run now in {fly['run_s']:.1f} s{rate}); output in {run_dir}")
+    if missing:
+        print(f"{len(missing)} shards missing: dvsland campaign --resume {run_dir}")

@@ -43,7 +43,8 @@ def velocity_at_altitude(z_m: np.ndarray, v_mps: np.ndarray, altitude_m: float) 
 
 def run_shard(plan_config: dict, shard: dict, keep_dir: Optional[str] = None, threads: int = 1) -> dict:
     """Fly one shard; return ``{"id", "sweep", "seed_offset", "n_seeds", "runs", "wall_time_s",
-    "status", "host"}``. Each run gets ``sweep`` (the grid point) and ``v_at_50m_mps``.
+    "status", "host", "config_hash"}``. Each run gets ``sweep`` (the grid point) and
+    ``v_at_50m_mps``; ``config_hash`` (:func:`~.plan.shard_hash`) names what the shard flew.
 
     Args:
         plan_config: the campaign's base config (plain dict).
@@ -56,7 +57,7 @@ def run_shard(plan_config: dict, shard: dict, keep_dir: Optional[str] = None, th
 
     from dvsland.sim import simulate
 
-    from .plan import Shard, config_from_dict
+    from .plan import Shard, config_from_dict, shard_hash
 
     sh = Shard(**shard)
     cfg = config_from_dict(plan_config, sh.overrides())
@@ -79,4 +80,5 @@ def run_shard(plan_config: dict, shard: dict, keep_dir: Optional[str] = None, th
         runs.append(r)
     return {"id": sh.id, "index": sh.index, "sweep": sh.sweep, "seed_offset": sh.seed_offset,
             "n_seeds": sh.n_seeds, "runs": runs, "status": res.status, "n_steps": res.n_steps,
-            "wall_time_s": time.perf_counter() - t0, "host": os.uname().nodename}
+            "wall_time_s": time.perf_counter() - t0, "host": os.uname().nodename,
+            "config_hash": shard_hash(plan_config, shard)}
