@@ -283,6 +283,7 @@ def test_cli_campaign_workers_die_with_a_killed_driver(tmp_path):
 @pytest.mark.parametrize("args, match", [
     (["--n-seeds", "1000000000"], f"at most {MAX_SHARDS:,}"),
     (["--n-seeds", "10", "--shard-seeds", "1000000000"], "--shard-seeds must be in [1, 100000]"),
+    (["--n-seeds", "2", "--workers", "100000"], "--workers must be in [1, 256]"),
     (["--sweep", "controller.c2=" + ",".join(f"0.{i:03d}" for i in range(1, 200)),
       "--sweep", "controller.thrust_min_n=" + ",".join(str(i) for i in range(200))], "at most 10,000 grid points"),
     (["--n-seeds", "2", "--set", "camera.width_px=4096", "--set", "simulation.max_memory_gb=16"],

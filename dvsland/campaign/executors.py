@@ -92,7 +92,7 @@ def run_local(config: dict, shards: List[dict], workers: int = 1, keep_dirs: Opt
 
     from dvsland.runs import deferred_interrupts
 
-    pool = make_pool(workers)
+    pool = make_pool(min(int(workers), len(shards)) or 1)  # no idle processes
     try:
         futs = [pool.submit(run_shard, config, sh, kd) for sh, kd in zip(shards, keep_dirs)]
         for f in as_completed(futs):

@@ -41,6 +41,8 @@ SHARDS_DIR = "shards"
 REJECTED_DIR = "rejected"
 #: the lock a running campaign holds in its folder (a second writer is refused)
 LOCK_FILE = ".campaign.lock"
+#: the most worker processes (local) or CPUs of a local Ray instance
+MAX_WORKERS = 256
 
 
 @dataclass
@@ -220,8 +222,9 @@ def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_
     """
     if executor not in EXECUTORS:
         raise ValueError(f"executor must be one of {list(EXECUTORS)}, got {executor!r}")
-    if int(workers) < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
+    if not 1 <= int(workers) <= MAX_WORKERS:
+        raise ValueError(f"--workers must be in [1, {MAX_WORKERS}] (each local worker is a process holding its "
+                         f"own scenes, about 2 GB), got {workers}")
     t0 = time.perf_counter()
     plan, run_dir, lock = _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out)
     try:
