@@ -205,9 +205,11 @@ def test_reward_terminal_terms():
     assert ((ret > 5.0 - 1.0 * 10) & (ret < 5.0)).all()  # bonus minus a few m/s at 50 m
     dense = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle")
     dense.reset()
-    for _ in range(5):  # per step: -|D - D*| at the step's end (the next observation's first two fields)
-        obs, rew, *_ = dense.step(np.full(2, -0.2))
-        np.testing.assert_allclose(rew, -np.abs(obs[:, 0] - obs[:, 1]), rtol=1e-5)
+    for _ in range(40):  # per step: dt max(0, 1 - |D - D*| / 0.02) at the step's end (the next observation's
+        obs, rew, *_ = dense.step(np.full(2, -0.6))  # first two fields): falls from 0.1 as D leaves D*
+        np.testing.assert_allclose(rew, 0.1 * np.maximum(0, 1 - np.abs(obs[:, 0] - obs[:, 1]) / 0.02), rtol=1e-4,
+                                   atol=1e-7)
+    assert 0 < rew[0] < 0.09
 
 
 def test_divergence_setpoint_on_the_target_lands():

@@ -128,6 +128,12 @@ class LandingVectorEnv(VectorEnv):
         """The :class:`~dvsland.envs.actions.ActionSpec` (mode, range, thrust range)."""
         return self._spec
 
+    @property
+    def reset_observation(self):
+        """The initial observation batch of the current seed (what an element shows from the step
+        after its end until the batch restarts); None before the first :meth:`reset`. A copy."""
+        return None if self._obs0 is None else obs_mod.pack(self._names, copy.deepcopy(self._obs0))
+
     # ------------------------------------------------------------------ reset
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
         """Restart every descent.
@@ -210,7 +216,8 @@ class LandingVectorEnv(VectorEnv):
         ended = flying & ~nxt.active
         d_true = nxt.v_mps / nxt.z_m
         d_tgt = divergence_target(t1, self._tau0, self._c2, self._tau_min)
-        reward = step_reward(self._reward, d_true, d_tgt, nxt.v_mps, flying, ended, nxt.outcome)
+        reward = step_reward(self._reward, self.stages.settings.dt_s, d_true, d_tgt, nxt.v_mps, flying, ended,
+                             nxt.outcome)
         term, trunc = episode_ends(ended, nxt.outcome)
         self._state = nxt
         if bool(nxt.active.any()):
