@@ -232,3 +232,27 @@ def test_events_and_divergence_observations():
         assert env.observation_space.contains(obs)
     assert obs["events"].sum() > 0
     assert obs["divergence"][0, 1] > 0 and obs["divergence"][0, 0] < 0  # a confident negative D_hat
+
+
+def test_sb3_adapter_of_the_training_example(repo_root):
+    """scripts/train_policy_oracle.py's stable-baselines3 VecEnv: same-step autoreset (the end's
+    observation in terminal_observation, the element's reset observation returned)."""
+    pytest.importorskip("stable_baselines3")
+    import importlib.util
+
+    path = repo_root / "scripts" / "train_policy_oracle.py"
+    spec = importlib.util.spec_from_file_location("train_policy_oracle", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle")
+    venv = mod.sb3_vec_env(env, reseed=False)
+    obs0 = venv.reset()
+    for _ in range(2000):
+        venv.step_async(np.full((2, 1), -0.33))  # about hover: ends by the 200 s timeout at the latest
+        obs, rew, done, infos = venv.step_wait()
+        if done.any():
+            break
+    i = int(np.flatnonzero(done)[0])
+    assert "terminal_observation" in infos[i] and infos[i]["outcome"] in ("success", "crash", "ascent", "timeout")
+    np.testing.assert_array_equal(obs[i], obs0[i])
+    assert not np.array_equal(infos[i]["terminal_observation"], obs0[i])
