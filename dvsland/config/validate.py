@@ -355,14 +355,14 @@ def memory_parts(cfg: Config, n_sites: Optional[int] = None, batch_size: Optiona
     ``terrain`` (one level in preparation), ``events`` (one step's events at
     ``emulator.max_events_per_step``) and ``cmax`` (the cmax search: a warped image per element and
     candidate). ``n_sites`` and ``batch_size`` default to the whole configured experiment."""
-    from dvsland.render.lod import level_params_for
+    from .level_grid import GUTTER, level_grid
 
     n_sites = len({s.name for s in cfg.simulation.sites}) if n_sites is None else int(n_sites)
     B = _batch(cfg, batch_size)
     W, H = cfg.camera.width_px, cfg.camera.height_px
-    lp = level_params_for(cfg.camera, cfg.render)
-    tex = float(lp.tile_size) ** 2
-    site = max(SITE_BYTES_PER_PX * float(W * H), lp.n_levels * tex * ATLAS_BYTES_PER_TEXEL)
+    lg = level_grid(cfg.camera, cfg.render)
+    tex = float(lg.level_size + 2 * GUTTER) ** 2  # the tile: the window and its gutter
+    site = max(SITE_BYTES_PER_PX * float(W * H), lg.n_levels * tex * ATLAS_BYTES_PER_TEXEL)
     parts = {"pixels": n_sites * site + B * STATE_BYTES_PER_PX * float(W * H),
              "terrain": tex * PREP_BYTES_PER_TEXEL,
              "events": float(getattr(cfg.emulator, "max_events_per_step", 0) or 0) * BYTES_PER_EVENT, "cmax": 0.0}

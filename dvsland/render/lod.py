@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import time
 from dataclasses import asdict, dataclass
@@ -25,6 +24,7 @@ from typing import Optional
 
 import torch
 
+from dvsland.config.level_grid import GUTTER, level_grid
 from dvsland.terrain import Terrain, shaded_sun_grid
 from dvsland.terrain.grid import compute_threads
 
@@ -35,7 +35,7 @@ ALGO_VERSION = 6
 @dataclass(frozen=True)
 class LevelParams:
     level_size: int = 384        # window texels per side
-    gutter: int = 2              # extra real texels on every side
+    gutter: int = GUTTER         # extra real texels on every side
     base_texel_m: float = 0.09   # texel of level 0, m
     n_levels: int = 13
     ambient: float = 0.02        # ambient floor, fraction of full sun
@@ -150,24 +150,10 @@ def _compute(terrain: Terrain, params: LevelParams, progress=None):
     return irr, hgt
 
 
-def level_params_for(camera, render_config, level_size: Optional[int] = None, gutter: int = 2,
+def level_params_for(camera, render_config, level_size: Optional[int] = None, gutter: int = GUTTER,
                      shadow_pad: float = 0.35) -> LevelParams:
-    """Level parameters that cover the camera's altitude range.
-
-    Level 0's texel equals the ground pixel at ``min_altitude_m``; there are enough levels for
-    ``max_altitude_m`` plus one (the blend needs the next coarser level). The window is wide
-    enough that the finer of the two blended levels (texel >= pixel / 2) holds the rotated
-    footprint (half-diagonal) with 6 % margin for parallax.
-    """
-    w, h = camera.width_px, camera.height_px
-    tan_half = math.tan(math.radians(camera.fov_deg) / 2)
-    pitch = 2 * tan_half / w  # m per m of altitude
-    base = pitch * render_config.min_altitude_m
-    # a planar pinhole sensor parallel to flat ground has the same ground pixel everywhere
-    lam_max = math.log2(render_config.max_altitude_m / render_config.min_altitude_m)
-    n_levels = int(math.ceil(lam_max)) + 2
-    if level_size is None:
-        need = 2 * math.sqrt(1 + (h / w) ** 2) * w * 1.06
-        level_size = int(math.ceil(need / 16) * 16)
-    return LevelParams(level_size=int(level_size), gutter=gutter, base_texel_m=base, n_levels=n_levels,
+    """Level parameters that cover the camera's altitude range (the grid of
+    :func:`dvsland.config.level_grid.level_grid`)."""
+    g = level_grid(camera, render_config, level_size)
+    return LevelParams(level_size=g.level_size, gutter=gutter, base_texel_m=g.base_texel_m, n_levels=g.n_levels,
                        ambient=float(render_config.ambient), shadow_pad=shadow_pad)
