@@ -153,3 +153,18 @@ def test_every_shipped_preset_flies_as_recorded():
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     assert mod.main([]) == 0
+
+
+def test_sense_then_act_is_loop_step():
+    from dvsland.sim import act_step, sense_step
+
+    a, b = _stages("paper", "dpr", "D"), _stages("paper", "dpr", "D")
+    sa, sb = init_state(a), init_state(b)
+    for k in range(6):
+        sensed = sense_step(a, sa)
+        u = sensed.out.thrust_n * (1.0 + 0.01 * k)  # an agent's thrust, chosen after seeing the estimate
+        sa, oa = act_step(a, sensed, thrust=u)
+        sb, ob = loop_step(b, sb, thrust=u)
+        assert _same(oa.d_est, ob.d_est) and torch.equal(sa.z_m, sb.z_m) and torch.equal(oa.ended, ob.ended)
+    with pytest.raises(StaleStateError, match="already acted on"):
+        act_step(a, sensed)

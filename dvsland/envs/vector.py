@@ -1,7 +1,8 @@
 """``LandingVectorEnv``: B closed-loop descents as one gymnasium ``VectorEnv``.
 
-The env flies the batched loop of :mod:`dvsland.sim` (:func:`~dvsland.sim.init_state`,
-:func:`~dvsland.sim.loop_step`) with the agent's thrust instead of the controller's. Each env step:
+The env flies the batched loop of :mod:`dvsland.sim` (:func:`~dvsland.sim.init_state` and
+:func:`~dvsland.sim.loop_step` in its two halves, :func:`~dvsland.sim.sense_step` and
+:func:`~dvsland.sim.act_step`) with the agent's thrust instead of the controller's. Each env step:
 
 1. the action (checked, :mod:`dvsland.envs.actions`) becomes a thrust u (B,) N;
 2. the descents fly [t_k, t_k + dt) with u (the step whose sensing the agent saw);
@@ -9,10 +10,9 @@ The env flies the batched loop of :mod:`dvsland.sim` (:func:`~dvsland.sim.init_s
 4. the loop senses at t_{k+1} (render, emulate, estimate, filter, and the shipped law's command,
    reported as ``info["controller_thrust_n"]``): the next observation.
 
-Sensing before acting is done by running :func:`~dvsland.sim.loop_step` with the controller's
-thrust and, where the agent's thrust differs, flying that step's dynamics again with the agent's
-(the stages' buffers do not depend on the thrust of the step they sensed), so an agent that sends
-the controller's commands flies exactly the descents of :func:`dvsland.simulate`.
+The loop senses before the agent acts (``sense_step``) and flies the agent's thrust after it
+(``act_step(thrust=u)``); ``loop_step`` is the same two halves with the law's thrust, so an agent
+that sends the controller's commands flies exactly the descents of :func:`dvsland.simulate`.
 
 Episodes: all B descents start together. A descent that ends reports ``terminated`` or
 ``truncated`` once; the loop keeps it frozen. Autoreset is gymnasium's NEXT_STEP mode: the step
@@ -36,8 +36,7 @@ from gymnasium.vector.utils import batch_space
 
 from dvsland.config import Config, load_config, validate_config
 from dvsland.layout import build_layout
-from dvsland.sim import OUTCOMES, clone_state, init_state, loop_step
-from dvsland.sim.step import _advance  # the step's own bookkeeping, to fly it again with another thrust
+from dvsland.sim import OUTCOMES, act_step, clone_state, init_state, sense_step
 from dvsland.stages import build_stages, check_names
 
 from . import observations as obs_mod
@@ -157,7 +156,8 @@ class LandingVectorEnv(VectorEnv):
     def _begin(self):
         """Start the batch from a clone of the initial state and sense its first step."""
         self._state = clone_state(self.stages, self._init)
-        self._next, self._out = loop_step(self.stages, self._state)
+        self._sensed = sense_step(self.stages, self._state)
+        self._out = self._sensed.out
         self._all_done = False
         obs = self._observe(self._out, self._out.t_s, self._out.m_kg)
         if self._obs0 is None:
@@ -204,10 +204,7 @@ class LandingVectorEnv(VectorEnv):
 
     def _fly(self, state, out, u):
         """The state after this step flown with thrust ``u`` (B,) N (0 where not flying)."""
-        if torch.equal(u, out.thrust_n):
-            return self._next  # the controller's command: the step loop_step already flew
-        bad = (self._next.n_sanitised - state.n_sanitised) > 0
-        nxt, _ = _advance(self.stages, state, u, out.held, out.d_est, bad, out.frames)
+        nxt, _ = act_step(self.stages, self._sensed, thrust=u)
         return nxt
 
     def _finish(self, state, nxt, u):
@@ -221,7 +218,8 @@ class LandingVectorEnv(VectorEnv):
         term, trunc = episode_ends(ended, nxt.outcome)
         self._state = nxt
         if bool(nxt.active.any()):
-            self._next, self._out = loop_step(self.stages, nxt)
+            self._sensed = sense_step(self.stages, nxt)
+            self._out = self._sensed.out
             sensed, ctl = self._out, self._out.thrust_n
         else:  # nothing flies on: no sensing; the final observation needs only the true state
             self._all_done = True
@@ -257,7 +255,7 @@ class LandingVectorEnv(VectorEnv):
                 "d_target": f(d_target), "waiting": np.asarray(waiting, dtype=bool)}
 
     def close_extras(self, **kwargs) -> None:
-        self._state = self._next = self._out = None
+        self._state = self._sensed = self._out = None
 
 
 def _resolve_config(config, overrides, estimator, device) -> Config:

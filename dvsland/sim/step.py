@@ -25,7 +25,7 @@ import torch
 from dvsland.estimators import Truth
 from dvsland.plugins import PluginError, call_plugin, check_batch_tensor
 
-from .state import LoopState, adopt_state, advance_generation, live_handle
+from .state import LiveStages, LoopState, StaleStateError, adopt_state, advance_generation, live_handle
 from .termination import RUNNING, termination_code
 
 #: an estimate with |D_hat| above this (1/s) is not a divergence (a descent crashes at |D| = 0.5 1/s
@@ -167,9 +167,27 @@ def _start(name: str, value, B: int, dev, positive: bool = False) -> torch.Tenso
 
 
 # ------------------------------------------------------------------ the step
+class Sensed(NamedTuple):
+    """A step that has sensed but not yet acted (:func:`sense_step`), for callers that choose the
+    thrust after seeing the step's estimates (an environment's agent).
+
+    Attributes:
+        state: the state the step started from (consumed: its stage state moved on).
+        out: the :class:`StepOutput` so far; ``thrust_n`` is the law's command (0 for finished
+            descents) and ``ended`` is all False until :func:`act_step`.
+        bad: (B,) bool, estimates replaced by NaN at this step.
+        handle: the stages' state right after sensing (checked by :func:`act_step`).
+    """
+
+    state: LoopState
+    out: StepOutput
+    bad: torch.Tensor
+    handle: LiveStages
+
+
 def loop_step(stages, state: LoopState, thrust: Optional[torch.Tensor] = None,
               timer: Optional[Callable[[str], Any]] = None) -> Tuple[LoopState, StepOutput]:
-    """Fly one control step of every active descent.
+    """Fly one control step of every active descent: :func:`sense_step` then :func:`act_step`.
 
     Args:
         stages: :class:`dvsland.stages.Stages` (built by :func:`dvsland.stages.build_stages`).
@@ -186,30 +204,56 @@ def loop_step(stages, state: LoopState, thrust: Optional[torch.Tensor] = None,
     Raises:
         StaleStateError: ``state`` was already consumed.
         ValueError: ``thrust`` of the wrong shape, NaN or negative.
+        PluginError: the estimator or the law broke its contract (:mod:`dvsland.plugins`).
+    """
+    thrust = _checked_thrust(thrust, state.z_m)  # before sensing: a bad thrust consumes nothing
+    return act_step(stages, sense_step(stages, state, timer), thrust, timer)
+
+
+def sense_step(stages, state: LoopState, timer: Optional[Callable[[str], Any]] = None) -> Sensed:
+    """The first half of a step: render, emulate, estimate, filter and run the law at ``t_k``.
+
+    Consumes ``state`` like :func:`loop_step`; finish the step with :func:`act_step`.
     """
     tm = timer or (lambda name: nullcontext())
     adopt_state(stages, state)
-    cfg = stages.settings
     k = state.step
-    t_s = k * cfg.dt_s
+    t_s = k * stages.settings.dt_s
     t_us = int(round(t_s * 1e6))
     frames, events = _sense(stages, state, t_us, tm)
     with tm("estimate"):
         d_hat, conf, bad = _estimate(stages, state, events, t_us)
     with tm("control"):
         ctl, d_f, n_used, z_hat = _control(stages, state, d_hat, conf, t_s)
-        u = _applied_thrust(ctl.thrust_n, thrust, state.active)
-    with tm("dynamics"):
-        nxt, ended = _advance(stages, state, u, ctl.held & state.active, d_hat, bad, frames)
-    est = stages.estimator
-    diag = getattr(est, "diagnostics", None)
+        u = _applied_thrust(ctl.thrust_n, None, state.active)
+    diag = getattr(stages.estimator, "diagnostics", None)
     out = StepOutput(step=k, t_s=t_s, t_us=t_us, z_m=state.z_m, v_mps=state.v_mps, m_kg=state.m_kg,
                      d_true=Truth(state.z_m, state.v_mps).divergence, d_est=d_hat, d_conf=conf, d_filtered=d_f,
                      n_used=n_used.to(torch.float64), thrust_n=u, held=ctl.held & state.active,
                      tau_target_s=ctl.tau_target_s, tau_hat_s=ctl.tau_hat_s, z_est_m=z_hat, active=state.active,
-                     ended=ended, frames=frames, events=events,
+                     ended=torch.zeros_like(state.active), frames=frames, events=events,
                      diagnostics=(lambda: (diag() or {})) if callable(diag) else dict)
-    return nxt, out
+    return Sensed(state, out, bad, advance_generation(stages))
+
+
+def act_step(stages, sensed: Sensed, thrust: Optional[torch.Tensor] = None,
+             timer: Optional[Callable[[str], Any]] = None) -> Tuple[LoopState, StepOutput]:
+    """The second half of a step: fly ``dt`` with the law's command (``thrust=None``) or ``thrust``
+    (B,) N held, then bookkeeping and termination; returns (next state, the step's StepOutput).
+
+    Raises:
+        StaleStateError: ``sensed`` is not the stages' latest sensing (acted on already).
+        ValueError: ``thrust`` of the wrong shape, NaN or negative.
+    """
+    if sensed.handle != live_handle(stages):
+        raise StaleStateError(f"step {sensed.out.step} was already acted on (or the stages moved on): "
+                              "sense again from the newest state")
+    tm = timer or (lambda name: nullcontext())
+    state, out = sensed.state, sensed.out
+    u = _applied_thrust(out.thrust_n, _checked_thrust(thrust, state.z_m), state.active)
+    with tm("dynamics"):
+        nxt, ended = _advance(stages, state, u, out.held, out.d_est, sensed.bad, out.frames)
+    return nxt, out._replace(thrust_n=u, ended=ended)
 
 
 def _sense(stages, state: LoopState, t_us: int, tm):
@@ -280,18 +324,28 @@ def _control(stages, state: LoopState, d_hat, conf, t_s: float):
     return out, d_f, n_used, z_hat
 
 
+def _checked_thrust(thrust, like: torch.Tensor) -> Optional[torch.Tensor]:
+    """``thrust`` as a (B,) float64 tensor on ``like``'s device (None stays None).
+
+    Raises:
+        ValueError: the wrong shape, not finite or negative (names ``thrust`` and the range).
+    """
+    if thrust is None:
+        return None
+    u = torch.as_tensor(thrust).to(device=like.device, dtype=torch.float64)
+    if u.dim() == 0:
+        u = u.expand_as(like)
+    if u.shape != like.shape:
+        raise ValueError(f"thrust must be of shape {tuple(like.shape)}, got {tuple(u.shape)}")
+    if not bool(torch.isfinite(u).all()) or bool((u < 0).any()):
+        raise ValueError(f"thrust must be finite and >= 0 N, got {u.tolist()}")
+    return u
+
+
 def _applied_thrust(ctl_thrust: torch.Tensor, thrust: Optional[torch.Tensor], active: torch.Tensor) -> torch.Tensor:
-    """The thrust that flies: the controller's or the given one, 0 for finished descents."""
-    if thrust is not None:
-        u = torch.as_tensor(thrust).to(device=ctl_thrust.device, dtype=torch.float64)
-        if u.dim() == 0:
-            u = u.expand_as(ctl_thrust)
-        if u.shape != ctl_thrust.shape:
-            raise ValueError(f"thrust must be of shape {tuple(ctl_thrust.shape)}, got {tuple(u.shape)}")
-        if not bool(torch.isfinite(u).all()) or bool((u < 0).any()):
-            raise ValueError(f"thrust must be finite and >= 0 N, got {u.tolist()}")
-        ctl_thrust = u
-    return torch.where(active, ctl_thrust, torch.zeros_like(ctl_thrust))
+    """The thrust that flies: the controller's or the given (checked) one, 0 for finished descents."""
+    u = ctl_thrust if thrust is None else thrust
+    return torch.where(active, u, torch.zeros_like(u))
 
 
 def _advance(stages, state: LoopState, u, held, d_hat, bad, frames) -> Tuple[LoopState, torch.Tensor]:
@@ -318,5 +372,5 @@ def _advance(stages, state: LoopState, u, held, d_hat, bad, frames) -> Tuple[Loo
     return nxt, ended
 
 
-__all__ = ["StepOutput", "init_state", "loop_step", "sanitise_estimates", "estimator_confidence", "D_HAT_ABS_MAX",
+__all__ = ["StepOutput", "Sensed", "init_state", "loop_step", "sense_step", "act_step", "sanitise_estimates", "estimator_confidence", "D_HAT_ABS_MAX",
            "live_handle"]
