@@ -1,17 +1,20 @@
 """Divergence estimators behind one interface (docs/estimators.md).
 
 Public names: :class:`DivergenceEstimator`, :class:`Truth`, :func:`get_estimator`,
-:func:`register_estimator`, :func:`available_estimators`, and the built-in estimators
+:func:`register_estimator`, :func:`available_estimators`, :func:`estimator_label` (the alias of
+``alias=name``), and the built-in estimators
 (``dpr``, ``cmax``, ``oracle``, ``snn``).
 """
 
 from .base import DivergenceEstimator, Truth
-from .registry import available_estimators, estimator_label, get_estimator, refresh_entry_points, register_estimator
+from .registry import (available_estimators, estimator_label, get_estimator, refresh_entry_points,
+                       register_estimator)
 from . import oracle  # noqa: F401  (registers 'oracle')
 from . import dpr  # noqa: F401  (registers 'dpr')
 from . import cmax  # noqa: F401  (registers 'cmax')
 from . import snn  # noqa: F401  (registers 'snn')
 from .factory import estimator_params, make_estimator
 
-__all__ = ["DivergenceEstimator", "Truth", "get_estimator", "register_estimator", "available_estimators", "estimator_label",
+__all__ = ["DivergenceEstimator", "Truth", "get_estimator", "register_estimator", "available_estimators",
+           "estimator_label",
            "refresh_entry_points", "make_estimator", "estimator_params"]

@@ -2,8 +2,8 @@
 
 Public names: :class:`SpikingEstimator` (registered as "snn"), :class:`SpikingDivergenceNet`,
 :class:`LogPolarEncoder`, the LIF primitives (:mod:`.lif`), :func:`load_checkpoint`,
-:func:`save_checkpoint`, ``DEFAULT_CHECKPOINT``. Training: :mod:`.data`, :mod:`.train`,
-``scripts/train_snn.py``.
+:func:`save_checkpoint`, ``DEFAULT_CHECKPOINT``. Training: :mod:`.train`, the ``dvsland train``
+command (:mod:`dvsland.cli.cmd_train`).
 """
 
 from .encoding import LogPolarEncoder
