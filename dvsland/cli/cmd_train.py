@@ -21,7 +21,6 @@ one place to extend them.
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import sys
 import time
@@ -144,12 +143,9 @@ def _check_numbers(args) -> None:
 
 def _sequences():
     """The module that makes the training sequences (``make_sequences``, ``training_sites``)."""
-    try:
-        return importlib.import_module("dvsland.data.snn_sequences")
-    except ModuleNotFoundError as exc:  # trees before the sequences moved to dvsland.data
-        if exc.name not in ("dvsland.data", "dvsland.data.snn_sequences"):
-            raise
-        return importlib.import_module("dvsland.estimators.snn.data")
+    from dvsland.data import snn_sequences
+
+    return snn_sequences
 
 
 def run_train(args) -> int:
