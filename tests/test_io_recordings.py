@@ -177,7 +177,7 @@ def test_bad_files_and_options(tmp_path, events):
     with pytest.raises(ValueError, match="trunc.npz"):
         read_recording(tmp_path / "trunc.npz")
     np.savez(tmp_path / "p5.npz", x=[1, 2], y=[1, 2], t=[1, 2], p=[1, 5])
-    with pytest.raises(ValueError, match="p5.npz: polarity"):
+    with pytest.raises(ValueError, match=r"p5.npz \(npz file\): polarity"):
         read_recording(tmp_path / "p5.npz")
     np.savez(tmp_path / "nox.npz", y=[1, 2], t=[1, 2], p=[1, 0])
     with pytest.raises(ValueError, match="no x column"):

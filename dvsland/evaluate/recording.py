@@ -68,6 +68,10 @@ def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
     Returns:
         :class:`EvaluationResult` for one "site" (the recording); without ground truth the
         estimates are kept and every metric is NaN.
+
+    Raises:
+        RecordingError: (a ValueError, one line) the file is empty, truncated, corrupt, not
+            UTF-8, or holds values dvsland cannot use (see :func:`~dvsland.events.read_recording`).
     """
     if not isinstance(recording, Recording):
         recording = read_recording(recording, **read_kwargs)
@@ -144,7 +148,8 @@ def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
     scored = desc.valid & (np.arange(K + 1)[None] > warmup_steps)
     res = EvaluationResult(desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events)
     info = dict(trajectory="recording", recording=recording.source, recording_format=recording.format,
-                sensor_size=[int(W), int(H)], has_ground_truth=gt is not None, n_steps=K, steps_run=K,
+                sensor_size=[int(W), int(H)], sensor_size_from=recording.meta.get("sensor_size_from"),
+                has_ground_truth=gt is not None, n_steps=K, steps_run=K,
                 warmup_steps=int(warmup_steps), device=str(device), torch_threads=torch.get_num_threads(),
                 estimators_run=list(ests), n_events_total=len(ev_all))
     res.summary = summarise(res, info)

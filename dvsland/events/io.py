@@ -34,6 +34,84 @@ _META_KEYS = ("sensor_size", "batch_size", "threshold", "threshold_off", "refrac
 PathLike = Union[str, Path]
 
 
+class Unreadable(ValueError):
+    """A reader's own finding that a file is damaged (truncated, a size beyond the file, ...). The
+    message says what is wrong but not which file: the caller adds the file and the format."""
+
+
+#: deflate expands at most ~1032:1; a dataset claiming more bytes than this times the file size
+#: (plus 1 MiB of slack for fill values) cannot be stored in the file
+_MAX_EXPANSION = 1100
+
+
+def npy_header(fh, available: int) -> Tuple[tuple, np.dtype, int]:
+    """Read an .npy header from ``fh`` (at its start) and check it against ``available`` bytes.
+
+    Returns:
+        (shape, dtype, header length in bytes).
+
+    Raises:
+        Unreadable: no npy magic, an unreadable header, an object dtype, or more data declared
+            than ``available - header`` bytes (a truncated file).
+    """
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(fh)
+        read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape, _, dtype = read(fh)
+    except (ValueError, OSError, EOFError, SyntaxError) as exc:
+        raise Unreadable(f"not an npy array (bad header: {exc})") from None
+    if dtype.hasobject:
+        raise Unreadable(f"array of Python objects ({dtype}); only numeric arrays are read")
+    head = fh.tell()
+    need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    if need > available - head:
+        raise Unreadable(f"truncated: the header declares shape {shape} of {dtype} ({need} bytes) but "
+                         f"{max(available - head, 0)} bytes follow it")
+    return shape, dtype, head
+
+
+def load_npy(path: Path) -> np.ndarray:
+    """An .npy file, its header checked against the file size first (:func:`npy_header`)."""
+    with open(path, "rb") as fh:
+        npy_header(fh, path.stat().st_size)
+    return np.load(path, allow_pickle=False)
+
+
+def open_npz(path: Path):
+    """``np.load`` of an npz (no pickles) once its first bytes say it is a zip archive: numpy would
+    take anything else for a pickle and say so."""
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+    if magic not in (b"PK\x03\x04", b"PK\x05\x06"):
+        why = "truncated" if b"PK\x03\x04".startswith(magic) else "not an npz (zip) archive"
+        raise Unreadable(f"{why}: it begins with {magic!r}, not a zip header (PK)")
+    return np.load(path, allow_pickle=False)
+
+
+def check_npz(z, path: Path) -> None:
+    """Check every ``.npy`` member header of an open npz (``np.load``) against its stored size, so that
+    no corrupt shape asks for more memory than the file holds. The members' CRCs are checked by
+    zipfile as numpy reads them (a flipped byte is a ``BadZipFile``)."""
+    for info in z.zip.infolist():
+        if info.filename.endswith(".npy"):
+            with z.zip.open(info) as fh:
+                try:
+                    npy_header(fh, info.file_size)
+                except Unreadable as exc:
+                    raise Unreadable(f"member {info.filename!r}: {exc}") from None
+
+
+def h5_read(dset, file_size: int) -> np.ndarray:
+    """All of an HDF5 dataset, after checking that its declared size fits a file of ``file_size``
+    bytes (even deflated): a corrupt shape is an :class:`Unreadable`, not a huge allocation."""
+    need = int(np.prod(dset.shape, dtype=object)) * dset.dtype.itemsize
+    if need > _MAX_EXPANSION * file_size + (1 << 20):
+        raise Unreadable(f"dataset {dset.name!r} declares shape {dset.shape} of {dset.dtype} ({need} bytes), "
+                         f"more than a file of {file_size} bytes can hold: corrupt")
+    return dset[()]
+
+
 def _fmt(path: Path, fmt: Optional[str]) -> str:
     if fmt is None:
         suffix = path.suffix.lower()
@@ -181,7 +259,8 @@ def load_events(path: PathLike, device=None, format: Optional[str] = None,
 
 
 def _read_npz(path: Path):
-    with np.load(path, allow_pickle=False) as z:
+    with open_npz(path) as z:
+        check_npz(z, path)
         missing = [k for k in _STORE_DTYPES if k not in z.files]
         if missing:
             raise EventDataError(f"{path}: not a dvsland events file (missing {missing})")
@@ -200,7 +279,8 @@ def _read_h5(path: Path):
         missing = [k for k in _STORE_DTYPES if k not in g]
         if missing:
             raise EventDataError(f"{path}: not a dvsland events file (missing {missing})")
-        arrs = {k: g[k][()] for k in _STORE_DTYPES}
+        size = path.stat().st_size
+        arrs = {k: h5_read(g[k], size) for k in _STORE_DTYPES}
         raw = {k: g.attrs[k] for k in _META_KEYS if k in g.attrs}
     return arrs, raw
 
@@ -231,4 +311,5 @@ def _check_meta(raw: dict, path: Path) -> Dict[str, Any]:
 
 # recordings of other tools (AEDAT4, HDF5 layouts, tonic, CSV) are dvsland.events.recording, which
 # reads dvsland's own files through this module (dvsland.events.read_recording, write_recording)
-__all__ = ["save_events", "load_events", "FORMAT_TAG", "EventDataError"]
+__all__ = ["save_events", "load_events", "FORMAT_TAG", "EventDataError", "Unreadable", "npy_header",
+           "load_npy", "open_npz", "check_npz", "h5_read"]

@@ -35,6 +35,13 @@ class EventDataError(ValueError):
     """Events or an event file hold values dvsland cannot use (the message names field and range)."""
 
 
+class RecordingError(EventDataError):
+    """A recording or ground-truth file cannot be read: empty, truncated, corrupt, not text where
+    text is expected, too slow to parse, or holding values dvsland cannot use. The one error of
+    every reader (:func:`dvsland.events.read_recording`, :func:`dvsland.events.read_ground_truth`);
+    the message names the file, the format and what is wrong."""
+
+
 def _where(source: Optional[str]) -> str:
     return f"{source}: " if source else ""
 
@@ -72,14 +79,19 @@ def _as_int64(name: str, a, source: Optional[str]) -> np.ndarray:
     raise EventDataError(f"{_where(source)}event field {name!r} must be integer, got dtype {a.dtype}")
 
 
-def _range_check(name: str, a: np.ndarray, lo: int, hi: Optional[int], source: Optional[str]) -> None:
+def _range_check(name: str, a: np.ndarray, lo: int, hi: Optional[int], source: Optional[str],
+                 bound: str = "") -> None:
+    """``a`` in [lo, hi) (hi None: only >= lo); else EventDataError naming the field, the range (and
+    ``bound``, what sets hi), the first value outside it and its event index."""
     if not a.size:
         return
     vmin, vmax = int(a.min()), int(a.max())
     if vmin < lo or (hi is not None and vmax >= hi):
-        rng = f"[{lo}, {hi})" if hi is not None else f">= {lo}"
-        raise EventDataError(f"{_where(source)}event field {name!r} must be in {rng}, "
-                             f"got values in [{vmin}, {vmax}]")
+        rng = f"in [{lo}, {hi})" if hi is not None else f">= {lo}"
+        i = int(np.argmax((a < lo) | (a >= hi))) if hi is not None else int(np.argmax(a < lo))
+        why = f" ({bound})" if bound else ""
+        raise EventDataError(f"{_where(source)}event field {name!r} must be {rng}{why}, got {name} = "
+                             f"{int(a[i])} at event {i} (values in [{vmin}, {vmax}])")
 
 
 def check_event_arrays(arrays: Mapping[str, object], *, sensor_size: Optional[Sequence[int]] = None,
@@ -131,8 +143,8 @@ def check_event_arrays(arrays: Mapping[str, object], *, sensor_size: Optional[Se
     if batch_size is not None and int(batch_size) < 0:
         raise EventDataError(f"{_where(source)}batch_size must be >= 0, got {batch_size}")
     _range_check("b", out["b"], 0, None if batch_size is None else int(batch_size), source)
-    _range_check("x", out["x"], 0, W, source)
-    _range_check("y", out["y"], 0, H, source)
+    for k, hi in (("x", W), ("y", H)):
+        _range_check(k, out[k], 0, hi, source, f"sensor_size (W, H) = ({W}, {H})" if W is not None else "")
     if require_sorted and n > 1:
         b, t = out["b"], out["t"]
         ok = (b[1:] > b[:-1]) | ((b[1:] == b[:-1]) & (t[1:] >= t[:-1]))  # comparisons: no overflow
@@ -225,15 +237,33 @@ def times_to_us(t, unit: Optional[str], source: str = "events") -> np.ndarray:
         unit = "s" if t.dtype.kind == "f" and t.size and np.any(t != np.floor(t)) else "us"
     if unit not in TIME_UNITS:
         raise EventDataError(f"{source}: time unit must be one of {sorted(TIME_UNITS)}, got {unit!r}")
-    scale = TIME_UNITS[unit]
-    if t.dtype.kind in "iub" and scale == 1.0:
-        out = t.astype(np.int64)
-    else:
-        tf = t.astype(np.float64) * scale
-        if tf.size and np.abs(tf).max() > 2.0 ** 62:
-            raise EventDataError(f"{source}: timestamps out of range (|t| > 2^62 µs)")
-        out = np.floor(tf + 0.5).astype(np.int64)
-    return out
+    if t.dtype.kind in "iub":
+        return _int_times_to_us(t, unit, source)
+    tf = t.astype(np.float64) * TIME_UNITS[unit]
+    if tf.size and np.abs(tf).max() > 2.0 ** 62:
+        raise EventDataError(f"{source}: timestamps out of range (|t| > 2^62 µs)")
+    return np.floor(tf + 0.5).astype(np.int64)
+
+
+_US_PER_UNIT = {"us": 1, "ms": 1_000, "s": 1_000_000}
+
+
+def _int_times_to_us(t: np.ndarray, unit: str, source: str) -> np.ndarray:
+    """Integer timestamps to int64 µs in exact integer arithmetic (ns rounded half up): never a
+    wrap. Unsigned values of 2^63 or more, and values whose µs do not fit int64, are an error."""
+    if t.size and t.dtype.kind == "u" and int(t.max()) > _I64.max:
+        i = int(np.argmax(t > _I64.max))
+        raise EventDataError(f"{source}: timestamp {int(t[i])} at event {i} is 2^63 or more: it does not fit "
+                             f"int64 (it would wrap to a negative time)")
+    t = t.astype(np.int64)
+    if unit == "ns":
+        q, r = np.divmod(t, 1000)
+        return q + (r >= 500)
+    mul = _US_PER_UNIT[unit]
+    if mul > 1 and t.size and max(int(t.max()), -int(t.min())) > _I64.max // mul:
+        raise EventDataError(f"{source}: timestamps in {unit} reach {max(int(t.max()), int(t.min()), key=abs)}, "
+                             f"beyond the int64 µs range")
+    return t * mul
 
 
 def check_event_columns(x, y, t_us, p, sensor_size: Optional[Tuple[int, int]] = None,
@@ -268,5 +298,5 @@ def check_event_columns(x, y, t_us, p, sensor_size: Optional[Tuple[int, int]] = 
         a = {k: v[order] for k, v in a.items()}
     return a
 
-__all__ = ["EventDataError", "check_event_arrays", "check_event_columns", "check_events", "checked_for_estimator",
-           "times_to_us", "TIME_UNITS", "FIELDS"]
+__all__ = ["EventDataError", "RecordingError", "check_event_arrays", "check_event_columns", "check_events",
+           "checked_for_estimator", "times_to_us", "TIME_UNITS", "FIELDS"]
