@@ -24,8 +24,9 @@ from .io import load_events, save_events
 from .pixel_model import PixelModelParams
 from .recording import Recording, read_ground_truth, read_recording, write_ground_truth, write_recording
 from .validate import EventDataError, check_event_arrays, check_events
+from .recording import RecordingError
 
 __all__ = ["Events", "EventEmulator", "LEVEL_TOL", "TONIC_DTYPE", "save_events", "load_events",
            "read_recording", "write_recording", "Recording", "GroundTruth", "read_ground_truth",
-           "write_ground_truth", "validate_events", "PixelModelParams", "EventDataError", "check_event_arrays",
+           "write_ground_truth", "validate_events", "PixelModelParams", "EventDataError", "RecordingError", "check_event_arrays",
            "check_events"]
