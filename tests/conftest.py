@@ -49,3 +49,22 @@ try:
     _hyp_settings.load_profile("explore" if _os.environ.get("DVSLAND_HYPOTHESIS") == "explore" else "dvsland-default")
 except ImportError:  # hypothesis is a dev dependency; tests that need it import it themselves
     pass
+
+
+#: source of a tiny import-path estimator (D_hat = D / 2, needs no events), for the tests that load one
+HALF_ESTIMATOR_SOURCE = (
+    "import torch\n"
+    "from dvsland.estimators import DivergenceEstimator\n"
+    "class Half(DivergenceEstimator):\n"
+    "    needs_events = False\n"
+    "    def reset(self, mask=None):\n"
+    "        pass\n"
+    "    def update(self, events, t_us, truth=None):\n"
+    "        return truth.divergence.float() * 0.5 if truth is not None else "
+    "torch.full((self.batch_size,), float('nan'))\n")
+
+
+@pytest.fixture
+def half_estimator_source() -> str:
+    """:data:`HALF_ESTIMATOR_SOURCE`: write it to a .py file and load ``file.py:Half``."""
+    return HALF_ESTIMATOR_SOURCE

@@ -15,7 +15,6 @@ Names built at run time (``import_module(f"dvsland.cli.{name}")``) cannot be rea
 from __future__ import annotations
 
 import ast
-import warnings
 from collections import defaultdict, deque
 from pathlib import Path
 from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Set, Tuple
@@ -60,11 +59,6 @@ ROOT = "dvsland"
 #: docs/architecture.md as "`importer` → `imported`" with its justification. None today.
 ALLOWED_UPWARD: Dict[Tuple[str, str], str] = {}
 MAX_ALLOWED = 3
-
-#: PENDING_ELSEWHERE: upward imports whose fix lies in files this test's author could not edit;
-#: their owners remove each one, then this set goes. Not a second allow-list: nothing is added.
-PENDING_ELSEWHERE: Set[Tuple[str, str]] = {
-}
 
 
 class Edge(NamedTuple):
@@ -307,7 +301,7 @@ def test_no_import_circle(graph):
 def test_no_upward_import(graph):
     _, edges = graph
     up = [e for e in upward_imports(edges)
-          if (e.importer, e.imported) not in ALLOWED_UPWARD and (e.importer, e.imported) not in PENDING_ELSEWHERE]
+          if (e.importer, e.imported) not in ALLOWED_UPWARD]
     listed = "\n".join(f"{e.where()}: {e.importer} -> {e.imported}" for e in up)
     assert up == [], ("imports up the layer order of docs/architecture.md (move the code to the layer it "
                       "belongs to, or pass it in):\n" + listed)
@@ -322,15 +316,6 @@ def test_allowed_upward_imports_are_few_real_and_documented(graph):
         assert why.strip(), f"{a} -> {b}: say why it is allowed"
         assert (a, b) in real, f"{a} -> {b} is allowed but no longer upward or gone: drop it from ALLOWED_UPWARD"
         assert f"`{a}` → `{b}`" in section, f"docs/architecture.md does not name and justify `{a}` → `{b}`"
-
-
-def test_pending_elsewhere_is_only_what_is_left(graph):
-    """PENDING_ELSEWHERE shrinks: an entry that is fixed is reported, so the set can go."""
-    _, edges = graph
-    real = {(e.importer, e.imported) for e in upward_imports(edges)}
-    for a, b in sorted(PENDING_ELSEWHERE - real):
-        warnings.warn(f"PENDING_ELSEWHERE: {a} -> {b} is fixed; remove it from the set")
-    assert not PENDING_ELSEWHERE & set(ALLOWED_UPWARD)
 
 
 def test_docs_list_the_same_layer_order():

@@ -16,21 +16,11 @@ from dvsland.estimators.factory import estimator_params
 from dvsland.estimators.registry import estimator_class, split_alias
 
 SMALL = ["--set", "camera.width_px=32", "--set", "camera.height_px=32"]
-HALF = (
-    "import torch\n"
-    "from dvsland.estimators import DivergenceEstimator\n"
-    "class Half(DivergenceEstimator):\n"
-    "    needs_events = False\n"
-    "    def reset(self, mask=None):\n"
-    "        pass\n"
-    "    def update(self, events, t_us, truth=None):\n"
-    "        return truth.divergence.float() * 0.5 if truth is not None else "
-    "torch.full((self.batch_size,), float('nan'))\n")
 
 
 @pytest.fixture
-def user_module(tmp_path, monkeypatch):
-    (tmp_path / "alias_user_estimators.py").write_text(HALF)
+def user_module(tmp_path, monkeypatch, half_estimator_source):
+    (tmp_path / "alias_user_estimators.py").write_text(half_estimator_source)
     monkeypatch.chdir(tmp_path)  # found in the current directory, as a user's own module
     return "alias_user_estimators:Half"
 

@@ -105,18 +105,9 @@ def test_help_texts_are_for_users(capsys):
         assert "run folder" in text, cmd
 
 
-def test_estimator_by_import_path(tmp_path, monkeypatch, repo_root):
+def test_estimator_by_import_path(tmp_path, monkeypatch, repo_root, half_estimator_source):
     mod = tmp_path / "my_user_estimators.py"
-    mod.write_text(
-        "import torch\n"
-        "from dvsland.estimators import DivergenceEstimator\n"
-        "class Half(DivergenceEstimator):\n"
-        "    needs_events = False\n"
-        "    def reset(self, mask=None):\n"
-        "        pass\n"
-        "    def update(self, events, t_us, truth=None):\n"
-        "        return truth.divergence.float() * 0.5 if truth is not None else "
-        "torch.full((self.batch_size,), float('nan'))\n")
+    mod.write_text(half_estimator_source)
     monkeypatch.chdir(tmp_path)  # the module is found in the current directory
     from dvsland.estimators import get_estimator
 
