@@ -57,6 +57,7 @@ def check_out_dir(out: Union[str, Path], overwrite: bool = False) -> Path:
         raise RunDirError("--out: the output folder must not be empty (leave --out out for "
                           "logs/<name>-<UTC timestamp>/)")
     run_dir = Path(out)
+    _check_name_lengths(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise RunDirError(f"--out {run_dir}: exists and is not a folder")
     if run_dir.is_dir() and not overwrite:
@@ -69,6 +70,20 @@ def check_out_dir(out: Union[str, Path], overwrite: bool = False) -> Path:
     _mkdir(run_dir)
     _claim(run_dir, overwrite)
     return run_dir
+
+
+def _check_name_lengths(path: Path) -> None:
+    """RunDirError when a part of ``path`` or the whole is longer than the file system takes."""
+    try:
+        name_max = os.pathconf(str(path.anchor or "."), "PC_NAME_MAX")
+        path_max = os.pathconf(str(path.anchor or "."), "PC_PATH_MAX")
+    except (OSError, ValueError, AttributeError):
+        name_max, path_max = 255, 4096
+    longest = max((len(os.fsencode(p)) for p in path.parts), default=0)
+    if longest > name_max or len(os.fsencode(str(path.absolute()))) >= path_max:
+        raise RunDirError(f"--out: a folder name may have at most {name_max} bytes and the whole path "
+                          f"{path_max - 1}; got a {longest}-byte name in a "
+                          f"{len(os.fsencode(str(path.absolute())))}-byte path")
 
 
 def _mkdir(path: Path, exclusive: bool = False) -> None:

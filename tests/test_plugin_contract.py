@@ -194,3 +194,4 @@ def test_call_plugin_keeps_ctrl_c():
 
     with pytest.raises(KeyboardInterrupt):
         call_plugin("p", "update", interrupted)
+

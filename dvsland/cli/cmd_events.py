@@ -35,7 +35,7 @@ import torch
 
 from dvsland.report.results import write_json
 
-from .common import add_config_args, add_threads_arg, apply_threads, config_from_args, parse_sites
+from .common import add_config_args, add_threads_arg, apply_threads, config_from_args, parse_sites, ranged
 
 
 def register(subparsers) -> None:
@@ -57,10 +57,10 @@ def register(subparsers) -> None:
     p.add_argument("--format", default="npz", choices=("npz", "h5"), help="event file format (default npz)")
     p.add_argument("--device", default=None, help="torch device (default: config simulation.device)")
     add_threads_arg(p)
-    p.add_argument("--window-ms", type=float, default=None,
+    p.add_argument("--window-ms", type=ranged(float, 0.001, 1e6, "--window-ms"), default=None,
                    help="event frame window, ms (default: one frame interval)")
-    p.add_argument("--scatter-ms", type=float, default=500.0, help="x-y-t scatter window, ms (default 500)")
-    p.add_argument("--max-points", type=int, default=30000, help="most points in the x-y-t scatter")
+    p.add_argument("--scatter-ms", type=ranged(float, 0.001, 1e6, "--scatter-ms"), default=500.0, help="x-y-t scatter window, ms (default 500)")
+    p.add_argument("--max-points", type=ranged(int, 1, 10_000_000, "--max-points"), default=30000, help="most points in the x-y-t scatter")
     p.set_defaults(func=run_events)
 
 

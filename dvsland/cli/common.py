@@ -86,6 +86,24 @@ def apply_threads(cfg: Config) -> int:
 
 
 # ------------------------------------------------------------------ sites
+def ranged(kind, low, high, param: str):
+    """An argparse ``type`` that reads ``kind`` (int or float) and refuses values outside
+    [low, high] (NaN and inf too) with a message naming ``param`` and the range."""
+    import math
+
+    def parse(text):
+        try:
+            value = kind(text)
+        except (TypeError, ValueError):
+            raise argparse.ArgumentTypeError(f"{param} must be a{'n integer' if kind is int else ' number'} "
+                                             f"from {low} to {high}, got {text!r}") from None
+        if not (math.isfinite(value) and low <= value <= high):
+            raise argparse.ArgumentTypeError(f"{param} must be from {low} to {high}, got {text!r}")
+        return value
+
+    return parse
+
+
 def add_sites_arg(parser: argparse.ArgumentParser, help: str) -> None:
     """Add ``--sites A,B~1,...`` (parsed by :func:`parse_sites`)."""
     parser.add_argument("--sites", default=None, metavar="A,B,...", help=help)
