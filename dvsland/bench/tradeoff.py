@@ -68,6 +68,9 @@ def configurations(quick: bool, estimators: Optional[Sequence[str]] = None,
                    pyrender: bool = True) -> List[Configuration]:
     """The configurations to measure: each registered estimator's variants, then the settings."""
     names = list(estimators) if estimators else available_estimators()
+    unknown = [n for n in names if n not in available_estimators() and ":" not in n]
+    if unknown:
+        raise ValueError(f"--estimators: unknown estimator(s) {unknown}; known: {available_estimators()}")
     table = VARIANTS_QUICK if quick else VARIANTS_FULL
     out = []
     for name in names:
