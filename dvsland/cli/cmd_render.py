@@ -46,7 +46,8 @@ def register(subparsers) -> None:
     p.add_argument("--export-mesh", action="append", default=[], metavar="SITE:ALTITUDE",
                    help="export the footprint at ALTITUDE m of SITE as a .ply mesh (repeatable)")
     p.add_argument("--mesh-texels", type=int, default=256, help="mesh vertices per side (default 256)")
-    p.add_argument("--gif-frames", type=ranged(int, 0, 10_000, "--gif-frames"), default=60, help="frames of the descent GIF (0: no GIF)")
+    p.add_argument("--gif-frames", type=ranged(int, 0, 10_000, "--gif-frames"), default=60,
+                   help="frames of the descent GIF (0: no GIF)")
     p.add_argument("--scale", type=int, default=2, help="montage tile size, x 0.8 inch (default 2)")
     p.add_argument("--device", default=None, help="torch device (default: config simulation.device)")
     add_threads_arg(p)
