@@ -79,6 +79,34 @@ def test_metrics_against_hand_values():
     assert b["> 2 km"]["n_steps"] == 2 and b["< 500 m"]["coverage"] == pytest.approx(0.5)
 
 
+def test_target_label_names_the_sites_run():
+    from dvsland.evaluate.run import target_label
+
+    assert target_label(list("ABCDEFG")) == "A-G"
+    assert target_label(list("ABCDEFGHI")) == "A-G"
+    assert target_label(["D", "A"]) == "A,D"
+    assert target_label(["A", "D", "H"]) == "A,D"
+    assert target_label(["H", "I"]) == "none"
+
+
+def test_speed_figure_axis_names_the_sites_run(tmp_path, monkeypatch):
+    from dvsland.evaluate.report import plot_speed_vs_error
+    from dvsland.report import style
+
+    seen = {}
+    orig = style.save
+
+    def keep(fig, path, **kw):
+        seen["ylabel"] = fig.axes[0].get_ylabel()
+        return orig(fig, path, **kw)
+
+    monkeypatch.setattr(style, "save", keep)
+    summary = {"sites": ["A", "D"], "target_label": "A,D", "device": "cpu",
+               "estimators": {"dpr": {"ms_per_step_median": 2.0, "sites_A_G": {"median_abs_rel_err": 0.05}}}}
+    plot_speed_vs_error(summary, tmp_path / "s.png")
+    assert "sites A,D" in seen["ylabel"] and "A-G" not in seen["ylabel"]
+
+
 def test_parse_estimator_spec():
     assert parse_estimator_spec("dpr") == ("dpr", "dpr", {})
     label, name, over = parse_estimator_spec("cmax[window_ms=300;n_grid=21;dither=false]")
@@ -102,6 +130,10 @@ def test_evaluate_small_run_and_outputs(cfg, tmp_path, one_thread):
     assert (res.n_events[:, 1:] > 0).all()
     table = format_table(s)
     assert "dpr" in table and "> 2 km" in table
+    # only A and D ran: the aggregate row and the band heading name them, never "A-G"
+    assert s["target_label"] == "A,D"
+    assert "A-G" not in table and "(sites A,D)" in table
+    assert any(line.startswith("oracle") and " A,D " in line for line in table.splitlines())
     paths = write_outputs(res, tmp_path)
     data = json.loads(paths["json"].read_text())
     assert set(data["estimators"]) == set(res.d_hat)

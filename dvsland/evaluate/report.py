@@ -11,7 +11,7 @@ import numpy as np
 from dvsland.report.results import write_json
 
 from .metrics import BANDS
-from .run import EvaluationResult
+from .run import EvaluationResult, target_label
 
 
 def _f(x, pct=False, nd=3):
@@ -24,6 +24,7 @@ def format_table(summary: dict) -> str:
     """Plain-text tables: per estimator and site, then per altitude band (sites A-G), then speed."""
     ests = summary["estimators"]
     sites = summary["sites"]
+    tl = summary.get("target_label") or target_label(sites)
     lines = []
     head = (f"{'estimator':<10} {'site':<5} {'steps':>6} {'cover':>7} {'med|rel|':>9} {'RMSE':>8} "
             f"{'<10%':>7} {'<20%':>7} {'bias':>8}")
@@ -40,10 +41,10 @@ def format_table(summary: dict) -> str:
     for name, e in ests.items():
         for s in sites:
             lines.append(row(name, s, e["sites"][s]))
-        lines.append(row(name, "A-G", e["sites_A_G"]))
+        lines.append(row(name, tl, e["sites_A_G"]))
         lines.append(row(name, "all", e["all_sites"]))
         lines.append("")
-    lines.append("By altitude band (sites A-G): med|rel| / <10% / coverage")
+    lines.append(f"By altitude band (sites {tl}): med|rel| / <10% / coverage")
     lines.append(f"{'estimator':<10} " + " ".join(f"{b[0]:>26}" for b in BANDS))
     for name, e in ests.items():
         cells = []
@@ -90,7 +91,7 @@ def plot_speed_vs_error(summary: dict, path: Path) -> None:
     ax.set_ylim(bottom=0)
     style.label(ax, f"time per update for the batch of B = {len(summary['sites'])} "
                     f"({summary.get('device', 'cpu')}) [ms]",
-                "median |relative error|, sites A-G [%]", "Divergence estimators: speed vs error",
+                f"median |relative error|, sites {summary.get('target_label') or target_label(summary['sites'])} [%]", "Divergence estimators: speed vs error",
                 legend="outside")
     style.save(fig, path, dpi=120)
 

@@ -101,6 +101,17 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+def target_label(sites: Sequence[str]) -> str:
+    """Label of the aggregate over the target sites actually run: "A-G" only when all of A..G ran,
+    else the sites joined by commas ("A,D"); "none" when no target site ran."""
+    run = [s for s in TARGET_SITES if s in set(sites)]
+    if not run:
+        return "none"
+    if len(run) == len(TARGET_SITES):
+        return f"{TARGET_SITES[0]}-{TARGET_SITES[-1]}"
+    return ",".join(run)
+
+
 def summarise(res: EvaluationResult, info: Optional[dict] = None) -> dict:
     """Metrics per estimator: per site, per altitude band, over sites A-G and over all sites."""
     desc = res.descents
@@ -110,6 +121,7 @@ def summarise(res: EvaluationResult, info: Optional[dict] = None) -> dict:
     target = np.array([s in TARGET_SITES for s in sites])
     out = dict(info or {})
     out["sites"] = sites
+    out["target_label"] = target_label(sites)
     out["steps_scored"] = int(res.scored.sum())
     out["events_per_step_mean"] = {s: float(res.n_events[i][res.n_events[i] >= 0].mean())
                                    if (res.n_events[i] >= 0).any() else 0.0 for i, s in enumerate(sites)}
