@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import List, Sequence
+from typing import List, Optional, Sequence
 
 from dvsland.report.results import RunWriteError, atomic_write_text, write_results_json
 from dvsland.report.stats import format_group_table, write_csv
@@ -59,10 +59,27 @@ def _label(g: dict, by: Sequence[str], skip=("site",)) -> str:
     return " ".join(str(g.get(k)) for k in by if k not in skip)
 
 
-def campaign_figure(path, runs: List[dict], groups: List[dict], by: Sequence[str]) -> Path:
+def figure_title(runs: List[dict], meta: Optional[dict] = None) -> str:
+    """Campaign figure title: preset (or controller settings), estimators, seeds and descents."""
+    meta = meta or {}
+
+    def names(key):
+        return ", ".join(dict.fromkeys(str(r[key]) for r in runs if r.get(key) is not None))
+
+    preset = f"preset {meta['preset']}" if meta.get("preset") else f"settings {names('label') or '?'}"
+    ests = names("estimator") or "?"
+    n_seeds = meta.get("n_seeds")
+    if n_seeds is None:
+        n_seeds = len({r.get("seed_index", r.get("seed")) for r in runs})
+    return f"Campaign, {preset}: estimator {ests}, {n_seeds} seed{'s' if n_seeds != 1 else ''}, {len(runs)} descents"
+
+
+def campaign_figure(path, runs: List[dict], groups: List[dict], by: Sequence[str],
+                    title: Optional[str] = None, meta: Optional[dict] = None) -> Path:
     """Two panels: success rate with its 95 % Wilson interval per site (one marker per series =
     the group keys other than the site), and the velocity at the success altitude of the
-    successful descents per site and series (dots, median bar)."""
+    successful descents per site and series (dots, median bar). A title names the preset (or
+    controller settings), estimators and seeds; both panels carry a legend."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -109,6 +126,14 @@ def campaign_figure(path, runs: List[dict], groups: List[dict], by: Sequence[str
     ax1.set_ylabel("success rate, % (95 % Wilson interval)")
     ax1.legend(fontsize=7, loc="best")
     ax2.set_ylabel("|v| at the success altitude, m/s (successes)")
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], ls="", marker="o", ms=5, color=colors[j % len(colors)], label=s or "all")
+               for j, s in enumerate(series)] if n_s > 1 else []
+    handles += [Line2D([], [], ls="", marker=".", ms=7, color="0.35", label="one successful descent"),
+                Line2D([], [], ls="-", lw=2, color="0.35", label="median")]
+    ax2.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+    fig.suptitle(title or figure_title(runs, meta), fontsize=11)
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -195,7 +220,7 @@ def write_report(folder, runs: List[dict], groups: List[dict], by: Sequence[str]
     atomic_write_text(folder / "table.txt", format_group_table(groups, by) + "\n")
     atomic_write_text(folder / "table.md", format_group_table(groups, by, markdown=True) + "\n")
     if figures and runs:
-        out["figure"] = campaign_figure(folder / "figures" / "campaign.png", runs, groups, by)
+        out["figure"] = campaign_figure(folder / "figures" / "campaign.png", runs, groups, by, meta=meta)
     if tensorboard and groups:
         out["tb"] = write_hparams(folder, groups, by)
     if runs:  # the paper's nine sites: its reported pattern beside the pooled flown one

@@ -1,0 +1,31 @@
+"""The campaign figure carries a title (preset/estimator/seeds) and a legend on both panels."""
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+
+def test_campaign_figure_title_and_legends(tmp_path, monkeypatch):
+    import matplotlib.pyplot as plt
+
+    from dvsland.campaign.report import campaign_figure
+    from dvsland.report.stats import group_stats
+
+    runs = [{"site": s, "label": "set0", "estimator": "dpr", "outcome": "success" if k % 3 else "crash",
+             "seed_index": k, "lowest_altitude_m": 50.0, "v_at_50m_mps": 1.0 + 0.1 * k, "fuel_used_kg": 1.0}
+            for s in ("A", "D") for k in range(6)]
+    by = ["site", "label", "estimator"]
+    groups = group_stats(runs, by)
+    seen = {}
+    monkeypatch.setattr(plt, "close", lambda fig: seen.setdefault("fig", fig))
+    out = campaign_figure(tmp_path / "c.png", runs, groups, by, meta={"n_seeds": 6, "preset": "paper"})
+    assert out.is_file()
+    fig = seen["fig"]
+    title = fig._suptitle.get_text()
+    assert "preset paper" in title and "dpr" in title and "6 seeds" in title
+    ax1, ax2 = fig.axes
+    for ax in (ax1, ax2):
+        leg = ax.get_legend()
+        assert leg is not None and leg.get_texts()
+    labels = [t.get_text() for t in ax2.get_legend().get_texts()]
+    assert "median" in labels and "one successful descent" in labels
