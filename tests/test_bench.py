@@ -185,3 +185,28 @@ def test_cli_help_has_a_description(capsys):
     with pytest.raises(SystemExit):
         main(["bench", "--help"])
     assert "speed" in capsys.readouterr().out.split("positional arguments")[0]
+
+
+def test_scaling_figure_axes_and_legends(tmp_path, monkeypatch):
+    """Two batch sizes: the memory axis is linear with plain ticks, both batch axes are ticked at
+    the measured B in plain numbers, and every legend entry draws a marker or line."""
+    import matplotlib.pyplot as plt
+
+    from dvsland.bench.report import plot_scaling
+
+    rows = [{"batch_size": b, "device": "cpu", "cpu_ms": {"render": 3.0 * b, "emulate": 0.5 * b, "estimate": 1.2 * b,
+                                                           "control_dynamics": 0.0},
+             "cpu_ms_total": 4.7 * b, "ms_total": 6.0 * b, "peak_memory_mib": m} for b, m in ((1, 412.0), (8, 455.0))]
+    seen = {}
+    monkeypatch.setattr(plt, "close", lambda fig: seen.setdefault("fig", fig))
+    plot_scaling(rows, tmp_path / "scaling.png", "estimator dpr (test)")
+    assert (tmp_path / "scaling.png").stat().st_size > 1000
+    a1, a2 = seen["fig"].axes
+    assert a2.get_yscale() == "linear"
+    for ax in (a1, a2):
+        assert list(ax.get_xticks()) == [1, 8]
+        assert [t.get_text() for t in ax.get_xticklabels()] == ["1", "8"]
+        leg = ax.get_legend()
+        assert leg is not None
+        for h in leg.legend_handles:
+            assert h.get_marker() not in (None, "", "None") and h.get_visible()

@@ -98,6 +98,21 @@ def plot_pareto(rows: List[dict], path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def _batch_ticks(ax, bs) -> None:
+    """Log batch axis ticked at the batch sizes measured, plain numbers, no minor labels."""
+    from matplotlib.ticker import FixedLocator, NullFormatter, NullLocator, ScalarFormatter
+
+    ticks = sorted(set(int(b) for b in bs))
+    if not ticks:
+        return
+    ax.xaxis.set_major_locator(FixedLocator(ticks))
+    ax.xaxis.set_major_formatter(ScalarFormatter())
+    ax.xaxis.set_minor_locator(NullLocator())
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    lo, hi = ticks[0], ticks[-1]
+    ax.set_xlim(lo / 1.4, hi * 1.4)
+
+
 def plot_scaling(rows: Sequence[Dict], path, title: str) -> None:
     """Two panels: ms per step of each stage against B (log-log), and peak memory against B
     (the rows of :func:`dvsland.bench.scaling.run_scaling`)."""
@@ -114,11 +129,13 @@ def plot_scaling(rows: Sequence[Dict], path, title: str) -> None:
         ys = [max(p[0][k], 1e-3) for p in per]
         if any(p[0][k] > 0 for p in per):
             a1.plot(bs, ys, "o-", label=k.replace("_", " + "))
-    a1.plot(bs, [p[1] for p in per], "k--", label="total")
+    a1.plot(bs, [p[1] for p in per], "k--", marker="s", ms=5, label="total")
     if kind == "CPU":
-        a1.plot(bs, [r["ms_total"] for r in rows], "k:", label="total, wall (loaded machine)")
+        a1.plot(bs, [r["ms_total"] for r in rows], "k:", marker="^", ms=5, mfc="white",
+                label="total, wall (loaded machine)")
     a1.set_xscale("log")
     a1.set_yscale("log")
+    _batch_ticks(a1, bs)
     a1.set_xlabel("batch size B (descents)")
     a1.set_ylabel(f"{kind} time per control step, ms")
     a1.set_title(title, fontsize=9)
@@ -126,9 +143,25 @@ def plot_scaling(rows: Sequence[Dict], path, title: str) -> None:
     a1.grid(True, which="both", alpha=0.3)
     mem = [(r["batch_size"], r["peak_memory_mib"]) for r in rows if r.get("peak_memory_mib") is not None]
     if mem:
-        a2.plot([m[0] for m in mem], [max(m[1], 1e-1) for m in mem], "o-", color="tab:purple")
-    a2.set_xscale("log")
-    a2.set_yscale("log")
+        mx, my = [m[0] for m in mem], [max(m[1], 1e-1) for m in mem]
+        a2.plot(mx, my, "o-", color="tab:purple", ms=6, label="peak resident memory")
+        for x, y in zip(mx, my):
+            a2.annotate(f"{y:.0f}", (x, y), textcoords="offset points", xytext=(5, -12), fontsize=8)
+        # a log memory axis only when the values span a decade or more and there are enough
+        # points to read it; else linear with plain ticks (two points on a log axis clash)
+        if len(mem) >= 3 and max(my) / min(my) >= 10:
+            a2.set_yscale("log")
+            from matplotlib.ticker import FuncFormatter, NullFormatter
+
+            a2.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            a2.yaxis.set_minor_formatter(NullFormatter())
+        else:
+            a2.set_ylim(0, max(my) * 1.15)
+        a2.legend(fontsize=8, loc="lower right")
+        a2.set_xscale("log")
+        _batch_ticks(a2, mx)
+    else:
+        a2.text(0.5, 0.5, "no memory measured", ha="center", va="center", transform=a2.transAxes)
     a2.set_xlabel("batch size B (descents)")
     a2.set_ylabel("peak resident memory above the imports, MiB")
     a2.set_title("CPU: fresh process, renderer atlas of 9 sites included", fontsize=9)
