@@ -200,6 +200,15 @@ def format_comparison(runs: List[dict], c2: float, success_altitude_m: float = 5
 
 
 _COLOURS = {"reached": "tab:green", "late": "tab:orange", "early": "tab:red", "running": "tab:gray"}
+#: smallest font in the chart, points at the saved size (the figure is saved at :data:`DPI`)
+FONT_PT = 10
+DPI = 100
+
+
+def class_words(success_altitude_m: float = 50.0) -> Dict[str, str]:
+    """The printed table's column words for each class (:func:`format_pooled_comparison`)."""
+    return {"reached": f"reached {success_altitude_m:g} m", "late": "failed late", "early": "failed early",
+            "running": "still running"}
 
 
 def _lowest_altitude_panel(ax, runs: List[dict], sites: List[str], c2: float, success_altitude_m: float):
@@ -230,7 +239,8 @@ def _lowest_altitude_panel(ax, runs: List[dict], sites: List[str], c2: float, su
     ax.set_ylim(max(1.0, success_altitude_m / 5), top * 3)
     for i, s in enumerate(sites):
         p = paper["sites"].get(s, {})
-        ax.text(i, top * 1.3, f"paper:\n{p.get('pattern', '?')}", ha="center", va="bottom", fontsize=7)
+        ax.text(i, top * 1.3, str(p.get("pattern", "?")), ha="center", va="bottom", fontsize=FONT_PT)
+    ax.text(-0.55, top * 1.3, "paper:", ha="right", va="bottom", fontsize=FONT_PT, style="italic")
     ax.set_xticks(np.arange(len(sites)))
     ax.set_xticklabels(sites)
     ax.set_xlabel("site")
@@ -248,17 +258,19 @@ def _pooled_panel(ax, runs: List[dict], sites: List[str], c2: float, success_alt
     bottom = np.zeros(len(sites))
     for c in CLASSES:
         frac = np.array([100 * pooled[s][f"{c}_rate"] if pooled[s]["n"] else 0.0 for s in sites])
-        ax.bar(x, frac, 0.6, bottom=bottom, color=_COLOURS[c], edgecolor="k", lw=0.4, label=c)
+        ax.bar(x, frac, 0.6, bottom=bottom, color=_COLOURS[c], edgecolor="k", lw=0.4,
+               label=class_words(success_altitude_m)[c])
         bottom += frac
     rate = np.array([100 * pooled[s]["reached_rate"] for s in sites])
     # clipped: a Wilson bound at k = 0 or k = n may sit a rounding error past the rate
     lo = np.maximum(rate - np.array([100 * pooled[s]["reached_lo"] for s in sites]), 0.0)
     hi = np.maximum(np.array([100 * pooled[s]["reached_hi"] for s in sites]) - rate, 0.0)
-    ax.errorbar(x, rate, yerr=[lo, hi], fmt="o", color="k", ms=3, capsize=3, lw=0.9, label="reached: 95 % CI")
+    ax.errorbar(x, rate, yerr=[lo, hi], fmt="o", color="k", ms=3, capsize=3, lw=0.9, label=f"{class_words(success_altitude_m)['reached']}: 95 % CI")
     for i, s in enumerate(sites):
-        ax.text(i, 103, f"paper:\n{paper['sites'].get(s, {}).get('pattern', '?')}\nn={pooled[s]['n']}",
-                ha="center", va="bottom", fontsize=7)
-    ax.set_ylim(0, 125)
+        ax.text(i, 103, f"{paper['sites'].get(s, {}).get('pattern', '?')}\nn={pooled[s]['n']}",
+                ha="center", va="bottom", fontsize=FONT_PT)
+    ax.text(-0.55, 103, "paper:\nflown:", ha="right", va="bottom", fontsize=FONT_PT, style="italic")
+    ax.set_ylim(0, 132)
     ax.set_yticks([0, 25, 50, 75, 100])
     ax.set_xticks(x)
     ax.set_xticklabels(sites)
@@ -283,29 +295,35 @@ def paper_pattern_chart(runs: List[dict], path, c2: float, success_altitude_m: f
         keys = [(r["site"], r["label"]) for r in runs]
         pooled = len(keys) > len(set(keys))
     if pooled:
-        fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 4.5))
+        fig, (ax, ax2) = plt.subplots(1, 2, figsize=(15, 5))
     else:
-        fig, ax = plt.subplots(figsize=(10, 4.5))
+        fig, ax = plt.subplots(figsize=(11, 5))
     labels = _lowest_altitude_panel(ax, runs, sites, c2, success_altitude_m)
     flown_ok = sum(1 for r in runs if r["outcome"] == "success")
     title = (f"reached {success_altitude_m:g} m: paper {paper['reached_50m']} of {paper['descents']}, "
              f"{'pooled' if pooled else 'this run'} {flown_ok} of {len(runs)}")
     from matplotlib.patches import Patch
 
-    handles = [Patch(color=c, label=k) for k, c in _COLOURS.items() if k != "running"]
+    words = class_words(success_altitude_m)
+    handles = [Patch(color=c, label=words[k]) for k, c in _COLOURS.items() if k != "running"]
     handles.append(Patch(facecolor="w", edgecolor="k", label=" / ".join(labels)))
     if pooled:
-        fig.suptitle(title, fontsize=10)
-        ax.set_title("lowest altitude: median over seeds, 10-90 % whisker (hatched: 2nd setting)", fontsize=9)
+        fig.suptitle(title, fontsize=FONT_PT + 2)
+        ax.set_title("lowest altitude: median over seeds,\n10-90 % whisker (hatched: 2nd setting)", fontsize=FONT_PT)
         _pooled_panel(ax2, runs, sites, c2, success_altitude_m)
-        ax2.set_title("reached / failed late / failed early, pooled over seeds and settings", fontsize=9)
-        ax2.legend(handles=handles + ax2.get_legend_handles_labels()[0][-1:], fontsize=7, loc="upper left",
+        ax2.set_title(f"{words['reached']} / failed late / failed early,\npooled over seeds and settings",
+                      fontsize=FONT_PT)
+        ax2.legend(handles=handles + ax2.get_legend_handles_labels()[0][-1:], fontsize=FONT_PT, loc="upper left",
                    bbox_to_anchor=(1.005, 1.0))
     else:
-        ax.set_title(title + "   (bars: this run; hatched: 2nd setting)", fontsize=9)
-        ax.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.005, 1.0))
+        ax.set_title(title + "\n(bars: this run; hatched: 2nd setting)", fontsize=FONT_PT)
+        ax.legend(handles=handles, fontsize=FONT_PT, loc="upper left", bbox_to_anchor=(1.005, 1.0))
+    for a in fig.axes:
+        a.tick_params(labelsize=FONT_PT)
+        a.xaxis.label.set_size(FONT_PT + 1)
+        a.yaxis.label.set_size(FONT_PT + 1)
     fig.tight_layout()
-    fig.savefig(path, dpi=90 if not pooled else 72)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
     return Path(path)
 
