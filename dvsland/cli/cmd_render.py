@@ -54,6 +54,21 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_render)
 
 
+#: short notes under a site's montage column heading, for tiles that could read as a failed render
+SITE_NOTES = {"H": "flat, dusty,\nfew features"}
+
+
+def montage_labels(sites) -> List[str]:
+    """Column names for the montage: the site (``A``, ``H~1``), and for a site whose tiles are nearly
+    uniform by nature (H: flat and dusty) a second line, written on its tiles
+    (:func:`dvsland.report.style.image_grid`), so they do not read as a failed render."""
+    out = []
+    for s in sites:
+        note = SITE_NOTES.get(str(s).split("~")[0])
+        out.append(f"{s}\n{s}: {note}" if note else str(s))
+    return out
+
+
 def _parse_list(text: str, what: str, cast=float) -> list:
     try:
         return [cast(x.strip()) for x in text.split(",") if x.strip()]
@@ -109,7 +124,7 @@ def run_render(args) -> int:
             Image.fromarray(disp[i, j]).save(fdir / f"{s}_{a:g}m.png")
     np.savez_compressed(run_dir / "frames.npz", irradiance=frames.reshape(n_a, n_s, h, w).numpy(),
                         altitude_m=np.asarray(alts), sites=np.asarray(sites))
-    mont = montage(frames.reshape(n_a, n_s, h, w).numpy(), alts, sites, run_dir / "montage.png",
+    mont = montage(frames.reshape(n_a, n_s, h, w).numpy(), alts, montage_labels(sites), run_dir / "montage.png",
                    scale=max(1, args.scale), renderer=name)
 
     # ---- descent GIF (first site)

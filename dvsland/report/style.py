@@ -109,7 +109,10 @@ def image_grid(tiles, row_labels: Sequence[str], col_labels: Sequence[str], titl
         tiles: (R, C, H, W) array; shown with ``vmin``/``vmax`` (default: its own min / max), so
             equal values look equal in every tile. Pass log irradiance with the bounds of
             :func:`log_stretch` for a shared contrast stretch.
-        row_labels, col_labels: R and C labels (``"1000 m"``, ``"site A"``).
+        row_labels, col_labels: R and C labels (``"1000 m"``, ``"site A"``). A column label with a
+            second line (``"site H\\nflat, dusty, few features"``) is headed by its first line and
+            the rest is written as a note on every tile of that column (for tiles that are nearly
+            uniform by nature and would otherwise read as a failed render).
         title: figure title (say what the stretch is).
         colorbar_label: the colorbar's label (with its unit); None: no colorbar.
         row_title, col_title: what the rows and columns are (``"altitude"``, ``"site"``).
@@ -135,8 +138,12 @@ def image_grid(tiles, row_labels: Sequence[str], col_labels: Sequence[str], titl
             im = ax.imshow(tiles[i, j], cmap="gray", vmin=vmin, vmax=vmax, interpolation="nearest")
             ax.set_xticks([])
             ax.set_yticks([])
+            head, _, note = str(col_labels[j]).partition("\n")
             if i == 0:
-                ax.set_title(col_labels[j], fontsize=9)
+                ax.set_title(head, fontsize=9)
+            if note:
+                ax.text(0.5, 0.06, note, transform=ax.transAxes, ha="center", va="bottom", fontsize=8,
+                        wrap=True, bbox=dict(boxstyle="round,pad=0.25", fc="white", ec="0.4", alpha=0.85))
             if j == 0:
                 ax.set_ylabel(row_labels[i], fontsize=9)
     if col_title:
