@@ -89,9 +89,10 @@ def plot_speed_vs_error(summary: dict, path: Path) -> None:
     ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_ylim(bottom=0)
+    tl = summary.get("target_label") or target_label(summary["sites"])
     style.label(ax, f"time per update for the batch of B = {len(summary['sites'])} "
                     f"({summary.get('device', 'cpu')}) [ms]",
-                f"median |relative error|, sites {summary.get('target_label') or target_label(summary['sites'])} [%]", "Divergence estimators: speed vs error",
+                f"median |relative error|, sites {tl} [%]", "Divergence estimators: speed vs error",
                 legend="outside")
     style.save(fig, path, dpi=120)
 

@@ -265,7 +265,8 @@ def _pooled_panel(ax, runs: List[dict], sites: List[str], c2: float, success_alt
     # clipped: a Wilson bound at k = 0 or k = n may sit a rounding error past the rate
     lo = np.maximum(rate - np.array([100 * pooled[s]["reached_lo"] for s in sites]), 0.0)
     hi = np.maximum(np.array([100 * pooled[s]["reached_hi"] for s in sites]) - rate, 0.0)
-    ax.errorbar(x, rate, yerr=[lo, hi], fmt="o", color="k", ms=3, capsize=3, lw=0.9, label=f"{class_words(success_altitude_m)['reached']}: 95 % CI")
+    ax.errorbar(x, rate, yerr=[lo, hi], fmt="o", color="k", ms=3, capsize=3, lw=0.9,
+                label=f"{class_words(success_altitude_m)['reached']}: 95 % CI")
     for i, s in enumerate(sites):
         ax.text(i, 103, f"{paper['sites'].get(s, {}).get('pattern', '?')}\nn={pooled[s]['n']}",
                 ha="center", va="bottom", fontsize=FONT_PT)
