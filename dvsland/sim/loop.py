@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from dvsland.control.gain import loop_gain_fields
+from dvsland.estimators.registry import estimator_label
 
 from .result import TraceRecorder
 from .state import LoopState
@@ -139,12 +140,13 @@ def run_summaries(stages, state: LoopState) -> List[dict]:
     m0 = stages.settings.mass_kg
     gains = loop_gain_fields(stages.controller, state.m_kg, state.z_m)
     ctl_name = getattr(stages.controller, "controller_name", type(stages.controller).__name__)
+    est_label = estimator_label(cfg.estimator.name)  # an alias (mine=pkg.mod:Class) is shown as the alias
     runs = []
     for b in range(L.batch_size):
         runs.append({
             "run": L.run_label[b], "site": L.site[b], "label": L.label[b], "kp": float(L.kp[b]),
             "n_bin": int(L.n_bin[b]), "seed": int(L.seed[b]), "seed_index": int(L.seed_idx[b]),
-            "estimator": cfg.estimator.name, "controller": ctl_name, "filter": type(stages.filter).__name__,
+            "estimator": est_label, "controller": ctl_name, "filter": type(stages.filter).__name__,
             "outcome": OUTCOMES[int(st["outcome"][b])],
             "t_end_s": round(float(st["t_end_s"][b]), 6), "z_end_m": float(st["z_m"][b]), "v_end_mps": float(st["v_mps"][b]),
             "lowest_altitude_m": float(st["lowest_m"][b]), "fuel_used_kg": float(m0 - st["m_kg"][b]),
@@ -154,6 +156,8 @@ def run_summaries(stages, state: LoopState) -> List[dict]:
             "held_steps": int(st["n_held"][b]), "missing_estimates": int(st["n_missing"][b]),
             "sanitised_estimates": int(st["n_sanitised"][b]), "positive_estimates": int(st["n_positive"][b]),
         })
+        if est_label != cfg.estimator.name:  # the whole import path, to repeat the run
+            runs[-1]["estimator_spec"] = cfg.estimator.name
         if L.dispersed:  # a Monte Carlo batch: the element's scene and dispersed values
             runs[-1]["scene"] = L.scene[b]
             runs[-1]["dispersion"] = {k: (int(v[b]) if v.dtype.kind == "i" else float(v[b]))
