@@ -196,18 +196,32 @@ def _raise_interrupt(signum, frame):  # noqa: ARG001 - signal handler signature
     raise KeyboardInterrupt(f"terminated by signal {signal.Signals(signum).name}")
 
 
-def _finish_interrupted(run_dir: Path, exc: BaseException) -> None:
-    """Give ``run_dir`` a results.json saying ``interrupted`` unless it already holds a final one."""
-    from .report.results import read_results_json, write_results_json
-
+def failure_status(exc: BaseException, run_dir: Path) -> str:
+    """The results.json status of a command that ended in ``exc``: ``failed`` for a plug-in that
+    broke its contract (:class:`dvsland.plugins.PluginError`; its own traceback is written to
+    ``run_dir/plugin_error.log`` when the folder takes it), ``interrupted`` for anything else
+    (Ctrl-C, SIGTERM, a callback)."""
     from .plugins import PluginError
+
+    if not isinstance(exc, PluginError):
+        return "interrupted"
+    if exc.plugin_traceback:
+        try:
+            (Path(run_dir) / "plugin_error.log").write_text(f"{exc}\n\n{exc.plugin_traceback}")
+        except OSError:  # a full or read-only disk: the status and message still say what happened
+            pass
+    return "failed"
+
+
+def _finish_interrupted(run_dir: Path, exc: BaseException) -> None:
+    """Give ``run_dir`` a results.json saying ``interrupted`` (``failed`` for a plug-in fault)
+    unless it already holds a final one."""
+    from .report.results import read_results_json, write_results_json
 
     path = run_dir / "results.json"
     error = f"{type(exc).__name__}: {exc}"
-    status = "failed" if isinstance(exc, PluginError) else "interrupted"  # a plug-in broke its contract
     try:
-        if isinstance(exc, PluginError) and exc.plugin_traceback:
-            (run_dir / "plugin_error.log").write_text(f"{exc}\n\n{exc.plugin_traceback}")
+        status = failure_status(exc, run_dir)
         if path.is_file():
             data = read_results_json(path)
             if data.get("status") not in ("running", None):
@@ -278,5 +292,5 @@ class deferred_interrupts:  # noqa: N801 - used like a function: ``with deferred
         return False
 
 
-__all__ = ["make_run_dir", "check_out_dir", "guarded_run", "utc_stamp", "RunDirError", "RunWriteError",
+__all__ = ["failure_status", "make_run_dir", "check_out_dir", "guarded_run", "utc_stamp", "RunDirError", "RunWriteError",
            "RUN_MARKERS", "CLAIM_FILE", "deferred_interrupts"]

@@ -189,6 +189,8 @@ class Stages:
         params: :class:`dvsland.control.DescentParams` of the B elements.
         settings: :class:`LoopSettings`.
         device: torch device of the loop state.
+        scene_idx: (B,) int64 on ``device``, the renderer's row of each element (its site, or its
+            dispersed scene).
     """
 
     cfg: Any
@@ -201,6 +203,7 @@ class Stages:
     params: Any = None
     settings: Optional[LoopSettings] = None
     device: Any = "cpu"
+    scene_idx: Any = None
 
     @property
     def renderer(self):
@@ -269,7 +272,8 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
     prior = params if cfg.controller.efference.prior_state == "dispersed" else _nominal_params(params, layout)
     filt = make_filter(cfg, prior, controller)
     return Stages(cfg, layout, est, events, controller, filter=filt, dynamics=LanderDynamics.from_config(cfg.dynamics),
-                  params=params, settings=LoopSettings.from_config(cfg), device=device)
+                  params=params, settings=LoopSettings.from_config(cfg), device=device,
+                  scene_idx=layout.tensor("scene_idx", device, torch.int64))
 
 
 def _build_plugin_estimator(cfg: Config, batch_size: int, device, seed):

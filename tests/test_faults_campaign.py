@@ -202,6 +202,13 @@ time.sleep(600)
 """
 
 
+def _sigkill_and_expect_dead(drv, pids) -> None:
+    """SIGKILL the driver ``drv``; its worker ``pids`` must be gone within 30 s."""
+    drv.send_signal(signal.SIGKILL)
+    drv.wait(10)
+    assert _wait_dead(pids, 30.0) == []
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 @pytest.mark.parametrize("started_s", [0.0, 4.0])
 def test_pool_workers_die_with_a_killed_driver(started_s):
@@ -212,9 +219,7 @@ def test_pool_workers_die_with_a_killed_driver(started_s):
     pids = [int(p) for p in drv.stdout.readline().split()]
     try:
         assert len(pids) == 2 and all(_alive(p) for p in pids)
-        drv.send_signal(signal.SIGKILL)
-        drv.wait(10)
-        assert _wait_dead(pids, 30.0) == []
+        _sigkill_and_expect_dead(drv, pids)
     finally:
         drv.kill()
         _kill_left(pids)
@@ -271,9 +276,7 @@ def test_cli_campaign_workers_die_with_a_killed_driver(tmp_path):
             pids = _children(drv.pid)
         assert len(pids) == 2, "the workers did not start"
         time.sleep(3)
-        drv.send_signal(signal.SIGKILL)
-        drv.wait(10)
-        assert _wait_dead(pids, 30.0) == []
+        _sigkill_and_expect_dead(drv, pids)
     finally:
         drv.kill()
         _kill_left(pids)

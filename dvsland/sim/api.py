@@ -15,7 +15,7 @@ from dvsland._version import __version__
 from dvsland.config import Config, load_config, validate_config
 from dvsland.config.validate import check_memory
 from dvsland.report import write_results_json, write_traces_npz
-from dvsland.runs import guarded_run, make_run_dir
+from dvsland.runs import failure_status, guarded_run, make_run_dir
 from dvsland.stages import build_stages, check_names
 
 from dvsland.layout import build_layout
@@ -138,7 +138,7 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
             cbs.on_start(loop)
             loop.run(cbs.on_step)
         except BaseException as exc:  # noqa: BLE001 - Ctrl-C too: write what we have, then re-raise
-            status, error, exc_to_raise = _failure(exc, run_dir)
+            status, error, exc_to_raise = failure_status(exc, run_dir), f"{type(exc).__name__}: {exc}", exc
         loop_s = time.perf_counter() - t_loop
         # ---- write
         result = _write_outputs(loop, run_dir, meta, status, error, t_start,
@@ -150,22 +150,6 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
     if exc_to_raise is not None:
         raise exc_to_raise
     return result
-
-
-def _failure(exc: BaseException, run_dir: Path):
-    """(status, error text, the exception to re-raise) of a loop that ended in ``exc``: a plug-in
-    that broke its contract is ``failed`` (its own traceback goes to ``plugin_error.log``), anything
-    else (Ctrl-C, SIGTERM, a callback) ``interrupted``."""
-    from dvsland.plugins import PluginError
-
-    if isinstance(exc, PluginError):
-        if exc.plugin_traceback:
-            try:
-                (Path(run_dir) / "plugin_error.log").write_text(f"{exc}\n\n{exc.plugin_traceback}")
-            except OSError:
-                pass
-        return "failed", f"{type(exc).__name__}: {exc}", exc
-    return "interrupted", f"{type(exc).__name__}: {exc}", exc
 
 
 def _write_outputs(loop: ClosedLoop, run_dir: Path, meta: dict, status: str, error, t_start: float,

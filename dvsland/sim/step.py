@@ -272,22 +272,13 @@ def _sense(stages, state: LoopState, t_us: int, tm):
 def _render(stages, state: LoopState) -> torch.Tensor:
     s = stages.settings
     alt = state.z_m.clamp(s.render_min_altitude_m, s.render_max_altitude_m)
-    site_idx = _scene_index(stages)
+    site_idx = stages.scene_idx
     if state.last_frames is None or bool(state.active.all()):
         return stages.events.render(alt, site_idx)
     idx = state.active.nonzero().squeeze(1)
     frames = state.last_frames.clone()
     frames[idx] = stages.events.render(alt[idx], site_idx[idx]).to(frames.dtype)
     return frames
-
-
-def _scene_index(stages) -> torch.Tensor:
-    """(B,) int64 renderer row of each element (its site, or its dispersed scene), cached on the layout."""
-    cache = getattr(stages, "_scene_idx", None)
-    if cache is None:
-        cache = stages.layout.tensor("scene_idx", torch.device(stages.device), torch.int64)
-        stages._scene_idx = cache
-    return cache
 
 
 def _estimate(stages, state: LoopState, events, t_us: int):
