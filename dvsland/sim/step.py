@@ -363,5 +363,5 @@ def _advance(stages, state: LoopState, u, held, d_hat, bad, frames) -> Tuple[Loo
     return nxt, ended
 
 
-__all__ = ["StepOutput", "Sensed", "init_state", "loop_step", "sense_step", "act_step", "sanitise_estimates", "estimator_confidence", "D_HAT_ABS_MAX",
-           "live_handle"]
+__all__ = ["StepOutput", "Sensed", "init_state", "loop_step", "sense_step", "act_step", "sanitise_estimates",
+           "estimator_confidence", "D_HAT_ABS_MAX"]
