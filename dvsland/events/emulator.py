@@ -50,7 +50,11 @@ import numpy as np
 import torch
 
 from . import pixel_model as pm
+from .denoise import EventDenoiser
 from .events import Events
+
+_DENOISE_KEYS = ("denoise", "denoise_baf_time_us", "denoise_baf_neighbours", "denoise_refractory_us",
+                 "denoise_hot_pixel_rate_hz")
 
 #: Tolerance, in units of the threshold, when counting level crossings.
 LEVEL_TOL = 1e-9
@@ -123,7 +127,9 @@ class EventEmulator:
                  shot_noise_rate_hz: float = 0.0, shot_noise_bright_factor: float = 0.25,
                  leak_rate_hz: float = 0.0, leak_rate_sigma: float = 0.1,
                  hot_pixel_fraction: float = 0.0, hot_pixel_rate_hz: float = 100.0,
-                 max_events_per_step: Optional[int] = 20_000_000):
+                 max_events_per_step: Optional[int] = 20_000_000, denoise: str = "none",
+                 denoise_baf_time_us: float = 10_000.0, denoise_baf_neighbours: int = 4,
+                 denoise_refractory_us: float = 1_000.0, denoise_hot_pixel_rate_hz: float = 50.0):
         def pos(name, v):
             v = float(v)
             if not (math.isfinite(v) and v > 0):
@@ -166,6 +172,11 @@ class EventEmulator:
         self.t_us: Optional[int] = None
         self._elem: dict = {}  # per-element values (set_element_params), numpy (B,)
         self._r_elem = self._bg_elem = None
+        #: the front-end denoising stage applied to every step's events (None = off; .denoise)
+        self.denoiser = EventDenoiser(denoise, denoise_baf_time_us, denoise_baf_neighbours,
+                                      denoise_refractory_us, denoise_hot_pixel_rate_hz)
+        if not self.denoiser.active:
+            self.denoiser = None
 
     def set_element_params(self, threshold_scale=None, mismatch_sigma=None, background_rate_hz=None,
                            refractory_us=None, element_seeds=None) -> None:
@@ -204,7 +215,8 @@ class EventEmulator:
                    mismatch_sigma=cfg.mismatch_sigma, background_rate_hz=cfg.background_rate_hz,
                    seed=seed, **{f.name: getattr(cfg, f.name) for f in dataclasses.fields(pm.PixelModelParams)
                                  if hasattr(cfg, f.name)},
-                   max_events_per_step=getattr(cfg, "max_events_per_step", 20_000_000))
+                   max_events_per_step=getattr(cfg, "max_events_per_step", 20_000_000),
+                   **{k: getattr(cfg, k) for k in _DENOISE_KEYS if hasattr(cfg, k)})
 
     # ------------------------------------------------------------------ state
     @property
@@ -354,6 +366,8 @@ class EventEmulator:
         self._layout = _KeyLayout(B, H, W, self.device)
         self.t_us = t_us
         self._reset_pixel_model(B, H, W, t_us)
+        if self.denoiser is not None:
+            self.denoiser.reset(B, H, W, t_us, self.device)
 
     def _reset_pixel_model(self, B: int, H: int, W: int, t_us: int) -> None:
         """Per-element noise streams and the low-pass / drift state (see :mod:`.pixel_model`)."""
@@ -463,8 +477,10 @@ class EventEmulator:
                 sk = layout.pixel_key(flat, off, b_shift).add_(t_rel << layout.t_shift)
                 keys = sk if keys is None else torch.cat((keys, sk))
         if keys is None or keys.numel() == 0:
-            return Events.empty(dev)
-        return layout.sort_decode(keys, b_shift, t0)
+            ev = Events.empty(dev)
+        else:
+            ev = layout.sort_decode(keys, b_shift, t0)
+        return ev if self.denoiser is None else self.denoiser(ev, t1)
 
     def _scratch(self, like: torch.Tensor) -> torch.Tensor:
         """A (B, H, W) float64 work buffer kept across steps: a fresh full-size tensor per step
