@@ -168,6 +168,16 @@ class EmulatorConfig:
     max_events_per_step: int = opt(20_000_000, "most events one step may emit (all cameras together); more is "
                                    "an error naming this parameter, raised before the events are allocated "
                                    "(about 48 bytes per event at the peak; not in paper)", rng=(1, 10**11))
+    # front-end denoising of every step's events (dvsland.events.denoise; docs/events.md), not in paper
+    denoise: str = opt("none", "front-end event filters: 'none', or 'baf', 'refractory', 'hot_pixel' joined by '+' "
+                       "(applied left to right, e.g. 'hot_pixel+baf'; tonic's definitions)")
+    denoise_baf_time_us: float = opt(10_000.0, "baf: an event needs a neighbour's event within this time "
+                                     "before it, us", rng=(0.0, 1e9), open_lo=True)
+    denoise_baf_neighbours: int = opt(4, "baf: 4 (tonic) or 8 (jAER) neighbour pixels", choices=(4, 8))
+    denoise_refractory_us: float = opt(1_000.0, "refractory filter: an event within this time after the "
+                                       "pixel's previous event is dropped, us", rng=(0.0, 1e9))
+    denoise_hot_pixel_rate_hz: float = opt(50.0, "hot_pixel: pixels whose mean rate since the start exceeds "
+                                           "this are masked, Hz", rng=(0.0, 1e6), open_lo=True)
 
 
 @dataclass
