@@ -19,6 +19,7 @@ during the call that has no final ``results.json`` gets one saying ``status: "in
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import functools
 import os
 import signal
@@ -235,6 +236,20 @@ def _finish_interrupted(run_dir: Path, exc: BaseException) -> None:
         pass
 
 
+#: errors of the disk rather than of the program: a full disk, a quota, a read-only file system
+_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG)
+
+
+def _as_write_error(exc: BaseException, made: list):
+    """A disk fault (:data:`_DISK_ERRNOS`) that reached a command unconverted becomes one
+    :class:`RunWriteError` naming the file (or the run folder when the error names none); any
+    other exception -> None (re-raised as it is)."""
+    if not isinstance(exc, OSError) or isinstance(exc, RunWriteError) or exc.errno not in _DISK_ERRNOS:
+        return None
+    where = exc.filename or (made[-1] if made else None) or "the output folder"
+    return RunWriteError(where, exc)
+
+
 def guarded_run(fn):
     """Decorator for a command: SIGTERM acts like Ctrl-C during the call, and every run folder
     made inside it (:func:`make_run_dir`) is left with a results.json when the call ends in an
@@ -256,6 +271,9 @@ def guarded_run(fn):
         except BaseException as exc:
             for run_dir in made:
                 _finish_interrupted(run_dir, exc)
+            write_fault = _as_write_error(exc, made)
+            if write_fault is not None:
+                raise write_fault from None
             raise
         finally:
             _GUARDS.stack.pop()

@@ -9,6 +9,7 @@ from typing import List, Optional, Sequence
 
 from dvsland.report.results import RunWriteError, atomic_write_text, write_results_json
 from dvsland.report.stats import format_group_table, write_csv
+from dvsland.report.style import save_atomic
 
 #: flat columns of runs.csv (nested dicts are flattened as sweep.<k> and dispersion.<k>)
 RUN_COLUMNS = ("run", "site", "scene", "label", "estimator", "seed_index", "seed", "outcome", "t_end_s",
@@ -135,11 +136,10 @@ def campaign_figure(path, runs: List[dict], groups: List[dict], by: Sequence[str
     ax2.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     fig.suptitle(title or figure_title(runs, meta), fontsize=11)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    try:
+        return save_atomic(fig, path)
+    finally:
+        plt.close(fig)
 
 
 def write_hparams(folder, groups: List[dict], by: Sequence[str]) -> Path:

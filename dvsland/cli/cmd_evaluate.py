@@ -123,9 +123,11 @@ def run_evaluate(args) -> int:
     paths = write_outputs(res, run_dir, figures=not args.no_figures and cfg.logging.figures)
     table = format_table(res.summary)
     if cfg.logging.tensorboard:
+        from dvsland.report.results import writes_under
         from dvsland.report.tensorboard import write_evaluation_tensorboard
 
-        paths["tensorboard"] = write_evaluation_tensorboard(run_dir / "tb", res, dump_config(cfg), table)
+        with writes_under(run_dir / "tb"):  # a full disk: one error naming the folder
+            paths["tensorboard"] = write_evaluation_tensorboard(run_dir / "tb", res, dump_config(cfg), table)
     if not quiet:
         print(table)
         print(f"wrote {', '.join(str(p) for p in paths.values())}")

@@ -81,6 +81,7 @@ class ShardWriter:
             raise ValueError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
         self.path = Path(path)
         self.tmp = self.path.with_name(f"{self.path.name}.tmp{os.getpid()}")
+        self._room_for(64 << 10)  # the file's header and empty datasets
         self.f = h5py.File(self.tmp, "w")
         kw = {} if compression is None else {"compression": compression, "shuffle": True}
         if compression == "gzip":
@@ -108,9 +109,27 @@ class ShardWriter:
         if self._buf_events >= FLUSH_EVENTS:
             self._flush()
 
+    def _room_for(self, n_bytes: int) -> None:
+        """Refuse a write that the disk cannot take before HDF5 starts it: HDF5 fails on a full
+        disk part-way through its own bookkeeping and leaves a file that cannot even be closed.
+
+        Raises:
+            RunWriteError: fewer than ``n_bytes`` plus 1 MiB free in the shard's folder (ENOSPC).
+        """
+        import errno
+        import shutil
+
+        from dvsland.report.results import RunWriteError
+
+        free = shutil.disk_usage(self.tmp.parent).free
+        if free < n_bytes + (1 << 20):
+            raise RunWriteError(self.path, OSError(errno.ENOSPC, f"No space left on device: {free} bytes free, "
+                                                                 f"the shard needs up to {n_bytes} more (before compression)"))
+
     def _flush(self) -> None:
         if not self._buf:
             return
+        self._room_for(sum(a.nbytes for e, s in self._buf for a in (*e.values(), *s.values())))
         for name in EVENT_FIELDS:
             _extend(self.f[f"events/{name}"], np.concatenate([e[name] for e, _ in self._buf]))
         for name in SAMPLE_FIELDS:
@@ -120,6 +139,7 @@ class ShardWriter:
     def finish(self, descents: Dict[str, np.ndarray]) -> Path:
         """Write the descent table and the offsets, mark complete, close and rename; the path."""
         self._flush()
+        self._room_for(8 * len(self.offsets) + 256 * len(descents["site"]) * len(DESCENT_FIELDS))
         for name, dt in DESCENT_FIELDS.items():
             vals = descents[name]
             if dt is str:

@@ -8,7 +8,7 @@ from typing import Optional
 
 import numpy as np
 
-from dvsland.report.results import write_json
+from dvsland.report.results import atomic_write_text, write_json, write_traces_npz
 
 from .metrics import BANDS
 from .run import EvaluationResult, target_label
@@ -136,12 +136,13 @@ def write_outputs(res: EvaluationResult, run_dir: Path, figures: bool = True) ->
     run_dir.mkdir(parents=True, exist_ok=True)
     paths = {"json": run_dir / "evaluation.json", "table": run_dir / "table.txt",
              "traces": run_dir / "traces.npz"}
+    # each file atomically: a full disk leaves the previous file or none (RunWriteError names it)
     write_json(paths["json"], res.summary)  # strict JSON: NaN / inf -> null
-    paths["table"].write_text(format_table(res.summary) + "\n")
-    np.savez_compressed(paths["traces"], t_s=res.descents.t_s, altitude_m=res.descents.altitude_m,
-                        d_true=res.descents.divergence, scored=res.scored, n_events=res.n_events,
-                        sites=np.array(res.descents.sites),
-                        **{f"d_hat_{n}": v for n, v in res.d_hat.items()})
+    atomic_write_text(paths["table"], format_table(res.summary) + "\n")
+    write_traces_npz(paths["traces"], dict(t_s=res.descents.t_s, altitude_m=res.descents.altitude_m,
+                                           d_true=res.descents.divergence, scored=res.scored, n_events=res.n_events,
+                                           sites=np.array(res.descents.sites),
+                                           **{f"d_hat_{n}": v for n, v in res.d_hat.items()}))
     if figures:
         paths["speed_vs_error"] = run_dir / "speed_vs_error.png"
         plot_speed_vs_error(res.summary, paths["speed_vs_error"])

@@ -10,7 +10,7 @@ import numpy as np
 
 from dvsland.dynamics import closed_form_state
 
-from .style import label
+from .style import label, save_atomic
 from .tensorboard import _estimator_label, run_folder_name
 
 
@@ -75,7 +75,7 @@ def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: f
     big = np.isfinite(thrust).any() and np.nanmax(np.abs(thrust)) >= 1e6
     ax[3].step(t, thrust / (1e6 if big else 1e3), where="post", lw=0.8, label="commanded thrust")
     label(ax[3], "flight time t [s]", "thrust [MN]" if big else "thrust [kN]")
-    fig.savefig(path, dpi=80)
+    save_atomic(fig, path, dpi=80)
     if _fig is None:
         plt.close(fig)
     return Path(path)

@@ -24,6 +24,7 @@ import yaml
 
 from dvsland.config.schema import SITE_NAMES
 from dvsland.report.stats import wilson_interval
+from dvsland.report.style import save_atomic
 
 #: Seconds within which an ascent counts as "ascends early" in the check list.
 EARLY_ASCENT_S = 30.0
@@ -324,8 +325,10 @@ def paper_pattern_chart(runs: List[dict], path, c2: float, success_altitude_m: f
         a.xaxis.label.set_size(FONT_PT + 1)
         a.yaxis.label.set_size(FONT_PT + 1)
     fig.tight_layout()
-    fig.savefig(path, dpi=DPI)
-    plt.close(fig)
+    try:
+        save_atomic(fig, path, dpi=DPI)
+    finally:
+        plt.close(fig)
     return Path(path)
 
 

@@ -5,6 +5,7 @@ write is one :class:`RunWriteError` naming the path and the reason."""
 
 from __future__ import annotations
 
+import contextlib
 import errno as _errno
 import io
 import json
@@ -58,6 +59,18 @@ def atomic_write_bytes(path, data: Union[bytes, bytearray, memoryview], fsync: b
             raise RunWriteError(path, exc) from None
         raise
     return path
+
+
+@contextlib.contextmanager
+def writes_under(path):
+    """Context: an ``OSError`` raised inside (a full disk, a read-only folder, also from a writer's
+    background thread that surfaces on its next call) becomes one :class:`RunWriteError` naming
+    ``path``. For outputs written as a stream, e.g. TensorBoard event files: their records carry
+    checksums, so what was flushed before the failure stays readable."""
+    try:
+        yield
+    except OSError as exc:
+        raise RunWriteError(path, exc) from None
 
 
 def atomic_write_text(path, text: str, fsync: bool = False) -> Path:

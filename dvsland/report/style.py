@@ -14,6 +14,7 @@ Every figure function in dvsland goes through these helpers (matplotlib, Agg bac
 
 from __future__ import annotations
 
+import io
 import re
 from pathlib import Path
 from typing import Optional, Sequence, Tuple
@@ -79,15 +80,33 @@ def label(ax, xlabel: Optional[str] = None, ylabel: Optional[str] = None, title:
     return ax
 
 
+def save_atomic(fig, path, **savefig_kwargs) -> Path:
+    """``fig.savefig`` into memory, then one atomic write to ``path`` (format from its suffix): a
+    full disk or a read-only folder leaves the previous figure or none, never half a PNG.
+
+    Raises:
+        RunWriteError: the folder or the file could not be written; the message names the path.
+    """
+    from dvsland.report.results import RunWriteError, atomic_write_bytes
+
+    path = Path(path)
+    buf = io.BytesIO()
+    fig.savefig(buf, format=path.suffix.lstrip(".") or "png", **savefig_kwargs)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RunWriteError(path.parent, exc) from None
+    return atomic_write_bytes(path, buf.getbuffer())
+
+
 def save(fig, path, dpi: Optional[int] = None) -> Path:
     """Save ``fig`` to ``path`` with a tight bounding box (nothing outside the axes is clipped,
-    legends placed outside included) and close it. Returns the path."""
+    legends placed outside included), atomically (:func:`save_atomic`), and close it. Returns the path."""
     plt = pyplot()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi, bbox_inches="tight", pad_inches=0.08)
-    plt.close(fig)
-    return path
+    try:
+        return save_atomic(fig, path, dpi=dpi, bbox_inches="tight", pad_inches=0.08)
+    finally:
+        plt.close(fig)
 
 
 def log_stretch(images, lo_q: float = 0.01, hi_q: float = 0.995) -> Tuple[np.ndarray, float, float]:

@@ -85,10 +85,31 @@ def fresh_log_dir(path) -> Path:
     return path.with_name(f"{path.name}-{k}")
 
 
+def _quiet_writer_thread_errors() -> None:
+    """Keep an ``OSError`` in a TensorBoard writer's background thread (a full disk) from being
+    printed as a thread traceback: the writer keeps the exception and raises it on its next call,
+    where the caller turns it into one error naming the folder. Other threads' exceptions, and
+    other exceptions, still go to the previous hook. Installed once."""
+    import threading
+
+    if getattr(threading.excepthook, "_dvsland_tb_filter", False):
+        return
+    previous = threading.excepthook
+
+    def hook(args):
+        if isinstance(args.exc_value, OSError) and type(args.thread).__name__ == "_AsyncWriterThread":
+            return
+        previous(args)
+
+    hook._dvsland_tb_filter = True
+    threading.excepthook = hook
+
+
 def summary_writer(log_dir, flush_secs: int = 5):
     """A :class:`torch.utils.tensorboard.SummaryWriter` on ``log_dir`` (created)."""
     from torch.utils.tensorboard import SummaryWriter
 
+    _quiet_writer_thread_errors()
     Path(log_dir).mkdir(parents=True, exist_ok=True)
     return SummaryWriter(log_dir=str(log_dir), flush_secs=flush_secs)
 

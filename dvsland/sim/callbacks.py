@@ -18,12 +18,14 @@ to ``simulate(callbacks=[...])``.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 from pathlib import Path
 from typing import Callable, List, Optional, Sequence
 
 from dvsland.config import Config, dump_config
+from dvsland.report.results import RunWriteError, writes_under
 
 
 class Callback:
@@ -54,28 +56,53 @@ class StepFunction(Callback):
 
 class TensorBoardCallback(Callback):
     """TensorBoard event files under ``run_dir/tb``: the config at the start, scalars and images
-    while flying (``logging.scalar_every_s``, ``logging.image_every_s``), the summary table at the end."""
+    while flying (``logging.scalar_every_s``, ``logging.image_every_s``), the summary table at the end.
+
+    A failed write (full disk, read-only folder) is one :class:`RunWriteError` naming the folder;
+    the records flushed before it stay readable, and the run's other outputs are still attempted."""
 
     def __init__(self, cfg: Config, run_dir: Path, run_labels: Sequence[str]):
         from dvsland.report.tensorboard import TensorBoardLogger
 
         lg = cfg.logging
-        self.tb = TensorBoardLogger(Path(run_dir) / "tb", run_labels, cfg.dt_s, scalar_every_s=lg.scalar_every_s,
-                                    image_every_s=lg.image_every_s)
-        self.tb.add_config(dump_config(cfg))
+        self.log_dir = Path(run_dir) / "tb"
+        self.failed = False
+        with self._writes():
+            self.tb = TensorBoardLogger(self.log_dir, run_labels, cfg.dt_s, scalar_every_s=lg.scalar_every_s,
+                                        image_every_s=lg.image_every_s)
+            self.tb.add_config(dump_config(cfg))
         self.renderer = cfg.render.renderer
 
+    @contextlib.contextmanager
+    def _writes(self):
+        try:
+            with writes_under(self.log_dir):
+                yield
+        except RunWriteError:
+            self.failed = True
+            raise
+
     def on_step(self, loop, out) -> None:
-        self.tb.on_step(out)
+        with self._writes():
+            self.tb.on_step(out)
 
     def on_end(self, loop, result) -> None:
         from dvsland.report import format_table
 
         rend = self.renderer if result.runs and loop.stages.events is not None else None
-        self.tb.close(result, format_table(result.runs, markdown=True), renderer=rend)
+        with self._writes():
+            self.tb.close(result, format_table(result.runs, markdown=True), renderer=rend)
 
     def close(self) -> None:
-        self.tb.close()
+        tb = getattr(self, "tb", None)
+        if tb is None:
+            return
+        try:
+            with self._writes():
+                tb.close()
+        except RunWriteError:
+            if not self.failed:
+                raise  # the first failure is reported; a second one while closing adds nothing
 
 
 class ProgressCallback(Callback):
