@@ -49,6 +49,7 @@ LAYERS: Tuple[str, ...] = (
     "dvsland.evaluate",     # open-loop evaluation of the estimators
     "dvsland.campaign",     # Monte Carlo grids, shards, merged reports
     "dvsland.data",         # datasets of flown descents (campaign plans)
+    "dvsland.learn",        # the training recipe of the learned estimators (datasets)
     "dvsland.envs",         # the environments around loop_step
     "dvsland.bench",        # benchmarks of every layer below
     "dvsland.cli",          # the dvsland command

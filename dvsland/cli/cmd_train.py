@@ -1,4 +1,7 @@
-"""``dvsland train [CONFIG] [--out PATH] [--overwrite-shipped] [--sites A~1,...] [--n-seq N] [--steps K]
+"""``dvsland train CONFIG --model NAME|pkg.mod:Class --data DIR [--epochs E] [--max-minutes M] [--out CKPT]``:
+the training recipe of the ``learned`` estimator (:mod:`dvsland.learn`, :mod:`.train_recipe`).
+
+``dvsland train [CONFIG] [--out PATH] [--overwrite-shipped] [--sites A~1,...] [--n-seq N] [--steps K]
 [--epochs E] [--init CKPT] [--threads N] [--set key=value ...] [--quiet]``: train the spiking
 divergence estimator (``snn``) and write its checkpoint.
 
@@ -34,7 +37,7 @@ CHECKPOINT_NAME = "snn.pt"
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "train", help="train the spiking estimator (snn) and write its checkpoint",
+        "train", help="train a learned estimator (--model NAME --data DIR) or the spiking snn; write its checkpoint",
         description="Train the spiking divergence estimator on descents over held-out terrain and write its "
                     "checkpoint: to --out PATH, or into a new run folder under logs/ (snn.pt, train.json, "
                     "config.yaml). The shipped checkpoint inside the package is only replaced with "
@@ -46,6 +49,19 @@ def register(subparsers) -> None:
 
 def add_train_arguments(p: argparse.ArgumentParser) -> None:
     """Every option of ``dvsland train`` (besides CONFIG and --set): output, data, model, training."""
+    rec = p.add_argument_group("recipe (any learned model on a dataset folder; chosen by --model)")
+    rec.add_argument("--model", default=None, metavar="NAME|pkg.mod:Class",
+                     help="train this model of the learned estimator's zoo (cnn, spiking) or any class with the "
+                          "same forward(vox, coords, log_count) on --data with the recipe; without --model: snn")
+    rec.add_argument("--data", default=None, metavar="DIR", help="dataset folder of `dvsland dataset build`")
+    rec.add_argument("--model-set", action="append", default=[], metavar="KEY=VALUE",
+                     help="a model constructor setting, e.g. width=16 (repeatable)")
+    rec.add_argument("--n-bins", type=int, default=None, help="time bins of the voxel grid (default 4; spiking 6)")
+    rec.add_argument("--pool-px", type=int, default=None, help="sensor pixels per input cell side (default 2; spiking 4)")
+    rec.add_argument("--patience", type=int, default=6, help="early stopping: epochs without a better val error")
+    rec.add_argument("--resume", action="store_true", help="continue the training stored in --out")
+    rec.add_argument("--tensorboard", default=None, metavar="DIR",
+                     help="TensorBoard folder (default: beside --out, <out>.tb)")
     out = p.add_argument_group("output")
     out.add_argument("--out", default=None, metavar="PATH",
                      help="checkpoint file to write (.pt); default: logs/<name>-train-<UTC stamp>/snn.pt")
@@ -80,9 +96,9 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     model.add_argument("--init", default=None, metavar="CKPT", help="start from this checkpoint's weights (fine-tuning)")
 
     tr = p.add_argument_group("training")
-    tr.add_argument("--epochs", type=int, default=14)
-    tr.add_argument("--batch", type=int, default=32)
-    tr.add_argument("--lr", type=float, default=3e-3)
+    tr.add_argument("--epochs", type=int, default=None, help="epochs (default 14 for snn, 30 for the recipe)")
+    tr.add_argument("--batch", type=int, default=None, help="batch size (default 32 for snn, 64 for the recipe)")
+    tr.add_argument("--lr", type=float, default=None, help="learning rate (default 3e-3 for snn, 2e-3 for the recipe)")
     tr.add_argument("--crop-steps", type=int, default=None,
                     help="train on random windows of this many steps (validation on whole sequences)")
     tr.add_argument("--warmup-steps", type=int, default=5, help="steps at the start of a sequence not scored")
@@ -149,6 +165,13 @@ def _sequences():
 
 
 def run_train(args) -> int:
+    if args.model is not None or args.data is not None:
+        from .train_recipe import run_recipe
+
+        return run_recipe(args, check_out_path)
+    args.epochs = 14 if args.epochs is None else args.epochs
+    args.batch = 32 if args.batch is None else args.batch
+    args.lr = 3e-3 if args.lr is None else args.lr
     import torch
 
     from dvsland.config import load_config

@@ -268,6 +268,15 @@ class SNNConfig:
 
 
 @dataclass
+class LearnedConfig:
+    """A network trained by the recipe, 'learned' (docs/learning.md)."""
+
+    checkpoint: str = opt("", "checkpoint of `dvsland train --model ...`; empty or 'cnn' = the shipped CNN, "
+                              "'spiking' = the shipped spiking model")
+    min_events: int = opt(20, "windows with fewer events give no estimate (NaN)", rng=(1, 1000000000))
+
+
+@dataclass
 class EstimatorConfig:
     """Which divergence estimator runs, and its parameters."""
 
@@ -276,6 +285,7 @@ class EstimatorConfig:
     cmax: CMaxConfig = opt(None, "parameters of 'cmax'", factory=CMaxConfig)
     oracle: OracleConfig = opt(None, "parameters of 'oracle'", factory=OracleConfig)
     snn: SNNConfig = opt(None, "parameters of 'snn'", factory=SNNConfig)
+    learned: LearnedConfig = opt(None, "parameters of 'learned'", factory=LearnedConfig)
     params: dict = opt(None, "free-form keyword parameters for other (third-party) estimators",
                        factory=dict)
 
@@ -413,6 +423,8 @@ class SimulationConfig:
     max_memory_gb: float = opt(0.0, "refuse a run whose estimated peak memory (per-pixel state of every "
                                "descent plus emulator.max_events_per_step events) exceeds this, GiB; 0 = 80 % "
                                "of this machine's memory (not in paper)", rng=(0.0, 1e6))
+    compact: bool = opt(True, "finished descents leave the hot path: not rendered, their events dropped before "
+                        "the estimator, their estimate NaN (false: the estimator still sees them; same outcomes)")
 
 
 @dataclass

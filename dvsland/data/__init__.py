@@ -11,6 +11,8 @@ Public names:
     collate_events: batches ``representation="events"`` samples of variable length.
     SplitRule, SPLITS: train / val / test by site type and terrain variant (:mod:`.splits`).
     REPRESENTATIONS: ``"count"``, ``"voxel"``, ``"events"``.
+    load_windows, gather_batch, Windows: a whole split in memory as flat tensors, batches cut by
+        indexing (:mod:`.tensors`), for training.
     ShardError: a shard file that cannot be read (a ValueError naming the file).
 """
 
@@ -20,6 +22,8 @@ from .represent import REPRESENTATIONS, collate_events
 from .shardfile import ShardError
 from .splits import SPLITS, SplitRule
 from .stream import LoopStream
+from .tensors import Windows, gather_batch, load_manifest_info, load_windows
 
 __all__ = ["build_dataset", "BuildResult", "EventWindowDataset", "LoopStream", "collate_events", "SplitRule",
-           "SPLITS", "REPRESENTATIONS", "ShardError"]
+           "SPLITS", "REPRESENTATIONS", "ShardError", "Windows", "load_windows", "gather_batch",
+           "load_manifest_info"]

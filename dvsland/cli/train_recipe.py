@@ -1,0 +1,72 @@
+"""``dvsland train CONFIG --model NAME --data DIR``: the recipe path of ``dvsland train`` (:mod:`dvsland.learn`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from .common import apply_threads, config_from_args
+
+#: defaults of the recipe that differ by model: (n_bins, pool_px)
+MODEL_INPUT_DEFAULTS = {"cnn": (4, 2), "spiking": (6, 4)}
+
+
+def _parse_model_set(items) -> dict:
+    """``["width=16", ...]`` -> {"width": 16}: values read as JSON (numbers, lists), else strings."""
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise ValueError(f"--model-set {item!r}: expected KEY=VALUE, e.g. width=16")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = json.loads(v)
+        except ValueError:
+            out[k.strip()] = v
+    return out
+
+
+def recipe_settings(args, cfg):
+    """The :class:`~dvsland.learn.RecipeSettings` of the command line (ValueError naming the option)."""
+    from dvsland.learn import RecipeSettings
+
+    name = args.model or "cnn"
+    nb, pool = MODEL_INPUT_DEFAULTS.get(name, (4, 2))
+    ms = _parse_model_set(args.model_set)
+    nb = args.n_bins if args.n_bins is not None else nb
+    if name == "spiking":
+        ms.setdefault("slice_dt_s", cfg.dt_s / nb)
+    return RecipeSettings(model=name, model_settings=ms, n_bins=nb,
+                          pool_px=args.pool_px if args.pool_px is not None else pool,
+                          epochs=30 if args.epochs is None else args.epochs, max_minutes=args.max_minutes,
+                          batch_size=64 if args.batch is None else args.batch,
+                          lr=2e-3 if args.lr is None else args.lr, patience=args.patience,
+                          seed=args.seed if args.train_seed is None else args.train_seed).check()
+
+
+def run_recipe(args, check_out_path) -> int:
+    """Check the arguments, train, write the checkpoint and print where it is and how it scored.
+    ``check_out_path(out, overwrite_shipped, overwrite)``: the --out guard of ``dvsland train``."""
+    from dvsland.learn import train
+
+    if args.data is None:
+        raise ValueError("--data DIR: the recipe (--model) trains on a dataset folder of `dvsland dataset build`")
+    cfg = config_from_args(args)
+    apply_threads(cfg)
+    s = recipe_settings(args, cfg)
+    if args.out is None:
+        from dvsland.runs import make_run_dir
+
+        out = make_run_dir(cfg, None, kind="train") / f"{s.model.replace(':', '_').replace('.', '_')}.pt"
+    elif args.resume:
+        out = Path(args.out)
+    else:
+        out = check_out_path(args.out, args.overwrite_shipped, args.overwrite)
+    tb = Path(args.tensorboard) if args.tensorboard else out.with_name(out.stem + ".tb")
+    log = (lambda *a, **k: None) if args.quiet else print
+    ck = train(args.data, out, s, resume=args.resume, progress=not args.quiet, tb_dir=tb, log=log)
+    if args.quiet:
+        print(out)
+        return 0
+    print(f"wrote {out} ({ck['epoch']} epochs, {ck['final']['train_seconds']:.0f} s; TensorBoard: {tb})")
+    print(f"use it: dvsland evaluate --estimators learned --set estimator.learned.checkpoint={out}")
+    return 0

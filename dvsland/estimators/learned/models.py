@@ -1,0 +1,147 @@
+"""The model zoo of the ``learned`` estimator: networks from one window's input to (mu, log_var).
+
+Every model takes ``(vox, coords, log_count)``:
+
+- ``vox``: (B, n_bins, h, w) float32 signed voxel grid of one control step (:mod:`.inputs`);
+- ``coords``: (1, 2, h, w) float32 cell position about the principal point (:func:`.inputs.coord_channels`);
+- ``log_count``: (B,) float32 log(1 + events in the window);
+
+and returns ``(mu, log_var)``, (B,) float32 each: the mean and log-variance of a Gaussian over
+log|D| (D in 1/s). The estimate is D_hat = -exp(mu), its relative standard deviation about
+exp(log_var / 2).
+
+- :class:`VoxelCNN` (``cnn``): four strided 3x3 convolutions, mean and max pooling, an MLP head.
+- :class:`SpikingVoxelNet` (``spiking``): the voxel grid's time bins are the time steps of two
+  convolutional LIF layers (:func:`dvsland.estimators.snn.lif.lif_step`, norse-style state); the
+  spike counts of layer 2, pooled, feed a linear head. The membranes start from rest at every
+  window (no state between control steps).
+"""
+
+from __future__ import annotations
+
+from typing import Dict, Tuple
+
+import torch
+from torch import nn
+
+from ..snn.lif import LIFParameters, lif_state, lif_step, lif_step_inference
+
+
+def _normalise(vox: torch.Tensor) -> torch.Tensor:
+    """vox divided by its mean |value| per sample (event-count invariance), (B, n_bins, h, w)."""
+    return vox / vox.abs().mean(dim=(1, 2, 3), keepdim=True).clamp_min(1e-3)
+
+
+class VoxelCNN(nn.Module):
+    """Conventional CNN: (n_bins + 2) channels -> 4 strided 3x3 convs (width, 2w, 2w, 2w) -> mean
+    and max pooling + log_count -> MLP (hidden 32) -> (mu, log_var)."""
+
+    def __init__(self, n_bins: int = 4, width: int = 16):
+        super().__init__()
+        if not 1 <= int(width) <= 256:
+            raise ValueError(f"width must be in [1, 256], got {width}")
+        self.n_bins, self.width = int(n_bins), int(width)
+        c = self.width
+        self.features = nn.Sequential(
+            nn.Conv2d(n_bins + 2, c, 3, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(c, 2 * c, 3, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(2 * c, 2 * c, 3, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(2 * c, 2 * c, 3, stride=2, padding=1), nn.ReLU())
+        self.head = nn.Sequential(nn.Linear(4 * c + 1, 32), nn.ReLU(), nn.Linear(32, 2))
+
+    def settings(self) -> Dict[str, int]:
+        """Constructor keyword arguments that rebuild this network."""
+        return {"n_bins": self.n_bins, "width": self.width}
+
+    def forward(self, vox: torch.Tensor, coords: torch.Tensor, log_count: torch.Tensor):
+        x = torch.cat([_normalise(vox), coords.expand(vox.shape[0], -1, -1, -1)], dim=1)
+        f = self.features(x)
+        f = torch.cat([f.mean(dim=(2, 3)), f.amax(dim=(2, 3)), log_count[:, None]], dim=1)
+        mu, log_var = self.head(f).unbind(1)
+        return mu, log_var.clamp(-12.0, 6.0)
+
+
+class SpikingVoxelNet(nn.Module):
+    """Spiking CNN: per time bin k, current conv1([vox_k, coords]) -> LIF (width) -> conv2 ->
+    LIF (2 width); layer-2 spike counts over the bins, mean-pooled over space and weighted by the
+    radius about the principal point -> linear (with log_count) -> (mu, log_var).
+
+    ``slice_dt_s``: the LIF step (control interval / n_bins); ``tau_mem_s``, ``tau_syn_s``: time
+    constants. Activity of the last forward pass: :attr:`last_activity` (spikes (B,), synops (B,)).
+    """
+
+    def __init__(self, n_bins: int = 8, width: int = 12, slice_dt_s: float = 0.0125, tau_mem_s: float = 0.05,
+                 tau_syn_s: float = 0.025):
+        super().__init__()
+        if not 1 <= int(width) <= 256:
+            raise ValueError(f"width must be in [1, 256], got {width}")
+        self.n_bins, self.width, self.slice_dt_s = int(n_bins), int(width), float(slice_dt_s)
+        self.p = LIFParameters(tau_mem_s=tau_mem_s, tau_syn_s=tau_syn_s, v_th=1.0)
+        self.p.check_dt(self.slice_dt_s)
+        c = self.width
+        self.conv1 = nn.Conv2d(3, c, 3, stride=2, padding=1)
+        self.conv2 = nn.Conv2d(c, 2 * c, 3, stride=2, padding=1)
+        self.head = nn.Linear(4 * c + 1, 2)
+        self.last_activity: Dict[str, torch.Tensor] = {}
+
+    def settings(self) -> Dict[str, float]:
+        """Constructor keyword arguments that rebuild this network."""
+        return {"n_bins": self.n_bins, "width": self.width, "slice_dt_s": self.slice_dt_s,
+                "tau_mem_s": self.p.tau_mem_s, "tau_syn_s": self.p.tau_syn_s}
+
+    def forward(self, vox: torch.Tensor, coords: torch.Tensor, log_count: torch.Tensor):
+        B = vox.shape[0]
+        v = _normalise(vox)
+        xy = coords.expand(B, -1, -1, -1)
+        cur = self.conv1(torch.cat([v.flatten(0, 1)[:, None], xy.repeat_interleave(self.n_bins, 0)], 1))
+        cur = cur.unflatten(0, (B, self.n_bins))  # (B, n_bins, c, h1, w1)
+        step = lif_step if torch.is_grad_enabled() else lif_step_inference
+        s1 = lif_state(cur[:, 0].shape, cur.device)
+        s2 = None
+        count2, n1 = 0.0, 0.0
+        for k in range(self.n_bins):  # the time steps of the window (n_bins, a few)
+            z1, s1 = step(cur[:, k], s1, self.p, self.slice_dt_s)
+            c2 = self.conv2(z1)
+            s2 = lif_state(c2.shape, c2.device) if s2 is None else s2
+            z2, s2 = step(c2, s2, self.p, self.slice_dt_s)
+            count2 = count2 + z2
+            n1 = n1 + z1.sum(dim=(1, 2, 3))
+        r = coords.norm(dim=1, keepdim=True)  # (1, 1, h, w) radius
+        r2 = nn.functional.adaptive_avg_pool2d(r, count2.shape[-2:])
+        f = torch.cat([count2.mean(dim=(2, 3)), (count2 * r2).mean(dim=(2, 3)), log_count[:, None]], dim=1)
+        n2 = count2.sum(dim=(1, 2, 3))
+        c1_out = self.conv2.out_channels * 9 / 4.0
+        self.last_activity = {"spikes": (n1 + n2).detach(),
+                              "synops": (n1 * c1_out + n2 * 2).detach()}
+        mu, log_var = self.head(f).unbind(1)
+        return mu, log_var.clamp(-12.0, 6.0)
+
+
+#: the built-in models by name
+MODELS = {"cnn": VoxelCNN, "spiking": SpikingVoxelNet}
+
+
+def model_class(name: str):
+    """The class of model ``name``: a key of :data:`MODELS` or an import path ``package.module:Class``."""
+    if name in MODELS:
+        return MODELS[name]
+    if ":" in str(name):
+        import importlib
+
+        mod, _, attr = str(name).rpartition(":")
+        try:
+            cls = getattr(importlib.import_module(mod), attr)
+        except (ImportError, AttributeError) as exc:
+            raise ValueError(f"model: cannot import {name!r} ({type(exc).__name__}: {exc})") from None
+        return cls
+    raise ValueError(f"model: unknown model {name!r}; choose one of {sorted(MODELS)} or 'package.module:Class'")
+
+
+def build_model(name: str, settings: Dict) -> Tuple[nn.Module, str]:
+    """(network, its class path) of model ``name`` built with ``settings`` (constructor kwargs)."""
+    cls = model_class(name)
+    try:
+        net = cls(**settings)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"model settings {settings} do not build {name!r} ({type(exc).__name__}: {exc})") from None
+    return net, f"{cls.__module__}:{cls.__qualname__}"

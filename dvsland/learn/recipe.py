@@ -1,0 +1,252 @@
+"""The training recipe of every learned estimator: one function, any model of the zoo or any class.
+
+:func:`train` reads a dataset folder's train and val splits into memory
+(:func:`dvsland.data.load_windows`), trains the model on a Gaussian negative log-likelihood of
+log|D| (plus ``l1_weight`` |mu - log|D||, which keeps the mean from hiding behind a large
+variance), keeps the weights with the lowest median |relative error| on val (early stopping after
+``patience`` epochs without improvement), writes a checkpoint after every epoch (best weights
+for use, last weights and optimizer for resuming) and TensorBoard curves, and scores the best
+weights on the test split at the end. Seeded: the weights and the batch order depend on
+``seed`` only; a resumed run continues at the next epoch exactly as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Dict, Optional
+
+import torch
+
+from dvsland.data import Windows, load_windows, load_manifest_info
+from dvsland.estimators.learned.checkpoint import read_checkpoint, save_checkpoint
+from dvsland.estimators.learned.inputs import InputSpec, check_input_spec, coord_channels
+from dvsland.estimators.learned.models import build_model
+
+from .batches import make_batch
+from .metrics import predict, score
+
+
+@dataclass
+class RecipeSettings:
+    """The recipe's settings (all stored in the checkpoint's ``train`` field)."""
+
+    model: str = "cnn"
+    model_settings: Dict = field(default_factory=dict)
+    n_bins: int = 4
+    pool_px: int = 2
+    coord_scale_px: float = 64.0
+    epochs: int = 30
+    max_minutes: Optional[float] = None
+    batch_size: int = 64
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    l1_weight: float = 0.5
+    patience: int = 6
+    seed: int = 0
+    max_drop: float = 0.5
+    val_max_samples: int = 6000
+
+    def check(self) -> "RecipeSettings":
+        """ValueError naming the setting for a value outside its range."""
+        for name, lo, hi in (("epochs", 1, 100000), ("batch_size", 1, 65536), ("patience", 1, 100000),
+                             ("val_max_samples", 100, 10 ** 9)):
+            if not lo <= int(getattr(self, name)) <= hi:
+                raise ValueError(f"{name} must be in [{lo}, {hi}], got {getattr(self, name)}")
+        for name, lo, hi in (("lr", 0.0, 1.0), ("weight_decay", 0.0, 1.0), ("l1_weight", 0.0, 100.0),
+                             ("max_drop", 0.0, 0.95)):
+            v = float(getattr(self, name))
+            if not (lo <= v <= hi) or (name == "lr" and v == 0):
+                raise ValueError(f"{name} must be in [{lo}, {hi}]{' (> 0)' if name == 'lr' else ''}, got {v}")
+        if self.max_minutes is not None and not float(self.max_minutes) > 0:
+            raise ValueError(f"max_minutes must be > 0 (or None), got {self.max_minutes}")
+        return self
+
+
+def _lr(s: RecipeSettings, epoch: int) -> float:
+    """Cosine decay from lr to lr / 20 over the epochs."""
+    return s.lr * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(epoch, s.epochs) / s.epochs)))
+
+
+def _loss(mu, log_var, target, l1_weight: float):
+    nll = 0.5 * (log_var + (target - mu) ** 2 * torch.exp(-log_var))
+    return (nll + l1_weight * (target - mu).abs()).mean()
+
+
+def _provenance(data_dir, tr: Windows, va: Windows) -> dict:
+    info = load_manifest_info(data_dir)
+    return {"root": str(Path(data_dir).resolve()), **info, "samples": {"train": tr.n_samples, "val": va.n_samples}}
+
+
+def _val_subset(va: Windows, n_max: int) -> torch.Tensor:
+    """Evenly spaced rows of val (at most n_max), the same every epoch."""
+    return torch.linspace(0, va.n_samples - 1, min(n_max, va.n_samples)).round().long().unique()
+
+
+def _resume_state(out: Path, model_desc: dict, provenance: dict, s: RecipeSettings) -> Optional[dict]:
+    """The checkpoint at ``out`` to resume from, checked against this run (ValueError if it differs)."""
+    ck = read_checkpoint(out)
+    for what, old, new in (("model", ck.get("model"), model_desc), ("settings", ck.get("train"), dataclasses.asdict(s)),
+                           ("dataset", (ck.get("data") or {}).get("config_hash"), provenance.get("config_hash"))):
+        if old != new:
+            raise ValueError(f"--resume: {out} was trained with other {what} ({old!r} vs {new!r}); train to a new "
+                             f"--out or pass the same arguments")
+    if "last" not in ck:
+        raise ValueError(f"--resume: {out} holds no resumable state (a shipped or stripped checkpoint)")
+    return ck
+
+
+def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bool = False,
+          progress: bool = True, tb_dir=None, log: Callable = print) -> dict:
+    """Train ``settings.model`` on dataset folder ``data_dir``; write the checkpoint ``out``.
+
+    Returns the checkpoint dict (``history``, ``final`` scores on val and test, ...).
+    """
+    s = settings.check()
+    torch.manual_seed(s.seed)
+    tr, va = load_windows(data_dir, "train"), load_windows(data_dir, "val")
+    spec = check_input_spec(InputSpec(tr.sensor_size, s.n_bins, s.pool_px, s.coord_scale_px))
+    coords = coord_channels(spec, ((spec.sensor_size[0] - 1) / 2, (spec.sensor_size[1] - 1) / 2))
+    net, cls_path = build_model(s.model, {"n_bins": s.n_bins, **s.model_settings})
+    model_desc = {"name": s.model, "class": cls_path, "settings": net.settings()}
+    prov = _provenance(data_dir, tr, va)
+    opt = torch.optim.AdamW(net.parameters(), lr=s.lr, weight_decay=s.weight_decay)
+    run = {"epoch": 0, "history": [], "best_val": math.inf, "bad_epochs": 0, "best_state": net.state_dict(),
+           "seconds": 0.0}
+    out = Path(out)
+    if resume:
+        ck = _resume_state(out, model_desc, prov, s)
+        net.load_state_dict(ck["last"]["state_dict"])
+        opt.load_state_dict(ck["last"]["optimizer"])
+        run.update(epoch=ck["epoch"], history=ck["history"], best_val=ck["best_val"], bad_epochs=ck["bad_epochs"],
+                   best_state=ck["state_dict"], seconds=ck["last"]["seconds"])
+        log(f"resuming {out} at epoch {run['epoch']}")
+    writer = _writer(tb_dir)
+    val_idx = _val_subset(va, s.val_max_samples)
+    va_sub = _subset(va, val_idx)
+    t_start = time.perf_counter() - run["seconds"]
+    deadline = None if s.max_minutes is None else t_start + 60.0 * s.max_minutes
+    while run["epoch"] < s.epochs and run["bad_epochs"] < s.patience:
+        if deadline is not None and time.perf_counter() >= deadline:
+            break
+        ep = run["epoch"]
+        train_loss = _run_epoch(net, opt, tr, spec, coords, s, ep, deadline, progress)
+        rec = _validate(net, va_sub, spec, coords, s, ep, train_loss, time.perf_counter() - t_start)
+        run["history"].append(rec)
+        _tensorboard(writer, rec)
+        if rec["val"]["all"]["median_rel_error"] < run["best_val"]:
+            run.update(best_val=rec["val"]["all"]["median_rel_error"], bad_epochs=0,
+                       best_state=copy.deepcopy(net.state_dict()))
+        else:
+            run["bad_epochs"] += 1
+        run["epoch"] = ep + 1
+        run["seconds"] = time.perf_counter() - t_start
+        log(f"epoch {ep}: train loss {train_loss:.4f}, val loss {rec['val_loss']:.4f}, val median |rel err| "
+            f"{100 * rec['val']['all']['median_rel_error']:.2f} % (best {100 * run['best_val']:.2f} %), "
+            f"within 1/2 sigma {100 * rec['val']['all']['within_1sigma']:.0f}/"
+            f"{100 * rec['val']['all']['within_2sigma']:.0f} %, {run['seconds']:.0f} s")
+        _save(out, net, opt, spec, model_desc, prov, s, run, final=None)
+    if writer is not None:
+        writer.close()
+    return _finish(out, net, opt, spec, coords, model_desc, prov, s, run, data_dir, va, log)
+
+
+def _subset(w: Windows, idx: torch.Tensor) -> Windows:
+    """The samples ``idx`` of ``w`` as a Windows of their own (events copied)."""
+    from dvsland.data import gather_batch
+
+    b, x, y, frac, p, n = gather_batch(w, idx)
+    off = torch.cat([torch.zeros(1, dtype=torch.int64), torch.cumsum(n, 0)])
+    return w._replace(x=x, y=y, frac=frac, p=p, offset=off, d_true=w.d_true[idx], site=w.site[idx],
+                      descent=w.descent[idx], step=w.step[idx], z_m=w.z_m[idx])
+
+
+def _run_epoch(net, opt, tr: Windows, spec, coords, s: RecipeSettings, epoch: int, deadline, progress) -> float:
+    """One pass over the train split in batches (seeded order and augmentation); mean loss."""
+    gen = torch.Generator().manual_seed(s.seed * 100003 + epoch)
+    order = torch.randperm(tr.n_samples, generator=gen)
+    for g in opt.param_groups:
+        g["lr"] = _lr(s, epoch)
+    net.train()
+    total, count = 0.0, 0
+    batches = range(0, len(order) - s.batch_size + 1, s.batch_size)
+    if progress:
+        from tqdm import tqdm
+
+        batches = tqdm(batches, desc=f"epoch {epoch}", leave=False, mininterval=2.0)
+    for start in batches:
+        bt = make_batch(tr, order[start:start + s.batch_size], spec, gen, s.max_drop)
+        mu, log_var = net(bt.vox, coords, bt.log_count)
+        loss = _loss(mu, log_var, bt.target, s.l1_weight)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
+        opt.step()
+        total, count = total + float(loss.detach()), count + 1
+        if deadline is not None and time.perf_counter() >= deadline:
+            break
+    return total / max(count, 1)
+
+
+def _validate(net, va: Windows, spec, coords, s: RecipeSettings, epoch: int, train_loss: float, seconds: float):
+    mu, lv = predict(net, va, spec, coords)
+    target = torch.log(va.d_true.abs().clamp_min(1e-3))
+    val_loss = float(_loss(mu, lv, target, s.l1_weight))
+    return {"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "lr": _lr(s, epoch),
+            "seconds": seconds, "val": score(mu, lv, va)}
+
+
+def _writer(tb_dir):
+    if tb_dir is None:
+        return None
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(str(tb_dir))
+
+
+def _tensorboard(writer, rec: dict) -> None:
+    if writer is None:
+        return
+    ep = rec["epoch"]
+    writer.add_scalar("loss/train", rec["train_loss"], ep)
+    writer.add_scalar("loss/val", rec["val_loss"], ep)
+    for group, v in rec["val"].items():
+        writer.add_scalar(f"val_median_rel_error/{group}", v["median_rel_error"], ep)
+        writer.add_scalar(f"val_within_1sigma/{group}", v["within_1sigma"], ep)
+        writer.add_scalar(f"val_within_2sigma/{group}", v["within_2sigma"], ep)
+    writer.flush()
+
+
+def _save(out, net, opt, spec: InputSpec, model_desc, prov, s, run, final) -> None:
+    blob = {"model": model_desc, "input": spec._asdict(), "state_dict": run["best_state"], "data": prov,
+            "train": dataclasses.asdict(s), "history": run["history"], "epoch": run["epoch"],
+            "best_val": run["best_val"], "bad_epochs": run["bad_epochs"],
+            "last": {"state_dict": net.state_dict(), "optimizer": opt.state_dict(), "seconds": run["seconds"]}}
+    if final is not None:
+        blob["final"] = final
+    blob["input"]["sensor_size"] = list(spec.sensor_size)
+    save_checkpoint(out, blob)
+
+
+def _finish(out, net, opt, spec, coords, model_desc, prov, s, run, data_dir, va, log) -> dict:
+    """Score the best weights on the whole val and the test split; write the final checkpoint."""
+    best = copy.deepcopy(net)
+    best.load_state_dict(run["best_state"])
+    final = {"val": score(*predict(best, va, spec, coords), va)}
+    try:
+        te = load_windows(data_dir, "test")
+        final["test"] = score(*predict(best, te, spec, coords), te)
+    except ValueError as exc:  # a dataset without a test split
+        final["test_error"] = str(exc)
+    final["train_seconds"] = run["seconds"]
+    _save(out, net, opt, spec, model_desc, prov, s, run, final)
+    for split in ("val", "test"):
+        if split in final:
+            a = final[split]["all"]
+            log(f"{split}: median |rel err| {100 * a['median_rel_error']:.2f} %, within 1/2 sigma "
+                f"{100 * a['within_1sigma']:.0f}/{100 * a['within_2sigma']:.0f} % ({a['n']} samples)")
+    return read_checkpoint(out)
