@@ -1,0 +1,171 @@
+"""The learned estimator (dvsland.estimators.learned): inputs, models, checkpoints, estimator."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dvsland.estimators import get_estimator
+from dvsland.estimators.learned import (InputSpec, SpikingVoxelNet, VoxelCNN, build_model, coord_channels,
+                                        load_checkpoint, save_checkpoint, voxel_grid)
+from dvsland.events import Events
+
+
+def _events(B=3, n=400, W=128, H=128, seed=0, t0=0, t1=100_000, skip=()):
+    g = torch.Generator().manual_seed(seed)
+    b = torch.randint(0, B, (n,), generator=g)
+    keep = torch.ones(n, dtype=torch.bool)
+    for s in skip:
+        keep &= b != s
+    b = b[keep]
+    m = b.numel()
+    t = torch.randint(t0 + 1, t1 + 1, (m,), generator=g)
+    order = torch.argsort(b * (t1 + 1) + t)
+    return Events(b=b[order], x=torch.randint(0, W, (m,), generator=g)[order],
+                  y=torch.randint(0, H, (m,), generator=g)[order], t=t[order],
+                  p=(torch.randint(0, 2, (m,), generator=g) * 2 - 1).to(torch.int8)[order])
+
+
+def _checkpoint(path, name="cnn", n_bins=4, pool_px=2, sensor=(128, 128), settings=None):
+    net, cls = build_model(name, {"n_bins": n_bins, **(settings or {})})
+    spec = InputSpec(sensor, n_bins, pool_px, 64.0)
+    save_checkpoint(path, {"model": {"name": name, "class": cls, "settings": net.settings()},
+                           "input": {**spec._asdict(), "sensor_size": list(sensor)}, "state_dict": net.state_dict(),
+                           "data": {}, "history": []})
+    return net
+
+
+# ------------------------------------------------------------------ inputs
+def test_voxel_grid_is_signed_pooled_and_conserves_counts():
+    spec = InputSpec((10, 8), n_bins=3, pool_px=2)
+    b = torch.tensor([0, 0, 1, 1])
+    x = torch.tensor([0, 1, 9, 9])
+    y = torch.tensor([0, 0, 7, 7])
+    frac = torch.tensor([0.0, 0.25, 1.0, 0.5])
+    p = torch.tensor([1, 1, -1, 1], dtype=torch.int8)
+    v = voxel_grid(b, x, y, frac, p, 2, spec)
+    assert v.shape == (2, 3, 4, 5) and v.dtype == torch.float32
+    assert v[0, :, 0, 0].tolist() == pytest.approx([1.5, 0.5, 0.0])  # two ON events in one pooled cell
+    assert float(v[1].sum()) == pytest.approx(0.0)  # one OFF and one ON event cancel
+    assert v[1, 2, 3, 4] == pytest.approx(-1.0) and v[1, 1, 3, 4] == pytest.approx(1.0)
+
+
+def test_coord_channels_are_relative_to_the_principal_point():
+    spec = InputSpec((128, 128), pool_px=1, coord_scale_px=64.0)
+    c = coord_channels(spec, (10.0, 20.0))
+    assert c.shape == (1, 2, 128, 128)
+    assert float(c[0, 0, 0, 10]) == 0.0 and float(c[0, 1, 20, 0]) == 0.0
+    assert float(c[0, 0, 0, 74]) == pytest.approx(1.0)
+
+
+# ------------------------------------------------------------------ models
+@pytest.mark.parametrize("cls,nb", [(VoxelCNN, 4), (SpikingVoxelNet, 6)])
+def test_models_give_mu_and_log_var_per_row(cls, nb):
+    net = cls(n_bins=nb) if cls is VoxelCNN else cls(n_bins=nb, slice_dt_s=0.1 / nb)
+    spec = InputSpec((64, 48), nb, 2)
+    vox = torch.randn(5, nb, *spec.grid_hw)
+    mu, lv = net(vox, coord_channels(spec, (31.5, 23.5)), torch.ones(5))
+    assert mu.shape == (5,) and lv.shape == (5,) and torch.isfinite(mu).all() and torch.isfinite(lv).all()
+    (mu.sum() + lv.sum()).backward()
+    assert all(p.grad is not None for p in net.parameters())
+    if cls is SpikingVoxelNet:
+        assert set(net.last_activity) == {"spikes", "synops"} and net.last_activity["spikes"].shape == (5,)
+
+
+def test_bad_model_settings_name_the_parameter():
+    with pytest.raises(ValueError, match="width"):
+        VoxelCNN(width=0)
+    with pytest.raises(ValueError, match="dt_s"):
+        SpikingVoxelNet(n_bins=4, slice_dt_s=1.0)
+    with pytest.raises(ValueError, match="unknown model"):
+        build_model("nope", {})
+
+
+# ------------------------------------------------------------------ estimator
+@pytest.fixture
+def ckpt(tmp_path):
+    torch.manual_seed(0)
+    path = tmp_path / "m.pt"
+    _checkpoint(path)
+    return path
+
+
+def test_estimator_shapes_nan_without_events_and_confidence(ckpt):
+    est = get_estimator("learned", 3, (128, 128), checkpoint=str(ckpt), min_events=5)
+    d = est.update(_events(3, 600, skip=(1,)), 100_000)
+    assert d.shape == (3,) and d.dtype == torch.float32
+    assert torch.isnan(d[1]) and torch.isfinite(d[[0, 2]]).all() and (d[[0, 2]] < 0).all()
+    c = est.confidence()
+    assert c.shape == (3,) and c[1] == 0 and ((c >= 0) & (c <= 1)).all()
+    diag = est.diagnostics()
+    assert diag["n_events"][1] == 0 and torch.isnan(diag["sigma_rel"][1])
+
+
+def test_estimator_reset_by_mask_clears_only_those_rows(ckpt):
+    est = get_estimator("learned", 3, (128, 128), checkpoint=str(ckpt), min_events=1)
+    d = est.update(_events(3, 600), 100_000)
+    assert torch.isfinite(d).all()
+    est.reset(torch.tensor([False, True, False]))
+    assert torch.isnan(est.state.d[1]) and torch.equal(est.state.d[[0, 2]], d[[0, 2]])
+    assert est.confidence()[1] == 0
+    with pytest.raises(ValueError, match="mask"):
+        est.reset(torch.tensor([True]))
+
+
+def test_estimator_rows_are_independent(ckpt):
+    """A row's estimate depends on its own events only (no mixing across the batch)."""
+    ev = _events(3, 900)
+    full = get_estimator("learned", 3, (128, 128), checkpoint=str(ckpt), min_events=1).update(ev, 100_000)
+    keep = ev.b == 2
+    one = Events(b=ev.b[keep] * 0, x=ev.x[keep], y=ev.y[keep], t=ev.t[keep], p=ev.p[keep])
+    single = get_estimator("learned", 1, (128, 128), checkpoint=str(ckpt), min_events=1).update(one, 100_000)
+    assert float(single[0]) == pytest.approx(float(full[2]), rel=1e-5)
+
+
+def test_corrupted_checkpoint_is_a_clear_error(tmp_path, ckpt):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(ckpt.read_bytes()[:300])
+    with pytest.raises(ValueError, match="estimator.learned.checkpoint.*not a readable"):
+        get_estimator("learned", 2, (128, 128), checkpoint=str(bad))
+    with pytest.raises(ValueError, match="estimator.learned.checkpoint: file not found"):
+        get_estimator("learned", 2, (128, 128), checkpoint=str(tmp_path / "none.pt"))
+    other = tmp_path / "other.pt"
+    torch.save({"state_dict": {}}, other)
+    with pytest.raises(ValueError, match="estimator.learned.checkpoint.*not a dvsland learned checkpoint"):
+        get_estimator("learned", 2, (128, 128), checkpoint=str(other))
+
+
+def test_mismatched_checkpoint_names_tensor_and_sensor(tmp_path, ckpt):
+    ck = torch.load(ckpt, weights_only=True)
+    ck["input"]["n_bins"] = 5  # weights of a 4-bin network described as 5 bins
+    ck["model"]["settings"]["n_bins"] = 5
+    torch.save(ck, tmp_path / "mis.pt")
+    with pytest.raises(ValueError, match="estimator.learned.checkpoint.*tensor 'features.0.weight'"):
+        get_estimator("learned", 2, (128, 128), checkpoint=str(tmp_path / "mis.pt"))
+    ck = torch.load(ckpt, weights_only=True)
+    ck["state_dict"]["head.2.bias"][0] = float("nan")
+    torch.save(ck, tmp_path / "nan.pt")
+    with pytest.raises(ValueError, match="NaN"):
+        get_estimator("learned", 2, (128, 128), checkpoint=str(tmp_path / "nan.pt"))
+    with pytest.raises(ValueError, match="128 x 128 sensor"):
+        load_checkpoint(ckpt, sensor_size=(346, 260))
+    with pytest.raises(ValueError, match="min_events"):
+        get_estimator("learned", 2, (128, 128), checkpoint=str(ckpt), min_events=0)
+
+
+def test_spiking_checkpoint_runs_in_the_estimator_and_reports_activity(tmp_path):
+    _checkpoint(tmp_path / "s.pt", "spiking", n_bins=6, pool_px=4, settings={"slice_dt_s": 0.1 / 6})
+    est = get_estimator("learned", 2, (128, 128), checkpoint=str(tmp_path / "s.pt"), min_events=1)
+    d = est.update(_events(2, 500), 100_000)
+    assert d.shape == (2,)
+    diag = est.diagnostics()
+    assert diag["spikes"].shape == (2,) and diag["synops"].shape == (2,) and (diag["synops"] >= 0).all()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cpu_and_cuda_agree(ckpt):
+    ev = _events(3, 900)
+    cpu = get_estimator("learned", 3, (128, 128), checkpoint=str(ckpt), min_events=1).update(ev, 100_000)
+    gpu = get_estimator("learned", 3, (128, 128), "cuda", checkpoint=str(ckpt), min_events=1)
+    evg = Events(**{k: getattr(ev, k).cuda() for k in "bxytp"})
+    assert torch.allclose(gpu.update(evg, 100_000).cpu(), cpu, rtol=1e-4)
