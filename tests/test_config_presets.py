@@ -37,7 +37,8 @@ def test_shipped_preset_resolves_to_exactly_the_flat_values(name):
 def test_shipped_presets_extend_instead_of_copying():
     bases = {n: (yaml.safe_load((configs_dir() / f"{n}.yaml").read_text()) or {}).get("extends") for n in SHIPPED}
     assert bases == {"paper": None, "paper_eq2": "paper", "realistic": "paper_eq2", "montecarlo": "realistic",
-                     "montecarlo_efference": "montecarlo", "paper_montecarlo": "paper"}
+                     "montecarlo_efference": "montecarlo", "paper_montecarlo": "paper",
+                     "realistic_sensor": "montecarlo_efference"}
     for n, base in bases.items():
         if base:  # a child repeats no value of its base
             child = yaml.safe_load((configs_dir() / f"{n}.yaml").read_text())
