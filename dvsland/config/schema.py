@@ -52,7 +52,7 @@ class CameraConfig:
     frame_rate_hz: float = opt(10.0, "frame (and control) rate, Hz", rng=(0.1, 10000.0), open_lo=True)
     sensor: str = opt("custom", "sensor preset: fills width_px, height_px, pixel_pitch_um and (where the preset "
                       "names a lens and focal_length_mm is null) focal_length_mm; 'custom' = the fields as given "
-                      "(defaults: DVS128 geometry). See SENSOR_PRESETS", choices=("dvs128", "davis346", "gen4", "square640", "custom"))
+                      "(defaults: DVS128 geometry). See SENSOR_PRESETS", choices=("dvs128", "davis346", "gen4", "gen4_bin2", "square640", "custom"))
     pixel_pitch_um: Optional[float] = opt(None, "pixel pitch, micrometres (from the preset; null = unknown)",
                                           rng=(0.1, 1000.0))
     focal_length_mm: Optional[float] = opt(None, "lens focal length, mm; with pixel_pitch_um it sets fov_deg "
@@ -74,6 +74,7 @@ SENSOR_PRESETS = {
     "dvs128": (128, 128, 40.0, None),
     "davis346": (346, 260, 18.5, 5.5),
     "gen4": (1280, 720, 4.86, 5.5),
+    "gen4_bin2": (640, 360, 9.72, 5.5),  # gen4 (1280x720, 4.86 um) read out 2x2-binned
     "square640": (640, 640, 10.0, 5.5),
 }
 
