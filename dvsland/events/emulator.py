@@ -469,17 +469,21 @@ class EventEmulator:
         if self._bg_active():
             bg = self._background(b_shift, dt)
             keys = bg if keys is None else torch.cat((keys, bg))
+        shot_keys = None
         if shot is not None:
             flat, t_rel, off = shot
             if flat.numel():
                 # a shot event resets its pixel's reference to the current level (as v2e)
                 self._lref.view(-1).index_copy_(0, flat, l1.view(-1).index_select(0, flat))
-                sk = layout.pixel_key(flat, off, b_shift).add_(t_rel << layout.t_shift)
-                keys = sk if keys is None else torch.cat((keys, sk))
+                # drawn in (b, t, pixel) order: their keys are sorted, so they are merged into the
+                # sorted scene keys rather than sorted with them
+                shot_keys = layout.pixel_key(flat, off, b_shift).add_(t_rel << layout.t_shift)
+        if keys is None or keys.numel() == 0:
+            keys, shot_keys = shot_keys, None
         if keys is None or keys.numel() == 0:
             ev = Events.empty(dev)
         else:
-            ev = layout.sort_decode(keys, b_shift, t0)
+            ev = layout.sort_decode(keys, b_shift, t0, sorted_keys=shot_keys)
         return ev if self.denoiser is None else self.denoiser(ev, t1)
 
     def _scratch(self, like: torch.Tensor) -> torch.Tensor:
@@ -739,6 +743,22 @@ def _nonzero_1d(mask: torch.Tensor) -> torch.Tensor:
     return torch.nonzero(mask).squeeze(1)
 
 
+def _merge_sorted(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Merge two sorted 1-D int64 CPU tensors into one sorted tensor (O(len(a) log len(b)) searches
+    and two scatters instead of a sort of both; equal keys are equal values, so order among them
+    does not matter)."""
+    an, bn = a.numpy(), b.numpy()
+    n = an.size + bn.size
+    pos_a = np.searchsorted(bn, an)
+    pos_a += np.arange(an.size)
+    out = np.empty(n, dtype=np.int64)
+    from_b = np.ones(n, dtype=bool)
+    from_b[pos_a] = False
+    out[pos_a] = an
+    out[from_b] = bn
+    return torch.from_numpy(out)
+
+
 def _segments(cnt: torch.Tensor):
     """For counts (A,) int64: segment id (N,) and index within the segment (N,), N = sum(cnt)."""
     seg = torch.repeat_interleave(cnt)
@@ -789,11 +809,17 @@ class _KeyLayout:
             self._table_shift = b_shift
         return self._table.index_select(0, pix) | off.to(torch.int64)
 
-    def sort_decode(self, keys: torch.Tensor, b_shift: int, t0: int) -> Events:
-        """Sort the keys (in place on CPU) and unpack into :class:`Events` (t = t0 + t_rel)."""
+    def sort_decode(self, keys: torch.Tensor, b_shift: int, t0: int,
+                    sorted_keys: Optional[torch.Tensor] = None) -> Events:
+        """Sort the keys (in place on CPU), merge in ``sorted_keys`` (already sorted, or None) and
+        unpack into :class:`Events` (t = t0 + t_rel)."""
         if _cpu_fast_path(keys):
             keys.numpy().sort()
+            if sorted_keys is not None and sorted_keys.numel():
+                keys = _merge_sorted(keys, sorted_keys)
         else:
+            if sorted_keys is not None:
+                keys = torch.cat((keys, sorted_keys))
             keys = torch.sort(keys).values
         # in-place where possible: every field is one fresh allocation, b reuses the keys
         if _cpu_fast_path(keys):  # the int64 -> int8 cast keeps the low byte (with the OFF bit)

@@ -191,6 +191,49 @@ def uniform_candidates(rngs: List[np.random.Generator], rate_hz: float, n_pix: i
     return torch.from_numpy(flat), torch.from_numpy(t_rel + 1), torch.from_numpy(u)
 
 
+def sorted_candidates(rngs: List[np.random.Generator], rate_hz: float, n_pix: int, dt_us: int
+                      ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Poisson events at ``rate_hz`` per pixel over ``n_pix`` pixels of each element, drawn in
+    order: per element a Poisson process over the time-major slots ``s = t * n_pix + pixel``
+    (t in whole µs) from exponential gaps, so the events come out sorted by (element, time, pixel)
+    with no sort (two events may share a slot, as two Poisson events may share a µs). A loop of a
+    few draws per element, none over pixels or events.
+
+    Returns (N,) each, on CPU, sorted by (element, time offset, pixel): flat index
+    ``b * n_pix + pixel`` int64, time offset int64 µs in [1, dt_us], and a uniform float64 in [0, 1)
+    (for thinning and polarity).
+    """
+    per_slot = float(rate_hz) * 1e-6  # events per (pixel, µs) slot
+    span = n_pix * int(dt_us)
+    lam = per_slot * span
+    pts, us = [], []
+    for b, rng in enumerate(rngs):
+        if per_slot <= 0:
+            break
+        pos = np.cumsum(rng.standard_exponential(int(lam + 6.0 * math.sqrt(lam) + 16.0)))
+        while pos[-1] * (1.0 / per_slot) < span:  # rare: more gaps than drawn
+            pos = np.concatenate((pos, pos[-1] + np.cumsum(rng.standard_exponential(int(lam // 4) + 16))))
+        slot = np.floor(pos * (1.0 / per_slot)).astype(np.int64)
+        slot = slot[:np.searchsorted(slot, span)]
+        if slot.size == 0:
+            continue
+        if b:
+            slot += b * span
+        pts.append(slot)
+        us.append(rng.random(slot.size))
+    if not pts:
+        e = torch.empty(0, dtype=torch.int64)
+        return e, e.clone(), torch.empty(0, dtype=torch.float64)
+    pt = np.concatenate(pts) if len(pts) > 1 else pts[0]
+    # pt = b * span + t * n_pix + pixel  ->  flat = b * n_pix + pixel, t
+    el = pt // span
+    rem = pt - el * span
+    t0 = rem // n_pix
+    flat = rem - t0 * n_pix + el * n_pix
+    u = np.concatenate(us) if len(us) > 1 else us[0]
+    return torch.from_numpy(flat), torch.from_numpy(t0 + 1), torch.from_numpy(u)
+
+
 def draw_background(rngs: List[np.random.Generator], rate_hz: float, n_pix: int, dt_us: int, device):
     """Uniform background events: flat pixel index, time offset (µs, in [1, dt_us]), OFF flag
     (probability 1/2), on ``device``."""
@@ -220,12 +263,12 @@ def draw_shot_noise(rngs: List[np.random.Generator], irradiance: torch.Tensor, d
 
     Returns:
         flat pixel index (N,) int64, time offset (N,) int64 µs in [1, dt_us], OFF flag (N,) bool,
-        all on ``irradiance.device``.
+        all on ``irradiance.device``, sorted by (element, time, pixel) (:func:`sorted_candidates`).
     """
     n_pix = irradiance[0].numel()
     k = params.shot_noise_bright_factor
     r_max = params.shot_noise_rate_hz * max(1.0, k)
-    flat, t_rel, u = uniform_candidates(rngs, r_max, n_pix, dt_us)
+    flat, t_rel, u = sorted_candidates(rngs, r_max, n_pix, dt_us)
     dev = irradiance.device
     flat, t_rel, u = flat.to(dev), t_rel.to(dev), u.to(dev)
     if flat.numel():
@@ -266,6 +309,6 @@ def draw_leak_state(gens: List[torch.Generator], shape: Tuple[int, int, int], pa
 
 
 __all__ = ["PixelModelParams", "element_seed", "element_generators", "photoreceptor_alpha",
-           "photoreceptor_lowpass_", "shot_noise_rate_hz", "uniform_candidates", "draw_shot_noise",
+           "photoreceptor_lowpass_", "shot_noise_rate_hz", "uniform_candidates", "sorted_candidates", "draw_shot_noise",
            "draw_background", "element_rngs",
            "draw_leak_state", "TAG_SHOT", "TAG_LEAK", "TAG_BACKGROUND"]
