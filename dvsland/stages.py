@@ -149,6 +149,7 @@ class LoopSettings(NamedTuple):
         render_min_altitude_m, render_max_altitude_m: the renderer's altitude range, m (altitudes
             are clamped into it before rendering).
         estimator_name: the configured estimator's name (results and logs).
+        compact: finished descents leave the step's hot path (``simulation.compact``).
     """
 
     dt_s: float
@@ -161,6 +162,7 @@ class LoopSettings(NamedTuple):
     render_min_altitude_m: float
     render_max_altitude_m: float
     estimator_name: str
+    compact: bool = True
 
     @classmethod
     def from_config(cls, cfg: Config) -> "LoopSettings":
@@ -171,7 +173,8 @@ class LoopSettings(NamedTuple):
                    success_altitude_m=float(sim.success_altitude_m), crash_divergence=float(sim.crash_divergence),
                    g_mps2=float(cfg.dynamics.g_mps2), mass_kg=float(cfg.dynamics.mass_kg),
                    render_min_altitude_m=float(cfg.render.min_altitude_m),
-                   render_max_altitude_m=float(cfg.render.max_altitude_m), estimator_name=str(cfg.estimator.name))
+                   render_max_altitude_m=float(cfg.render.max_altitude_m), estimator_name=str(cfg.estimator.name),
+                   compact=bool(getattr(sim, "compact", True)))
 
 
 @dataclass

@@ -424,8 +424,8 @@ class SimulationConfig:
     max_memory_gb: float = opt(0.0, "refuse a run whose estimated peak memory (per-pixel state of every "
                                "descent plus emulator.max_events_per_step events) exceeds this, GiB; 0 = 80 % "
                                "of this machine's memory (not in paper)", rng=(0.0, 1e6))
-    compact: bool = opt(True, "finished descents leave the hot path: not rendered, their events dropped before "
-                        "the estimator, their estimate NaN (false: the estimator still sees them; same outcomes)")
+    compact: bool = opt(True, "finished descents leave the hot path: their events are dropped before the "
+                        "estimator (false: the estimator still sees them; docs/campaigns.md)")
 
 
 @dataclass

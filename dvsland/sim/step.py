@@ -220,7 +220,8 @@ def sense_step(stages, state: LoopState, timer: Optional[Callable[[str], Any]] =
     k = state.step
     t_s = k * stages.settings.dt_s
     t_us = int(round(t_s * 1e6))
-    frames, events = _sense(stages, state, t_us, tm)
+    compact = compacted(stages, state)
+    frames, events = _sense(stages, state, t_us, tm, compact)
     with tm("estimate"):
         d_hat, conf, bad = _estimate(stages, state, events, t_us)
     with tm("control"):
@@ -256,7 +257,7 @@ def act_step(stages, sensed: Sensed, thrust: Optional[torch.Tensor] = None,
     return nxt, out._replace(thrust_n=u, ended=ended)
 
 
-def _sense(stages, state: LoopState, t_us: int, tm):
+def _sense(stages, state: LoopState, t_us: int, tm, compact: bool = False):
     """Render (active descents; finished ones keep their last frame) and emulate; (frames, events)."""
     if stages.events is None:
         return None, None
@@ -266,7 +267,27 @@ def _sense(stages, state: LoopState, t_us: int, tm):
         if state.step == 0:
             stages.emulator.reset(frames, t_us)
             return frames, None
-        return frames, stages.emulator.step(frames, t_us)
+        events = stages.emulator.step(frames, t_us)
+        if compact:  # finished descents' events never reach the estimator
+            events = active_events(events, state.active)
+    return frames, events
+
+
+def compacted(stages, state: LoopState) -> bool:
+    """True when finished descents leave this step's hot path (``simulation.compact`` and at least
+    one descent has finished): their events are dropped before the estimator, which then has
+    nothing new to work on for them (their frames are never rendered again either way). One host
+    sync."""
+    return bool(getattr(stages.settings, "compact", True)) and not bool(state.active.all())
+
+
+def active_events(events, active: torch.Tensor):
+    """``events`` without those of finished descents: ``active`` (B,) bool indexed by each event's
+    ``b``; the order (sorted by (b, t)) is kept. None stays None."""
+    if events is None or len(events) == 0:
+        return events
+    keep = active[events.b]
+    return events if bool(keep.all()) else events[keep]
 
 
 def _render(stages, state: LoopState) -> torch.Tensor:
