@@ -268,6 +268,9 @@ def markdown(report: dict, figures: Dict[str, str]) -> str:
         lines.append("")
         lines.extend(economy_lines(ec))
         lines.append("")
+    cp = report.get("campaign")
+    if cp:
+        lines.extend(campaign_section(cp))
     st = report.get("stage_benchmarks")
     if st:
         lines.append("## Stage benchmarks")
@@ -344,6 +347,28 @@ def economy_lines(ec: dict) -> List[str]:
     return out
 
 
+CAMPAIGN_BEGIN, CAMPAIGN_END = "<!-- bench campaign: begin -->", "<!-- bench campaign: end -->"
+
+
+def campaign_section(cp: dict) -> List[str]:
+    """The campaign part as markdown, between markers (a campaign-only run replaces just this
+    block of an existing benchmarks.md)."""
+    from .campaign import campaign_lines
+
+    return [CAMPAIGN_BEGIN, "## Campaign cost", "", cp["method"], "", *campaign_lines(cp["rows"]), "",
+            CAMPAIGN_END, ""]
+
+
+def _merge_campaign(old: str, report: dict, header: str) -> str:
+    """``old`` benchmarks.md with its campaign block replaced (or appended) by this run's."""
+    block = "\n".join([*campaign_section(report["campaign"])[:-1]])
+    block = block.replace("## Campaign cost\n", "## Campaign cost\n\n" + header + "\n", 1)
+    if CAMPAIGN_BEGIN in old and CAMPAIGN_END in old:
+        a, b = old.index(CAMPAIGN_BEGIN), old.index(CAMPAIGN_END) + len(CAMPAIGN_END)
+        return old[:a] + block + old[b:]
+    return old.rstrip("\n") + "\n\n" + block + "\n"
+
+
 def write_report(report: dict, run_dir: Path, docs_dir: Optional[Path] = None) -> Dict[str, Path]:
     """Write bench.json, bench.md and the figures into ``run_dir``; with ``docs_dir`` also
     ``benchmarks.md`` and its figures there. Returns {kind: path}."""
@@ -375,5 +400,11 @@ def write_report(report: dict, run_dir: Path, docs_dir: Optional[Path] = None) -
                  "clock on the machine named below; on a shared machine they are inflated by the load it "
                  "reports.\n\n")
         paths["docs"] = docs_dir / "benchmarks.md"
-        paths["docs"].write_text(intro + markdown(report, dfigs) + "\n")
+        only_campaign = report.get("campaign") and not any(report.get(k) for k in
+                                                             ("tradeoff", "closed_loop", "scaling", "economies"))
+        if only_campaign and paths["docs"].is_file():  # keep the other parts' tables of the page
+            header = markdown({**report, "campaign": None, "stage_benchmarks": None}, {}).strip()
+            paths["docs"].write_text(_merge_campaign(paths["docs"].read_text(), report, header))
+        else:
+            paths["docs"].write_text(intro + markdown(report, dfigs) + "\n")
     return paths

@@ -26,6 +26,11 @@ from dvsland.runs import make_run_dir
 from .machine import load_average, machine_info
 
 REPORT_PARTS = ("tradeoff", "closed_loop", "scaling", "economies")
+#: parts run only when named (not in the default four)
+EXTRA_PARTS = ("campaign",)
+#: campaign part: (seeds per site and setting, t_max_s or None = the preset's) of each measured batch
+CAMPAIGN_RUNS_FULL = ((7, 60.0), (1, None))
+CAMPAIGN_RUNS_QUICK = ((1, 30.0),)
 
 #: stage benchmarks: name -> (module, full args, quick args); "{json}" becomes the output path
 STAGE_BENCHES = {
@@ -43,7 +48,7 @@ STAGE_BENCHES = {
             ["--threads", "1", "--set", "render.threads=1", "--sites", "A,D,H", "--json", "{json}", "--out", "{dir}"]),
 }
 ALIASES = {"closed-loop": "closed_loop", "closedloop": "closed_loop"}
-CHOICES = REPORT_PARTS + tuple(STAGE_BENCHES)
+CHOICES = REPORT_PARTS + EXTRA_PARTS + tuple(STAGE_BENCHES)
 
 #: closed-loop estimators: quick / full
 CLOSED_LOOP_QUICK = ["oracle", "oracle[noise_rel=0.3]", "dpr"]
@@ -72,7 +77,8 @@ def run_bench(what: Sequence[str] = (), quick: bool = False, device="cpu", out: 
               config=None, closed_loop_config="realistic", docs: Optional[Path] = None, threads: int = 1,
               render_threads: int = 1, estimators: Optional[Sequence[str]] = None, command: str = "",
               closed_loop_estimators: Optional[Sequence[str]] = None, log=print,
-              overrides: Sequence[str] = (), sites: Optional[Sequence[str]] = None) -> Dict:
+              overrides: Sequence[str] = (), sites: Optional[Sequence[str]] = None,
+              campaign: Optional[Dict] = None) -> Dict:
     """Run the benchmark and write its run folder; returns the report dict (``report['run_dir']``).
 
     Args:
@@ -89,6 +95,8 @@ def run_bench(what: Sequence[str] = (), quick: bool = False, device="cpu", out: 
         overrides: ``section.key=value`` strings applied to both configs (``--set``).
         sites: measure only these sites of both configs' ``simulation.sites`` (checked before the
             run folder is made).
+        campaign: the ``campaign`` part's ``preset`` (default montecarlo_efference), ``estimator``
+            (default cmax), ``runs`` ((n_seeds, t_max_s or None), ...) and ``compact`` (default True).
     """
     parts = parse_what(what)
     dev = torch.device(device)
@@ -146,6 +154,9 @@ def run_bench(what: Sequence[str] = (), quick: bool = False, device="cpu", out: 
             save()
         if "economies" in parts:
             _part_economies(report, cfg, quick, log)
+            save()
+        if "campaign" in parts:
+            _part_campaign(report, dict(campaign or {}), dev, quick, overrides, sites, log)
             save()
         stage = [p for p in parts if p in STAGE_BENCHES]
         if stage:
@@ -239,6 +250,32 @@ def _part_economies(report, cfg, quick, log):
         ec[key]["seconds"] = time.perf_counter() - t0
         log(f"  {key}: {time.perf_counter() - t0:.1f} s")
     report["economies"] = ec
+
+
+def _part_campaign(report, spec: dict, dev, quick, overrides, sites, log):
+    from .campaign import bench_campaign
+
+    preset, est = spec.get("preset") or "montecarlo_efference", spec.get("estimator") or "cmax"
+    runs = spec.get("runs") or (CAMPAIGN_RUNS_QUICK if quick else CAMPAIGN_RUNS_FULL)
+    compact = bool(spec.get("compact", True))
+    log(f"== campaign cost ({preset} + {est})")
+    rows = []
+    for n_seeds, t_max in runs:
+        try:
+            rows.append(bench_campaign(preset, est, int(n_seeds), t_max, sites, dev, overrides, compact, log))
+        except Exception as exc:  # noqa: BLE001 - one failing batch must not end the report
+            traceback.print_exc()
+            rows.append(dict(preset=preset, estimator=est, failed=f"{type(exc).__name__}: {exc}"))
+        report["campaign"] = dict(rows=rows, method=(
+            f"One batch per row, as one campaign shard: `{preset}` with estimator `{est}`, every configured site "
+            "and controller setting times the row's seeds, flown in one process on `loop_step` (one torch "
+            "thread, `render.threads=1`, simulation.compact "
+            f"{'on' if compact else 'off'}). Set-up: `build_stages` (terrain and scene preparation or their "
+            "cache, atlas, estimator), CPU s per descent (wall in brackets); scenes: where the renderer's "
+            "scenes came from. Stage columns: process CPU ms per descent-step (steps x B: finished "
+            "descents count, so the figure includes what they still cost); per flying step: the same total "
+            "over the descent-steps still flying. Descents per CPU-minute include the set-up."))
+    report["campaign"]["rows"] = rows
 
 
 def _stage_bench(name: str, quick: bool, run_dir: Path, log) -> Dict:

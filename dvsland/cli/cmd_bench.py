@@ -40,8 +40,41 @@ def register(subparsers) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value of both configs (open and closed loop), e.g. --set "
                         "emulator.threshold=0.15 (repeatable)")
+    p.add_argument("--campaign-preset", default="montecarlo_efference", metavar="CONFIG",
+                   help="campaign part: the preset flown (default montecarlo_efference)")
+    p.add_argument("--campaign-estimator", default="cmax", metavar="NAME",
+                   help="campaign part: the estimator (default cmax)")
+    p.add_argument("--campaign-runs", default=None, metavar="SEEDSxT_MAX,...",
+                   help="campaign part: the batches measured, seeds per site and setting x timeout in s "
+                        "(empty = the preset's), e.g. '7x60,1x' (the default; --quick: '1x30')")
+    p.add_argument("--no-compact", action="store_true",
+                   help="campaign part: simulation.compact=false (finished descents' events reach the estimator)")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     p.set_defaults(func=run)
+
+
+def parse_campaign_runs(text):
+    """``'7x60,1x'`` -> ((7, 60.0), (1, None)); None stays None.
+
+    Raises:
+        ValueError: an entry that is not SEEDSxT_MAX with SEEDS >= 1 and T_MAX > 0 (or empty).
+    """
+    if text is None:
+        return None
+    runs = []
+    for part in (p.strip() for p in str(text).split(",") if p.strip()):
+        seeds, _, t_max = part.partition("x")
+        try:
+            n, t = int(seeds), (float(t_max) if t_max.strip() else None)
+        except ValueError:
+            n, t = 0, None
+        if n < 1 or (t is not None and not t > 0):
+            raise ValueError(f"--campaign-runs: expected SEEDSxT_MAX entries with SEEDS >= 1 and T_MAX > 0 s "
+                             f"or empty (e.g. '7x60,1x'), got {part!r}")
+        runs.append((n, t))
+    if not runs:
+        raise ValueError("--campaign-runs: give at least one SEEDSxT_MAX entry, e.g. '7x60,1x'")
+    return tuple(runs)
 
 
 def run(args) -> int:
@@ -50,6 +83,7 @@ def run(args) -> int:
 
     try:
         check_device(args.device, param="--device")
+        runs = parse_campaign_runs(args.campaign_runs)
     except ValueError as exc:
         print(f"dvsland: error: {exc}", file=sys.stderr)
         return 2
@@ -62,5 +96,7 @@ def run(args) -> int:
     run_bench(args.what, quick=args.quick, device=args.device, out=args.out, config=args.config,
               closed_loop_config=args.closed_loop_config, docs=args.docs, threads=threads,
               render_threads=render_threads, estimators=est, command=command, overrides=args.overrides, sites=sites,
-              log=(lambda *a, **k: None) if args.quiet else print)
+              log=(lambda *a, **k: None) if args.quiet else print,
+              campaign=dict(preset=args.campaign_preset, estimator=args.campaign_estimator, runs=runs,
+                            compact=not args.no_compact))
     return 0

@@ -30,23 +30,28 @@ _log = logging.getLogger("dvsland.sim")
 
 
 class StageTimer:
-    """Accumulates wall seconds per stage; ``sync=True`` synchronises CUDA around each stage."""
+    """Accumulates wall seconds (``seconds``) and process CPU seconds (``cpu_seconds``: every
+    thread of the process; on a shared machine the CPU time is the cost a stage would have alone,
+    the wall time includes waiting for a core) per stage; ``sync=True`` synchronises CUDA around
+    each stage."""
 
     def __init__(self, device, sync: bool = False):
         self.seconds: Dict[str, float] = {k: 0.0 for k in STAGES}
+        self.cpu_seconds: Dict[str, float] = {k: 0.0 for k in STAGES}
         self.sync = bool(sync) and torch.device(device).type == "cuda"
 
     @contextmanager
     def __call__(self, stage: str):
         if self.sync:
             torch.cuda.synchronize()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         try:
             yield
         finally:
             if self.sync:
                 torch.cuda.synchronize()
             self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - t0
+            self.cpu_seconds[stage] = self.cpu_seconds.get(stage, 0.0) + time.process_time() - c0
 
 
 class ClosedLoop:
