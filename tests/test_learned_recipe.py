@@ -1,0 +1,98 @@
+"""The training recipe (dvsland.learn) and `dvsland train --model` on a tiny dataset (one site, five
+seeds = five terrain variants, so train, val and test all have samples; one second of flight)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dvsland.data import build_dataset, gather_batch, load_windows
+from dvsland.estimators import get_estimator
+from dvsland.estimators.learned import read_checkpoint
+from dvsland.learn import RecipeSettings, score, train
+
+SETS = ["render.threads=1", "simulation.torch_threads=1", "simulation.t_max_s=1.0"]
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ds") / "tiny5"
+    build_dataset("montecarlo_efference", out=out, n_seeds=5, sites="A", shard_size=5, overrides=SETS, quiet=True)
+    return out
+
+
+FAST = dict(epochs=2, batch_size=4, val_max_samples=100, model_settings={"width": 4})
+
+
+def test_windows_hold_every_event_of_the_split(data):
+    from dvsland.data import EventWindowDataset
+
+    w = load_windows(data, "val")
+    ds = EventWindowDataset(data, representation="events", split="val")
+    assert w.n_samples == len(ds) and int(w.offset[-1]) == int(sum(len(ds[i][0]) for i in range(len(ds))))
+    b, x, y, frac, p, n = gather_batch(w, torch.tensor([1, 0]))
+    assert n.tolist() == [len(ds[1][0]), len(ds[0][0])] and b.tolist() == sorted(b.tolist())
+    assert ((frac >= 0) & (frac <= 1)).all() and set(p.unique().tolist()) <= {-1, 1}
+
+
+def test_train_writes_a_checkpoint_with_history_provenance_and_calibration(data, tmp_path):
+    ck = train(data, tmp_path / "m.pt", RecipeSettings(**FAST), progress=False, tb_dir=tmp_path / "tb",
+               log=lambda *a: None)
+    assert ck["epoch"] == 2 and len(ck["history"]) == 2
+    assert ck["data"]["config_hash"] and ck["data"]["sensor_size"] == [128, 128] and ck["data"]["samples"]["train"] > 0
+    for split in ("val", "test"):
+        a = ck["final"][split]["all"]
+        assert a["n"] > 0 and 0 <= a["within_1sigma"] <= a["within_2sigma"] <= 1 and a["median_rel_error"] >= 0
+    assert "A" in ck["final"]["test"] and "craters" in ck["history"][0]["val"]
+    assert any((tmp_path / "tb").iterdir())
+    est = get_estimator("learned", 2, (128, 128), checkpoint=str(tmp_path / "m.pt"))
+    assert est.meta["model"]["name"] == "cnn"
+
+
+def test_training_is_seeded_and_resume_continues_exactly(data, tmp_path):
+    quiet = dict(progress=False, log=lambda *a: None)
+    full = train(data, tmp_path / "full.pt", RecipeSettings(**FAST), **quiet)
+    train(data, tmp_path / "half.pt", RecipeSettings(**{**FAST, "epochs": 2, "max_minutes": 1e-6}), **quiet)
+    half = read_checkpoint(tmp_path / "half.pt")
+    assert half["epoch"] == 1 and len(half["history"]) == 1  # stopped after one batch of the first epoch
+    part = train(data, tmp_path / "part.pt", RecipeSettings(**{**FAST, "epochs": 1}), **quiet)
+    assert part["history"][0]["val_loss"] == pytest.approx(full["history"][0]["val_loss"], rel=1e-6)
+    ck = read_checkpoint(tmp_path / "part.pt")
+    ck["train"]["epochs"] = 2  # the same run, allowed one more epoch
+    torch.save(ck, tmp_path / "part.pt")
+    resumed = train(data, tmp_path / "part.pt", RecipeSettings(**FAST), resume=True, **quiet)
+    assert resumed["epoch"] == 2
+    assert resumed["history"][1]["val_loss"] == pytest.approx(full["history"][1]["val_loss"], rel=1e-4)
+    with pytest.raises(ValueError, match="--resume.*other settings"):
+        train(data, tmp_path / "part.pt", RecipeSettings(**{**FAST, "lr": 1e-4}), resume=True, **quiet)
+
+
+def test_bad_settings_name_the_setting(data, tmp_path):
+    with pytest.raises(ValueError, match="batch_size"):
+        RecipeSettings(batch_size=0).check()
+    with pytest.raises(ValueError, match="lr"):
+        RecipeSettings(lr=0).check()
+    with pytest.raises(ValueError, match="root="):
+        train(tmp_path, tmp_path / "x.pt", RecipeSettings(**FAST), progress=False)
+
+
+def test_score_groups_by_site_type_and_counts_calibration(data):
+    w = load_windows(data, "val")
+    d = w.d_true.abs().log()
+    perfect = score(d, torch.zeros_like(d), w)
+    assert perfect["all"]["median_rel_error"] == pytest.approx(0.0, abs=1e-6)
+    assert perfect["all"]["within_1sigma"] == 1.0
+    off = score(d + 3.0, torch.zeros_like(d), w)  # 3 sigma off: outside 1 and 2 sigma
+    assert off["all"]["within_2sigma"] == 0.0 and off["craters"]["n"] == w.n_samples
+
+
+def test_cli_train_model(data, tmp_path, capsys):
+    from dvsland.cli.main import main
+
+    out = tmp_path / "cli.pt"
+    rc = main(["train", "montecarlo_efference", "--model", "cnn", "--data", str(data), "--epochs", "1",
+               "--batch", "4", "--model-set", "width=4", "--out", str(out), "--quiet"])
+    assert rc == 0 and out.is_file() and str(out) in capsys.readouterr().out
+    assert main(["train", "--model", "cnn", "--data", str(data), "--model-set", "width",
+                 "--out", str(tmp_path / "y.pt")]) != 0
+    assert "--model-set 'width': expected KEY=VALUE" in capsys.readouterr().err
