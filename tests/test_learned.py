@@ -169,3 +169,25 @@ def test_cpu_and_cuda_agree(ckpt):
     gpu = get_estimator("learned", 3, (128, 128), "cuda", checkpoint=str(ckpt), min_events=1)
     evg = Events(**{k: getattr(ev, k).cuda() for k in "bxytp"})
     assert torch.allclose(gpu.update(evg, 100_000).cpu(), cpu, rtol=1e-4)
+
+
+def test_spiking_nir_round_trip_agrees(tmp_path):
+    pytest.importorskip("nir")
+    pytest.importorskip("nirtorch")
+    from dvsland.estimators.learned.nir_export import export_nir, from_nir, run_nir
+
+    torch.manual_seed(1)
+    net = SpikingVoxelNet(n_bins=6, width=6, slice_dt_s=0.1 / 6).eval()
+    with torch.no_grad():  # enough drive that both layers spike
+        net.conv1.weight.mul_(4.0)
+        net.conv2.weight.mul_(4.0)
+    spec = InputSpec((128, 128), 6, 4)
+    coords = coord_channels(spec, (63.5, 63.5))
+    vox = torch.randn(3, 6, *spec.grid_hw) * 3
+    lc = torch.full((3,), 5.0)
+    with torch.no_grad():
+        want = net(vox, coords, lc)
+    assert float(net.last_activity["spikes"].min()) > 0
+    module = from_nir(export_nir(net, spec.grid_hw, tmp_path / "s.nir"))
+    got = run_nir(module, net, vox, coords, lc)
+    assert torch.allclose(got[0], want[0], atol=1e-5) and torch.allclose(got[1], want[1], atol=1e-5)

@@ -89,12 +89,23 @@ class SpikingVoxelNet(nn.Module):
         return {"n_bins": self.n_bins, "width": self.width, "slice_dt_s": self.slice_dt_s,
                 "tau_mem_s": self.p.tau_mem_s, "tau_syn_s": self.p.tau_syn_s}
 
+    def slice_inputs(self, vox: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+        """The network's input per time step: (B, n_bins, 3, h, w) float32 = [normalised bin k, coords]."""
+        B = vox.shape[0]
+        xy = coords.expand(B, -1, -1, -1)[:, None].expand(-1, self.n_bins, -1, -1, -1)
+        return torch.cat([_normalise(vox)[:, :, None], xy], dim=2)
+
+    def readout(self, count2: torch.Tensor, coords: torch.Tensor, log_count: torch.Tensor):
+        """(mu, log_var) (B,) from the layer-2 spike counts of a window, (B, 2 width, h2, w2)."""
+        r = coords.norm(dim=1, keepdim=True)  # (1, 1, h, w) radius about the principal point
+        r2 = nn.functional.adaptive_avg_pool2d(r, count2.shape[-2:])
+        f = torch.cat([count2.mean(dim=(2, 3)), (count2 * r2).mean(dim=(2, 3)), log_count[:, None]], dim=1)
+        mu, log_var = self.head(f).unbind(1)
+        return mu, log_var.clamp(-12.0, 6.0)
+
     def forward(self, vox: torch.Tensor, coords: torch.Tensor, log_count: torch.Tensor):
         B = vox.shape[0]
-        v = _normalise(vox)
-        xy = coords.expand(B, -1, -1, -1)
-        cur = self.conv1(torch.cat([v.flatten(0, 1)[:, None], xy.repeat_interleave(self.n_bins, 0)], 1))
-        cur = cur.unflatten(0, (B, self.n_bins))  # (B, n_bins, c, h1, w1)
+        cur = self.conv1(self.slice_inputs(vox, coords).flatten(0, 1)).unflatten(0, (B, self.n_bins))
         step = lif_step if torch.is_grad_enabled() else lif_step_inference
         s1 = lif_state(cur[:, 0].shape, cur.device)
         s2 = None
@@ -106,15 +117,10 @@ class SpikingVoxelNet(nn.Module):
             z2, s2 = step(c2, s2, self.p, self.slice_dt_s)
             count2 = count2 + z2
             n1 = n1 + z1.sum(dim=(1, 2, 3))
-        r = coords.norm(dim=1, keepdim=True)  # (1, 1, h, w) radius
-        r2 = nn.functional.adaptive_avg_pool2d(r, count2.shape[-2:])
-        f = torch.cat([count2.mean(dim=(2, 3)), (count2 * r2).mean(dim=(2, 3)), log_count[:, None]], dim=1)
         n2 = count2.sum(dim=(1, 2, 3))
-        c1_out = self.conv2.out_channels * 9 / 4.0
-        self.last_activity = {"spikes": (n1 + n2).detach(),
-                              "synops": (n1 * c1_out + n2 * 2).detach()}
-        mu, log_var = self.head(f).unbind(1)
-        return mu, log_var.clamp(-12.0, 6.0)
+        fan1 = self.conv2.out_channels * 9 / 4.0  # a layer-1 spike's targets (3x3 kernel, stride 2)
+        self.last_activity = {"spikes": (n1 + n2).detach(), "synops": (n1 * fan1 + n2 * self.head.in_features).detach()}
+        return self.readout(count2, coords, log_count)
 
 
 #: the built-in models by name
