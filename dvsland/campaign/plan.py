@@ -241,6 +241,49 @@ def _check_shard_memory(cfg: Config, shard_seeds: int, source: str) -> None:
     check_memory(cfg, len(layout.scene_names), layout.batch_size, source=source)
 
 
+def shard_bytes(cfg: Config, shard_seeds: int) -> float:
+    """Estimated peak memory of one shard of ``shard_seeds`` seeds of ``cfg``, bytes
+    (:func:`dvsland.config.validate.estimate_run_bytes` on the shard's layout: its scenes and B)."""
+    import copy
+
+    from dvsland.config.validate import estimate_run_bytes
+    from dvsland.layout import build_layout
+
+    c = copy.deepcopy(cfg)
+    c.simulation.n_seeds = int(shard_seeds)
+    layout = build_layout(c)
+    return estimate_run_bytes(c, len(layout.scene_names), layout.batch_size)
+
+
+def auto_shard_seeds(cfg: Config, n_seeds: int, workers: int = 1) -> int:
+    """Seeds per shard chosen from the memory estimate: the most seeds (at most
+    ``ceil(n_seeds / workers)``, so that every worker gets a shard, and at most
+    :data:`MAX_SHARD_SEEDS`) whose shard fits ``simulation.max_memory_gb`` (0 = 80 % of this
+    machine's memory) divided among the ``workers`` processes that hold a shard each. Finished
+    descents cost almost nothing (``simulation.compact``), so one large shard per worker wastes
+    little on the descents that end first. 1 when not even one seed fits (the plan's memory check
+    then names the parts).
+
+    Raises:
+        ValueError: ``n_seeds`` or ``workers`` < 1.
+    """
+    from dvsland.config.validate import memory_limit_bytes
+
+    if int(n_seeds) < 1 or int(workers) < 1:
+        raise ValueError(f"n_seeds and workers must be >= 1, got {n_seeds} and {workers}")
+    budget = memory_limit_bytes(cfg) / int(workers)
+    lo, hi = 1, min(MAX_SHARD_SEEDS, math.ceil(int(n_seeds) / int(workers)))
+    if shard_bytes(cfg, hi) <= budget:
+        return hi
+    while lo < hi:  # largest s in [lo, hi) that fits; the estimate grows with s
+        mid = (lo + hi + 1) // 2
+        if shard_bytes(cfg, mid) <= budget:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
 def check_plan_size(n_seeds: int, shard_seeds: int, n_points: int) -> int:
     """The number of shards of ``n_points`` grid points x ``n_seeds`` seeds in shards of
     ``shard_seeds``; ValueError (up front, by arithmetic) beyond :data:`MAX_SHARDS`."""

@@ -34,7 +34,7 @@ from dvsland.report.stats import default_group_keys, format_group_table, group_s
 from dvsland.runs import RunWriteError, deferred_interrupts, make_run_dir
 
 from .executors import EXECUTORS, run_local, run_ray
-from .plan import CampaignPlan, Shard, config_digest, make_plan, shard_hash
+from .plan import CampaignPlan, Shard, auto_shard_seeds, config_digest, make_plan, shard_hash
 
 SHARDS_DIR = "shards"
 #: where damaged or foreign shard files are moved (kept, never merged)
@@ -210,7 +210,8 @@ def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_
         resume: a campaign folder: run only its missing shards, then merge.
         out: campaign folder (default ``logs/<name>-campaign-<stamp>/``).
         quiet: no progress bar and no printed table.
-        shard_seeds: seeds per shard (a shard flies sites x settings x shard_seeds descents).
+        shard_seeds: seeds per shard (a shard flies sites x settings x shard_seeds descents); 0 =
+            chosen from the memory estimate for ``workers`` (:func:`~.plan.auto_shard_seeds`).
         keep_runs: keep each shard's run folder (config.yaml, results.json, traces.npz) under
             ``shards/<id>/``.
         max_shards: run at most this many of the missing shards, then stop (status
@@ -226,7 +227,7 @@ def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_
         raise ValueError(f"--workers must be in [1, {MAX_WORKERS}] (each local worker is a process holding its "
                          f"own scenes, about 2 GB), got {workers}")
     t0 = time.perf_counter()
-    plan, run_dir, lock = _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out)
+    plan, run_dir, lock = _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out, workers)
     try:
         todo, rejected = check_shards(plan, run_dir, quiet)
         n_done_before = len(plan.shards) - len(todo)
@@ -240,7 +241,7 @@ def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_
             lock.close()
 
 
-def _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out):
+def _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out, workers: int = 1):
     """(plan, folder, lock): a checked plan from ``resume``'s campaign.json, or a new plan (checked
     before its folder is made) saved in a new folder; the folder's lock held."""
     if resume is not None:
@@ -250,6 +251,9 @@ def _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out):
     else:
         if config is None:
             raise ValueError("run_campaign needs a config (or resume=FOLDER)")
+        if not shard_seeds:  # 0 / None: from the memory estimate
+            shard_seeds = auto_shard_seeds(config, int(config.simulation.n_seeds if n_seeds is None else n_seeds),
+                                           workers)
         plan = make_plan(config, sweeps, n_seeds, shard_seeds)
         run_dir = make_run_dir(config, out, kind="campaign")  # claimed atomically; config.yaml first
         lock = lock_campaign(run_dir)

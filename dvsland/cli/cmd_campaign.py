@@ -19,7 +19,9 @@ def register(subparsers) -> None:
                    help="sweep a config value, e.g. --sweep estimator.name=dpr,oracle (repeatable: cartesian grid)")
     p.add_argument("--n-seeds", type=int, default=None, metavar="N", help="seeds per grid point "
                    "(default simulation.n_seeds)")
-    p.add_argument("--shard-seeds", type=int, default=5, metavar="S", help="seeds per shard (default 5)")
+    p.add_argument("--shard-seeds", type=int, default=0, metavar="S",
+                   help="seeds per shard (default 0: chosen from the memory estimate, simulation.max_memory_gb "
+                        "shared by the workers, at most n_seeds / workers; docs/campaigns.md)")
     p.add_argument("--executor", default="local", choices=("local", "ray"),
                    help="local: here (--workers > 1: a process pool); ray: Ray tasks (local instance, or the "
                         "cluster at $RAY_ADDRESS)")
