@@ -44,16 +44,21 @@ def test_fast_paths_equal_reference(kw, monkeypatch):
         assert torch.equal(emu_f._t_last, emu_r._t_last)
 
 
-def test_shot_noise_keys_come_sorted():
-    """The shot-noise draws are in (element, time, pixel) order, so merging them is exact."""
+def test_shot_noise_slots_come_sorted():
+    """The shot-noise draws are in (element, time, pixel) order, so merging them is exact; pixels
+    outside the sensor (the slot's padding to powers of two) never appear."""
     from dvsland.events import pixel_model as pm
 
     rngs = pm.element_rngs(3, 4, pm.TAG_SHOT)
-    flat, t_rel, u = pm.sorted_candidates(rngs, 200.0, 37 * 21, 100_000)
-    n_pix = 37 * 21
-    key = (flat // n_pix) * (10 ** 12) + t_rel * n_pix + flat % n_pix
-    assert flat.numel() > 1000 and bool((key[1:] >= key[:-1]).all())
-    assert int(t_rel.min()) >= 1 and int(t_rel.max()) <= 100_000
+    H, W, xb, yb = 21, 37, 6, 5
+    slot, elem, u = pm.sorted_candidates(rngs, 200.0, H, W, 100_000, xb, yb)
+    key = elem * (1 << 40) + slot
+    assert slot.numel() > 1000 and bool((key[1:] > key[:-1]).all())  # strictly: one per slot
+    x, y, t = slot & 63, (slot >> xb) & 31, slot >> (xb + yb)
+    assert int(x.max()) < W and int(y.max()) < H and int(t.min()) >= 0 and int(t.max()) < 100_000
     # Poisson counts: mean 200 Hz x 777 px x 0.1 s per element
-    counts = torch.bincount(flat // n_pix, minlength=4).double()
-    assert abs(float(counts.mean()) / (200 * n_pix * 0.1) - 1) < 0.05
+    counts = torch.bincount(elem, minlength=4).double()
+    assert abs(float(counts.mean()) / (200 * H * W * 0.1) - 1) < 0.05
+    # uniform over pixels: every row and column gets its share
+    assert torch.bincount(x, minlength=W).min() > 0.7 * slot.numel() / W
+    assert torch.bincount(y, minlength=H).min() > 0.7 * slot.numel() / H

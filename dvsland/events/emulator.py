@@ -49,6 +49,7 @@ from typing import Optional, Tuple
 import numpy as np
 import torch
 
+from . import native
 from . import pixel_model as pm
 from .denoise import EventDenoiser
 from .events import Events
@@ -426,7 +427,8 @@ class EventEmulator:
         if pmp.lowpass:
             alpha = pm.photoreceptor_alpha(f1, dt * 1e-6, pmp.photoreceptor_cutoff_hz, pmp.full_irradiance)
         if pmp.shot:  # drawn now: the rate needs the irradiance (f1 becomes L1 below)
-            shot = pm.draw_shot_noise(self._shot_gens, f1, t1 - t0, pmp)
+            lay = self._layout
+            shot = pm.draw_shot_noise(self._shot_gens, f1, t1 - t0, pmp, lay.y_shift - 1, lay.t_shift - lay.y_shift)
 
         if self.interpolation == "log":
             l1 = f1.add_(self.log_eps).log_()  # f1 is a private copy
@@ -471,13 +473,14 @@ class EventEmulator:
             keys = bg if keys is None else torch.cat((keys, bg))
         shot_keys = None
         if shot is not None:
-            flat, t_rel, off = shot
+            flat, slot, elem, off = shot
             if flat.numel():
                 # a shot event resets its pixel's reference to the current level (as v2e)
                 self._lref.view(-1).index_copy_(0, flat, l1.view(-1).index_select(0, flat))
-                # drawn in (b, t, pixel) order: their keys are sorted, so they are merged into the
-                # sorted scene keys rather than sorted with them
-                shot_keys = layout.pixel_key(flat, off, b_shift).add_(t_rel << layout.t_shift)
+                # drawn in (b, t, pixel) order: their keys (slot = t_rel - 1 | y | x, see
+                # _KeyLayout) are sorted, so they are merged into the sorted scene keys
+                shot_keys = slot.add_(1 << (layout.t_shift - 1)).bitwise_left_shift_(1).bitwise_or_(
+                    elem.bitwise_left_shift_(b_shift)).bitwise_or_(off.to(torch.int64))
         if keys is None or keys.numel() == 0:
             keys, shot_keys = shot_keys, None
         if keys is None or keys.numel() == 0:
@@ -814,9 +817,15 @@ class _KeyLayout:
         """Sort the keys (in place on CPU), merge in ``sorted_keys`` (already sorted, or None) and
         unpack into :class:`Events` (t = t0 + t_rel)."""
         if _cpu_fast_path(keys):
-            keys.numpy().sort()
-            if sorted_keys is not None and sorted_keys.numel():
-                keys = _merge_sorted(keys, sorted_keys)
+            if native.native_sort_enabled():  # the compiled radix sort (opt-in): same result
+                if sorted_keys is not None and sorted_keys.numel():
+                    keys = torch.cat((keys, sorted_keys))
+                if not native.radix_sort_(keys, b_shift + self.bb):
+                    keys.numpy().sort()
+            else:
+                keys.numpy().sort()
+                if sorted_keys is not None and sorted_keys.numel():
+                    keys = _merge_sorted(keys, sorted_keys)
         else:
             if sorted_keys is not None:
                 keys = torch.cat((keys, sorted_keys))

@@ -191,47 +191,50 @@ def uniform_candidates(rngs: List[np.random.Generator], rate_hz: float, n_pix: i
     return torch.from_numpy(flat), torch.from_numpy(t_rel + 1), torch.from_numpy(u)
 
 
-def sorted_candidates(rngs: List[np.random.Generator], rate_hz: float, n_pix: int, dt_us: int
-                      ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Poisson events at ``rate_hz`` per pixel over ``n_pix`` pixels of each element, drawn in
-    order: per element a Poisson process over the time-major slots ``s = t * n_pix + pixel``
-    (t in whole µs) from exponential gaps, so the events come out sorted by (element, time, pixel)
-    with no sort (two events may share a slot, as two Poisson events may share a µs). A loop of a
-    few draws per element, none over pixels or events.
+def sorted_candidates(rngs: List[np.random.Generator], rate_hz: float, height: int, width: int, dt_us: int,
+                      x_bits: int, y_bits: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Poisson events at ``rate_hz`` per pixel of each element's (height, width) pixels, drawn in
+    order: per element a Poisson process over the time-major slots
+    ``slot = t << (x_bits + y_bits) | y << x_bits | x`` (t in whole µs from 0, x < 2^x_bits, y <
+    2^y_bits) from exponential gaps, slots with x >= width or y >= height dropped. So the events come
+    out sorted by (element, time, row-major pixel) with no sort and no division; a second event in
+    the same slot is dropped (at most one per pixel and µs: a Bernoulli process per slot, which is
+    Poisson to within the slot probability, about 1e-5 at the rates of real sensors). A loop of a few draws per element, none over
+    pixels or events.
 
-    Returns (N,) each, on CPU, sorted by (element, time offset, pixel): flat index
-    ``b * n_pix + pixel`` int64, time offset int64 µs in [1, dt_us], and a uniform float64 in [0, 1)
-    (for thinning and polarity).
+    Returns (N,) each, on CPU, in that order: slot int64, element index int64, and a uniform
+    float64 in [0, 1) (for thinning and polarity).
     """
-    per_slot = float(rate_hz) * 1e-6  # events per (pixel, µs) slot
-    span = n_pix * int(dt_us)
+    per_slot = float(rate_hz) * 1e-6  # events per (padded pixel, µs) slot
+    pix_bits = x_bits + y_bits
+    span = int(dt_us) << pix_bits
     lam = per_slot * span
-    pts, us = [], []
-    for b, rng in enumerate(rngs):
+    pad = width < (1 << x_bits) or height < (1 << y_bits)
+    slots, counts, us = [], [], []
+    for rng in rngs:
         if per_slot <= 0:
-            break
+            counts.append(0)
+            continue
         pos = np.cumsum(rng.standard_exponential(int(lam + 6.0 * math.sqrt(lam) + 16.0)))
         while pos[-1] * (1.0 / per_slot) < span:  # rare: more gaps than drawn
             pos = np.concatenate((pos, pos[-1] + np.cumsum(rng.standard_exponential(int(lam // 4) + 16))))
-        slot = np.floor(pos * (1.0 / per_slot)).astype(np.int64)
-        slot = slot[:np.searchsorted(slot, span)]
-        if slot.size == 0:
-            continue
-        if b:
-            slot += b * span
-        pts.append(slot)
+        pos *= 1.0 / per_slot
+        slot = pos[:np.searchsorted(pos, span)].astype(np.int64)  # positive: truncation = floor
+        if slot.size > 1:  # at most one event per pixel and µs (a rate-5e-6 Bernoulli slot; keys stay strictly sorted)
+            slot = slot[np.concatenate(([True], slot[1:] != slot[:-1]))]
+        if pad and slot.size:
+            slot = slot[((slot & ((1 << x_bits) - 1)) < width) & (((slot >> x_bits) & ((1 << y_bits) - 1)) < height)]
+        slots.append(slot)
+        counts.append(slot.size)
         us.append(rng.random(slot.size))
-    if not pts:
+    n = sum(counts)
+    if n == 0:
         e = torch.empty(0, dtype=torch.int64)
         return e, e.clone(), torch.empty(0, dtype=torch.float64)
-    pt = np.concatenate(pts) if len(pts) > 1 else pts[0]
-    # pt = b * span + t * n_pix + pixel  ->  flat = b * n_pix + pixel, t
-    el = pt // span
-    rem = pt - el * span
-    t0 = rem // n_pix
-    flat = rem - t0 * n_pix + el * n_pix
+    slot = np.concatenate(slots) if len(slots) > 1 else slots[0]
+    elem = np.repeat(np.arange(len(counts), dtype=np.int64), counts)
     u = np.concatenate(us) if len(us) > 1 else us[0]
-    return torch.from_numpy(flat), torch.from_numpy(t0 + 1), torch.from_numpy(u)
+    return torch.from_numpy(slot), torch.from_numpy(elem), torch.from_numpy(u)
 
 
 def draw_background(rngs: List[np.random.Generator], rate_hz: float, n_pix: int, dt_us: int, device):
@@ -248,40 +251,45 @@ def _nonzero_idx(mask: torch.Tensor) -> torch.Tensor:
 
 
 def draw_shot_noise(rngs: List[np.random.Generator], irradiance: torch.Tensor, dt_us: int,
-                    params: PixelModelParams):
-    """Shot-noise events of one interval by thinning.
+                    params: PixelModelParams, x_bits: int, y_bits: int):
+    """Shot-noise events of one interval by thinning, in (element, time, pixel) order.
 
-    Candidates come at ``r_max = r_dark * max(1, k)`` per pixel; one uniform u per candidate keeps
-    it when ``u < q = r(I) / r_max`` and makes it OFF when ``u < q / 2`` (given kept, u is uniform
-    on [0, q): OFF with probability 1/2, independent of the rate).
+    Candidates come at ``r_max = r_dark * max(1, k)`` per pixel (:func:`sorted_candidates`); one
+    uniform u per candidate keeps it when ``u < q = r(I) / r_max`` and makes it OFF when
+    ``u < q / 2`` (given kept, u is uniform on [0, q): OFF with probability 1/2, independent of the
+    rate).
 
     Args:
         rngs: one generator per batch element.
         irradiance: (B, H, W) linear irradiance of the new frame (any device).
         dt_us: interval length, µs.
         params: the rate parameters.
+        x_bits, y_bits: bit widths of x and y in the slot (2^x_bits >= W, 2^y_bits >= H).
 
     Returns:
-        flat pixel index (N,) int64, time offset (N,) int64 µs in [1, dt_us], OFF flag (N,) bool,
-        all on ``irradiance.device``, sorted by (element, time, pixel) (:func:`sorted_candidates`).
+        flat pixel index ``(b * H + y) * W + x`` (N,) int64, slot (N,) int64 (time offset from 0 and
+        pixel, see :func:`sorted_candidates`), element (N,) int64, OFF flag (N,) bool, all on
+        ``irradiance.device``, sorted by (element, time, pixel).
     """
-    n_pix = irradiance[0].numel()
+    B, H, W = irradiance.shape
     k = params.shot_noise_bright_factor
     r_max = params.shot_noise_rate_hz * max(1.0, k)
-    flat, t_rel, u = sorted_candidates(rngs, r_max, n_pix, dt_us)
+    slot, elem, u = sorted_candidates(rngs, r_max, H, W, dt_us, x_bits, y_bits)
     dev = irradiance.device
-    flat, t_rel, u = flat.to(dev), t_rel.to(dev), u.to(dev)
+    slot, elem, u = slot.to(dev), elem.to(dev), u.to(dev)
+    x = slot.bitwise_and((1 << x_bits) - 1)
+    flat = slot.bitwise_right_shift(x_bits).bitwise_and_((1 << y_bits) - 1).add_(elem * H).mul_(W).add_(x)
     if flat.numel():
         # q = r(I) / r_max = a + c min(1, I / I_full), a = r_dark / r_max, c = a (k - 1)
         a = params.shot_noise_rate_hz / r_max
-        q = irradiance.reshape(-1).index_select(0, flat).mul_(1.0 / params.full_irradiance)
+        q = irradiance.reshape(-1).index_select(0, flat).to(torch.float64).mul_(1.0 / params.full_irradiance)
         q = q.clamp_(max=1.0).mul_(a * (k - 1.0)).add_(a)
         off = u < q.mul(0.5)
         if a * min(1.0, k) < 1.0:  # some candidates may be dropped
             keep = _nonzero_idx(u < q)
-            flat, t_rel, off = flat.index_select(0, keep), t_rel.index_select(0, keep), off.index_select(0, keep)
-        return flat, t_rel, off
-    return flat, t_rel, torch.empty(0, dtype=torch.bool, device=dev)
+            flat, slot, elem, off = (t.index_select(0, keep) for t in (flat, slot, elem, off))
+        return flat, slot, elem, off
+    return flat, slot, elem, torch.empty(0, dtype=torch.bool, device=dev)
 
 
 # --------------------------------------------------------------------- leak and hot pixels
