@@ -96,3 +96,16 @@ def test_cli_train_model(data, tmp_path, capsys):
     assert main(["train", "--model", "cnn", "--data", str(data), "--model-set", "width",
                  "--out", str(tmp_path / "y.pt")]) != 0
     assert "--model-set 'width': expected KEY=VALUE" in capsys.readouterr().err
+
+
+def test_several_datasets_are_one_split(data):
+    from dvsland.data import concat_windows
+
+    w = load_windows(data, "train")
+    two = concat_windows([w, w])
+    assert two.n_samples == 2 * w.n_samples and int(two.offset[-1]) == 2 * int(w.offset[-1])
+    b, *_rest, n = gather_batch(two, torch.tensor([w.n_samples]))  # the second copy's first sample
+    assert int(n[0]) == int(w.offset[1] - w.offset[0]) and torch.equal(_rest[0], w.x[: int(n[0])])
+    assert len(set(two.descent.tolist())) == 2 * len(set(w.descent.tolist()))
+    with pytest.raises(ValueError, match="data: the datasets are of different sensors"):
+        concat_windows([w, w._replace(sensor_size=(346, 260))])

@@ -53,7 +53,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     rec.add_argument("--model", default=None, metavar="NAME|pkg.mod:Class",
                      help="train this model of the learned estimator's zoo (cnn, spiking) or any class with the "
                           "same forward(vox, coords, log_count) on --data with the recipe; without --model: snn")
-    rec.add_argument("--data", default=None, metavar="DIR", help="dataset folder of `dvsland dataset build`")
+    rec.add_argument("--data", default=None, metavar="DIR[,DIR]",
+                     help="dataset folder(s) of `dvsland dataset build`, of one sensor")
     rec.add_argument("--model-set", action="append", default=[], metavar="KEY=VALUE",
                      help="a model constructor setting, e.g. width=16 (repeatable)")
     rec.add_argument("--n-bins", type=int, default=None, help="time bins of the voxel grid (default 4; spiking 6)")

@@ -22,8 +22,8 @@ from .represent import REPRESENTATIONS, collate_events
 from .shardfile import ShardError
 from .splits import SPLITS, SplitRule
 from .stream import LoopStream
-from .tensors import Windows, gather_batch, load_manifest_info, load_windows
+from .tensors import Windows, concat_windows, gather_batch, load_manifest_info, load_windows
 
 __all__ = ["build_dataset", "BuildResult", "EventWindowDataset", "LoopStream", "collate_events", "SplitRule",
            "SPLITS", "REPRESENTATIONS", "ShardError", "Windows", "load_windows", "gather_batch",
-           "load_manifest_info"]
+           "load_manifest_info", "concat_windows"]

@@ -115,3 +115,30 @@ def load_manifest_info(root) -> dict:
     out["config"] = (m.get("config") or {}).get("name")
     out["shards"] = sorted(e["id"] if "id" in e else e.get("file") for e in m["shards"] if e.get("status") == "complete")
     return out
+
+
+def concat_windows(parts: List[Windows], param: str = "data") -> Windows:
+    """One Windows of several (datasets of one sensor): site names merged, descents kept apart.
+    ValueError naming ``param`` when the sensors differ."""
+    if len(parts) == 1:
+        return parts[0]
+    sizes = {tuple(w.sensor_size) for w in parts}
+    if len(sizes) != 1:
+        raise ValueError(f"{param}: the datasets are of different sensors {sorted(sizes)}; one model input needs one "
+                         f"sensor (train one model per sensor)")
+    sites: List[str] = []
+    for w in parts:
+        sites += [s for s in w.sites if s not in sites]
+    cat = {k: [] for k in ("x", "y", "frac", "p", "d_true", "site", "descent", "step", "z_m")}
+    offs, base = [torch.zeros(1, dtype=torch.int64)], 0
+    for j, w in enumerate(parts):
+        remap = torch.tensor([sites.index(s) for s in w.sites], dtype=torch.int64)
+        for k in ("x", "y", "frac", "p", "d_true", "step", "z_m"):
+            cat[k].append(getattr(w, k))
+        cat["site"].append(remap[w.site])
+        cat["descent"].append(w.descent + j * 10 ** 12)
+        offs.append(w.offset[1:] + base)
+        base += int(w.offset[-1])
+    t = {k: torch.cat(v) for k, v in cat.items()}
+    return Windows(t["x"], t["y"], t["frac"], t["p"], torch.cat(offs), t["d_true"], t["site"], t["descent"],
+                   t["step"], t["z_m"], sites, parts[0].sensor_size)

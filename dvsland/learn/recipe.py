@@ -22,7 +22,7 @@ from typing import Callable, Dict, Optional
 
 import torch
 
-from dvsland.data import Windows, load_windows, load_manifest_info
+from dvsland.data import Windows, concat_windows, load_manifest_info, load_windows
 from dvsland.estimators.learned.checkpoint import read_checkpoint, save_checkpoint
 from dvsland.estimators.learned.inputs import InputSpec, check_input_spec, coord_channels
 from dvsland.estimators.learned.models import build_model
@@ -77,9 +77,25 @@ def _loss(mu, log_var, target, l1_weight: float):
     return (nll + l1_weight * (target - mu).abs()).mean()
 
 
+def data_dirs(data_dir) -> list:
+    """The dataset folders of ``data_dir``: one path, a comma-separated string or a list."""
+    if isinstance(data_dir, (list, tuple)):
+        return [Path(d) for d in data_dir]
+    return [Path(d) for d in str(data_dir).split(",") if d.strip()]
+
+
+def load_split(data_dir, split: str) -> Windows:
+    """The ``split`` of every folder of ``data_dir`` (:func:`data_dirs`) in one Windows."""
+    return concat_windows([load_windows(d, split) for d in data_dirs(data_dir)], param="--data")
+
+
 def _provenance(data_dir, tr: Windows, va: Windows) -> dict:
-    info = load_manifest_info(data_dir)
-    return {"root": str(Path(data_dir).resolve()), **info, "samples": {"train": tr.n_samples, "val": va.n_samples}}
+    infos = [{"root": str(d.resolve()), **load_manifest_info(d)} for d in data_dirs(data_dir)]
+    out = dict(infos[0])
+    if len(infos) > 1:
+        out["config_hash"] = "+".join(i["config_hash"] for i in infos)
+        out["datasets"] = infos
+    return {**out, "samples": {"train": tr.n_samples, "val": va.n_samples}}
 
 
 def _val_subset(va: Windows, n_max: int) -> torch.Tensor:
@@ -102,13 +118,14 @@ def _resume_state(out: Path, model_desc: dict, provenance: dict, s: RecipeSettin
 
 def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bool = False,
           progress: bool = True, tb_dir=None, log: Callable = print) -> dict:
-    """Train ``settings.model`` on dataset folder ``data_dir``; write the checkpoint ``out``.
+    """Train ``settings.model`` on dataset folder ``data_dir`` (or several of one sensor, a list or
+    comma-separated); write the checkpoint ``out``.
 
     Returns the checkpoint dict (``history``, ``final`` scores on val and test, ...).
     """
     s = settings.check()
     torch.manual_seed(s.seed)
-    tr, va = load_windows(data_dir, "train"), load_windows(data_dir, "val")
+    tr, va = load_split(data_dir, "train"), load_split(data_dir, "val")
     spec = check_input_spec(InputSpec(tr.sensor_size, s.n_bins, s.pool_px, s.coord_scale_px))
     coords = coord_channels(spec, ((spec.sensor_size[0] - 1) / 2, (spec.sensor_size[1] - 1) / 2))
     net, cls_path = build_model(s.model, {"n_bins": s.n_bins, **s.model_settings})
@@ -238,7 +255,7 @@ def _finish(out, net, opt, spec, coords, model_desc, prov, s, run, data_dir, va,
     best.load_state_dict(run["best_state"])
     final = {"val": score(*predict(best, va, spec, coords), va)}
     try:
-        te = load_windows(data_dir, "test")
+        te = load_split(data_dir, "test")
         final["test"] = score(*predict(best, te, spec, coords), te)
     except ValueError as exc:  # a dataset without a test split
         final["test_error"] = str(exc)
