@@ -13,7 +13,6 @@ against the loop's ``d_true``. The estimate stage is timed (with a device sync).
 from __future__ import annotations
 
 import copy
-import dataclasses
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -22,10 +21,10 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 import torch
 
-from dvsland.config import Config, build, config_to_dict
-from dvsland.config.validate import check_config
+from dvsland.config import Config
 from dvsland.stages import FrameSource, build_estimator, build_stages
 
+from .flight import flight_config, parse_estimator_spec, variant_config  # noqa: F401 (re-exported)
 from .metrics import band_metrics, divergence_metrics
 from .trajectory import Descents, closed_form_descents, segment_schedule
 
@@ -42,7 +41,10 @@ class EvaluationResult:
         scored: (B, K + 1) bool, steps that count in the metrics (run, descent valid, after warm-up).
         ms_per_step: {estimator: (n_run,) float64 wall time of each ``update`` for the batch, ms}.
         n_events: (B, K + 1) int64 events per step and site (-1 = step not run).
-        summary: JSON-ready dict of all metrics (see :func:`summarise`).
+        summary: JSON-ready dict of all metrics (see :func:`summarise`); with hard scenarios its
+            ``scenarios`` holds their descriptions and per-phase metrics.
+        scenarios: what :func:`dvsland.evaluate.scenario_run.run_scenarios` returned (traces
+            included), or {} without scenarios.
     """
 
     descents: Descents
@@ -51,49 +53,7 @@ class EvaluationResult:
     ms_per_step: Dict[str, np.ndarray]
     n_events: np.ndarray
     summary: dict = field(default_factory=dict)
-
-
-def _parse_value(text: str):
-    import yaml
-
-    return yaml.safe_load(text)
-
-
-def parse_estimator_spec(spec) -> tuple:
-    """``"dpr"`` -> ("dpr", "dpr", {}); ``"cmax[window_ms=500;n_grid=21]"`` -> (label, "cmax",
-    {"window_ms": 500, "n_grid": 21}) with the whole text as label; a tuple (label, name, dict)
-    passes through. Values are parsed as YAML scalars; :func:`variant_config` applies them as
-    ``--set estimator.cmax.window_ms=500`` would (one override syntax, one validation)."""
-    if isinstance(spec, (tuple, list)):
-        label, name, over = spec
-        return str(label), str(name), dict(over)
-    spec = str(spec).strip()
-    if "[" not in spec:
-        return spec, spec, {}
-    if not spec.endswith("]"):
-        raise ValueError(f"estimator spec {spec!r}: expected NAME or NAME[key=value;key=value]")
-    name, body = spec[:-1].split("[", 1)
-    over = {}
-    for item in filter(None, (x.strip() for x in body.split(";"))):
-        if "=" not in item:
-            raise ValueError(f"estimator spec {spec!r}: {item!r} is not key=value")
-        k, v = item.split("=", 1)
-        over[k.strip()] = _parse_value(v.strip())
-    return spec, name.strip(), over
-
-
-def variant_config(cfg: Config, name: str, overrides: dict, label: str = "") -> Config:
-    """``cfg`` with estimator ``name``'s parameters updated by ``overrides``, validated as
-    ``--set estimator.<name>.<key>=<value>`` would be (typed by the schema's field, range-checked,
-    unknown keys rejected with the allowed ones); an estimator without a config section takes
-    them in ``estimator.params``."""
-    if not overrides:
-        return cfg
-    section = name if dataclasses.is_dataclass(getattr(cfg.estimator, name, None)) else "params"
-    data = config_to_dict(cfg)
-    data["estimator"][section].update(overrides)
-    source = f"estimator spec {label or name}"
-    return check_config(build(Config, data, source=source), source=source)
+    scenarios: dict = field(default_factory=dict)
 
 
 def _sync(device: torch.device) -> None:
@@ -143,24 +103,6 @@ def summarise(res: EvaluationResult, info: Optional[dict] = None) -> dict:
     return out
 
 
-def flight_config(cfg: Config, sites: Sequence[str], n_steps: int) -> Config:
-    """A copy of ``cfg`` that flies one element per site, in the order of ``sites``, for ``n_steps``
-    (+2) steps: the first controller setting, one seed, no dispersion, and no end but the success
-    altitude (the evaluation descents end there; ``crash_divergence`` and ``t_max_s`` are lifted)."""
-    fc = copy.deepcopy(cfg)
-    specs = {s.name: s for s in fc.simulation.sites}
-    fc.simulation.sites = [specs[n] for n in sites]
-    fc.controller.settings = list(fc.controller.settings)[:1]
-    fc.simulation.n_seeds = 1
-    if hasattr(fc.simulation, "seed_offset"):
-        fc.simulation.seed_offset = 0
-    if getattr(fc, "dispersion", None) is not None:
-        fc.dispersion.enabled = False
-    fc.simulation.crash_divergence = 1e3
-    fc.simulation.t_max_s = max(float(fc.simulation.t_max_s), (int(n_steps) + 2) * float(fc.dt_s))
-    return fc
-
-
 class _EstimateTimer:
     """``loop_step`` timer: wall ms of each ``estimate`` stage (device synchronised), the others untimed."""
 
@@ -189,7 +131,8 @@ class _Timed:
 
 def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Optional[Sequence[str]] = None,
              *, segment_steps: int = 0, stride: int = 1, max_steps: Optional[int] = None, warmup_steps: int = 10,
-             device="cpu", frame_source: Optional[FrameSource] = None, progress: bool = True) -> EvaluationResult:
+             device="cpu", frame_source: Optional[FrameSource] = None, progress: bool = True,
+             scenarios=()) -> EvaluationResult:
     """Run ``estimators`` open loop on the evaluation streams of ``sites``.
 
     Args:
@@ -208,6 +151,8 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
         frame_source: ``f(altitude_m (B,), site_idx (B,)) -> (B, H, W)`` frames; default the
             config's renderer for ``sites``.
         progress: tqdm progress bar.
+        scenarios: hard scenarios flown after the descents, each a named segment of the report
+            (:mod:`dvsland.evaluate.scenarios`: "all", "none", names, or Scenario objects).
 
     The returned ``descents`` hold the flown altitudes and velocities (the truth of the scores);
     ``summary['trajectory_max_rel_dz']`` is their largest relative deviation from the closed form.
@@ -307,4 +252,11 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
                 segment_steps=int(segment_steps), stride=int(stride), warmup_steps=int(warmup_steps),
                 device=str(device), torch_threads=torch.get_num_threads(), estimators_run=list(estimators))
     res.summary = summarise(res, info)
+    if scenarios:
+        from .scenario_run import run_scenarios
+
+        res.scenarios = run_scenarios(cfg, {lab: (n, o) for lab, n, o in specs}, scenarios, device=device,
+                                      frame_source=frame_source, progress=progress)
+        if res.scenarios:
+            res.summary["scenarios"] = {k: res.scenarios[k] for k in ("scenarios", "metrics")}
     return res
