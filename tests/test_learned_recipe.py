@@ -109,3 +109,20 @@ def test_several_datasets_are_one_split(data):
     assert len(set(two.descent.tolist())) == 2 * len(set(w.descent.tolist()))
     with pytest.raises(ValueError, match="data: the datasets are of different sensors"):
         concat_windows([w, w._replace(sensor_size=(346, 260))])
+
+
+def test_time_scale_augmentation_moves_the_target_with_the_events(data):
+    from dvsland.estimators.learned import InputSpec
+    from dvsland.learn.batches import make_batch
+
+    w = load_windows(data, "train")
+    idx = torch.nonzero(w.next >= 0).squeeze(1)[:64]
+    spec = InputSpec((128, 128), 4, 2)
+    plain = make_batch(w, idx, spec)
+    g = torch.Generator().manual_seed(3)
+    aug = make_batch(w, idx, spec, g, max_drop=0.0, time_scale=(0.5, 0.4))
+    f = torch.exp(aug.target - plain.target)
+    assert ((f > 0.39) & (f < 2.01)).all() and (f > 1.01).any() and (f < 0.99).any()
+    # a stretched window (f < 1, no merge) holds fewer events than the whole one
+    assert (aug.log_count[f < 0.9] <= plain.log_count[f < 0.9] + 1e-6).all()
+    assert (aug.log_count[f > 1.1] >= plain.log_count[f > 1.1] - 1e-6).all()

@@ -23,7 +23,8 @@ class Windows(NamedTuple):
     fraction of its window [0, 1], ``p`` int8 +-1; ``offset`` (S + 1,) int64 (sample i's events
     are rows offset[i] .. offset[i+1] - 1). Per sample (S,): ``d_true`` float32 1/s, ``site``
     int64 index into ``sites``, ``descent`` int64 (a key unique over the split), ``step`` int64,
-    ``z_m`` float32 m. ``sites``: site names; ``sensor_size`` (W, H)."""
+    ``z_m`` float32 m; ``next`` int64 the row of the same descent's next control step (-1 = none).
+    ``sites``: site names; ``sensor_size`` (W, H)."""
 
     x: torch.Tensor
     y: torch.Tensor
@@ -35,6 +36,7 @@ class Windows(NamedTuple):
     descent: torch.Tensor
     step: torch.Tensor
     z_m: torch.Tensor
+    next: torch.Tensor
     sites: List[str]
     sensor_size: Tuple[int, int]
 
@@ -89,7 +91,18 @@ def load_windows(root, split: str = "train", split_rule: Optional[SplitRule] = N
     t = {k: torch.from_numpy(np.concatenate(v)) for k, v in {**cols, **per}.items()}
     offset = torch.cat([torch.zeros(1, dtype=torch.int64), torch.cumsum(t.pop("n"), 0)])
     return Windows(t["x"], t["y"], t["frac"], t["p"], offset, t["d_true"], t["site"], t["descent"], t["step"],
-                   t["z_m"], list(ds.sites), tuple(ds.sensor_size))
+                   t["z_m"], next_rows(t["descent"], t["step"]), list(ds.sites), tuple(ds.sensor_size))
+
+
+def next_rows(descent: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+    """(S,) int64: for each sample the row with the same ``descent`` and ``step + 1``, or -1."""
+    key = descent * (1 << 20) + step
+    order = torch.argsort(key)
+    k = key[order]
+    nxt = torch.full_like(key, -1)
+    follows = k[1:] == k[:-1] + 1
+    nxt[order[:-1][follows]] = order[1:][follows]
+    return nxt
 
 
 def gather_batch(w: Windows, idx: torch.Tensor):
@@ -136,9 +149,9 @@ def concat_windows(parts: List[Windows], param: str = "data") -> Windows:
         for k in ("x", "y", "frac", "p", "d_true", "step", "z_m"):
             cat[k].append(getattr(w, k))
         cat["site"].append(remap[w.site])
-        cat["descent"].append(w.descent + j * 10 ** 12)
+        cat["descent"].append(w.descent + j * 10 ** 9)
         offs.append(w.offset[1:] + base)
         base += int(w.offset[-1])
     t = {k: torch.cat(v) for k, v in cat.items()}
     return Windows(t["x"], t["y"], t["frac"], t["p"], torch.cat(offs), t["d_true"], t["site"], t["descent"],
-                   t["step"], t["z_m"], sites, parts[0].sensor_size)
+                   t["step"], t["z_m"], next_rows(t["descent"], t["step"]), sites, parts[0].sensor_size)

@@ -1,8 +1,15 @@
 """Training batches of the recipe: samples of a :class:`~dvsland.data.Windows` -> model inputs.
 
-Augmentations (training only; each keeps the true divergence): mirror in x and y about the
-principal point (only where it is the sensor centre), a transpose on square sensors, and
-dropping a random share of each window's events (a sparser sensor: higher contrast threshold).
+Augmentations (training only):
+
+- *time scale* (changes the divergence, so that it is no longer tied to the altitude, the scene's
+  scale and the law that flew the descent): a window's events up to a share s of the window,
+  stretched over the whole window, are what a camera with divergence s D would see (displacement
+  and event count both scale by s); two consecutive windows of a descent squeezed into one are a
+  divergence 2 D. ``time_scale`` = (probability of a merge, lowest s): the target becomes
+  f |D| with f in [s_min, 2].
+- mirror in x and y about the principal point (the sensor centre in the datasets), a transpose
+  on square sensors, and dropping a random share of each window's events (a sparser sensor).
 """
 
 from __future__ import annotations
@@ -28,12 +35,41 @@ class Batch(NamedTuple):
     index: torch.Tensor
 
 
+def _time_scale(w: Windows, idx, cols, gen, p_merge: float, s_min: float):
+    """Time-scale augmentation (module doc): (columns b, x, y, frac, p; |D| (B,) float32 targets)."""
+    b, x, y, frac, p = cols
+    B = len(idx)
+    nxt = w.next[idx]
+    merge = (torch.rand(B, generator=gen) < p_merge) & (nxt >= 0)
+    d = w.d_true[idx].abs()
+    if bool(merge.any()):
+        rows = torch.nonzero(merge).squeeze(1)
+        b2, x2, y2, f2, p2, _ = gather_batch(w, nxt[rows])
+        frac = torch.where(merge[b], frac * 0.5, frac)
+        b, x, y, p = torch.cat([b, rows[b2]]), torch.cat([x, x2]), torch.cat([y, y2]), torch.cat([p, p2])
+        frac = torch.cat([frac, 0.5 + 0.5 * f2])
+        d = torch.where(merge, 2.0 * w.d_true[nxt.clamp_min(0)].abs(), d)
+    u = torch.rand(B, generator=gen)
+    lo = torch.where(merge, torch.full_like(u, 0.5), torch.full_like(u, s_min))
+    stretch = merge | (torch.rand(B, generator=gen) < 0.5)
+    s = torch.where(stretch, lo + (1.0 - lo) * u, torch.ones_like(u))
+    keep = frac <= s[b]
+    b, x, y, p = b[keep], x[keep], y[keep], p[keep]
+    frac = frac[keep] / s[b]
+    return (b, x, y, frac, p), d * s
+
+
 def make_batch(w: Windows, idx: torch.Tensor, spec: InputSpec, gen: Optional[torch.Generator] = None,
-               max_drop: float = 0.5) -> Batch:
-    """The batch of samples ``idx`` (B,) int64; augmented when ``gen`` (a torch.Generator) is given."""
+               max_drop: float = 0.5, time_scale=(0.35, 0.4)) -> Batch:
+    """The batch of samples ``idx`` (B,) int64; augmented when ``gen`` (a torch.Generator) is given.
+    ``time_scale``: (merge probability, lowest stretch) or None (module doc)."""
     b, x, y, frac, p, n = gather_batch(w, idx)
     B = len(idx)
     W, H = spec.sensor_size
+    d_abs = w.d_true[idx].abs()
+    if gen is not None and time_scale is not None:
+        (b, x, y, frac, p), d_abs = _time_scale(w, idx, (b, x, y, frac, p), gen, *time_scale)
+        n = torch.bincount(b, minlength=B)
     if gen is not None and b.numel():
         flip = torch.rand(B, 3, generator=gen) < 0.5
         fx, fy = flip[b, 0], flip[b, 1]
@@ -46,5 +82,5 @@ def make_batch(w: Windows, idx: torch.Tensor, spec: InputSpec, gen: Optional[tor
         b, x, y, frac, p = b[keep], x[keep], y[keep], frac[keep], p[keep]
         n = torch.bincount(b, minlength=B)
     vox = voxel_grid(b, x, y, frac, p, B, spec)
-    target = torch.log(w.d_true[idx].abs().clamp_min(D_FLOOR))
+    target = torch.log(d_abs.clamp_min(D_FLOOR))
     return Batch(vox, torch.log1p(n.to(torch.float32)), target, idx)

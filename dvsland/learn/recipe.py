@@ -179,7 +179,8 @@ def _subset(w: Windows, idx: torch.Tensor) -> Windows:
     b, x, y, frac, p, n = gather_batch(w, idx)
     off = torch.cat([torch.zeros(1, dtype=torch.int64), torch.cumsum(n, 0)])
     return w._replace(x=x, y=y, frac=frac, p=p, offset=off, d_true=w.d_true[idx], site=w.site[idx],
-                      descent=w.descent[idx], step=w.step[idx], z_m=w.z_m[idx])
+                      descent=w.descent[idx], step=w.step[idx], z_m=w.z_m[idx],
+                      next=torch.full_like(idx, -1))
 
 
 def _run_epoch(net, opt, tr: Windows, spec, coords, s: RecipeSettings, epoch: int, deadline, progress) -> float:
