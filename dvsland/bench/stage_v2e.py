@@ -28,6 +28,10 @@ def main(argv=None) -> int:
     ap.add_argument("--v2e-dir", default=None, help="folder with v2ecore/ (default: bench_env/v2e in the repository)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-noise", action="store_true", help="skip the pixel-model table")
+    ap.add_argument("--denoise", action="store_true", help="also time the front-end denoising chains on the "
+                    "events of the noisy pixel (dvsland.events.denoise)")
+    ap.add_argument("--preset", default=None, help="with --denoise: take the noisy pixel from this config's "
+                    "emulator section (e.g. realistic_sensor; default: the NOISY settings of the table)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     import torch
@@ -57,10 +61,27 @@ def main(argv=None) -> int:
     except OSError:
         load = None
     print(format_results(res, noise))
+    den = None
+    if args.denoise:
+        from dvsland.events.benchmark import bench_denoise, format_denoise
+
+        kw = None
+        if args.preset:
+            import dataclasses
+
+            from dvsland.config import load_config
+            from dvsland.events.pixel_model import PixelModelParams
+
+            em = load_config(args.preset).emulator
+            keys = [f.name for f in dataclasses.fields(PixelModelParams)] + ["mismatch_sigma", "background_rate_hz",
+                                                                             "threshold", "refractory_us"]
+            kw = {k: getattr(em, k) for k in keys}
+        den = bench_denoise(frames, kw, threads=args.threads)
+        print(format_denoise(den))
     print(f"load average {load}, frames: {args.frames}")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"v2e": res, "noise": noise, "load_average": load,
+        Path(args.json).write_text(json.dumps({"v2e": res, "noise": noise, "denoise": den, "load_average": load,
                                                "frames": args.frames}, indent=2))
     return 0
 

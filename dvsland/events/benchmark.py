@@ -208,6 +208,66 @@ def bench_noise(frames: torch.Tensor, warmup: int = 1, threads: Optional[int] = 
     return out
 
 
+#: the chains :func:`bench_denoise` times by default
+DENOISE_CHAINS = ("baf", "refractory", "hot_pixel", "hot_pixel+baf")
+
+
+def bench_denoise(frames: torch.Tensor, emulator_kwargs: Optional[dict] = None, chains=DENOISE_CHAINS,
+                  warmup: int = 1, threads: Optional[int] = 1, seed: int = 0, **denoise_kwargs) -> dict:
+    """Cost of the front-end denoising chains on the events of a noisy pixel.
+
+    The events of every step are emulated once (``emulator_kwargs``, default :data:`NOISY`); each
+    chain is then run over the same steps (fresh state, in order). Returns {chain: {cpu_ms_per_step,
+    wall_ms_per_step (medians), events_in_per_step, events_out_per_step, kept}} plus
+    "emulator" (the emulation's own cpu_ms_per_step for scale).
+    """
+    from .denoise import EventDenoiser
+
+    if threads:
+        torch.set_num_threads(int(threads))
+    frames = frames.to(torch.float32).cpu()
+    n, B, H, W = frames.shape
+    emu = EventEmulator(seed=seed, **dict(NOISY if emulator_kwargs is None else emulator_kwargs))
+    emu.reset(frames[0], 0)
+    steps, cpu = [], []
+    for k in range(1, n):
+        c0, _ = _clock_pair()
+        steps.append(emu.step(frames[k], k * DT_US))
+        cpu.append(time.process_time() - c0)
+    out = {"emulator": {"cpu_ms_per_step": _median_ms(cpu[warmup:]), "B": B, "H": H, "W": W}}
+    for chain in chains:
+        d = EventDenoiser(chain, **denoise_kwargs)
+        d.reset(B, H, W, 0)
+        cpu, wall, n_in, n_out = [], [], 0, 0
+        for k, ev in enumerate(steps, start=1):
+            c0, w0 = _clock_pair()
+            kept = d(ev, k * DT_US)
+            c1, w1 = _clock_pair()
+            if k > warmup:
+                cpu.append(c1 - c0)
+                wall.append(w1 - w0)
+                n_in, n_out = n_in + len(ev), n_out + len(kept)
+        m = max(len(cpu), 1)
+        out[chain] = {"cpu_ms_per_step": _median_ms(cpu), "wall_ms_per_step": _median_ms(wall),
+                      "events_in_per_step": n_in / m, "events_out_per_step": n_out / m,
+                      "kept": n_out / max(n_in, 1)}
+    return out
+
+
+def format_denoise(res: dict) -> str:
+    """Plain-text table of :func:`bench_denoise`."""
+    e = res["emulator"]
+    lines = [f"Denoising cost per step (B = {e['B']}, {e['W']}x{e['H']}; the noisy emulation itself: "
+             f"{e['cpu_ms_per_step']:.2f} CPU ms per step)",
+             f"{'chain':<16} {'CPU ms':>8} {'wall ms':>8} {'events in':>10} {'out':>9} {'kept':>6}"]
+    for name, x in res.items():
+        if name == "emulator":
+            continue
+        lines.append(f"{name:<16} {x['cpu_ms_per_step']:>8.3f} {x['wall_ms_per_step']:>8.3f} "
+                     f"{x['events_in_per_step']:>10.0f} {x['events_out_per_step']:>9.0f} {x['kept']:>6.1%}")
+    return "\n".join(lines)
+
+
 def format_results(res_v2e: Optional[dict], res_noise: Optional[dict]) -> str:
     """Plain-text tables of :func:`bench_vs_v2e` and :func:`bench_noise` results."""
     lines = []
@@ -235,4 +295,4 @@ def format_results(res_v2e: Optional[dict], res_noise: Optional[dict]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["bench_vs_v2e", "bench_noise", "load_v2e", "smooth_frames", "format_results", "NOISY"]
+__all__ = ["bench_vs_v2e", "bench_noise", "bench_denoise", "format_denoise", "DENOISE_CHAINS", "load_v2e", "smooth_frames", "format_results", "NOISY"]

@@ -86,23 +86,49 @@ def _flat_pixel(ev: Events, shape) -> torch.Tensor:
     return (ev.b * H + ev.y).mul_(W).add_(ev.x)
 
 
-def _by_pixel(pix: torch.Tensor) -> torch.Tensor:
-    """Stable order of events by pixel (stream order within a pixel), int64 (N,)."""
-    if pix.device.type == "cpu":
-        return torch.from_numpy(np.argsort(pix.numpy(), kind="stable"))
-    return torch.sort(pix, stable=True).indices
+def _by_pixel(pix: torch.Tensor, n: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Events in (pixel, stream position) order: the sorted keys ``pixel * n + position``, the
+    pixels and the positions in that order, int64 (N,) each. The keys are unique, so a plain sort
+    (numpy's on CPU, several times faster than a stable argsort) gives the stable order."""
+    key = pix * n + torch.arange(n, device=pix.device)
+    if key.device.type == "cpu":
+        key.numpy().sort()
+    else:
+        key = torch.sort(key).values
+    pix_s = torch.div(key, n, rounding_mode="floor")
+    return key, pix_s, key - pix_s * n
 
 
-def _previous_at(pix_sorted_key: torch.Tensor, t_sorted: torch.Tensor, n: int, query_pix: torch.Tensor,
-                 query_seq: torch.Tensor, memory: torch.Tensor) -> torch.Tensor:
-    """Time (int64 µs) of the last event at pixel ``query_pix`` earlier in the stream than position
-    ``query_seq``: from this step's events (``pix_sorted_key`` = pixel * n + position, sorted) or,
-    when the pixel had none before that position, from ``memory`` (flat, previous steps)."""
-    q = query_pix * n + query_seq
-    pos = torch.searchsorted(pix_sorted_key, q) - 1
-    posc = pos.clamp(min=0)
-    hit = (pos >= 0) & (torch.div(pix_sorted_key.index_select(0, posc), n, rounding_mode="floor") == query_pix)
-    return torch.where(hit, t_sorted.index_select(0, posc), memory.index_select(0, query_pix))
+def _previous_at(key_sorted: torch.Tensor, t_sorted: torch.Tensor, n: int, last_key: torch.Tensor,
+                 last_t: torch.Tensor, memory: torch.Tensor, query_pix: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """Time (int64 µs) of the last event at pixel ``query_pix`` earlier in the stream than the query
+    key ``q = query_pix * n + position``: from this step's events in (pixel, position) order
+    (``key_sorted`` = pixel * n + position) or, when the pixel had none before, from ``memory``.
+
+    Per pixel, ``last_key`` is the key of its last event in this step (-1 = none) and ``last_t``
+    that event's time (``memory`` where none): when that event is earlier than the query (most
+    queries) two gathers answer; only the others are searched (queries in increasing order, which
+    numpy's search narrows by the previous answer)."""
+    lk = last_key.index_select(0, query_pix)
+    out = last_t.index_select(0, query_pix)
+    redo = _nonzero_1d(lk >= q)  # the pixel fired again later in this step: search its earlier events
+    if redo.numel():
+        qr, pr = q.index_select(0, redo), query_pix.index_select(0, redo)
+        if qr.device.type == "cpu":
+            pos = torch.from_numpy(np.searchsorted(key_sorted.numpy(), qr.numpy())) - 1
+        else:
+            pos = torch.searchsorted(key_sorted, qr) - 1
+        posc = pos.clamp(min=0)
+        # key_sorted[pos] < q < (pixel + 1) * n: the same pixel iff it is >= pixel * n
+        hit = (pos >= 0) & (key_sorted.index_select(0, posc) >= pr * n)
+        out.index_copy_(0, redo, torch.where(hit, t_sorted.index_select(0, posc), memory.index_select(0, pr)))
+    return out
+
+
+def _nonzero_1d(mask: torch.Tensor) -> torch.Tensor:
+    if mask.device.type == "cpu":
+        return torch.from_numpy(np.flatnonzero(mask.numpy()))
+    return torch.nonzero(mask).squeeze(1)
 
 
 def _check_sorted(ev: Events) -> None:
@@ -129,19 +155,29 @@ def baf_keep(ev: Events, memory_t_us: torch.Tensor, time_us: float, neighbours: 
     if n == 0:
         return torch.zeros(0, dtype=torch.bool, device=mem.device), memory_t_us.clone()
     pix = _flat_pixel(ev, (B, H, W))
-    order = _by_pixel(pix)
-    key_sorted = pix.index_select(0, order).mul_(n).add_(order)
-    t_sorted = ev.t.index_select(0, order)
-    seq = torch.arange(n, device=pix.device)
-    keep = torch.zeros(n, dtype=torch.bool, device=pix.device)
+    key_sorted, pix_s, order = _by_pixel(pix, n)  # work in (pixel, position) order: searches come sorted
+    t_s, x_s, y_s = ev.t.index_select(0, order), ev.x.index_select(0, order), ev.y.index_select(0, order)
+    # per pixel: key and time of its last event in this step (-1 / the memory where none)
+    is_last = torch.ones(n, dtype=torch.bool, device=pix.device)
+    is_last[:-1] = pix_s[1:] != pix_s[:-1]
+    li = _nonzero_1d(is_last)
+    lp = pix_s.index_select(0, li)
+    last_key = torch.full((B * H * W,), -1, dtype=torch.int64, device=pix.device).index_copy_(0, lp, key_sorted.index_select(0, li))
+    last_t = mem.clone().index_copy_(0, lp, t_s.index_select(0, li))
+    keep_s = torch.zeros(n, dtype=torch.bool, device=pix.device)
     for dx, dy in _OFFSETS[neighbours]:  # 4 or 8 neighbour directions, each vectorised over events
-        xn, yn = ev.x + dx, ev.y + dy
-        ok = (xn >= 0) & (xn < W) & (yn >= 0) & (yn < H)
-        npix = torch.where(ok, pix + (dy * W + dx), pix)
-        t_n = _previous_at(key_sorted, t_sorted, n, npix, seq, mem)
-        keep |= ok & (ev.t - t_n < time_us)
-    new = mem.clone().scatter_reduce_(0, pix, ev.t, reduce="amax")
-    return keep, new.view(B, H, W)
+        ok = None
+        for v, d, hi in ((x_s, dx, W), (y_s, dy, H)):
+            if d:
+                c = v > 0 if d < 0 else v < hi - 1
+                ok = c if ok is None else ok & c
+        step = dy * W + dx
+        npix = (pix_s + step).clamp_(0, B * H * W - 1)  # still sorted; off-sensor ones masked by ok
+        t_n = _previous_at(key_sorted, t_s, n, last_key, last_t, mem, npix, key_sorted + step * n)
+        keep_s |= ok & (t_s - t_n < time_us)
+    keep = torch.empty_like(keep_s)
+    keep[order] = keep_s
+    return keep, last_t.view(B, H, W)
 
 
 def refractory_keep(ev: Events, memory_t_us: torch.Tensor, refractory_us: float
@@ -154,8 +190,8 @@ def refractory_keep(ev: Events, memory_t_us: torch.Tensor, refractory_us: float
     if n == 0:
         return torch.zeros(0, dtype=torch.bool, device=mem.device), memory_t_us.clone()
     pix = _flat_pixel(ev, (B, H, W))
-    order = _by_pixel(pix)
-    p_s, t_s = pix.index_select(0, order), ev.t.index_select(0, order)
+    _, p_s, order = _by_pixel(pix, n)
+    t_s = ev.t.index_select(0, order)
     first = torch.ones(n, dtype=torch.bool, device=pix.device)
     first[1:] = p_s[1:] != p_s[:-1]
     prev = torch.empty_like(t_s)
