@@ -196,6 +196,29 @@ class TestGainMaths:
         assert final_amplitude(0.97 * gc) < 1e-2
         assert final_amplitude(1.03 * gc) > 1e2
 
+    @pytest.mark.parametrize("n_bin,delay", [(50, 0), (50, 2), (64, 3), (100, 2)])
+    def test_long_average_limit_against_exact_roots(self, n_bin, delay):
+        """Above EXACT_MAX_N_BIN the closed-form limit stands in for the roots (which cost minutes
+        at n_bin = 400 and made n_bin = 10 000 a simulate that Ctrl-C could not stop)."""
+        from dvsland.control.gain import _spectral_radius, long_average_step_gain
+
+        g = long_average_step_gain(n_bin, delay)
+        assert _spectral_radius(0.995 * g, n_bin, delay) < 1.0 < _spectral_radius(1.005 * g, n_bin, delay)
+
+    def test_huge_n_bin_finds_no_roots(self, monkeypatch):
+        """n_bin at its upper bound (10 000) must not solve a degree-10 000 polynomial."""
+        import dvsland.control.gain as gain
+
+        real_roots = np.roots
+
+        def no_big_roots(coeffs):
+            assert len(coeffs) <= gain.EXACT_MAX_N_BIN + 20, f"np.roots of degree {len(coeffs) - 1}"
+            return real_roots(coeffs)
+
+        monkeypatch.setattr(gain.np, "roots", no_big_roots)
+        g = gain.critical_step_gain.__wrapped__(10_000, 2)
+        assert g * 10_000 == pytest.approx(math.pi ** 2 / 2, rel=2e-3)
+
     def test_limit_altitude_and_gains(self):
         assert gain_limit_altitude_m(5e6, 1e4, 0.1, 1) == pytest.approx(25.0)
         z = gain_limit_altitude_m(_t(5e6, 4e6), _t(9e3, 9e3), 0.1, torch.tensor([5, 10]))

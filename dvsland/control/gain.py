@@ -50,10 +50,26 @@ def _spectral_radius(g: float, n_bin: int, delay_steps: int) -> float:
     return float(np.max(np.abs(np.roots(coeffs))))
 
 
+#: above this n_bin, :func:`critical_step_gain` uses the long-average limit (the exact roots of a
+#: degree-n polynomial cost O(n^3) per bisection step: 20 s at n_bin = 200, hours at 10 000)
+EXACT_MAX_N_BIN = 64
+
+
+def long_average_step_gain(n_bin: int, delay_steps: int = 0) -> float:
+    """g_crit of a long moving average, from the continuous loop x'(t) = -(lambda / T) times the
+    integral of x over [t - delta - T, t - delta] (T = n_bin dt, delta = delay_steps dt): with
+    r = delta / T it is stable while lambda T < w^2 / (2 sin(w / 2)), w = pi / (2 r + 1)
+    (pi^2 / 2 without lag). Agrees with the exact sampled loop to 4e-4 relative at n_bin = 50 and
+    better above (tested)."""
+    w = np.pi / (2.0 * delay_steps / n_bin + 1.0)
+    return float(w * w / (2.0 * np.sin(w / 2.0)) / n_bin)
+
+
 @functools.lru_cache(maxsize=256)
 def critical_step_gain(n_bin: int = 1, delay_steps: int = 0) -> float:
     """Largest g = lambda_D dt for which the sampled divergence loop with an n_bin moving average
-    and ``delay_steps`` whole steps of lag is stable (bisection on the characteristic roots).
+    and ``delay_steps`` whole steps of lag is stable: bisection on the characteristic roots for
+    n_bin <= :data:`EXACT_MAX_N_BIN`, the long-average limit (:func:`long_average_step_gain`) above.
 
     Args:
         n_bin: moving-average length, >= 1.
@@ -67,6 +83,8 @@ def critical_step_gain(n_bin: int = 1, delay_steps: int = 0) -> float:
         raise ValueError(f"n_bin must be >= 1, got {n_bin}")
     if delay_steps < 0:
         raise ValueError(f"delay_steps must be >= 0, got {delay_steps}")
+    if n_bin > EXACT_MAX_N_BIN:
+        return long_average_step_gain(n_bin, delay_steps)
     lo, hi = 0.0, 2.0
     if _spectral_radius(hi, n_bin, delay_steps) < 1.0:  # cannot happen: g = 2 always unstable or marginal
         return hi
