@@ -218,3 +218,31 @@ def test_cli_evaluate_quick(tmp_path, monkeypatch, capsys):
     assert rc == 0
     assert (tmp_path / "run" / "evaluation.json").exists() and (tmp_path / "run" / "config.yaml").exists()
     assert "oracle" in capsys.readouterr().out
+
+
+def test_cli_evaluate_scenarios(tmp_path, monkeypatch, capsys):
+    """--scenarios flies the named hard scenarios after the descents: their table is printed and in
+    table.txt, their metrics in evaluation.json and their traces in traces.npz."""
+    from dvsland.cli.main import main
+    import dvsland.evaluate.run as run_mod
+
+    orig = run_mod.evaluate
+
+    def fake(cfg, estimators, sites=None, **kw):
+        kw["frame_source"] = ZoomTextureFrames(2, texture_px=256)
+        return orig(cfg, estimators, sites, **kw)
+
+    monkeypatch.setattr("dvsland.evaluate.evaluate", fake)
+    rc = main(["evaluate", "--estimators", "oracle", "--sites", "A", "--max-steps", "3", "--warmup-steps", "1",
+               "--scenarios", "hover_start", "--out", str(tmp_path / "run"), "--no-figures"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "hover_start" in out and "speeding up 1-4 s" in out
+    assert "hover_start" in (tmp_path / "run" / "table.txt").read_text()
+    js = json.loads((tmp_path / "run" / "evaluation.json").read_text())
+    assert js["scenarios"]["metrics"]["oracle"]["hover_start"]["after 1 s"]["n_steps"] == 80
+    npz = np.load(tmp_path / "run" / "traces.npz")
+    assert npz["scenario_d_hat_oracle_hover_start"].shape == npz["scenario_t_s"].shape
+    assert main(["evaluate", "--scenarios", "nope", "--max-steps", "2", "--out", str(tmp_path / "r2")]) != 0
+    assert "unknown scenario 'nope'" in capsys.readouterr().err
+    assert not (tmp_path / "r2").exists()

@@ -33,6 +33,10 @@ def register(subparsers) -> None:
     p.add_argument("--device", default=None, metavar="DEVICE", help="torch device (default simulation.device)")
     add_threads_arg(p)
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("--scenarios", default=None, metavar="NAME,NAME",
+                   help="hard scenarios flown after the descents, each a named segment of the report: "
+                        "hover_start, slow_to_hover, feature_poor, noise_burst, 'all' or 'none' (default: all for "
+                        "whole descents, none with --max-steps or --segment-steps; docs/estimators.md)")
     p.add_argument("--recording", default=None, metavar="PATH",
                    help="evaluate on a recorded event stream instead of rendered descents (.aedat4, .h5, .npz, "
                         ".npy tonic array, .csv); intervals of 1/camera.frame_rate_hz")
@@ -96,13 +100,17 @@ def run_evaluate(args) -> int:
 
     sites = parse_sites(args.sites)  # before anything is loaded or written
     specs = estimator_specs(args.estimators)
-    if args.recording and (args.sites or args.segment_steps or args.stride != 1):
-        raise ValueError("--sites, --segment-steps and --stride select rendered descents; they do not apply "
-                         "to --recording")
+    if args.recording and (args.sites or args.segment_steps or args.stride != 1 or args.scenarios):
+        raise ValueError("--sites, --segment-steps, --stride and --scenarios select rendered descents; they do "
+                         "not apply to --recording")
     if not args.recording and (args.ground_truth or args.t_unit or args.element):
         raise ValueError("--ground-truth, --t-unit and --element need --recording PATH")
     if args.element < 0:
         raise ValueError(f"--element must be >= 0, got {args.element}")
+    if args.scenarios is not None:
+        from dvsland.evaluate.scenarios import resolve_scenarios
+
+        resolve_scenarios(args.scenarios)  # unknown names: an error before anything runs
     cfg = config_from_args(args)  # checks the device before the run folder exists
     check_configured_sites(cfg, sites)
     apply_threads(cfg)  # --threads, else simulation.torch_threads (0 = torch's default)
@@ -117,9 +125,11 @@ def run_evaluate(args) -> int:
                                  progress=not quiet, ground_truth=args.ground_truth, t_unit=args.t_unit,
                                  b=args.element)
     else:
+        scen = args.scenarios if args.scenarios is not None else (
+            "none" if args.max_steps or args.segment_steps else "all")
         res = evaluate(cfg, specs, sites, segment_steps=args.segment_steps,
                        stride=args.stride, max_steps=args.max_steps, warmup_steps=args.warmup_steps,
-                       device=device, progress=not quiet)
+                       device=device, progress=not quiet, scenarios=scen)
     paths = write_outputs(res, run_dir, figures=not args.no_figures and cfg.logging.figures)
     table = format_table(res.summary)
     if cfg.logging.tensorboard:

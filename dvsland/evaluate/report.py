@@ -12,6 +12,7 @@ from dvsland.report.results import atomic_write_text, write_json, write_traces_n
 
 from .metrics import BANDS
 from .run import EvaluationResult, target_label
+from .scenario_run import format_scenario_table, scenario_traces
 
 
 def _f(x, pct=False, nd=3):
@@ -58,6 +59,9 @@ def format_table(summary: dict) -> str:
                  f"({summary.get('torch_threads', '?')} torch threads): "
                  + ", ".join(f"{n} {_f(e['ms_per_step_median'], nd=2)} ms (median) / "
                              f"{_f(e['ms_per_step_mean'], nd=2)} ms (mean)" for n, e in ests.items()))
+    scen = format_scenario_table(summary)
+    if scen:
+        lines += ["", scen]
     return "\n".join(lines)
 
 
@@ -142,7 +146,8 @@ def write_outputs(res: EvaluationResult, run_dir: Path, figures: bool = True) ->
     write_traces_npz(paths["traces"], dict(t_s=res.descents.t_s, altitude_m=res.descents.altitude_m,
                                            d_true=res.descents.divergence, scored=res.scored, n_events=res.n_events,
                                            sites=np.array(res.descents.sites),
-                                           **{f"d_hat_{n}": v for n, v in res.d_hat.items()}))
+                                           **{f"d_hat_{n}": v for n, v in res.d_hat.items()},
+                                           **scenario_traces(res.scenarios)))
     if figures:
         paths["speed_vs_error"] = run_dir / "speed_vs_error.png"
         plot_speed_vs_error(res.summary, paths["speed_vs_error"])

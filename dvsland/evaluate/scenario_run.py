@@ -152,3 +152,15 @@ def format_scenario_table(summary: dict) -> str:
     lines.append("")
     lines += [f"  {n}: {d['description']} (site {d['site']})" for n, d in sc["scenarios"].items()]
     return "\n".join(lines)
+
+
+def scenario_traces(scen: dict) -> dict:
+    """The scenarios' traces as npz fields: scenario_t_s (N,), scenario_d_true_<name> (N,) and
+    scenario_d_hat_<estimator>_<name> (N,), 1/s; {} without scenarios."""
+    if not scen:
+        return {}
+    out = {"scenario_t_s": np.asarray(scen["t_s"])}
+    out.update({f"scenario_d_true_{n}": np.asarray(v) for n, v in scen["d_true"].items()})
+    out.update({f"scenario_d_hat_{lab}_{n}": np.asarray(v) for lab, per in scen["d_hat"].items()
+                for n, v in per.items()})
+    return out
