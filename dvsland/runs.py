@@ -18,18 +18,21 @@ during the call that has no final ``results.json`` gets one saying ``status: "in
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import errno
 import functools
 import os
 import signal
 import socket
+import sys
 import threading
 from pathlib import Path
 from typing import List, Optional, Union
 
 from .config import Config, ConfigError, dump_config
 from .report.results import RunWriteError, atomic_write_text
+from .watchdog import GRACE_S, InterruptWatchdog
 
 #: the file a command creates exclusively to claim its run folder (it stays: the folder is taken)
 CLAIM_FILE = ".dvsland-run"
@@ -188,6 +191,7 @@ def _new_folder(base: Path) -> Path:
 class _Guards(threading.local):
     def __init__(self):
         self.stack: List[list] = []
+        self.watchdog: list = []  # the InterruptWatchdog of the innermost guarded command
 
 
 _GUARDS = _Guards()
@@ -257,17 +261,11 @@ def guarded_run(fn):
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        old = None
-        main = threading.current_thread() is threading.main_thread()
-        if main:
-            try:
-                old = signal.signal(signal.SIGTERM, _raise_interrupt)
-            except (ValueError, OSError):  # not allowed here (embedded interpreters)
-                main = False
         made: list = []
         _GUARDS.stack.append(made)
         try:
-            return fn(*args, **kwargs)
+            with _interrupt_handlers(made):
+                return fn(*args, **kwargs)
         except BaseException as exc:
             for run_dir in made:
                 _finish_interrupted(run_dir, exc)
@@ -277,10 +275,47 @@ def guarded_run(fn):
             raise
         finally:
             _GUARDS.stack.pop()
-            if main:
-                signal.signal(signal.SIGTERM, old if old is not None else signal.SIG_DFL)
 
     return wrapper
+
+
+@contextlib.contextmanager
+def _interrupt_handlers(made: list):
+    """SIGINT and SIGTERM raise KeyboardInterrupt in the main thread, and an
+    :class:`~dvsland.watchdog.InterruptWatchdog` ends the process (after writing the status of the
+    run folders in ``made``) when the main thread is stuck in native code and cannot raise it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stuck(signum: int) -> None:
+        name = signal.Signals(signum).name
+        for run_dir in made:
+            _finish_interrupted(run_dir, KeyboardInterrupt(f"{name} inside a computation that could not stop; "
+                                                           f"ended by the interrupt watchdog"))
+        sys.stderr.write(f"dvsland: interrupted ({name}) inside a long computation that could not stop within "
+                         f"{GRACE_S:g} s; the run folder keeps what was written\n")
+
+    with InterruptWatchdog(stuck) as dog:
+        def on_signal(signum, frame):  # noqa: ARG001 - signal handler signature
+            dog.acknowledge()
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt()
+            _raise_interrupt(signum, frame)
+
+        old = {}
+        try:
+            for s in (signal.SIGINT, signal.SIGTERM):
+                old[s] = signal.signal(s, on_signal)
+        except (ValueError, OSError):  # not allowed here (embedded interpreters)
+            pass
+        _GUARDS.watchdog.append(dog)
+        try:
+            yield
+        finally:
+            _GUARDS.watchdog.pop()
+            for s, h in old.items():
+                signal.signal(s, h if h is not None else signal.SIG_DFL)
 
 
 class deferred_interrupts:  # noqa: N801 - used like a function: ``with deferred_interrupts():``
@@ -296,10 +331,15 @@ class deferred_interrupts:  # noqa: N801 - used like a function: ``with deferred
         if threading.current_thread() is threading.main_thread():
             for s in self._SIGNALS:
                 try:
-                    self.old[s] = signal.signal(s, lambda signum, frame: self.caught.append(signum))
+                    self.old[s] = signal.signal(s, self._hold)
                 except (ValueError, OSError):  # not allowed here (embedded interpreters)
                     pass
         return self
+
+    def _hold(self, signum, frame):  # noqa: ARG002 - signal handler signature
+        for dog in _GUARDS.watchdog[-1:]:
+            dog.acknowledge()  # the main thread is responsive: no need to end the process
+        self.caught.append(signum)
 
     def __exit__(self, exc_type, exc, tb):
         for s, old in self.old.items():

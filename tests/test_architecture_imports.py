@@ -43,6 +43,7 @@ LAYERS: Tuple[str, ...] = (
     "dvsland.control",      # the laws and filters; their loop-gain maths uses dynamics
     "dvsland.stages",       # the builder: stages from a config
     "dvsland.report",       # results.json, tables, TensorBoard, figures: what sim writes
+    "dvsland.watchdog",     # ends a command stuck in native code after Ctrl-C / SIGTERM
     "dvsland.runs",         # run folders, the interrupt guard
     "dvsland.sim",          # the closed loop and simulate()
     "dvsland",              # the package root: dvsland.simulate
