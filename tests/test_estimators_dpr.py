@@ -298,3 +298,28 @@ def test_dpr_baseline_variant_tracks_zoom_resets_by_mask_and_gives_nan():
     with pytest.raises(ValueError, match="baseline_steps"):
         get_estimator("dpr", 1, (W, H), baseline_steps=0)
 
+
+
+def test_dpr_hot_pixel_cap_keeps_hot_pixels_out_of_the_centroids():
+    """A hot pixel (40 events per step at one pixel) is the densest peak of the window: without the
+    cap DPR tracks it as a centroid; with hot_pixel_factor = 4 it is capped below n_min and only the
+    zooming blobs (about 60 events each in the window) are tracked (not in paper; off by default)."""
+    D = torch.tensor([-0.3])
+    offsets = blob_layout(1, 12, (W, H), extent=0.75, seed=3)
+    ests = {f: get_estimator("dpr", 1, (W, H), dt_s=0.1, n_min=30, radius_px=3.0, hot_pixel_factor=f) for f in (0, 4)}
+    hot = torch.tensor([40.0, 20.0])
+    for k in range(8):
+        ev = zoom_blob_events(offsets, D, k * 100_000, (k + 1) * 100_000, (W, H), events_per_blob=12, sigma_px=0.6,
+                              seed=k)
+        n = 40
+        t = torch.arange(1, n + 1) * (100_000 // n) + k * 100_000
+        ev = Events(torch.cat([ev.b, torch.zeros(n, dtype=torch.long)]), torch.cat([ev.x, torch.full((n,), 40)]),
+                    torch.cat([ev.y, torch.full((n,), 20)]), torch.cat([ev.t, t]),
+                    torch.cat([ev.p, torch.ones(n, dtype=torch.int8)]), sort=True)
+        for est in ests.values():
+            est.update(ev, (k + 1) * 100_000)
+    near_hot = {f: bool(((e.diagnostics()["centroids"][0] - hot).norm(dim=-1) < 1.5).any()) for f, e in ests.items()}
+    assert near_hot == {0: True, 4: False}
+    img = ests[4]._window_padded
+    cap = 4 * img.sum() / (img > 0).sum()
+    assert float(ests[4]._capped().max()) == pytest.approx(float(cap))

@@ -202,6 +202,8 @@ class DPRConfig:
                               "weighted by pair length (not in paper)", choices=("none", "length"))
     baseline_steps: int = opt(1, "1 = the paper's Eq. 8 between consecutive steps; k > 1 compares each pair with "
                               "its length up to k steps ago, inverse-variance weighted (not in paper)", rng=(1, 1000))
+    hot_pixel_factor: float = opt(0.0, "cap each pixel of the windowed image at this many times the element's mean "
+                                       "count per active pixel (hot pixels; not in paper); 0 = off", rng=(0.0, 1e6))
 
 
 @dataclass

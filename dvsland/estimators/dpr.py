@@ -62,6 +62,10 @@ class DPREstimator(DivergenceEstimator):
             centroids were tracked since), D_ij = -log(l / l') / elapsed, averaged with
             inverse-variance weights (l' elapsed)^2 (:func:`~.divergence.baseline_divergence`);
             ``pair_weighting`` is then ignored. The estimate refers to about k dt / 2 before now.
+        hot_pixel_factor: cap every pixel of the windowed image at this many times its element's
+            mean count per active pixel before tracking and DPR (hot pixels, fixed to the sensor,
+            are density peaks that never move and read as D = 0; not in paper); 0 = off (the
+            paper's algorithm, the default).
         principal_point_px: the focus of expansion. Eq. 8 uses only distances between
             centroids, which a zoom about any point scales alike, so ``dpr`` needs no FoE; it is
             accepted for the common interface.
@@ -74,13 +78,15 @@ class DPREstimator(DivergenceEstimator):
                  n_min: int = 15, radius_px: float = 4.0, c_min: int = 3, r_min_px: float = 3.0,
                  memory_ms: float = 500.0, blur_sigma_px: float = 2.0, meanshift_iters: int = 20,
                  meanshift_tol_px: float = 0.01, merge_px: float = 1.0, nms_px: int = 3,
-                 pair_weighting: str = "none", baseline_steps: int = 1, principal_point_px=None):
+                 pair_weighting: str = "none", baseline_steps: int = 1, hot_pixel_factor: float = 0.0,
+                 principal_point_px=None):
         super().__init__(batch_size, sensor_size, device, dt_s, principal_point_px=principal_point_px)
         # the ranges of the config schema (estimator.dpr), written once there
         check_fields(DPRConfig, n_max=n_max, n_min=n_min, radius_px=radius_px, c_min=c_min, r_min_px=r_min_px,
                      memory_ms=memory_ms, blur_sigma_px=blur_sigma_px, meanshift_iters=meanshift_iters,
                      meanshift_tol_px=meanshift_tol_px, merge_px=merge_px, nms_px=nms_px,
-                     pair_weighting=pair_weighting, baseline_steps=baseline_steps)
+                     pair_weighting=pair_weighting, baseline_steps=baseline_steps, hot_pixel_factor=hot_pixel_factor)
+        self.hot_pixel_factor = float(hot_pixel_factor)
         self.baseline_steps = int(baseline_steps)
         if int(nms_px) < 1 or int(nms_px) % 2 == 0:
             raise ValueError(f"nms_px must be an odd integer >= 1, got {nms_px}")
@@ -177,6 +183,14 @@ class DPREstimator(DivergenceEstimator):
             lin = lin[ok]
         return lin
 
+    def _capped(self) -> torch.Tensor:
+        """The padded windowed image (B, H + 2q, W + 2q) float32 with every pixel capped at
+        ``hot_pixel_factor`` times its element's mean count per active pixel (a new tensor)."""
+        img = self._window_padded
+        n_act = (img > 0).sum((1, 2)).clamp_min(1).to(img.dtype)
+        cap = self.hot_pixel_factor * img.sum((1, 2)) / n_act
+        return torch.minimum(img, cap.view(-1, 1, 1))
+
     def _unit(self, n: int) -> torch.Tensor:
         """(2, n) float32 view: row 0 = +1, row 1 = -1, the window's scatter sources (kept
         between steps, grown on demand)."""
@@ -236,7 +250,8 @@ class DPREstimator(DivergenceEstimator):
 
         # 1. track: mean-shift from last step's centroids
         prev = self._centroids
-        c, counts, _ = meanshift_flat(self._window_padded, prev, self._valid, self.radius_px, self.meanshift_iters,
+        image = self._capped() if self.hot_pixel_factor > 0 else self._window_padded
+        c, counts, _ = meanshift_flat(image, prev, self._valid, self.radius_px, self.meanshift_iters,
                                       self.meanshift_tol_px, image_pad_px=self._pad)
         keep = self._keep(c, counts)
         # 2. Eq. 8 over the pairs tracked at both steps (computed before any re-initialisation).
@@ -271,7 +286,7 @@ class DPREstimator(DivergenceEstimator):
         self._reinit = need
         if bool(need.any()):
             idx = need.nonzero().squeeze(1)
-            padded = self._window_padded[idx]
+            padded = image[idx]
             # an element with an empty window (e.g. a finished descent) has no density peak, so
             # DPR would give it no centroid; its state already says so (a kept centroid needs
             # n_min >= 1 events within R): skip it
