@@ -22,6 +22,7 @@ import threading
 import time
 from typing import Iterator, List, Optional
 
+from .reaper import start_reaper, stop_reaper
 from .shard import run_shard
 
 EXECUTORS = ("local", "ray")
@@ -121,10 +122,15 @@ def run_ray(config: dict, shards: List[dict], workers: Optional[int] = None,
         raise ValueError("--executor ray needs Ray: pip install 'dvsland[ray]'") from exc
     keep_dirs = keep_dirs or [None] * len(shards)
     address = address or os.environ.get("RAY_ADDRESS") or None
-    started = False
+    started, reaper = False, None
     if not ray.is_initialized():
         kw = {"address": address} if address else {"num_cpus": int(workers) if workers else None}
-        ray.init(ignore_reinit_error=True, log_to_driver=False, include_dashboard=False, **kw)
+        reaper = None if address else start_reaper()  # a killed driver leaves no local Ray process behind
+        try:
+            ray.init(ignore_reinit_error=True, log_to_driver=False, include_dashboard=False, **kw)
+        except BaseException:
+            stop_reaper(reaper)
+            raise
         started = True
     try:
         task = ray.remote(num_cpus=1)(run_shard)
@@ -143,3 +149,4 @@ def run_ray(config: dict, shards: List[dict], workers: Optional[int] = None,
     finally:
         if started:
             ray.shutdown()
+        stop_reaper(reaper)
