@@ -48,13 +48,33 @@ def test_native_sort_gives_the_same_events(monkeypatch):
     keys = rng.integers(0, 2 ** 40, 100_003)
     t = torch.from_numpy(keys.copy())
     assert native.radix_sort_(t, 40) and np.array_equal(t.numpy(), np.sort(keys))
-    for kw in (dict(), dict(shot_noise_rate_hz=20.0, background_rate_hz=5.0, leak_rate_hz=1.0, mismatch_sigma=0.1)):
-        frames = smooth_frames(3, 40, 48, 5, omega=0.8)
-        out = {}
-        for on in (True, False):
-            monkeypatch.setattr(native, "_enabled", on)
-            emu = EventEmulator(seed=2, **kw)
-            emu.reset(frames[0], 0)
-            out[on] = [emu.step(frames[k], k * 100_000) for k in range(1, 5)]
-        for a, b in zip(out[True], out[False]):
-            assert a == b and len(a) > 0
+    from test_emulator_fast_paths import CONFIGS
+
+    g = torch.Generator().manual_seed(4)
+    frame_sets = [smooth_frames(3, 40, 48, 5, omega=0.8), smooth_frames(2, 33, 70, 4, omega=0.3),
+                  torch.rand(5, 3, 17, 23, generator=g) * 2]
+    for kw in CONFIGS + [dict(leak_rate_hz=2.0, photoreceptor_cutoff_hz=50.0), dict(refractory_us=20_000.0)]:
+        for frames in frame_sets:
+            out, state = {}, {}
+            for on in (True, False):
+                monkeypatch.setattr(native, "_enabled", on)
+                emu = EventEmulator(seed=2, **kw)
+                emu.reset(frames[0], 0)
+                out[on] = [emu.step(frames[k], k * 100_000) for k in range(1, frames.shape[0])]
+                state[on] = (emu.reference.clone(), emu._t_last.clone())
+            for a, b in zip(out[True], out[False]):
+                assert a == b, kw
+            assert sum(len(a) for a in out[True]) > 0
+            assert torch.equal(state[True][0], state[False][0]) and torch.equal(state[True][1], state[False][1]), kw
+
+
+@pytest.mark.slow
+def test_native_kernel_respects_the_event_cap(monkeypatch):
+    monkeypatch.setattr(native, "_enabled", True)
+    if native.load() is None:
+        pytest.skip("no C++ toolchain for torch.utils.cpp_extension")
+    frames = smooth_frames(2, 40, 48, 3, omega=0.8)
+    emu = EventEmulator(max_events_per_step=100)
+    emu.reset(frames[0], 0)
+    with pytest.raises(ValueError, match="max_events_per_step"):
+        emu.step(frames[1], 100_000)

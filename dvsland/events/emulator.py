@@ -441,15 +441,22 @@ class EventEmulator:
         if self._drift is not None:
             el = float(t1 - self._t_reset)
             l1 = l1.add(self._drift, alpha=el) if pmp.lowpass else l1.add_(self._drift, alpha=el)
-        d = torch.sub(l1, self._lref, out=self._scratch(l1))  # scratch, overwritten below
+        keys = None
+        if self._native_pixel_path(l1):  # the compiled one-pass kernel (opt-in): the same keys and state
+            keys = self._native_pixel_events(l1, t0, dt, b_shift)
+            act = torch.empty(0, dtype=torch.int64)
+        else:
+            d = torch.sub(l1, self._lref, out=self._scratch(l1))  # scratch, overwritten below
         # candidate pixels (A,): a superset of those with >= 1 crossing (exact counts follow)
-        if self._th_scalar:
+        if keys is not None:
+            pass
+        elif self._th_scalar:
             act = _candidates(d, self._th_on, self._th_off, 1.0 - 2 * LEVEL_TOL)  # sync
         else:
             act = _candidates_map(d, *self._cand_bounds)
-        del d
+        if keys is None:
+            del d
         # per event int64 sort keys (see _KeyLayout); updates L_ref and t_last
-        keys = None
         if act.numel() > 0:
             # on CPU, blocks of candidates small enough to keep the ~40 per-pixel temporaries in
             # cache (faster at large B); one block on other devices
@@ -488,6 +495,27 @@ class EventEmulator:
         else:
             ev = layout.sort_decode(keys, b_shift, t0, sorted_keys=shot_keys)
         return ev if self.denoiser is None else self.denoiser(ev, t1)
+
+    def _native_pixel_path(self, l1: torch.Tensor) -> bool:
+        """Whether this step's pixels go through the compiled kernel: opt-in (DVSLAND_NATIVE_SORT),
+        CPU, log interpolation, scalar thresholds and refractory period, and the kernel built."""
+        return (native.native_sort_enabled() and _cpu_fast_path(l1) and self.interpolation == "log"
+                and self._th_scalar and self._r_elem is None and l1.dtype == torch.float64
+                and native.load() is not None)
+
+    def _native_pixel_events(self, l1: torch.Tensor, t0: int, dt: float, b_shift: int) -> torch.Tensor:
+        """Keys of the pixels' events from :func:`dvsland.events.native` ``pixel_events``; moves
+        L_ref and t_last (the same as the candidate scan and :meth:`_pixel_events`)."""
+        layout = self._layout
+        table = layout.pixel_table(b_shift)
+        n_out = torch.zeros(1, dtype=torch.float64)
+        cap = -1 if self.max_events_per_step is None else int(self.max_events_per_step)
+        keys = native.load().pixel_events(l1.reshape(-1), self._lref.view(-1), self._l_prev.reshape(-1),
+                                          self._t_last.view(-1), table, float(self._th_on), float(self._th_off),
+                                          float(self.refractory_us), float(t0), float(dt),
+                                          bool(self._spacing_may_bind), layout.t_shift, cap, n_out)
+        self._count_events(n_out)  # ValueError above the cap (the kernel then emitted nothing)
+        return keys
 
     def _scratch(self, like: torch.Tensor) -> torch.Tensor:
         """A (B, H, W) float64 work buffer kept across steps: a fresh full-size tensor per step
@@ -805,23 +833,28 @@ class _KeyLayout:
                              f"H={self.H}, W={self.W}, dt_us={dt_us} need more than 63 bits")
         return shift
 
-    def pixel_key(self, pix: torch.Tensor, off: torch.Tensor, b_shift: int) -> torch.Tensor:
-        """Key bits (b, y, x, off) of flat pixel indices ``pix`` and OFF flags (bool)."""
+    def pixel_table(self, b_shift: int) -> torch.Tensor:
+        """(B * H * W,) int64: the key bits (b, y, x) of every flat pixel, OFF bit 0."""
         if b_shift != self._table_shift:  # rebuilt only when the step length's bit width changes
             self._table = ((self.code >> 32) << b_shift) | (self.code & 0xFFFFFFFF)
             self._table_shift = b_shift
-        return self._table.index_select(0, pix) | off.to(torch.int64)
+        return self._table
+
+    def pixel_key(self, pix: torch.Tensor, off: torch.Tensor, b_shift: int) -> torch.Tensor:
+        """Key bits (b, y, x, off) of flat pixel indices ``pix`` and OFF flags (bool)."""
+        return self.pixel_table(b_shift).index_select(0, pix) | off.to(torch.int64)
 
     def sort_decode(self, keys: torch.Tensor, b_shift: int, t0: int,
                     sorted_keys: Optional[torch.Tensor] = None) -> Events:
         """Sort the keys (in place on CPU), merge in ``sorted_keys`` (already sorted, or None) and
         unpack into :class:`Events` (t = t0 + t_rel)."""
         if _cpu_fast_path(keys):
-            if native.native_sort_enabled():  # the compiled radix sort (opt-in): same result
+            if native.native_sort_enabled() and native.load() is not None:  # compiled (opt-in): same result
                 if sorted_keys is not None and sorted_keys.numel():
                     keys = torch.cat((keys, sorted_keys))
-                if not native.radix_sort_(keys, b_shift + self.bb):
-                    keys.numpy().sort()
+                b, x, y, t, p = native.load().sort_decode(keys, b_shift + self.bb, b_shift, self.t_shift,
+                                                          self.y_shift, self.x_mask, self.y_mask, int(t0))
+                return Events(b=b, x=x, y=y, t=t, p=p)
             else:
                 keys.numpy().sort()
                 if sorted_keys is not None and sorted_keys.numel():

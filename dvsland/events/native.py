@@ -22,6 +22,7 @@ import torch
 
 _SRC = r"""
 #include <torch/extension.h>
+#include <cmath>
 #include <cstring>
 #include <vector>
 
@@ -48,6 +49,111 @@ void radix_sort_(torch::Tensor keys, int64_t bits) {
     std::swap(src, dst);
   }
   if (src != a) std::memcpy(a, src, size_t(n) * sizeof(int64_t));
+}
+
+// radix_sort_ then unpack the keys into the Events fields in one pass (see _KeyLayout):
+// b, x, y, t = t0 + t_rel (int64) and p = +1 / -1 (int8, OFF bit 1 = -1).
+std::vector<torch::Tensor> sort_decode(torch::Tensor keys, int64_t bits, int64_t b_shift, int64_t t_shift,
+                                       int64_t y_shift, int64_t x_mask, int64_t y_mask, int64_t t0) {
+  radix_sort_(keys, bits);
+  const int64_t n = keys.numel();
+  const int64_t* k = keys.data_ptr<int64_t>();
+  auto opt = torch::TensorOptions().dtype(torch::kInt64);
+  auto b = torch::empty({n}, opt), x = torch::empty({n}, opt), y = torch::empty({n}, opt), t = torch::empty({n}, opt);
+  auto p = torch::empty({n}, torch::TensorOptions().dtype(torch::kInt8));
+  int64_t *pb = b.data_ptr<int64_t>(), *px = x.data_ptr<int64_t>(), *py = y.data_ptr<int64_t>(), *pt = t.data_ptr<int64_t>();
+  int8_t* pp = p.data_ptr<int8_t>();
+  const int64_t t_mask = (int64_t(1) << (b_shift - t_shift)) - 1;
+  for (int64_t i = 0; i < n; ++i) {
+    const int64_t v = k[i];
+    pp[i] = (v & 1) ? -1 : 1;
+    px[i] = (v >> 1) & x_mask;
+    py[i] = (v >> y_shift) & y_mask;
+    pt[i] = ((v >> t_shift) & t_mask) + t0;
+    pb[i] = v >> b_shift;
+  }
+  return {b, x, y, t, p};
+}
+
+// The ideal pixel's step (log interpolation, scalar thresholds and refractory period) in one pass
+// over the pixels, the same float64 operations in the same order as EventEmulator._pixel_events /
+// _emitted_log / _extra_keys (torch's addcmul is a fused multiply-add: std::fma here). Updates
+// lref and t_last in place; returns the unsorted event keys, or an empty tensor and the count in
+// n_out[0] when the count exceeds cap (cap < 0: no cap).
+static inline double clamp_lo(double x, double lo) { return x < lo ? lo : x; }  // NaN stays NaN, as torch
+static inline double clamp_lohi(double x, double lo, double hi) { x = x < lo ? lo : x; return x > hi ? hi : x; }
+
+torch::Tensor pixel_events(torch::Tensor l1_t, torch::Tensor lref_t, torch::Tensor l0_t, torch::Tensor tlast_t,
+                           torch::Tensor code_t, double th_on, double th_off, double r, double t0, double dt,
+                           bool spacing_may_bind, int64_t t_shift, int64_t cap, torch::Tensor n_out) {
+  const double TOL = 1e-9, shrink = 1.0 - 2 * TOL;
+  const int64_t P = l1_t.numel();
+  const double* l1 = l1_t.data_ptr<double>();
+  double* lref = lref_t.data_ptr<double>();
+  const double* l0 = l0_t.data_ptr<double>();
+  double* tlast = tlast_t.data_ptr<double>();
+  const int64_t* code = code_t.data_ptr<int64_t>();
+  const bool same = th_on == th_off;
+  const double lo_on = th_on * shrink, lo_off = th_off * shrink;
+  std::vector<int64_t> idx; std::vector<double> cnt_v, first_v, step_v;
+  std::vector<int64_t> off_v;
+  idx.reserve(P / 2); cnt_v.reserve(P / 2); first_v.reserve(P / 2); step_v.reserve(P / 2); off_v.reserve(P / 2);
+  double total = 0.0;
+  for (int64_t k = 0; k < P; ++k) {
+    const double d = l1[k] - lref[k];
+    if (same ? !(std::fabs(d) >= lo_on) : !(d >= lo_on || d <= -lo_off)) continue;
+    double n, th;
+    if (same) {
+      n = std::floor(std::fabs(d / th_on) + TOL);
+      th = (d > 0 ? 1.0 : (d < 0 ? -1.0 : 0.0)) * th_on;
+    } else {
+      const double n_on = clamp_lo(std::floor(d / th_on + TOL), 0.0);
+      const double n_off = clamp_lo(std::floor(-d / th_off + TOL), 0.0);
+      n = n_on + n_off;
+      th = d > 0 ? th_on : -th_off;
+    }
+    const double tl = tlast[k] - t0;
+    // _emitted_log
+    const double dl = l1[k] - l0[k];
+    const double scale = (1.0 / dl) * dt;  // torch: scalar / tensor = tensor.reciprocal() * scalar
+    const double spacing = th * scale;
+    const double base = (lref[k] - l0[k]) * scale;
+    double cnt = n, first = base + spacing, step = spacing;
+    if (r > 0) {
+      const bool near = first < tl + r;
+      if (spacing_may_bind ? ((spacing < r) || near) : near) {
+        const double j0 = clamp_lo(std::ceil(((tl - base) + r) / spacing), 1.0);
+        const double m = clamp_lo(std::ceil((1.0 / spacing) * r), 1.0);  // as r / sp in torch
+        double c = clamp_lo(std::floor((n - j0) / m) + 1.0, 0.0);
+        if (!std::isfinite(c)) c = 0.0;
+        cnt = c;
+        first = std::fma(j0, spacing, base);
+        step = m * spacing;
+      }
+    }
+    lref[k] = std::fma(n, th, lref[k]);
+    if (cnt > 0) {
+      tlast[k] = std::fma(cnt - 1.0, step, first) + t0;
+      idx.push_back(k); cnt_v.push_back(cnt); first_v.push_back(first); step_v.push_back(step);
+      off_v.push_back(std::signbit(th) ? 1 : 0);
+      total += cnt;
+    }
+  }
+  n_out.data_ptr<double>()[0] = total;
+  if (cap >= 0 && total > double(cap)) return torch::empty({0}, torch::kInt64);
+  auto keys = torch::empty({int64_t(total)}, torch::kInt64);
+  int64_t* out = keys.data_ptr<int64_t>();
+  int64_t w = 0;
+  for (size_t a = 0; a < idx.size(); ++a) {
+    const int64_t c0 = code[idx[a]] | off_v[a];
+    out[w++] = (int64_t(clamp_lohi(std::floor(first_v[a] + 0.5), 1.0, dt)) << t_shift) + c0;
+    const int64_t ce = int64_t(cnt_v[a]);
+    for (int64_t i = 1; i < ce; ++i) {
+      const double tau = step_v[a] * double(i) + first_v[a];
+      out[w++] = (int64_t(clamp_lohi(std::floor(tau + 0.5), 1.0, dt)) << t_shift) + c0;
+    }
+  }
+  return keys;
 }
 """
 
@@ -77,8 +183,8 @@ def load():
     try:
         from torch.utils.cpp_extension import load_inline
 
-        _module = load_inline("dvsland_events_native", cpp_sources=_SRC, functions=["radix_sort_"],
-                              extra_cflags=["-O3"], verbose=False)
+        _module = load_inline("dvsland_events_native", cpp_sources=_SRC, functions=["radix_sort_", "pixel_events", "sort_decode"],
+                              extra_cflags=["-O3", "-ffp-contract=off"], verbose=False)
     except Exception as exc:  # no compiler, no headers, ...: the numpy sort stays
         _failed = True
         warnings.warn(f"dvsland.events.native: the compiled sort could not be built ({exc}); "
