@@ -126,3 +126,42 @@ def test_time_scale_augmentation_moves_the_target_with_the_events(data):
     # a stretched window (f < 1, no merge) holds fewer events than the whole one
     assert (aug.log_count[f < 0.9] <= plain.log_count[f < 0.9] + 1e-6).all()
     assert (aug.log_count[f > 1.1] >= plain.log_count[f > 1.1] - 1e-6).all()
+
+
+def test_estimator_ring_sees_what_training_sees(data, tmp_path):
+    """With an input of K = 3 control steps, the estimator's ring of the last windows gives the
+    same input, hence the same estimate, as the recipe's batch of that sample."""
+    from dvsland.estimators.learned import InputSpec, build_model, coord_channels, save_checkpoint
+    from dvsland.learn.batches import make_batch
+
+    torch.manual_seed(0)
+    net, cls = build_model("cnn", {"n_bins": 3, "width": 4})
+    spec = InputSpec((128, 128), 3, 2, 64.0, 3)
+    save_checkpoint(tmp_path / "k3.pt", {"model": {"name": "cnn", "class": cls, "settings": net.settings()},
+                                         "input": {**spec._asdict(), "sensor_size": [128, 128]},
+                                         "state_dict": net.state_dict()})
+    w = load_windows(data, "val")
+    i = int(torch.nonzero((w.prev >= 0) & (w.prev[w.prev.clamp_min(0)] >= 0)).squeeze(1)[5])
+    chain = [int(w.prev[w.prev[i]]), int(w.prev[i]), i]
+    est = get_estimator("learned", 1, (128, 128), checkpoint=str(tmp_path / "k3.pt"), min_events=1)
+    est.update(_window(w, i, 1), 100_000)  # something in the ring, then a reset empties it
+    est.reset()
+    assert not est.state.ring.any()
+    for k, r in enumerate(chain, start=1):
+        d = est.update(_window(w, r, k), 100_000 * k)
+    with torch.no_grad():
+        bt = make_batch(w, torch.tensor([i]), spec)
+        mu, _ = net.eval()(bt.vox, coord_channels(spec, (63.5, 63.5)), bt.log_count)
+    assert torch.equal(est.state.ring, bt.vox)
+    assert float(d[0]) == pytest.approx(-float(torch.exp(mu[0])), rel=1e-5)
+
+
+def _window(w, r: int, k: int):
+    """Sample r's events as the k-th 0.1 s window of one descent (Events, B = 1)."""
+    from dvsland.events import Events
+
+    a, b = int(w.offset[r]), int(w.offset[r + 1])
+    t = (100_000 * (k - 1) + (w.frac[a:b].double() * 100_000).round().long()).clamp_min(100_000 * (k - 1) + 1)
+    order = torch.argsort(t, stable=True)
+    return Events(b=torch.zeros(b - a, dtype=torch.long), x=w.x[a:b].long()[order], y=w.y[a:b].long()[order],
+                  t=t[order], p=w.p[a:b][order])

@@ -58,6 +58,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     rec.add_argument("--model-set", action="append", default=[], metavar="KEY=VALUE",
                      help="a model constructor setting, e.g. width=16 (repeatable)")
     rec.add_argument("--n-bins", type=int, default=None, help="time bins of the voxel grid (default 4; spiking 6)")
+    rec.add_argument("--n-windows", type=int, default=1,
+                     help="control steps the input spans (the last K windows; n_bins must be a multiple of K)")
     rec.add_argument("--pool-px", type=int, default=None, help="sensor pixels per input cell side (default 2; spiking 4)")
     rec.add_argument("--patience", type=int, default=6, help="early stopping: epochs without a better val error")
     rec.add_argument("--resume", action="store_true", help="continue the training stored in --out")

@@ -34,9 +34,9 @@ def recipe_settings(args, cfg):
     ms = _parse_model_set(args.model_set)
     nb = args.n_bins if args.n_bins is not None else nb
     if name == "spiking":
-        ms.setdefault("slice_dt_s", cfg.dt_s / nb)
+        ms.setdefault("slice_dt_s", cfg.dt_s * args.n_windows / nb)
     return RecipeSettings(model=name, model_settings=ms, n_bins=nb,
-                          pool_px=args.pool_px if args.pool_px is not None else pool,
+                          pool_px=args.pool_px if args.pool_px is not None else pool, n_windows=args.n_windows,
                           epochs=30 if args.epochs is None else args.epochs, max_minutes=args.max_minutes,
                           batch_size=64 if args.batch is None else args.batch,
                           lr=2e-3 if args.lr is None else args.lr, patience=args.patience,

@@ -23,7 +23,8 @@ class Windows(NamedTuple):
     fraction of its window [0, 1], ``p`` int8 +-1; ``offset`` (S + 1,) int64 (sample i's events
     are rows offset[i] .. offset[i+1] - 1). Per sample (S,): ``d_true`` float32 1/s, ``site``
     int64 index into ``sites``, ``descent`` int64 (a key unique over the split), ``step`` int64,
-    ``z_m`` float32 m; ``next`` int64 the row of the same descent's next control step (-1 = none).
+    ``z_m`` float32 m; ``next``, ``prev`` int64 the rows of the same descent's next and previous
+    control steps (-1 = none).
     ``sites``: site names; ``sensor_size`` (W, H)."""
 
     x: torch.Tensor
@@ -37,6 +38,7 @@ class Windows(NamedTuple):
     step: torch.Tensor
     z_m: torch.Tensor
     next: torch.Tensor
+    prev: torch.Tensor
     sites: List[str]
     sensor_size: Tuple[int, int]
 
@@ -91,7 +93,16 @@ def load_windows(root, split: str = "train", split_rule: Optional[SplitRule] = N
     t = {k: torch.from_numpy(np.concatenate(v)) for k, v in {**cols, **per}.items()}
     offset = torch.cat([torch.zeros(1, dtype=torch.int64), torch.cumsum(t.pop("n"), 0)])
     return Windows(t["x"], t["y"], t["frac"], t["p"], offset, t["d_true"], t["site"], t["descent"], t["step"],
-                   t["z_m"], next_rows(t["descent"], t["step"]), list(ds.sites), tuple(ds.sensor_size))
+                   t["z_m"], *_links(t["descent"], t["step"]), list(ds.sites), tuple(ds.sensor_size))
+
+
+def _links(descent: torch.Tensor, step: torch.Tensor):
+    """(next, prev) rows of every sample (:func:`next_rows`)."""
+    nxt = next_rows(descent, step)
+    prev = torch.full_like(nxt, -1)
+    has = nxt >= 0
+    prev[nxt[has]] = torch.nonzero(has).squeeze(1)
+    return nxt, prev
 
 
 def next_rows(descent: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
@@ -154,4 +165,4 @@ def concat_windows(parts: List[Windows], param: str = "data") -> Windows:
         base += int(w.offset[-1])
     t = {k: torch.cat(v) for k, v in cat.items()}
     return Windows(t["x"], t["y"], t["frac"], t["p"], torch.cat(offs), t["d_true"], t["site"], t["descent"],
-                   t["step"], t["z_m"], next_rows(t["descent"], t["step"]), sites, parts[0].sensor_size)
+                   t["step"], t["z_m"], *_links(t["descent"], t["step"]), sites, parts[0].sensor_size)

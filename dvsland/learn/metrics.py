@@ -19,12 +19,14 @@ from .batches import make_batch
 
 
 @torch.no_grad()
-def predict(model, w: Windows, spec: InputSpec, coords: torch.Tensor, batch_size: int = 256):
-    """(mu, log_var), (S,) float32 each, of ``model`` on every sample of ``w``."""
+def predict(model, w: Windows, spec: InputSpec, coords: torch.Tensor, batch_size: int = 256, rows=None):
+    """(mu, log_var), (n,) float32 each, of ``model`` on the samples ``rows`` (n,) int64 of ``w``
+    (default all)."""
     model.eval()
+    rows = torch.arange(w.n_samples) if rows is None else rows
     mus, lvs = [], []
-    for start in range(0, w.n_samples, batch_size):  # batches of samples, not single samples
-        idx = torch.arange(start, min(start + batch_size, w.n_samples))
+    for start in range(0, len(rows), batch_size):  # batches of samples, not single samples
+        idx = rows[start:start + batch_size]
         bt = make_batch(w, idx, spec)
         mu, lv = model(bt.vox, coords, bt.log_count)
         mus.append(mu)
@@ -38,20 +40,23 @@ def _summary(rel: torch.Tensor, z: torch.Tensor) -> Dict[str, float]:
             "within_2sigma": float((z <= 2).float().mean()) if rel.numel() else float("nan")}
 
 
-def score(mu: torch.Tensor, log_var: torch.Tensor, w: Windows) -> Dict[str, Dict[str, float]]:
+def score(mu: torch.Tensor, log_var: torch.Tensor, w: Windows, rows=None) -> Dict[str, Dict[str, float]]:
     """{"all" | site type | site: {n, median_rel_error, within_1sigma, within_2sigma}} of predictions
-    (S,) against ``w.d_true``. Only groups with samples are listed."""
-    d = w.d_true.double()
+    (n,) of the samples ``rows`` of ``w`` (default all) against their ``d_true``. Only groups with
+    samples are listed."""
+    rows = torch.arange(w.n_samples) if rows is None else rows
+    d = w.d_true[rows].double()
+    site = w.site[rows]
     rel = (-torch.exp(mu.double()) - d).abs() / d.abs()
     z = (mu.double() - torch.log(d.abs().clamp_min(1e-3))).abs() / torch.exp(0.5 * log_var.double())
     out = {"all": _summary(rel, z)}
     names = list(w.sites)
     for tname, letters in site_types().items():
-        m = torch.tensor([names[int(s)].split("~")[0] in letters for s in range(len(names))])[w.site]
+        m = torch.tensor([names[int(s)].split("~")[0] in letters for s in range(len(names))])[site]
         if bool(m.any()):
             out[tname] = _summary(rel[m], z[m])
     for s, name in enumerate(names):
-        m = w.site == s
+        m = site == s
         if bool(m.any()):
             out[name] = _summary(rel[m], z[m])
     return out

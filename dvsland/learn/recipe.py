@@ -40,6 +40,7 @@ class RecipeSettings:
     n_bins: int = 4
     pool_px: int = 2
     coord_scale_px: float = 64.0
+    n_windows: int = 1
     epochs: int = 30
     max_minutes: Optional[float] = None
     batch_size: int = 64
@@ -126,7 +127,7 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
     s = settings.check()
     torch.manual_seed(s.seed)
     tr, va = load_split(data_dir, "train"), load_split(data_dir, "val")
-    spec = check_input_spec(InputSpec(tr.sensor_size, s.n_bins, s.pool_px, s.coord_scale_px))
+    spec = check_input_spec(InputSpec(tr.sensor_size, s.n_bins, s.pool_px, s.coord_scale_px, s.n_windows))
     coords = coord_channels(spec, ((spec.sensor_size[0] - 1) / 2, (spec.sensor_size[1] - 1) / 2))
     net, cls_path = build_model(s.model, {"n_bins": s.n_bins, **s.model_settings})
     model_desc = {"name": s.model, "class": cls_path, "settings": net.settings()}
@@ -144,7 +145,6 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
         log(f"resuming {out} at epoch {run['epoch']}")
     writer = _writer(tb_dir)
     val_idx = _val_subset(va, s.val_max_samples)
-    va_sub = _subset(va, val_idx)
     t_start = time.perf_counter() - run["seconds"]
     deadline = None if s.max_minutes is None else t_start + 60.0 * s.max_minutes
     while run["epoch"] < s.epochs and run["bad_epochs"] < s.patience:
@@ -152,7 +152,7 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
             break
         ep = run["epoch"]
         train_loss = _run_epoch(net, opt, tr, spec, coords, s, ep, deadline, progress)
-        rec = _validate(net, va_sub, spec, coords, s, ep, train_loss, time.perf_counter() - t_start)
+        rec = _validate(net, va, val_idx, spec, coords, s, ep, train_loss, time.perf_counter() - t_start)
         run["history"].append(rec)
         _tensorboard(writer, rec)
         if rec["val"]["all"]["median_rel_error"] < run["best_val"]:
@@ -170,17 +170,6 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
     if writer is not None:
         writer.close()
     return _finish(out, net, opt, spec, coords, model_desc, prov, s, run, data_dir, va, log)
-
-
-def _subset(w: Windows, idx: torch.Tensor) -> Windows:
-    """The samples ``idx`` of ``w`` as a Windows of their own (events copied)."""
-    from dvsland.data import gather_batch
-
-    b, x, y, frac, p, n = gather_batch(w, idx)
-    off = torch.cat([torch.zeros(1, dtype=torch.int64), torch.cumsum(n, 0)])
-    return w._replace(x=x, y=y, frac=frac, p=p, offset=off, d_true=w.d_true[idx], site=w.site[idx],
-                      descent=w.descent[idx], step=w.step[idx], z_m=w.z_m[idx],
-                      next=torch.full_like(idx, -1))
 
 
 def _run_epoch(net, opt, tr: Windows, spec, coords, s: RecipeSettings, epoch: int, deadline, progress) -> float:
@@ -210,12 +199,13 @@ def _run_epoch(net, opt, tr: Windows, spec, coords, s: RecipeSettings, epoch: in
     return total / max(count, 1)
 
 
-def _validate(net, va: Windows, spec, coords, s: RecipeSettings, epoch: int, train_loss: float, seconds: float):
-    mu, lv = predict(net, va, spec, coords)
-    target = torch.log(va.d_true.abs().clamp_min(1e-3))
+def _validate(net, va: Windows, rows, spec, coords, s: RecipeSettings, epoch: int, train_loss: float,
+              seconds: float):
+    mu, lv = predict(net, va, spec, coords, rows=rows)
+    target = torch.log(va.d_true[rows].abs().clamp_min(1e-3))
     val_loss = float(_loss(mu, lv, target, s.l1_weight))
     return {"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "lr": _lr(s, epoch),
-            "seconds": seconds, "val": score(mu, lv, va)}
+            "seconds": seconds, "val": score(mu, lv, va, rows)}
 
 
 def _writer(tb_dir):

@@ -4,7 +4,8 @@ A checkpoint is a ``torch.save`` dict:
 
 - ``format`` = ``"dvsland-learned"``, ``format_version`` = 1;
 - ``model``: ``{"name": "cnn" | "spiking" | "pkg.mod:Class", "class": import path, "settings": kwargs}``;
-- ``input``: the :class:`~.inputs.InputSpec` fields (``sensor_size``, ``n_bins``, ``pool_px``, ``coord_scale_px``);
+- ``input``: the :class:`~.inputs.InputSpec` fields (``sensor_size``, ``n_bins``, ``pool_px``, ``coord_scale_px``,
+  ``n_windows``);
 - ``state_dict``: the weights;
 - ``data``: provenance (dataset folder, its config hash, sensor, samples per split);
 - ``history``: one dict per epoch (losses, validation errors, calibration);
@@ -88,7 +89,8 @@ def load_checkpoint(path, sensor_size=None) -> Tuple[torch.nn.Module, InputSpec,
     ck = read_checkpoint(path)
     m, i = ck["model"], ck["input"]
     try:
-        spec = check_input_spec(InputSpec(tuple(i["sensor_size"]), i["n_bins"], i["pool_px"], i["coord_scale_px"]))
+        spec = check_input_spec(InputSpec(tuple(i["sensor_size"]), i["n_bins"], i["pool_px"], i["coord_scale_px"],
+                                          i.get("n_windows", 1)))
         net, _ = build_model(m["name"] if ":" not in m.get("class", "") or m["name"] in ("cnn", "spiking")
                              else m["class"], dict(m["settings"]))
     except (KeyError, TypeError, ValueError) as exc:

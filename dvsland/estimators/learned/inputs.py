@@ -18,13 +18,22 @@ import torch
 
 
 class InputSpec(NamedTuple):
-    """How events become a model input. ``sensor_size`` (W, H) px; ``n_bins`` time bins;
-    ``pool_px`` sensor pixels per cell side; ``coord_scale_px`` px per coordinate unit."""
+    """How events become a model input. ``sensor_size`` (W, H) px; ``n_bins`` time bins in all;
+    ``pool_px`` sensor pixels per cell side; ``coord_scale_px`` px per coordinate unit;
+    ``n_windows`` control steps the input spans (the last K windows, n_bins / K bins each; with
+    K > 1 an event goes to its nearest bin, so the grids of single windows concatenate exactly;
+    with K = 1 bins are bilinear in time)."""
 
     sensor_size: Tuple[int, int]
     n_bins: int = 4
     pool_px: int = 2
     coord_scale_px: float = 64.0
+    n_windows: int = 1
+
+    @property
+    def bins_per_window(self) -> int:
+        """n_bins / n_windows."""
+        return self.n_bins // self.n_windows
 
     @property
     def grid_hw(self) -> Tuple[int, int]:
@@ -44,11 +53,13 @@ def check_input_spec(spec: InputSpec) -> InputSpec:
         raise ValueError(f"pool_px must be in [1, 16], got {spec.pool_px}")
     if not float(spec.coord_scale_px) > 0:
         raise ValueError(f"coord_scale_px must be > 0, got {spec.coord_scale_px}")
-    return InputSpec((W, H), int(spec.n_bins), int(spec.pool_px), float(spec.coord_scale_px))
+    if not 1 <= int(spec.n_windows) <= 32 or int(spec.n_bins) % int(spec.n_windows):
+        raise ValueError(f"n_windows must be in [1, 32] and divide n_bins = {spec.n_bins}, got {spec.n_windows}")
+    return InputSpec((W, H), int(spec.n_bins), int(spec.pool_px), float(spec.coord_scale_px), int(spec.n_windows))
 
 
 def voxel_grid(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, frac: torch.Tensor, p: torch.Tensor,
-               batch_size: int, spec: InputSpec) -> torch.Tensor:
+               batch_size: int, spec: InputSpec, n_bins: int = None) -> torch.Tensor:
     """Signed, pooled voxel grids of B windows.
 
     Args:
@@ -58,23 +69,29 @@ def voxel_grid(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, frac: torch.Te
         p: (N,) polarity, +1 ON / -1 OFF (any integer or float dtype).
         batch_size: B.
         spec: the :class:`InputSpec`.
+        n_bins: bins of this grid (default ``spec.n_bins``; one window's: ``spec.bins_per_window``).
 
     Returns:
-        (B, n_bins, h, w) float32: per cell and bin, ON minus OFF events, each split linearly
-        between its two nearest bins (bin centres at k / (n_bins - 1)).
+        (B, n_bins, h, w) float32: per cell and bin, ON minus OFF events; with
+        ``spec.n_windows`` = 1 each split linearly between its two nearest bins (bin centres at
+        k / (n_bins - 1)), else in the bin it falls in (bin k = [k, k + 1) / n_bins).
     """
     h, w = spec.grid_hw
-    nb = spec.n_bins
+    nb = spec.n_bins if n_bins is None else int(n_bins)
     out = torch.zeros(batch_size * nb * h * w, dtype=torch.float32, device=b.device)
     if b.numel() == 0:
         return out.view(batch_size, nb, h, w)
     cell = (y.long() // spec.pool_px) * w + (x.long() // spec.pool_px)
     pol = p.to(torch.float32)
+    base = b.long() * (nb * h * w) + cell
+    if spec.n_windows > 1:
+        k = (frac.to(torch.float32) * nb).long().clamp(0, nb - 1)
+        out.index_put_((base + k * (h * w),), pol, accumulate=True)
+        return out.view(batch_size, nb, h, w)
     tb = frac.to(torch.float32).clamp(0.0, 1.0) * (nb - 1)
     lo = tb.floor().long().clamp(max=nb - 1)
     wt_hi = tb - lo.to(torch.float32)
     hi = (lo + 1).clamp(max=nb - 1)
-    base = b.long() * (nb * h * w) + cell
     out.index_put_((base + lo * (h * w),), pol * (1.0 - wt_hi), accumulate=True)
     out.index_put_((base + hi * (h * w),), pol * wt_hi, accumulate=True)
     return out.view(batch_size, nb, h, w)
@@ -92,7 +109,8 @@ def coord_channels(spec: InputSpec, principal_point_px: Tuple[float, float], dev
 
 
 def events_voxel_grid(events, t0_us: int, t_us: int, batch_size: int, spec: InputSpec) -> torch.Tensor:
-    """:func:`voxel_grid` of a :class:`dvsland.events.Events` window (t0_us, t_us], µs int."""
+    """:func:`voxel_grid` of one :class:`dvsland.events.Events` window (t0_us, t_us], µs int:
+    (B, spec.bins_per_window, h, w)."""
     span = max(int(t_us) - int(t0_us), 1)
     frac = (events.t - int(t0_us)).to(torch.float64).div_(span).to(torch.float32)
-    return voxel_grid(events.b, events.x, events.y, frac, events.p, batch_size, spec)
+    return voxel_grid(events.b, events.x, events.y, frac, events.p, batch_size, spec, spec.bins_per_window)
