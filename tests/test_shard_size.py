@@ -40,3 +40,14 @@ def test_auto_shard_bad_input():
         auto_shard_seeds(_cfg(4.0), 0, 1)
     with pytest.raises(ValueError, match="n_seeds and workers"):
         auto_shard_seeds(_cfg(4.0), 5, 0)
+
+
+def test_campaign_without_shard_seeds_plans_the_estimated_size(tmp_path):
+    from dvsland.campaign import run_campaign
+    from dvsland.campaign.plan import CampaignPlan
+
+    cfg = _cfg(1e4)
+    res = run_campaign(cfg, n_seeds=3, shard_seeds=0, out=tmp_path / "c", quiet=True, max_shards=0)
+    plan = CampaignPlan.load(tmp_path / "c")
+    assert plan.shard_seeds == 3 == auto_shard_seeds(cfg, 3, 1) and len(plan.shards) == 1
+    assert res.status != "complete"  # no shard was flown (max_shards=0)

@@ -227,7 +227,12 @@ def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_
         raise ValueError(f"--workers must be in [1, {MAX_WORKERS}] (each local worker is a process holding its "
                          f"own scenes, about 2 GB), got {workers}")
     t0 = time.perf_counter()
-    plan, run_dir, lock = _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out, workers)
+    if resume is None and config is not None and not shard_seeds:  # 0 / None: from the memory estimate
+        shard_seeds = auto_shard_seeds(config, int(config.simulation.n_seeds if n_seeds is None else n_seeds), workers)
+        if not quiet:
+            print(f"campaign: {shard_seeds} seed(s) per shard, chosen from the memory estimate for {workers} "
+                  "worker(s) (--shard-seeds S to choose)", file=sys.stderr)
+    plan, run_dir, lock = _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out)
     try:
         todo, rejected = check_shards(plan, run_dir, quiet)
         n_done_before = len(plan.shards) - len(todo)
@@ -241,7 +246,7 @@ def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_
             lock.close()
 
 
-def _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out, workers: int = 1):
+def _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out):
     """(plan, folder, lock): a checked plan from ``resume``'s campaign.json, or a new plan (checked
     before its folder is made) saved in a new folder; the folder's lock held."""
     if resume is not None:
@@ -251,9 +256,6 @@ def _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out, workers: i
     else:
         if config is None:
             raise ValueError("run_campaign needs a config (or resume=FOLDER)")
-        if not shard_seeds:  # 0 / None: from the memory estimate
-            shard_seeds = auto_shard_seeds(config, int(config.simulation.n_seeds if n_seeds is None else n_seeds),
-                                           workers)
         plan = make_plan(config, sweeps, n_seeds, shard_seeds)
         run_dir = make_run_dir(config, out, kind="campaign")  # claimed atomically; config.yaml first
         lock = lock_campaign(run_dir)
