@@ -54,9 +54,15 @@ def tuples(ev):
     return list(zip(ev.b.tolist(), ev.x.tolist(), ev.y.tolist(), ev.t.tolist()))
 
 
+@pytest.fixture(params=[True, False], ids=["numpy", "generic"])
+def paths(request, monkeypatch):
+    """Both the CPU numpy path and the device-generic torch path (the one CUDA runs)."""
+    monkeypatch.setattr(dn, "CPU_FAST_PATHS", request.param)
+
+
 @pytest.mark.parametrize("neighbours", [4, 8])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_baf_matches_reference_over_steps(neighbours, seed):
+def test_baf_matches_reference_over_steps(neighbours, seed, paths):
     rng = np.random.default_rng(seed)
     B, H, W = 2, 5, 6
     state = dn.init_state(B, H, W, 0)
@@ -80,7 +86,7 @@ def test_baf_ties_and_self():
 
 
 @pytest.mark.parametrize("seed", [0, 3])
-def test_refractory_matches_reference(seed):
+def test_refractory_matches_reference(seed, paths):
     rng = np.random.default_rng(seed)
     B, H, W = 2, 3, 3
     state = dn.init_state(B, H, W, 0)
@@ -112,7 +118,7 @@ def test_hot_pixel_matches_reference():
         assert not any(kp for kp, e in zip(want, tuples(ev)) if e[:3] == (0, 2, 1))
 
 
-def test_chain_and_parse():
+def test_chain_and_parse(paths):
     assert dn.parse_filters("none") == ()
     assert dn.parse_filters("hot_pixel+baf") == ("hot_pixel", "baf")
     with pytest.raises(ValueError, match="emulator.denoise"):

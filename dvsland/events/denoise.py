@@ -36,6 +36,14 @@ from .events import Events
 #: "never fired" in the int64 µs time memories
 NEVER_US = -(2 ** 62)
 
+#: numpy fast paths on CPU tensors; tests switch it off to run the device-generic torch path
+#: (the one CUDA runs) on CPU
+CPU_FAST_PATHS = True
+
+
+def _cpu(t: torch.Tensor) -> bool:
+    return CPU_FAST_PATHS and t.device.type == "cpu"
+
 FILTERS = ("baf", "refractory", "hot_pixel")
 
 _OFFSETS = {4: ((-1, 0), (1, 0), (0, -1), (0, 1)),
@@ -91,7 +99,7 @@ def _by_pixel(pix: torch.Tensor, n: int) -> Tuple[torch.Tensor, torch.Tensor, to
     pixels and the positions in that order, int64 (N,) each. The keys are unique, so a plain sort
     (numpy's on CPU, several times faster than a stable argsort) gives the stable order."""
     key = pix * n + torch.arange(n, device=pix.device)
-    if key.device.type == "cpu":
+    if _cpu(key):
         key.numpy().sort()
     else:
         key = torch.sort(key).values
@@ -114,7 +122,7 @@ def _previous_at(key_sorted: torch.Tensor, t_sorted: torch.Tensor, n: int, last_
     redo = _nonzero_1d(lk >= q)  # the pixel fired again later in this step: search its earlier events
     if redo.numel():
         qr, pr = q.index_select(0, redo), query_pix.index_select(0, redo)
-        if qr.device.type == "cpu":
+        if _cpu(qr):
             pos = torch.from_numpy(np.searchsorted(key_sorted.numpy(), qr.numpy())) - 1
         else:
             pos = torch.searchsorted(key_sorted, qr) - 1
@@ -126,7 +134,7 @@ def _previous_at(key_sorted: torch.Tensor, t_sorted: torch.Tensor, n: int, last_
 
 
 def _nonzero_1d(mask: torch.Tensor) -> torch.Tensor:
-    if mask.device.type == "cpu":
+    if _cpu(mask):
         return torch.from_numpy(np.flatnonzero(mask.numpy()))
     return torch.nonzero(mask).squeeze(1)
 
