@@ -62,3 +62,19 @@ def test_shot_noise_slots_come_sorted():
     # uniform over pixels: every row and column gets its share
     assert torch.bincount(x, minlength=W).min() > 0.7 * slot.numel() / W
     assert torch.bincount(y, minlength=H).min() > 0.7 * slot.numel() / H
+
+
+@pytest.mark.parametrize("rate_hz", [1e-15, 1e-3, 1e7])
+def test_shot_noise_slots_at_extreme_rates(rate_hz):
+    """A vanishing rate gives (almost surely) no event and no overflow; a rate of one event per
+    slot and more (1e7 Hz = 10 per µs) saturates at one event per pixel and µs."""
+    from dvsland.events import pixel_model as pm
+
+    slot, elem, u = pm.sorted_candidates(pm.element_rngs(0, 2, pm.TAG_SHOT), rate_hz, 4, 4, 1000, 2, 2)
+    n = slot.numel()
+    if rate_hz < 1:
+        assert n == 0
+    else:
+        assert 0.8 * 2 * 16 * 1000 < n <= 2 * 16 * 1000
+        key = elem * (1 << 40) + slot
+        assert bool((key[1:] > key[:-1]).all()) and int(slot.min()) >= 0 and int(slot.max()) < 16 * 1000

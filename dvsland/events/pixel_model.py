@@ -191,16 +191,31 @@ def uniform_candidates(rngs: List[np.random.Generator], rate_hz: float, n_pix: i
     return torch.from_numpy(flat), torch.from_numpy(t_rel + 1), torch.from_numpy(u)
 
 
+def _slot_gaps(rng: np.random.Generator, n: int, per_slot: float, span: int) -> np.ndarray:
+    """Positions (int64, strictly increasing from 0) of ``n`` events of a Bernoulli process with
+    probability ``1 - exp(-per_slot)`` per slot: geometric gaps ``floor(E / per_slot) + 1`` from
+    exponentials E, each capped at ``span + 1`` (a gap that long leaves the step anyway; the cap
+    keeps the sum of the gaps from overflowing at vanishing rates)."""
+    g = rng.standard_exponential(n)
+    g *= 1.0 / per_slot
+    np.minimum(g, float(span + 1), out=g)
+    gi = g.astype(np.int64)  # positive: truncation = floor
+    gi += 1
+    pos = np.cumsum(gi)
+    pos -= 1
+    return pos
+
+
 def sorted_candidates(rngs: List[np.random.Generator], rate_hz: float, height: int, width: int, dt_us: int,
                       x_bits: int, y_bits: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Poisson events at ``rate_hz`` per pixel of each element's (height, width) pixels, drawn in
-    order: per element a Poisson process over the time-major slots
+    order: per element a process over the time-major slots
     ``slot = t << (x_bits + y_bits) | y << x_bits | x`` (t in whole µs from 0, x < 2^x_bits, y <
-    2^y_bits) from exponential gaps, slots with x >= width or y >= height dropped. So the events come
-    out sorted by (element, time, row-major pixel) with no sort and no division; a second event in
-    the same slot is dropped (at most one per pixel and µs: a Bernoulli process per slot, which is
-    Poisson to within the slot probability, about 1e-5 at the rates of real sensors). A loop of a few draws per element, none over
-    pixels or events.
+    2^y_bits) from geometric gaps (:func:`_slot_gaps`), slots with x >= width or y >= height
+    dropped. So the events come out sorted by (element, time, row-major pixel) with no sort and no
+    division, at most one per pixel and µs: a Bernoulli process per slot, which is Poisson to
+    within the slot probability (about 1e-5 at the rates of real sensors). A loop of a few draws
+    per element, none over pixels or events.
 
     Returns (N,) each, on CPU, in that order: slot int64, element index int64, and a uniform
     float64 in [0, 1) (for thinning and polarity).
@@ -215,13 +230,10 @@ def sorted_candidates(rngs: List[np.random.Generator], rate_hz: float, height: i
         if per_slot <= 0:
             counts.append(0)
             continue
-        pos = np.cumsum(rng.standard_exponential(int(lam + 6.0 * math.sqrt(lam) + 16.0)))
-        while pos[-1] * (1.0 / per_slot) < span:  # rare: more gaps than drawn
-            pos = np.concatenate((pos, pos[-1] + np.cumsum(rng.standard_exponential(int(lam // 4) + 16))))
-        pos *= 1.0 / per_slot
-        slot = pos[:np.searchsorted(pos, span)].astype(np.int64)  # positive: truncation = floor
-        if slot.size > 1:  # at most one event per pixel and µs (a rate-5e-6 Bernoulli slot; keys stay strictly sorted)
-            slot = slot[np.concatenate(([True], slot[1:] != slot[:-1]))]
+        slot = _slot_gaps(rng, int(lam + 6.0 * math.sqrt(lam) + 16.0), per_slot, span)
+        while slot[-1] < span:  # rare: more gaps than drawn
+            slot = np.concatenate((slot, slot[-1] + 1 + _slot_gaps(rng, int(lam // 4) + 16, per_slot, span)))
+        slot = slot[:np.searchsorted(slot, span)]
         if pad and slot.size:
             slot = slot[((slot & ((1 << x_bits) - 1)) < width) & (((slot >> x_bits) & ((1 << y_bits) - 1)) < height)]
         slots.append(slot)
