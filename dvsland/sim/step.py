@@ -12,7 +12,9 @@ campaigns, the open-loop evaluation (``thrust`` given), the bench, the training 
 Within one step: render the frames at the current altitude (active descents only), emulate the
 events since the last step, estimate D, filter, command a thrust (the controller's, or ``thrust``),
 advance the dynamics over ``dt`` with the thrust held, and end descents that met a termination
-condition. Finished descents stay in the state, frozen by ``active``.
+condition. Finished descents stay in the state, frozen by ``active``, and leave the hot path
+(``simulation.compact``): they are not rendered again and their events are dropped before the
+estimator (:func:`compacted`, :func:`active_events`).
 """
 
 from __future__ import annotations
