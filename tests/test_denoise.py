@@ -69,9 +69,10 @@ def test_baf_matches_reference_over_steps(neighbours, seed, paths):
     mem = {}
     for k in range(3):  # memory carried across steps
         ev = random_events(rng, 40, B, H, W, k * 1000, (k + 1) * 1000)
-        keep, m = dn.baf_keep(ev, state.baf_t_us, 300, neighbours)
+        window = 300 if seed else 300.5  # a window that is not whole microseconds too
+        keep, m = dn.baf_keep(ev, state.baf_t_us, window, neighbours)
         state = state._replace(baf_t_us=m)
-        want, mem = ref_baf(tuples(ev), B, H, W, 300, neighbours, mem)
+        want, mem = ref_baf(tuples(ev), B, H, W, window, neighbours, mem)
         assert keep.tolist() == want
     assert 0 < sum(want) < len(want)  # the case is not trivial
 
@@ -93,9 +94,9 @@ def test_refractory_matches_reference(seed, paths):
     mem = {}
     for k in range(3):
         ev = random_events(rng, 50, B, H, W, k * 1000, (k + 1) * 1000)
-        keep, m = dn.refractory_keep(ev, state.refractory_t_us, 150)
+        keep, m = dn.refractory_keep(ev, state.refractory_t_us, 150 if seed else 150.5)
         state = state._replace(refractory_t_us=m)
-        want, mem = ref_refractory(tuples(ev), 150, mem)
+        want, mem = ref_refractory(tuples(ev), 150 if seed else 150.5, mem)
         assert keep.tolist() == want
     assert 0 < sum(want) < len(want)
 
@@ -164,3 +165,30 @@ def test_emulator_hook_removes_isolated_noise():
         sa = set(tuples(a))
         assert all(e in sa for e in tuples(b))
     assert n_plain > 500 and n_filt < 0.1 * n_plain
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("neighbours", [4, 8])
+def test_native_filters_match_reference(neighbours, monkeypatch):
+    """The compiled loops (DVSLAND_NATIVE_SORT; slow: compiled on first use) against the by-hand
+    references, across steps, with windows that are not whole microseconds."""
+    from dvsland.events import native
+
+    monkeypatch.setattr(native, "_enabled", True)
+    if native.load() is None:
+        pytest.skip("no C++ toolchain for torch.utils.cpp_extension")
+    rng = np.random.default_rng(9)
+    B, H, W = 2, 5, 6
+    state = dn.init_state(B, H, W, 0)
+    mem_b, mem_r = {}, {}
+    for k in range(3):
+        ev = random_events(rng, 60, B, H, W, k * 1000, (k + 1) * 1000)
+        keep, m = dn.baf_keep(ev, state.baf_t_us, 300.5, neighbours)
+        want, mem_b = ref_baf(tuples(ev), B, H, W, 300.5, neighbours, mem_b)
+        assert keep.tolist() == want
+        keep_r, m_r = dn.refractory_keep(ev, state.refractory_t_us, 150.5)
+        want_r, mem_r = ref_refractory(tuples(ev), 150.5, mem_r)
+        assert keep_r.tolist() == want_r
+        state = state._replace(baf_t_us=m, refractory_t_us=m_r)
+    monkeypatch.setattr(native, "_enabled", False)
+    assert 0 < sum(want) < len(want) and 0 < sum(want_r) < len(want_r)

@@ -26,11 +26,13 @@ several joined by ``+`` (applied left to right, e.g. ``hot_pixel+baf``); docs/ev
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple, Optional, Tuple
 
 import numpy as np
 import torch
 
+from . import native
 from .events import Events
 
 #: "never fired" in the int64 µs time memories
@@ -43,6 +45,11 @@ CPU_FAST_PATHS = True
 
 def _cpu(t: torch.Tensor) -> bool:
     return CPU_FAST_PATHS and t.device.type == "cpu"
+
+
+def _native(t: torch.Tensor) -> bool:
+    """The compiled loops of :mod:`dvsland.events.native` (opt-in, CPU, built)."""
+    return _cpu(t) and native.native_sort_enabled() and native.load() is not None
 
 FILTERS = ("baf", "refractory", "hot_pixel")
 
@@ -163,6 +170,11 @@ def baf_keep(ev: Events, memory_t_us: torch.Tensor, time_us: float, neighbours: 
     if n == 0:
         return torch.zeros(0, dtype=torch.bool, device=mem.device), memory_t_us.clone()
     pix = _flat_pixel(ev, (B, H, W))
+    window = math.ceil(time_us)  # exact on integers: d < T  <=>  d < ceil(T)
+    if _native(pix):  # the compiled loop over events (opt-in): the same keep mask and memory
+        new = mem.clone()
+        keep = native.load().baf_keep(pix, ev.x, ev.y, ev.t, new, H, W, window, neighbours)
+        return keep, new.view(B, H, W)
     key_sorted, pix_s, order = _by_pixel(pix, n)  # work in (pixel, position) order: searches come sorted
     t_s, x_s, y_s = ev.t.index_select(0, order), ev.x.index_select(0, order), ev.y.index_select(0, order)
     # per pixel: key and time of its last event in this step (-1 / the memory where none)
@@ -182,7 +194,7 @@ def baf_keep(ev: Events, memory_t_us: torch.Tensor, time_us: float, neighbours: 
         step = dy * W + dx
         npix = (pix_s + step).clamp_(0, B * H * W - 1)  # still sorted; off-sensor ones masked by ok
         t_n = _previous_at(key_sorted, t_s, n, last_key, last_t, mem, npix, key_sorted + step * n)
-        keep_s |= ok & (t_s - t_n < time_us)
+        keep_s |= ok & (t_s - t_n < window)
     keep = torch.empty_like(keep_s)
     keep[order] = keep_s
     return keep, last_t.view(B, H, W)
@@ -198,6 +210,10 @@ def refractory_keep(ev: Events, memory_t_us: torch.Tensor, refractory_us: float
     if n == 0:
         return torch.zeros(0, dtype=torch.bool, device=mem.device), memory_t_us.clone()
     pix = _flat_pixel(ev, (B, H, W))
+    if _native(pix):
+        new = mem.clone()
+        keep = native.load().refractory_keep(pix, ev.t, new, math.floor(refractory_us))
+        return keep, new.view(B, H, W)
     _, p_s, order = _by_pixel(pix, n)
     t_s = ev.t.index_select(0, order)
     first = torch.ones(n, dtype=torch.bool, device=pix.device)
@@ -206,7 +222,7 @@ def refractory_keep(ev: Events, memory_t_us: torch.Tensor, refractory_us: float
     prev[1:] = t_s[:-1]
     prev = torch.where(first, mem.index_select(0, p_s), prev)
     keep = torch.empty(n, dtype=torch.bool, device=pix.device)
-    keep[order] = (t_s - prev) > refractory_us
+    keep[order] = (t_s - prev) > math.floor(refractory_us)  # integer d > R  <=>  d > floor(R)
     new = mem.clone().scatter_reduce_(0, pix, ev.t, reduce="amax")
     return keep, new.view(B, H, W)
 
@@ -219,7 +235,7 @@ def hot_pixel_keep(ev: Events, count: torch.Tensor, elapsed_us: int, rate_hz: fl
     B, H, W = count.shape
     pix = _flat_pixel(ev, (B, H, W))
     new = count.reshape(-1) + torch.bincount(pix, minlength=B * H * W)
-    hot = new > rate_hz * elapsed_us * 1e-6
+    hot = new > math.floor(rate_hz * elapsed_us * 1e-6)  # exact: integer count > x  <=>  count > floor(x)
     return ~hot.index_select(0, pix), new.view(B, H, W)
 
 

@@ -1,4 +1,5 @@
-"""Optional compiled kernel of the emulator: an LSD radix sort of its int64 event keys (CPU).
+"""Optional compiled kernels of the emulator (CPU): the ideal pixel's step, an LSD radix sort of
+its int64 event keys fused with their decoding, and the loops of the denoising filters.
 
 The emulator's per-step sort of packed event keys (:class:`dvsland.events.emulator._KeyLayout`)
 is about half of a dense step with numpy's sort (158 k keys, B = 18 at 128x128, 0.6 events per
@@ -73,6 +74,43 @@ std::vector<torch::Tensor> sort_decode(torch::Tensor keys, int64_t bits, int64_t
     pb[i] = v >> b_shift;
   }
   return {b, x, y, t, p};
+}
+
+// The front-end filters of dvsland.events.denoise as tonic writes them: one loop over the events
+// in stream order with a per-pixel memory of the last event time (mem, flat, in/out).
+torch::Tensor baf_keep(torch::Tensor pix_t, torch::Tensor x_t, torch::Tensor y_t, torch::Tensor t_t,
+                       torch::Tensor mem_t, int64_t H, int64_t W, int64_t window, int64_t neighbours) {
+  const int64_t n = pix_t.numel();
+  const int64_t *pix = pix_t.data_ptr<int64_t>(), *x = x_t.data_ptr<int64_t>(), *y = y_t.data_ptr<int64_t>();
+  const int64_t* t = t_t.data_ptr<int64_t>();
+  int64_t* mem = mem_t.data_ptr<int64_t>();
+  auto keep_t = torch::empty({n}, torch::TensorOptions().dtype(torch::kBool));
+  bool* keep = keep_t.data_ptr<bool>();
+  const int DX[8] = {-1, 1, 0, 0, -1, 1, -1, 1}, DY[8] = {0, 0, -1, 1, -1, -1, 1, 1};
+  for (int64_t i = 0; i < n; ++i) {
+    bool ok = false;
+    for (int k = 0; k < neighbours && !ok; ++k) {
+      const int64_t xn = x[i] + DX[k], yn = y[i] + DY[k];
+      if (xn < 0 || xn >= W || yn < 0 || yn >= H) continue;
+      ok = t[i] - mem[pix[i] + DY[k] * W + DX[k]] < window;
+    }
+    mem[pix[i]] = t[i];
+    keep[i] = ok;
+  }
+  return keep_t;
+}
+
+torch::Tensor refractory_keep(torch::Tensor pix_t, torch::Tensor t_t, torch::Tensor mem_t, int64_t period) {
+  const int64_t n = pix_t.numel();
+  const int64_t *pix = pix_t.data_ptr<int64_t>(), *t = t_t.data_ptr<int64_t>();
+  int64_t* mem = mem_t.data_ptr<int64_t>();
+  auto keep_t = torch::empty({n}, torch::TensorOptions().dtype(torch::kBool));
+  bool* keep = keep_t.data_ptr<bool>();
+  for (int64_t i = 0; i < n; ++i) {
+    keep[i] = t[i] - mem[pix[i]] > period;
+    mem[pix[i]] = t[i];
+  }
+  return keep_t;
 }
 
 // The ideal pixel's step (log interpolation, scalar thresholds and refractory period) in one pass
@@ -183,7 +221,7 @@ def load():
     try:
         from torch.utils.cpp_extension import load_inline
 
-        _module = load_inline("dvsland_events_native", cpp_sources=_SRC, functions=["radix_sort_", "pixel_events", "sort_decode"],
+        _module = load_inline("dvsland_events_native", cpp_sources=_SRC, functions=["radix_sort_", "pixel_events", "sort_decode", "baf_keep", "refractory_keep"],
                               extra_cflags=["-O3", "-ffp-contract=off"], verbose=False)
     except Exception as exc:  # no compiler, no headers, ...: the numpy sort stays
         _failed = True
