@@ -147,7 +147,7 @@ def write_outputs(res: EvaluationResult, run_dir: Path, figures: bool = True) ->
                                            d_true=res.descents.divergence, scored=res.scored, n_events=res.n_events,
                                            sites=np.array(res.descents.sites),
                                            **{f"d_hat_{n}": v for n, v in res.d_hat.items()},
-                                           **scenario_traces(res.scenarios)))
+                                           **scenario_traces(getattr(res, "scenarios", {}))))
     if figures:
         paths["speed_vs_error"] = run_dir / "speed_vs_error.png"
         plot_speed_vs_error(res.summary, paths["speed_vs_error"])
