@@ -222,7 +222,8 @@ class CMaxConfig:
     n_refine: int = opt(2, "refinement rounds around the best grid value", rng=(0, 20))
     min_events: int = opt(50, "fewer events in the window than this gives NaN", rng=(1, 10**9))
     refine_points: int = opt(9, "odd number of candidates per refinement round", rng=(3, 1001))
-    max_events: int = opt(4000, "events warped per element (thinned by a hash of each event); 0 = all",
+    max_events: int = opt(4000, "events warped per element on a 128 x 128 sensor (x sqrt(W H) / 128 on a larger "
+                                "one; thinned by a hash of each event); 0 = all",
                           rng=(0, 10**9))
     dither: bool = opt(True, "spread events uniformly within their pixel before warping")
     blur_sigma_px: float = opt(0.0, "Gaussian blur of the warped image before the variance, px (0 = none)",
@@ -247,6 +248,16 @@ class CMaxConfig:
     smooth_clip: float = opt(1.0, "keep the averaged estimate within this many standard errors of the unaveraged "
                                   "one (bounds the lag where tau is not linear; 0 = no bound)", rng=(0.0, 100.0))
     smooth_by_std: bool = opt(False, "weight the averaged estimates by 1 / their half-split variance")
+    research_zero: float = opt(1.0, "search globally again when |D| is below this many first Newton steps "
+                                    "(step_motion / window): a warm start near zero stays locked (0 = off)",
+                               rng=(0.0, 1e3))
+    window_growth: float = opt(1.5, "the adaptive window grows by at most this factor per update, and only from a "
+                                    "trusted estimate (one near zero or lost sets it back to window_ms)",
+                               rng=(1.0, 1e3))
+    hot_pixel_factor: float = opt(8.0, "down-weight the events of a pixel holding more than this many times its "
+                                       "element's mean count per active pixel (hot pixels; 0 = off)", rng=(0.0, 1e6))
+    trend_tol: float = opt(0.15, "use the extrapolate trend only where its line fits tau to this RMS fraction "
+                                 "of the mean tau (0 = always)", rng=(0.0, 1e3))
 
 
 @dataclass

@@ -86,7 +86,8 @@ class CMaxEstimator(DivergenceEstimator):
         extrapolate: carry the window-middle estimate to the end of the interval (see doc).
         trend_steps: estimates in the slope fit of ``extrapolate`` (>= 3).
         min_events: an element with fewer events in its window gets NaN.
-        max_events: events warped per element (hash-thinned); 0 = all.
+        max_events: events warped per element (hash-thinned) on a 128 x 128 sensor, times
+            sqrt(W H) / 128 on a larger one; 0 = all.
         dither: spread each event uniformly within its pixel (by its hash) before warping.
         seed: seed of the event hash.
         radial_bin_px: flatten each element's event density over radius about the FoE in annuli
@@ -99,6 +100,16 @@ class CMaxEstimator(DivergenceEstimator):
         smooth_clip: keep the averaged value within this many standard errors (d_std) of the
             unaveraged one, which bounds the lag where tau is not linear (0 = no bound).
         radial_power: exponent of the radial density weights (0 = off, 1 = flat density).
+        research_zero: search globally again when |D| is below this many first Newton steps
+            (step_motion / T): an estimate near zero is where a warm start stays locked (0 = off).
+        window_growth: the adaptive window grows by at most this factor per update, and only
+            from a trusted estimate (not near zero, not lost); an untrusted one sets it back to
+            ``window_ms`` (>= 1).
+        hot_pixel_factor: an event whose pixel holds more than this many times its element's mean
+            count per active pixel in the window is down-weighted to that level (hot pixels and
+            other patterns fixed to the sensor, sharpest un-warped; 0 = off).
+        trend_tol: the trend of ``extrapolate`` is used only where the RMS residual of its line is
+            at most this fraction of the mean time-to-contact (tau not linear in t: no trend).
         blur_sigma_px: kept for compatibility; must be 0 (the score is unblurred).
     """
 
@@ -110,7 +121,8 @@ class CMaxEstimator(DivergenceEstimator):
                  step_motion: float = 0.01, extrapolate: bool = True, trend_steps: int = 100,
                  radial_bin_px: float = 8.0, research_rel: float = 0.5, smooth_steps: int = 20,
                  smooth_by_std: bool = False, radial_power: float = 0.5, smooth_clip: float = 1.0,
-                 principal_point_px=None):
+                 research_zero: float = 1.0, window_growth: float = 1.5, hot_pixel_factor: float = 8.0,
+                 trend_tol: float = 0.15, principal_point_px=None):
         super().__init__(batch_size, sensor_size, device, dt_s, principal_point_px=principal_point_px)
         # the ranges of the config schema (estimator.cmax), written once there
         check_fields(CMaxConfig, window_ms=window_ms, d_min=d_min, d_max=d_max, n_grid=n_grid, n_refine=n_refine,
@@ -118,7 +130,9 @@ class CMaxEstimator(DivergenceEstimator):
                      max_events=max_events, window_motion=window_motion, window_min_ms=window_min_ms,
                      window_max_ms=window_max_ms, newton_iters=newton_iters, step_motion=step_motion,
                      trend_steps=trend_steps, radial_bin_px=radial_bin_px, research_rel=research_rel,
-                     smooth_steps=smooth_steps, radial_power=radial_power, smooth_clip=smooth_clip)
+                     smooth_steps=smooth_steps, radial_power=radial_power, smooth_clip=smooth_clip,
+                     research_zero=research_zero, window_growth=window_growth, hot_pixel_factor=hot_pixel_factor,
+                     trend_tol=trend_tol)
         checks = [("smooth_steps", int(smooth_steps) <= int(trend_steps), "<= trend_steps"),
                   ("refine_points", int(refine_points) % 2 == 1, "an odd integer >= 3"),
                   ("blur_sigma_px", blur_sigma_px == 0, "0 (the fast score has no blur)"),
@@ -136,9 +150,16 @@ class CMaxEstimator(DivergenceEstimator):
         self.n_grid, self.n_refine = int(n_grid), int(n_refine)
         self.min_events, self.refine_points = int(min_events), int(refine_points)
         self.max_events, self.dither, self.seed = int(max_events), bool(dither), int(seed)
+        # events come from the scene's edges, whose length in pixels grows with the sensor's linear
+        # size: a sensor larger than 128 x 128 keeps max_events x sqrt(W H) / 128 per element
+        # (a 640 x 360 sensor with 4000 events had too few per edge pixel to show any structure)
+        W, H = self.sensor_size
+        self.max_events = int(round(self.max_events * max(1.0, math.sqrt(W * H) / 128.0)))
         self.newton_iters, self.step_motion = int(newton_iters), float(step_motion)
         self.extrapolate, self.trend_steps = bool(extrapolate), int(trend_steps)
-        self.research_rel = float(research_rel)
+        self.research_rel, self.research_zero = float(research_rel), float(research_zero)
+        self.window_growth, self.hot_pixel_factor = float(window_growth), float(hot_pixel_factor)
+        self.trend_tol = float(trend_tol)
         self.smooth_steps, self.smooth_by_std = int(smooth_steps), bool(smooth_by_std)
         self.smooth_clip = float(smooth_clip)
         if not 0 <= radial_bin_px <= 1000:
@@ -158,10 +179,11 @@ class CMaxEstimator(DivergenceEstimator):
         cx, cy = self.principal_point_px
         #: farthest pixel centre from the FoE, px
         self.r_max_px = math.hypot(max(cx, W - 1 - cx), max(cy, H - 1 - cy))
-        #: canvas margin is never more than this (a warp that sends events farther only loses them)
+        #: canvas margin, px: only events inside the sensor box shrunk about the FoE count (see
+        #: :func:`split_contrast`), so one pixel holds every counted bilinear weight, whatever D and
+        #: the window (the canvas, hence the cost, does not grow with |D| T)
+        self.pad_px = 1
         self.pad_cap_px = int(max(W, H))
-        #: widest canvas margin any search uses, px (the global search over [d_min, d_max])
-        self.pad_px = self._pad_for(max(abs(self.d_min), abs(self.d_max)), max(self._window_s_init, self.window_max_s))
         # longest window ever needed, s (the store keeps this much)
         self._keep_s = max(self.window_us * 1e-6, self.window_max_s if self.window_motion > 0 else 0.0)
         # the stored events of recent steps, oldest first, in one ring-like buffer (no per-update
@@ -305,12 +327,18 @@ class CMaxEstimator(DivergenceEstimator):
                               box, half_window_s, wt)
 
     def _pad_for(self, d_abs_max: float, window_s: float) -> int:
-        grow = math.expm1(min(d_abs_max * 0.5 * window_s, 20.0))
-        return int(min(math.ceil(grow * self.r_max_px) + 2, self.pad_cap_px))
+        """Canvas margin, px, for any D and window: ``pad_px`` (counted events never leave the sensor box)."""
+        return self.pad_px
 
     def _global_search(self, xs, ys, b, half, tau, sel_el: torch.Tensor, win_s: torch.Tensor) -> torch.Tensor:
         """Grid search (+ refinement) for elements ``sel_el`` (B,) bool; returns (B,) float64 D
-        (NaN elsewhere). xs, ys are sensor coordinates (no canvas offset)."""
+        (NaN elsewhere). xs, ys are sensor coordinates (no canvas offset).
+
+        Each round scores the events of only the newest part of the window in which candidates one
+        grid step apart move an event at the sensor's edge by at most 2 px (the whole window once
+        the steps are fine): a peak of the score is then wider than the grid and cannot fall
+        between its points (on the full window at |D| ~ 0.05 1/s it did, and the grid's maximum
+        was noise)."""
         B, dev = self.batch_size, self.device
         idx = sel_el.nonzero().squeeze(1)
         n = idx.numel()
@@ -318,22 +346,31 @@ class CMaxEstimator(DivergenceEstimator):
         remap[idx] = torch.arange(n, device=dev)
         e = sel_el[b]
         bs = remap[b[e]]
-        pad = self._pad_for(max(abs(self.d_min), abs(self.d_max)), float(win_s[idx].max()))
+        pad = self.pad_px
         xe, ye = xs[e] + pad, ys[e] + pad
         he, te = half[e], tau[e]
-        we = None if self._wt is None else self._wt[e]
+        we = torch.ones_like(te) if self._wt is None else self._wt[e]
+        half_w = 0.5 * win_s[idx]
         grid = torch.linspace(self.d_min, self.d_max, self.n_grid, device=dev, dtype=torch.float64)
         cand = grid.unsqueeze(0).expand(n, -1)
-        step = torch.full((n,), (self.d_max - self.d_min) / (self.n_grid - 1), device=dev, dtype=torch.float64)
-        score = self._score(xe, ye, bs, he, te, cand, pad, 0.5 * win_s[idx], we)[..., 0]
+        step = (self.d_max - self.d_min) / (self.n_grid - 1)
+
+        def score(cand, step):
+            # the newest span of each window, s, re-centred on its own middle
+            span = (2.0 / (step * max(self.r_max_px, 1.0)) / win_s[idx]).clamp(max=1.0) * win_s[idx]
+            shift = (half_w - 0.5 * span)[bs].to(te.dtype)
+            recent = (te >= 2 * shift - half_w[bs].to(te.dtype)).to(we.dtype)
+            return self._score(xe, ye, bs, he, te - shift, cand, pad, 0.5 * span, we * recent)[..., 0]
+
+        sc = score(cand, step)
         for _ in range(self.n_refine):
-            best = cand.gather(1, score.argmax(1, keepdim=True))
+            best = cand.gather(1, sc.argmax(1, keepdim=True))
             off = torch.linspace(-1.0, 1.0, self.refine_points, device=dev, dtype=torch.float64)
-            cand = best + step.unsqueeze(1) * off
+            cand = best + step * off
             step = step * 2.0 / (self.refine_points - 1)
-            score = self._score(xe, ye, bs, he, te, cand, pad, 0.5 * win_s[idx], we)[..., 0]
+            sc = score(cand, step)
         out = torch.full((B,), float("nan"), dtype=torch.float64, device=dev)
-        out[idx] = cand.gather(1, score.argmax(1, keepdim=True)).squeeze(1)
+        out[idx] = cand.gather(1, sc.argmax(1, keepdim=True)).squeeze(1)
         return out
 
     # ------------------------------------------------------------------ step
@@ -366,6 +403,9 @@ class CMaxEstimator(DivergenceEstimator):
         tau = ((t - t_ref_us.round().to(torch.int64)[b]).to(torch.float32) * 1e-6)
         xs, ys = xy[0], xy[1]
         self._wt = self._radial_weights(xs, ys, b) if self.radial_bin_px > 0 and self.radial_power > 0 else None
+        if self.hot_pixel_factor > 0:
+            hot = self._hot_pixel_weights(xs, ys, b)
+            self._wt = hot if self._wt is None else self._wt * hot
         # start: last estimate (warm), else the global search
         d0 = self._d_mid.clone()
         need = ok & ~torch.isfinite(d0)
@@ -408,7 +448,10 @@ class CMaxEstimator(DivergenceEstimator):
         # (|D| is floored at 5 first Newton steps, so that D near 0 does not count as lost)
         floor = 5.0 * self.step_motion / win_s
         lost = ok & (self._sigma > self.research_rel * torch.maximum(d_mid.abs(), floor))
-        self._d_mid = torch.where(lost, torch.full_like(self._d_mid, float("nan")), self._d_mid)
+        # an estimate near zero is where the warm start locks (a static pattern, or motion below a
+        # pixel, is sharpest un-warped): search globally again from the next update
+        zero = ok & (d_mid.abs() < self.research_zero * self.step_motion / win_s)
+        self._d_mid = torch.where(lost | zero, torch.full_like(self._d_mid, float("nan")), self._d_mid)
         # history for the lag correction: (window-middle time, estimate)
         j = self._k % self.trend_steps
         self._k += 1
@@ -445,10 +488,40 @@ class CMaxEstimator(DivergenceEstimator):
             safe = torch.isfinite(tau_end) & (tau_end * tau_mid > 0) & ((tau_end - tau_mid).abs() < 0.5 * tau_mid.abs())
             d_out = torch.where(safe, -1.0 / tau_end, d_mid)
         if self.window_motion > 0:
-            w = (self.window_motion / d_mid.abs().clamp_min(1e-9)).clamp(self.window_min_s, self.window_max_s)
-            self._window_s = torch.where(torch.isfinite(d_mid), w, self._window_s)
+            self._window_s = self._next_window(d_mid, lost | zero)
         self._d = torch.where(good, d_out, torch.full_like(d_out, float("nan"))).to(torch.float32)
         return self._d.clone()
+
+    def _next_window(self, d_mid: torch.Tensor, untrusted: torch.Tensor) -> torch.Tensor:
+        """(B,) float64 next window, s: kappa / |D| within [window_min, window_max], grown by at
+        most ``window_growth`` per update; an untrusted estimate (near zero, or its halves
+        disagreeing) sets it back to ``window_ms``, so that neither a near-zero estimate stretches
+        the window to the slowest motion it could mean nor a wild one shrinks it; no estimate
+        keeps it."""
+        w = (self.window_motion / d_mid.abs().clamp_min(1e-9)).clamp(self.window_min_s, self.window_max_s)
+        w = torch.minimum(w, self._window_s * self.window_growth)
+        w = torch.where(untrusted, torch.full_like(w, self._window_s_init), w)
+        return torch.where(torch.isfinite(d_mid), w, self._window_s)
+
+    def _hot_pixel_weights(self, xs, ys, b) -> torch.Tensor:
+        """(E,) float32 weights of the events of hot pixels: a pixel holding c events, more than
+        ``hot_pixel_factor`` times its element's mean count per active pixel m, weighs m / c per
+        event (all of its events together count as one ordinary pixel), else 1. m is the mean over
+        the pixels not flagged by a first mean (hot pixels inflate it). A hot pixel, or any pattern
+        fixed to the sensor, then no longer pulls the estimate to D = 0."""
+        W, H = self.sensor_size
+        B = self.batch_size
+        px = ((ys + 0.5).floor().clamp(0, H - 1) * W + (xs + 0.5).floor().clamp(0, W - 1)).to(torch.int64)
+        cell = b * (H * W) + px
+        c = torch.bincount(cell, minlength=B * H * W)[cell].to(torch.float64)  # (E,) events at its pixel
+        mean = torch.zeros(B, dtype=torch.float64, device=c.device)
+        keep = torch.ones_like(c, dtype=torch.bool)
+        for _ in range(2):  # mean count per active pixel, then again without the flagged pixels
+            n_px = torch.bincount(b, weights=keep.to(torch.float64) / c, minlength=B)[:B]
+            n_ev = torch.bincount(b, weights=keep.to(torch.float64), minlength=B)[:B]
+            mean = n_ev / n_px.clamp_min(1e-9)
+            keep = c <= self.hot_pixel_factor * mean[b]
+        return torch.where(keep, torch.ones_like(c), mean[b] / c).to(torch.float32)
 
     def _radial_weights(self, xs, ys, b) -> torch.Tensor:
         """(E,) weights that flatten each element's event density over radius about the FoE.
@@ -483,7 +556,11 @@ class CMaxEstimator(DivergenceEstimator):
         var = (ct * ct).sum(1)
         slope = (ct * (dd - dm.unsqueeze(1))).sum(1) / var.clamp_min(1e-12)
         same_sign = (torch.where(ok, torch.sign(self._hist_d), torch.zeros_like(self._hist_d)).sum(1).abs() == n)
-        use = (n >= max(3, self.trend_steps // 2)) & (var > 0) & same_sign
+        # the line must describe tau: RMS residual within trend_tol of the mean |tau|
+        res = torch.where(ok, dd - dm.unsqueeze(1) - slope.unsqueeze(1) * (tt - tm.unsqueeze(1)), torch.zeros_like(dd))
+        rms = ((res * res).sum(1) / n.clamp_min(1)).sqrt()
+        linear = rms <= self.trend_tol * dm.abs() if self.trend_tol > 0 else torch.ones_like(same_sign)
+        use = (n >= max(3, self.trend_steps // 2)) & (var > 0) & same_sign & linear
         return torch.where(use, slope, torch.zeros_like(slope)), use
 
     def _smoothed_tau(self, slope: torch.Tensor, t_end_s: float, j: int) -> torch.Tensor:
