@@ -441,30 +441,11 @@ class EventEmulator:
         if self._drift is not None:
             el = float(t1 - self._t_reset)
             l1 = l1.add(self._drift, alpha=el) if pmp.lowpass else l1.add_(self._drift, alpha=el)
-        keys = None
+        # per event int64 sort keys (see _KeyLayout) of the pixels; updates L_ref and t_last
         if self._native_pixel_path(l1):  # the compiled one-pass kernel (opt-in): the same keys and state
             keys = self._native_pixel_events(l1, t0, dt, b_shift)
-            act = torch.empty(0, dtype=torch.int64)
         else:
-            d = torch.sub(l1, self._lref, out=self._scratch(l1))  # scratch, overwritten below
-        # candidate pixels (A,): a superset of those with >= 1 crossing (exact counts follow)
-        if keys is not None:
-            pass
-        elif self._th_scalar:
-            act = _candidates(d, self._th_on, self._th_off, 1.0 - 2 * LEVEL_TOL)  # sync
-        else:
-            act = _candidates_map(d, *self._cand_bounds)
-        if keys is None:
-            del d
-        # per event int64 sort keys (see _KeyLayout); updates L_ref and t_last
-        if act.numel() > 0:
-            # on CPU, blocks of candidates small enough to keep the ~40 per-pixel temporaries in
-            # cache (faster at large B); one block on other devices
-            block = _CPU_BLOCK if _cpu_fast_path(act) else act.numel()
-            parts = [self._pixel_events(act[i:i + block], l1, f1, t0, dt, b_shift)
-                     for i in range(0, act.numel(), block)]
-            keys = parts[0] if len(parts) == 1 else torch.cat(parts)
-            del parts
+            keys = self._scene_keys(l1, f1, t0, dt, b_shift)
 
         # the old level buffer becomes the next step's frame copy where nothing else can hold it
         recycle = self.interpolation == "log" and not (pmp.lowpass or pmp.drift)
@@ -495,6 +476,26 @@ class EventEmulator:
         else:
             ev = layout.sort_decode(keys, b_shift, t0, sorted_keys=shot_keys)
         return ev if self.denoiser is None else self.denoiser(ev, t1)
+
+    def _scene_keys(self, l1: torch.Tensor, f1: torch.Tensor, t0: int, dt: float, b_shift: int
+                    ) -> Optional[torch.Tensor]:
+        """Keys of the pixels' events (None if none): candidate scan, then :meth:`_pixel_events`
+        per block of candidates; moves L_ref and t_last."""
+        d = torch.sub(l1, self._lref, out=self._scratch(l1))  # scratch, overwritten below
+        # candidate pixels (A,): a superset of those with >= 1 crossing (exact counts follow)
+        if self._th_scalar:
+            act = _candidates(d, self._th_on, self._th_off, 1.0 - 2 * LEVEL_TOL)  # sync
+        else:
+            act = _candidates_map(d, *self._cand_bounds)
+        del d
+        if act.numel() == 0:
+            return None
+        # on CPU, blocks of candidates small enough to keep the ~40 per-pixel temporaries in
+        # cache (faster at large B); one block on other devices
+        block = _CPU_BLOCK if _cpu_fast_path(act) else act.numel()
+        parts = [self._pixel_events(act[i:i + block], l1, f1, t0, dt, b_shift)
+                 for i in range(0, act.numel(), block)]
+        return parts[0] if len(parts) == 1 else torch.cat(parts)
 
     def _native_pixel_path(self, l1: torch.Tensor) -> bool:
         """Whether this step's pixels go through the compiled kernel: opt-in (DVSLAND_NATIVE_SORT),
