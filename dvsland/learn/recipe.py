@@ -107,7 +107,10 @@ def _val_subset(va: Windows, n_max: int) -> torch.Tensor:
 def _resume_state(out: Path, model_desc: dict, provenance: dict, s: RecipeSettings) -> Optional[dict]:
     """The checkpoint at ``out`` to resume from, checked against this run (ValueError if it differs)."""
     ck = read_checkpoint(out)
-    for what, old, new in (("model", ck.get("model"), model_desc), ("settings", ck.get("train"), dataclasses.asdict(s)),
+    budget = ("epochs", "max_minutes", "patience")  # how long to go on may change; what is trained may not
+    old_s = {k: v for k, v in (ck.get("train") or {}).items() if k not in budget}
+    new_s = {k: v for k, v in dataclasses.asdict(s).items() if k not in budget}
+    for what, old, new in (("model", ck.get("model"), model_desc), ("settings", old_s, new_s),
                            ("dataset", (ck.get("data") or {}).get("config_hash"), provenance.get("config_hash"))):
         if old != new:
             raise ValueError(f"--resume: {out} was trained with other {what} ({old!r} vs {new!r}); train to a new "
