@@ -5,7 +5,7 @@ open-loop evaluation of divergence estimators on the evaluation event streams.""
 from __future__ import annotations
 
 from .common import (add_config_args, add_sites_arg, add_threads_arg, apply_threads, check_configured_sites,
-                     config_from_args, parse_sites)
+                     config_from_args, parse_sites, ranged)
 
 
 def register(subparsers) -> None:
@@ -24,11 +24,13 @@ def register(subparsers) -> None:
                         "(same typing and range checks; separate them with ';'); 'ALIAS=NAME' shows NAME (a "
                         "registered name, a spec or an import path 'package.module:Class') as ALIAS everywhere")
     add_sites_arg(p, "only these configured sites (simulation.sites)")
-    p.add_argument("--segment-steps", type=int, default=0, metavar="N",
+    p.add_argument("--segment-steps", type=ranged(int, 0, 100_000, "--segment-steps"), default=0, metavar="N",
                    help="split the descents into segments of N steps (0 = whole descents)")
-    p.add_argument("--stride", type=int, default=1, metavar="S", help="run every S-th segment (quick runs)")
-    p.add_argument("--max-steps", type=int, default=None, metavar="N", help="truncate the descents")
-    p.add_argument("--warmup-steps", type=int, default=10, metavar="N",
+    p.add_argument("--stride", type=ranged(int, 1, 100_000, "--stride"), default=1, metavar="S",
+                   help="run every S-th segment (quick runs)")
+    p.add_argument("--max-steps", type=ranged(int, 1, 10_000_000, "--max-steps"), default=None, metavar="N",
+                   help="truncate the descents")
+    p.add_argument("--warmup-steps", type=ranged(int, 0, 100_000, "--warmup-steps"), default=10, metavar="N",
                    help="steps at the start of each segment left out of the metrics (default 10)")
     p.add_argument("--device", default=None, metavar="DEVICE", help="torch device (default simulation.device)")
     add_threads_arg(p)
@@ -44,7 +46,7 @@ def register(subparsers) -> None:
                    help="with --recording: ground-truth side file (CSV/npz: t_us or t_s, and divergence or "
                         "altitude_m + velocity_mps); not needed for files written by dvsland events, which carry "
                         "their per-frame ground truth")
-    p.add_argument("--element", type=int, default=0, metavar="B",
+    p.add_argument("--element", type=ranged(int, 0, 65_535, "--element"), default=0, metavar="B",
                    help="with --recording: the batch element b of a dvsland events file with several (dvsland "
                         "events --sites A,B writes b = 0, 1; default 0)")
     p.add_argument("--t-unit", default=None, choices=("ns", "us", "ms", "s"),
