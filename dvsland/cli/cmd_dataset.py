@@ -11,7 +11,7 @@ resumable HDF5 shards and a manifest; the same command again resumes an interrup
 
 from __future__ import annotations
 
-from .common import add_config_args, config_from_args
+from .common import add_config_args, config_from_args, ranged
 
 
 def register(subparsers) -> None:
@@ -25,15 +25,16 @@ def register(subparsers) -> None:
                                    "loop and write one sample per step and descent into DIR/shards/*.h5 with "
                                    "DIR/dataset.json. Re-running the same command resumes (complete shards are kept).")
     add_config_args(b)
-    b.add_argument("--n-seeds", type=int, required=True, metavar="N", help="seeds per site")
+    b.add_argument("--n-seeds", type=ranged(int, 1, 1_000_000, "--n-seeds"), required=True, metavar="N", help="seeds per site")
     b.add_argument("--sites", default=None, metavar="A,D", help="subset of the configured sites (default all)")
-    b.add_argument("--shard-size", type=int, default=5, metavar="S", help="seeds per shard (default 5)")
+    b.add_argument("--shard-size", type=ranged(int, 1, 100_000, "--shard-size"), default=5, metavar="S", help="seeds per shard (default 5)")
     b.add_argument("--estimator", default="oracle", metavar="NAME",
                    help="estimator that flies the loop (default oracle: the true divergence; e.g. cmax for the "
                         "estimator's own closed-loop trajectories)")
-    b.add_argument("--workers", type=int, default=1, metavar="K", help="shards flown at once (local processes)")
+    b.add_argument("--workers", type=ranged(int, 1, 256, "--workers"), default=1, metavar="K",
+                   help="shards flown at once (local processes, 1 to 256)")
     b.add_argument("--compression", default="gzip", choices=("gzip", "lzf", "none"), help="HDF5 compression")
-    b.add_argument("--max-shards", type=int, default=None, metavar="M", help="build at most M missing shards")
+    b.add_argument("--max-shards", type=ranged(int, 1, 1_000_000, "--max-shards"), default=None, metavar="M", help="build at most M missing shards")
     b.set_defaults(func=run_build)
     i = sub.add_parser("info", help="shards, samples, bytes per sample and split sizes of a dataset folder")
     i.add_argument("folder", metavar="DIR")
