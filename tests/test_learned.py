@@ -191,3 +191,15 @@ def test_spiking_nir_round_trip_agrees(tmp_path):
     module = from_nir(export_nir(net, spec.grid_hw, tmp_path / "s.nir"))
     got = run_nir(module, net, vox, coords, lc)
     assert torch.allclose(got[0], want[0], atol=1e-5) and torch.allclose(got[1], want[1], atol=1e-5)
+
+
+@pytest.mark.parametrize("which", ["", "spiking"])
+def test_shipped_checkpoints_load_and_estimate(which):
+    from dvsland.estimators.learned.estimator import SHIPPED
+
+    path = SHIPPED["cnn" if which == "" else which]
+    assert path.is_file() and path.stat().st_size < 1_000_000
+    est = get_estimator("learned", 2, (128, 128), checkpoint=which, min_events=1)
+    assert est.meta["data"]["config_hash"] and est.meta["train"]["model"] == (which or "cnn")
+    d = est.update(_events(2, 3000), 100_000)
+    assert d.shape == (2,) and torch.isfinite(d).all() and (d < 0).all()
