@@ -37,8 +37,9 @@ Per update and batch element, all elements at once:
    sigma / |D| over the estimates averaged in step 4; ``confidence()`` =
    1 / (1 + (d_std / (0.1 |D|))^2).
 
-After a reset an element gives NaN until its window is at least half full, and whenever it has
-fewer than ``min_events`` events in its window.
+After a reset an element gives NaN until its window is at least half full, whenever it has
+fewer than ``min_events`` events in its window, and when its global search peaked at either end
+of [``d_min``, ``d_max``] (no bracketed maximum: events that show no measurable motion).
 """
 
 from __future__ import annotations
@@ -363,6 +364,11 @@ class CMaxEstimator(DivergenceEstimator):
             return self._score(xe, ye, bs, he, te - shift, cand, pad, 0.5 * span, we * recent)[..., 0]
 
         sc = score(cand, step)
+        # a grid maximum at either end of [d_min, d_max] is no bracketed maximum (the score keeps
+        # rising out of the range: what events without a measurable motion give): no estimate
+        first = sc.argmax(1)
+        self._edge = torch.zeros(B, dtype=torch.bool, device=dev)
+        self._edge[idx] = (first == 0) | (first == self.n_grid - 1)
         for _ in range(self.n_refine):
             best = cand.gather(1, sc.argmax(1, keepdim=True))
             off = torch.linspace(-1.0, 1.0, self.refine_points, device=dev, dtype=torch.float64)
@@ -438,6 +444,8 @@ class CMaxEstimator(DivergenceEstimator):
                                                torch.maximum(self._sigma, 2.0 * hstep))
             d0, hstep = d_new, hstep * 0.5
         inside = (d0 >= self.d_min) & (d0 <= self.d_max)
+        if bool(need.any()):
+            inside &= ~(need & self._edge)
         good = ok & inside
         d_mid = torch.where(good, d0, torch.full_like(d0, float("nan")))
         # keep the last estimate of elements with too few events this step (warm start later);
