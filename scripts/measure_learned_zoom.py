@@ -1,0 +1,103 @@
+"""Generalisation check of divergence estimators on a scene that is not a terrain: random textures
+(:class:`dvsland.evaluate.ZoomTextureFrames`) zoomed at a known constant divergence, through the
+config's emulator, and each estimator's median |relative error| and time per update.
+
+    python scripts/measure_learned_zoom.py --estimators learned,learned[checkpoint=spiking],cmax,snn \
+        --d -0.1,-0.3 --batch 18 --steps 40
+
+B textures per divergence (seeded); the descent starts at --z0 m and follows z = z0 exp(D t);
+the first --warmup steps are not scored. One torch thread.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import torch
+
+
+def _frames(cfg, d: float, B: int, steps: int, z0: float, seed: int):
+    from dvsland.evaluate import ZoomTextureFrames
+
+    src = ZoomTextureFrames(B, (cfg.camera.width_px, cfg.camera.height_px), cfg.camera.fov_deg, seed=seed)
+    idx = torch.arange(B)
+    return [src(torch.full((B,), z0 * float(torch.exp(torch.tensor(d * 0.1 * k)))), idx) for k in range(steps + 1)]
+
+
+def _events(cfg, frames):
+    from dvsland.events import EventEmulator
+
+    emu = EventEmulator.from_config(cfg.emulator)
+    emu.reset(frames[0], 0)
+    return [emu.step(f, 100_000 * k) for k, f in enumerate(frames[1:], start=1)]
+
+
+def _run(cfg, spec: str, events, B: int, d: float, warmup: int) -> dict:
+    from dvsland.estimators import make_estimator
+    from dvsland.estimators.base import Truth
+
+    name, params = spec, {}
+    if "[" in spec:
+        name, rest = spec.split("[", 1)
+        params = dict(kv.split("=", 1) for kv in rest.rstrip("]").split(";"))
+    section = getattr(cfg.estimator, name, None)
+    for k, v in params.items():
+        setattr(section, k, type(getattr(section, k))(v))
+    est = make_estimator(cfg, B, name=name)
+    est.reset()
+    z = torch.full((B,), 1.0, dtype=torch.float64)
+    errs, wall, cpu, act = [], 0.0, 0.0, {}
+    for k, ev in enumerate(events, start=1):
+        truth = Truth(z, z * d)
+        w0, c0 = time.perf_counter(), time.process_time()
+        dh = est.update(ev, 100_000 * k, truth)
+        wall += time.perf_counter() - w0
+        cpu += time.process_time() - c0
+        if k > warmup:
+            errs.append(((dh.double() - d).abs() / abs(d)))
+            diag = est.diagnostics()
+            for key in ("spikes", "synops"):
+                if key in diag:
+                    act.setdefault(key, []).append(float(diag[key].double().mean()))
+    e = torch.stack(errs)
+    fin = torch.isfinite(e)
+    return {"estimator": spec, "d": d, "median_rel_error": float(e[fin].median()) if fin.any() else float("nan"),
+            "finite_share": float(fin.double().mean()), "ms_per_update_wall": 1e3 * wall / len(events),
+            "ms_per_update_cpu": 1e3 * cpu / len(events),
+            **{f"{k}_per_update": sum(v) / len(v) for k, v in act.items()}}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default="montecarlo_efference")
+    ap.add_argument("--estimators", default="learned,cmax")
+    ap.add_argument("--d", default="-0.1,-0.3", help="divergences, 1/s")
+    ap.add_argument("--batch", type=int, default=18)
+    ap.add_argument("--steps", type=int, default=40)
+    ap.add_argument("--warmup", type=int, default=10)
+    ap.add_argument("--z0", type=float, default=1000.0)
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    from dvsland.config import load_config
+
+    cfg = load_config(a.config, a.set)
+    rows = []
+    for d in (float(v) for v in a.d.split(",")):
+        events = _events(cfg, _frames(cfg, d, a.batch, a.steps, a.z0, a.seed))
+        for spec in a.estimators.split(","):
+            r = _run(load_config(a.config, a.set), spec, events, a.batch, d, a.warmup)
+            rows.append(r)
+            print(f"D = {d:+.2f} 1/s  {spec:32s} median |rel err| {100 * r['median_rel_error']:6.2f} %  "
+                  f"finite {100 * r['finite_share']:5.1f} %  {r['ms_per_update_wall']:6.2f} ms wall "
+                  f"{r['ms_per_update_cpu']:6.2f} ms CPU per update (B = {a.batch})"
+                  + "".join(f"  {k[:-11]} {r[k]:.0f}/update/row" for k in r if k.endswith("_per_update")), flush=True)
+    print(json.dumps(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
