@@ -75,9 +75,15 @@ def make_pool(workers: int):
 
 def _stop_pool(pool) -> None:
     """Cancel what has not started and terminate the workers now (no waiting for a shard)."""
+    # the processes first: shutdown() forgets them (pool._processes = None), and a worker left
+    # running kept the driver waiting at exit until its shard was flown (minutes)
+    # SIGKILL: a worker writes its shard file atomically, so there is nothing to let it finish
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    for proc in procs:
+        proc.kill()
     pool.shutdown(wait=False, cancel_futures=True)
-    for proc in list((getattr(pool, "_processes", None) or {}).values()):
-        proc.terminate()
+    for proc in procs:
+        proc.join(timeout=1.0)
 
 
 def run_local(config: dict, shards: List[dict], workers: int = 1, keep_dirs: Optional[List[Optional[str]]] = None
