@@ -263,19 +263,28 @@ def _children(pid: int) -> list:
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def _campaign_with_two_workers(out: Path):
+    """``dvsland campaign --workers 2`` started and flying: (driver process, worker pids)."""
+    cmd = [sys.executable, "-m", "dvsland.cli.main", "campaign", "paper", "--n-seeds", "40", "--shard-seeds", "1",
+           "--workers", "2", "--quiet", "--out", str(out)] + _cli_set(["simulation.t_max_s=60"])
+    drv = subprocess.Popen(cmd, env=_env(), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    pids = []
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and len(pids) < 2:
+        time.sleep(0.5)
+        pids = _children(drv.pid)
+    if len(pids) < 2:
+        drv.kill()
+        _kill_left(pids)
+        pytest.fail("the workers did not start")
+    time.sleep(3)
+    return drv, pids
+
+
 def test_cli_campaign_workers_die_with_a_killed_driver(tmp_path):
     """The whole command: `dvsland campaign --workers 2` killed with SIGKILL mid-campaign."""
-    cmd = [sys.executable, "-m", "dvsland.cli.main", "campaign", "paper", "--n-seeds", "40", "--shard-seeds", "1",
-           "--workers", "2", "--quiet", "--out", str(tmp_path / "c")] + _cli_set(["simulation.t_max_s=60"])
-    drv = subprocess.Popen(cmd, env=_env(), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    pids = []
+    drv, pids = _campaign_with_two_workers(tmp_path / "c")
     try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and len(pids) < 2:
-            time.sleep(0.5)
-            pids = _children(drv.pid)
-        assert len(pids) == 2, "the workers did not start"
-        time.sleep(3)
         _sigkill_and_expect_dead(drv, pids)
     finally:
         drv.kill()
@@ -288,17 +297,8 @@ def test_cli_campaign_with_workers_stops_on_a_signal(tmp_path, sig):
     """Ctrl-C (or SIGTERM) to `campaign --workers 2` printed 'interrupted' and then waited at exit
     for the running shards to be flown (the pool forgot its processes before terminating them):
     tens of seconds, minutes on real shards. Now the workers are killed and the driver ends at once."""
-    cmd = [sys.executable, "-m", "dvsland.cli.main", "campaign", "paper", "--n-seeds", "40", "--shard-seeds", "1",
-           "--workers", "2", "--quiet", "--out", str(tmp_path / "c")] + _cli_set(["simulation.t_max_s=60"])
-    drv = subprocess.Popen(cmd, env=_env(), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    pids = []
+    drv, pids = _campaign_with_two_workers(tmp_path / "c")
     try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and len(pids) < 2:
-            time.sleep(0.5)
-            pids = _children(drv.pid)
-        assert len(pids) == 2, "the workers did not start"
-        time.sleep(3)
         t0 = time.monotonic()
         drv.send_signal(sig)
         drv.wait(30)
