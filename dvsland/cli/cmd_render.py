@@ -45,10 +45,12 @@ def register(subparsers) -> None:
                    help="renderer: fast, pyrender or a registered one (default: config render.renderer)")
     p.add_argument("--export-mesh", action="append", default=[], metavar="SITE:ALTITUDE",
                    help="export the footprint at ALTITUDE m of SITE as a .ply mesh (repeatable)")
-    p.add_argument("--mesh-texels", type=int, default=256, help="mesh vertices per side (default 256)")
+    p.add_argument("--mesh-texels", type=ranged(int, 8, 4096, "--mesh-texels"), default=256,
+                   help="mesh vertices per side of --export-mesh (8 to 4096, default 256)")
     p.add_argument("--gif-frames", type=ranged(int, 0, 10_000, "--gif-frames"), default=60,
                    help="frames of the descent GIF (0: no GIF)")
-    p.add_argument("--scale", type=int, default=2, help="montage tile size, x 0.8 inch (default 2)")
+    p.add_argument("--scale", type=ranged(int, 1, 16, "--scale"), default=2,
+                   help="montage tile size, x 0.8 inch (1 to 16, default 2)")
     p.add_argument("--device", default=None, help="torch device (default: config simulation.device)")
     add_threads_arg(p)
     p.set_defaults(func=run_render)
