@@ -245,11 +245,13 @@ def flag_cases() -> List[Case]:
         if " " in cmd:
             parser = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[cmd.split()[1]]
         for act in parser._actions:
-            if act.type not in (int, float) or not act.option_strings:
+            # int, float, or a range-checked parser (dvsland.cli.common.ranged) of either
+            numeric = act.type in (int, float) or getattr(act.type, "__qualname__", "").startswith("ranged.")
+            if not numeric or not act.option_strings or act.choices:
                 continue
             flag = act.option_strings[-1]
             for v in ["-1", "nan", "inf", "1e18", "x", "0"]:
-                if act.type is int and v in ("nan", "inf", "1e18"):
+                if v in ("nan", "inf", "1e18") and act.type is int:
                     v = {"nan": "99999999999", "inf": "-99999999999", "1e18": "1000000000000000000"}[v]
                 argv = [a for a in base]
                 if flag in argv:  # replace the base's own value
