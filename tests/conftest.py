@@ -68,3 +68,13 @@ HALF_ESTIMATOR_SOURCE = (
 def half_estimator_source() -> str:
     """:data:`HALF_ESTIMATOR_SOURCE`: write it to a .py file and load ``file.py:Half``."""
     return HALF_ESTIMATOR_SOURCE
+
+
+@pytest.fixture
+def one_thread():
+    """One torch thread for the test (small tensors on a shared 2-core machine run far faster on
+    one), restored after it. Use with ``pytestmark = pytest.mark.usefixtures("one_thread")``."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -17,12 +17,7 @@ from dvsland.events import EventEmulator
 HOVER = Scenario("hover", "", "A", 100.0, (1.0, 4.0), (-0.005, -0.05), 9.0, (("after 1 s", 1.0, 9.0),))
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # the shared fixture of conftest.py
 
 
 class OffCentreFrames:

@@ -18,12 +18,7 @@ from dvsland.stages import build_stages  # noqa: E402
 QUIET = ["logging.tensorboard=false", "logging.figures=false", "render.threads=1"]
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # the shared fixture of conftest.py
 
 
 def fly_episode(env, policy=None, max_steps=100_000):

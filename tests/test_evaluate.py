@@ -27,15 +27,6 @@ def paper_yaml_module():
     return Path(__file__).resolve().parents[1] / "configs" / "paper.yaml"
 
 
-@pytest.fixture
-def one_thread():
-    """Small tensors on a shared 2-core machine run far faster on one torch thread."""
-    import torch
-
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def test_closed_form_descents_paper_times(cfg):

@@ -15,12 +15,7 @@ from dvsland.evaluate.scenarios import (SCENARIOS, DustyFrames, NoisyEmulator, S
 from dvsland.events import Events
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # the shared fixture of conftest.py
 
 
 def test_profile_is_exp_of_integrated_divergence():
