@@ -101,6 +101,13 @@ def _flat_pixel(ev: Events, shape) -> torch.Tensor:
     return (ev.b * H + ev.y).mul_(W).add_(ev.x)
 
 
+def _memory_filter_inputs(ev: Events, memory_t_us: torch.Tensor):
+    """What a filter with a per-pixel time memory starts from: ((B, H, W), N, the (B*H*W,) flat
+    memory, the events' (N,) flat pixels, int64)."""
+    B, H, W = memory_t_us.shape
+    return (B, H, W), len(ev), memory_t_us.reshape(-1), _flat_pixel(ev, (B, H, W))
+
+
 def _by_pixel(pix: torch.Tensor, n: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Events in (pixel, stream position) order: the sorted keys ``pixel * n + position``, the
     pixels and the positions in that order, int64 (N,) each. The keys are unique, so a plain sort
@@ -164,12 +171,9 @@ def baf_keep(ev: Events, memory_t_us: torch.Tensor, time_us: float, neighbours: 
     Returns:
         keep (N,) bool, and the new (B, H, W) int64 memory (every event remembered).
     """
-    B, H, W = memory_t_us.shape
-    n = len(ev)
-    mem = memory_t_us.reshape(-1)
+    (B, H, W), n, mem, pix = _memory_filter_inputs(ev, memory_t_us)
     if n == 0:
         return torch.zeros(0, dtype=torch.bool, device=mem.device), memory_t_us.clone()
-    pix = _flat_pixel(ev, (B, H, W))
     window = math.ceil(time_us)  # exact on integers: d < T  <=>  d < ceil(T)
     if _native(pix):  # the compiled loop over events (opt-in): the same keep mask and memory
         new = mem.clone()
@@ -204,12 +208,9 @@ def refractory_keep(ev: Events, memory_t_us: torch.Tensor, refractory_us: float
                     ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Refractory filter: keep when ``t - t_prev > refractory_us`` (t_prev: the pixel's previous
     event, kept or not). Arguments and returns as :func:`baf_keep`."""
-    B, H, W = memory_t_us.shape
-    n = len(ev)
-    mem = memory_t_us.reshape(-1)
+    (B, H, W), n, mem, pix = _memory_filter_inputs(ev, memory_t_us)
     if n == 0:
         return torch.zeros(0, dtype=torch.bool, device=mem.device), memory_t_us.clone()
-    pix = _flat_pixel(ev, (B, H, W))
     if _native(pix):
         new = mem.clone()
         keep = native.load().refractory_keep(pix, ev.t, new, math.floor(refractory_us))
