@@ -22,6 +22,7 @@ from typing import Tuple
 
 import torch
 
+from ..state_dict_check import check_state_dict
 from .inputs import InputSpec, check_input_spec
 from .models import build_model
 
@@ -62,24 +63,6 @@ def read_checkpoint(path) -> dict:
     return ck
 
 
-def _check_weights(path, state, net: torch.nn.Module) -> None:
-    want = net.state_dict()
-    if not isinstance(state, dict):
-        raise ValueError(f"{PARAM}: {path}: state_dict is a {type(state).__name__}, expected tensors by name")
-    missing, extra = sorted(set(want) - set(state)), sorted(set(state) - set(want))
-    if missing or extra:
-        raise ValueError(f"{PARAM}: {path}: tensors missing {missing[:5]}, unexpected {extra[:5]} for the model "
-                         f"its 'model' field describes")
-    for name, ref in want.items():
-        t = state[name]
-        if not isinstance(t, torch.Tensor) or tuple(t.shape) != tuple(ref.shape):
-            shape = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
-            raise ValueError(f"{PARAM}: {path}: tensor '{name}' is {shape}, expected shape {tuple(ref.shape)}")
-        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
-            raise ValueError(f"{PARAM}: {path}: tensor '{name}' holds NaN or infinite values (a damaged or "
-                             f"diverged training)")
-
-
 def load_checkpoint(path, sensor_size=None) -> Tuple[torch.nn.Module, InputSpec, dict]:
     """(network in eval mode on CPU, its InputSpec, the whole checkpoint dict) of ``path``.
 
@@ -99,6 +82,6 @@ def load_checkpoint(path, sensor_size=None) -> Tuple[torch.nn.Module, InputSpec,
     if sensor_size is not None and tuple(int(v) for v in sensor_size) != spec.sensor_size:
         raise ValueError(f"{PARAM}: {path} was trained for a {spec.sensor_size[0]} x {spec.sensor_size[1]} sensor, "
                          f"the camera is {sensor_size[0]} x {sensor_size[1]} (camera.sensor / width_px, height_px)")
-    _check_weights(path, ck["state_dict"], net)
+    check_state_dict(ck["state_dict"], net, f"{PARAM}: {path}")
     net.load_state_dict(ck["state_dict"])
     return net.eval(), spec, ck

@@ -30,6 +30,7 @@ from dvsland.config.schema import SNNConfig
 
 from ..base import DivergenceEstimator, Truth
 from ..registry import register_estimator
+from ..state_dict_check import check_state_dict as check_weights
 from .encoding import LogPolarEncoder
 from .model import SpikingDivergenceNet
 
@@ -68,29 +69,10 @@ def _check_path(path: Path) -> None:
 
 
 def check_state_dict(path, state: dict, model: torch.nn.Module) -> None:
-    """Every tensor of a checkpoint's ``state`` against ``model``: the same names, shapes and
-    floating dtypes, and only finite values. ValueError naming the checkpoint file and the tensor."""
-    if not isinstance(state, dict):
-        raise ValueError(f"estimator.snn.checkpoint: {_short(path)}: its state_dict is a {type(state).__name__}, "
-                         f"expected a mapping of tensor names to tensors")
-    want = model.state_dict()
-    missing, extra = sorted(set(want) - set(state)), sorted(set(state) - set(want))
-    if missing or extra:
-        raise ValueError(f"estimator.snn.checkpoint: {_short(path)}: tensors missing {missing[:5]}, unexpected "
-                         f"{extra[:5]}; expected exactly the tensors of the network it describes")
-    for name, ref in want.items():
-        t = state[name]
-        if not isinstance(t, torch.Tensor) or not t.is_floating_point():
-            what = f"a {t.dtype} tensor" if isinstance(t, torch.Tensor) else f"a {type(t).__name__}"
-            raise ValueError(f"estimator.snn.checkpoint: {_short(path)}: tensor '{name}' is {what}, expected a "
-                             f"floating-point tensor of shape {tuple(ref.shape)}")
-        if tuple(t.shape) != tuple(ref.shape):
-            raise ValueError(f"estimator.snn.checkpoint: {_short(path)}: tensor '{name}' has shape {tuple(t.shape)}, "
-                             f"expected {tuple(ref.shape)} (the network its encoder and model fields describe)")
-        bad = int((~torch.isfinite(t)).sum())
-        if bad:
-            raise ValueError(f"estimator.snn.checkpoint: {_short(path)}: tensor '{name}' holds {bad} NaN or infinite "
-                             f"values of {t.numel()}; expected finite weights (a damaged or diverged training)")
+    """Every tensor of a checkpoint's ``state`` against ``model`` (names, shapes, floating dtypes,
+    finite values): :func:`dvsland.estimators.state_dict_check.check_state_dict`, the messages
+    naming ``estimator.snn.checkpoint`` and the file."""
+    check_weights(state, model, f"estimator.snn.checkpoint: {_short(path)}")
 
 
 def load_checkpoint(path=None, sensor_size=(128, 128), dt_s: float = 0.1, device="cpu", principal_point_px=None):
