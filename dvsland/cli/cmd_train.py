@@ -29,7 +29,7 @@ import sys
 import time
 from pathlib import Path
 
-from .common import add_config_args, add_threads_arg, apply_threads, config_from_args, parse_sites
+from .common import add_config_args, add_threads_arg, apply_threads, config_from_args, parse_sites, ranged
 
 #: checkpoint file name in a default run folder
 CHECKPOINT_NAME = "snn.pt"
@@ -57,11 +57,14 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                      help="dataset folder(s) of `dvsland dataset build`, of one sensor")
     rec.add_argument("--model-set", action="append", default=[], metavar="KEY=VALUE",
                      help="a model constructor setting, e.g. width=16 (repeatable)")
-    rec.add_argument("--n-bins", type=int, default=None, help="time bins of the voxel grid (default 4; spiking 6)")
-    rec.add_argument("--n-windows", type=int, default=1,
+    rec.add_argument("--n-bins", type=ranged(int, 1, 64, "--n-bins"), default=None,
+                     help="time bins of the voxel grid (default 4; spiking 6)")
+    rec.add_argument("--n-windows", type=ranged(int, 1, 64, "--n-windows"), default=1,
                      help="control steps the input spans (the last K windows; n_bins must be a multiple of K)")
-    rec.add_argument("--pool-px", type=int, default=None, help="sensor pixels per input cell side (default 2; spiking 4)")
-    rec.add_argument("--patience", type=int, default=6, help="early stopping: epochs without a better val error")
+    rec.add_argument("--pool-px", type=ranged(int, 1, 64, "--pool-px"), default=None,
+                     help="sensor pixels per input cell side (default 2; spiking 4)")
+    rec.add_argument("--patience", type=ranged(int, 1, 10_000, "--patience"), default=6,
+                     help="early stopping: epochs without a better val error")
     rec.add_argument("--resume", action="store_true", help="continue the training stored in --out")
     rec.add_argument("--tensorboard", default=None, metavar="DIR",
                      help="TensorBoard folder (default: beside --out, <out>.tb)")
@@ -80,34 +83,43 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                            "never the evaluation sites themselves)")
     data.add_argument("--hold-out-type", default=None, choices=("craters", "craters_rocks", "rocky", "featureless"),
                       help="leave every site of this type out of the default training terrains")
-    data.add_argument("--n-seq", type=int, default=1280, metavar="N", help="sequences (default 1280)")
-    data.add_argument("--steps", type=int, default=20, metavar="K", help="control steps per sequence (default 20)")
-    data.add_argument("--c2-max", type=float, default=0.0,
+    data.add_argument("--n-seq", type=ranged(int, 1, 1_000_000, "--n-seq"), default=1280, metavar="N",
+                      help="sequences (default 1280)")
+    data.add_argument("--steps", type=ranged(int, 1, 10_000, "--steps"), default=20, metavar="K",
+                      help="control steps per sequence (default 20)")
+    data.add_argument("--c2-max", type=ranged(float, 0.0, 10.0, "--c2-max"), default=0.0,
                       help="descents follow tau = tau0 - c2 t with c2 in [0, C2_MAX] (0 = constant D)")
     data.add_argument("--dispersion", default=None, metavar="CONFIG",
                       help="draw each sequence's sun elevation and sensor from this config's dispersion section, "
                            "e.g. montecarlo")
-    data.add_argument("--sun-step", type=float, default=None,
+    data.add_argument("--sun-step", type=ranged(float, 0.01, 90.0, "--sun-step"), default=None,
                       help="round dispersed sun elevations to this step, deg (default: the config's sun_step_deg)")
-    data.add_argument("--seed", type=int, default=0, help="seed of the data (and of the weights unless --train-seed)")
+    data.add_argument("--seed", type=ranged(int, 0, 2 ** 63 - 1, "--seed"), default=0,
+                      help="seed of the data (and of the weights unless --train-seed)")
     data.add_argument("--data-cache", default=None, metavar="PATH",
                       help="torch file of the generated sequences: loaded when it exists and matches, else written")
 
     model = p.add_argument_group("model")
     model.add_argument("--channels", default="16,32", help="LIF channels of the two layers (new networks only)")
-    model.add_argument("--n-sub", type=int, default=4, help="network steps (time slices) per control step")
+    model.add_argument("--n-sub", type=ranged(int, 1, 64, "--n-sub"), default=4,
+                       help="network steps (time slices) per control step")
     model.add_argument("--init", default=None, metavar="CKPT", help="start from this checkpoint's weights (fine-tuning)")
 
     tr = p.add_argument_group("training")
-    tr.add_argument("--epochs", type=int, default=None, help="epochs (default 14 for snn, 30 for the recipe)")
-    tr.add_argument("--batch", type=int, default=None, help="batch size (default 32 for snn, 64 for the recipe)")
-    tr.add_argument("--lr", type=float, default=None, help="learning rate (default 3e-3 for snn, 2e-3 for the recipe)")
-    tr.add_argument("--crop-steps", type=int, default=None,
+    tr.add_argument("--epochs", type=ranged(int, 1, 100_000, "--epochs"), default=None,
+                    help="epochs (default 14 for snn, 30 for the recipe)")
+    tr.add_argument("--batch", type=ranged(int, 1, 65_536, "--batch"), default=None,
+                    help="batch size (default 32 for snn, 64 for the recipe)")
+    tr.add_argument("--lr", type=ranged(float, 1e-08, 10.0, "--lr"), default=None,
+                    help="learning rate (default 3e-3 for snn, 2e-3 for the recipe)")
+    tr.add_argument("--crop-steps", type=ranged(int, 1, 10_000, "--crop-steps"), default=None,
                     help="train on random windows of this many steps (validation on whole sequences)")
-    tr.add_argument("--warmup-steps", type=int, default=5, help="steps at the start of a sequence not scored")
-    tr.add_argument("--train-seed", type=int, default=None,
+    tr.add_argument("--warmup-steps", type=ranged(int, 0, 10_000, "--warmup-steps"), default=5,
+                    help="steps at the start of a sequence not scored")
+    tr.add_argument("--train-seed", type=ranged(int, 0, 2 ** 63 - 1, "--train-seed"), default=None,
                     help="seed of the weights and the batch order (default --seed; the data keep --seed)")
-    tr.add_argument("--max-minutes", type=float, default=None, help="stop training after this long")
+    tr.add_argument("--max-minutes", type=ranged(float, 0.01, 100000.0, "--max-minutes"), default=None,
+                    help="stop training after this long")
 
 
 def package_dir() -> Path:
