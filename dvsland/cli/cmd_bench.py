@@ -14,7 +14,7 @@ import sys
 def register(subparsers) -> None:
     from dvsland.bench.run import CHOICES
 
-    from .common import add_sites_arg, add_threads_arg
+    from .common import add_sites_arg, add_threads_arg, ranged
 
     p = subparsers.add_parser(
         "bench", help="benchmarks: speed against error, closed loop, scaling, economies",
@@ -34,8 +34,8 @@ def register(subparsers) -> None:
     p.add_argument("--closed-loop-config", default="realistic", help="closed-loop config (default realistic)")
     p.add_argument("--estimators", default=None, help="comma-separated registered names (default: all registered)")
     add_threads_arg(p, " (default 1)")
-    p.add_argument("--render-threads", type=int, default=None, metavar="N",
-                   help="fast renderer threads inside a call (default: --threads; 0 = all cores)")
+    p.add_argument("--render-threads", type=ranged(int, 0, 256, "--render-threads"), default=None, metavar="N",
+                   help="fast renderer threads inside a call (0 to 256; default: --threads; 0 = all cores)")
     add_sites_arg(p, "measure only these configured sites (simulation.sites of both configs)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value of both configs (open and closed loop), e.g. --set "
