@@ -47,7 +47,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"dvsland: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        print(f"dvsland: interrupted ({exc or 'Ctrl-C'}); what was gathered so far was written", file=sys.stderr)
+        print(f"dvsland: interrupted ({str(exc) or 'Ctrl-C'}); what was gathered so far was written", file=sys.stderr)
         return 130
 
 
