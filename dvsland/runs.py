@@ -283,8 +283,10 @@ def guarded_run(fn):
 def _interrupt_handlers(made: list):
     """SIGINT and SIGTERM raise KeyboardInterrupt in the main thread, and an
     :class:`~dvsland.watchdog.InterruptWatchdog` ends the process (after writing the status of the
-    run folders in ``made``) when the main thread is stuck in native code and cannot raise it."""
-    if threading.current_thread() is not threading.main_thread():
+    run folders in ``made``) when the main thread is stuck in native code and cannot raise it.
+    A guarded call inside another (``simulate()`` under the CLI) keeps the outer one's handlers and
+    watchdog: every run folder it makes is in the outer ``made`` too (:func:`make_run_dir`)."""
+    if threading.current_thread() is not threading.main_thread() or _GUARDS.watchdog:
         yield
         return
 

@@ -87,15 +87,13 @@ def save_atomic(fig, path, **savefig_kwargs) -> Path:
     Raises:
         RunWriteError: the folder or the file could not be written; the message names the path.
     """
-    from dvsland.report.results import RunWriteError, atomic_write_bytes
+    from dvsland.report.results import atomic_write_bytes, writes_under
 
     path = Path(path)
     buf = io.BytesIO()
     fig.savefig(buf, format=path.suffix.lstrip(".") or "png", **savefig_kwargs)
-    try:
+    with writes_under(path.parent):
         path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise RunWriteError(path.parent, exc) from None
     return atomic_write_bytes(path, buf.getbuffer())
 
 
