@@ -1,5 +1,9 @@
-"""The optional compiled radix sort of the emulator's event keys (dvsland.events.native): off by
-default, a clean fallback when it cannot be built, and (slow: it compiles) the same events."""
+"""The compiled kernels of the emulator (dvsland.events.native): mode auto uses a cached build and
+never compiles, off never loads, a failed build falls back to the torch path, and (when built) the
+same events and state as the torch path, which stays the reference. The full comparison that
+compiles when nothing is cached is `slow`."""
+
+import warnings
 
 import numpy as np
 import pytest
@@ -10,38 +14,110 @@ from dvsland.events.benchmark import smooth_frames
 from dvsland.events.emulator import EventEmulator
 
 
-def test_off_by_default_and_no_build(monkeypatch):
-    monkeypatch.delenv("DVSLAND_NATIVE_SORT", raising=False)
-    monkeypatch.setattr(native, "_enabled", None)
-    monkeypatch.setattr(native, "load", lambda: pytest.fail("must not build when off"))
-    assert not native.native_sort_enabled()
-    assert native.radix_sort_(torch.tensor([3, 1, 2]), 2) is False
-
-
-def test_build_failure_falls_back_to_numpy(monkeypatch):
-    monkeypatch.setattr(native, "_enabled", True)
+@pytest.fixture
+def fresh(monkeypatch):
+    """No module loaded, no failure recorded, the environment's mode."""
     monkeypatch.setattr(native, "_module", None)
     monkeypatch.setattr(native, "_failed", False)
-    import torch.utils.cpp_extension as ce
+    monkeypatch.setattr(native, "_enabled", None)
+    return monkeypatch
+
+
+def _no_build(*a, **k):
+    pytest.fail("must not compile")
+
+
+def _events(frames, **kw):
+    emu = EventEmulator(seed=2, **kw)
+    emu.reset(frames[0], 0)
+    return [emu.step(frames[k], k * 100_000) for k in range(1, frames.shape[0])], emu
+
+
+def test_auto_without_a_cached_build_never_compiles(fresh):
+    fresh.delenv("DVSLAND_NATIVE_SORT", raising=False)
+    fresh.setattr(native, "cached", lambda: False)
+    fresh.setattr(native, "build", _no_build)
+    assert native.mode() == "auto" and not native.native_sort_enabled() and native.load() is None
+    frames = smooth_frames(2, 20, 24, 3, omega=0.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # silent fallback
+        ev, _ = _events(frames)
+    assert sum(len(e) for e in ev) > 0 and native.radix_sort_(torch.tensor([3, 1, 2]), 2) is False
+
+
+@pytest.mark.parametrize("value, mode", [("", "auto"), ("auto", "auto"), ("1", "on"), ("YES", "on"),
+                                         ("0", "off"), ("false", "off")])
+def test_mode_from_the_environment(fresh, value, mode):
+    fresh.setenv("DVSLAND_NATIVE_SORT", value)
+    assert native.mode() == mode
+
+
+def test_off_never_loads_and_bad_values_are_named(fresh):
+    fresh.setenv("DVSLAND_NATIVE_SORT", "0")
+    fresh.setattr(native, "cached", lambda: True)
+    fresh.setattr(native, "_import_cached", _no_build)
+    assert not native.native_sort_enabled() and native.load() is None
+    fresh.setenv("DVSLAND_NATIVE_SORT", "maybe")
+    with pytest.raises(ValueError, match="DVSLAND_NATIVE_SORT"):
+        native.mode()
+
+
+def test_the_build_name_follows_the_source(fresh):
+    name = native.module_name()
+    assert name.startswith("dvsland_events_native_") and native.build_dir().name == name
+    fresh.setattr(native, "_SRC", native._SRC + "\n// changed\n")
+    assert native.module_name() != name  # an edited kernel is never loaded from an old build
+
+
+def test_build_failure_falls_back_to_the_torch_path(fresh):
+    fresh.setattr(native, "_enabled", True)
+    fresh.setattr(native, "cached", lambda: False)
 
     def broken(*a, **k):
         raise RuntimeError("no compiler here")
 
-    monkeypatch.setattr(ce, "load_inline", broken)
+    fresh.setattr(native, "build", broken)
     frames = smooth_frames(2, 20, 24, 3, omega=0.5)
     with pytest.warns(RuntimeWarning, match="could not be built"):
-        emu = EventEmulator()
-        emu.reset(frames[0], 0)
-        ev = emu.step(frames[1], 100_000)
-    monkeypatch.setattr(native, "_enabled", False)
-    ref = EventEmulator()
-    ref.reset(frames[0], 0)
-    assert ev == ref.step(frames[1], 100_000) and len(ev) > 0
+        ev, _ = _events(frames)
+    fresh.setattr(native, "_enabled", False)
+    ref, _ = _events(frames)
+    assert ev == ref and sum(len(e) for e in ev) > 0
+
+
+def _compare_with_torch_path(monkeypatch, configs, frame_sets):
+    for kw in configs:
+        for frames in frame_sets:
+            out, state = {}, {}
+            for on in (True, False):
+                monkeypatch.setattr(native, "_enabled", on)
+                out[on], emu = _events(frames, **kw)
+                state[on] = (emu.reference.clone(), emu._t_last.clone())
+            for a, b in zip(out[True], out[False]):
+                assert a == b, kw
+            assert sum(len(a) for a in out[True]) > 0
+            assert torch.equal(state[True][0], state[False][0]) and torch.equal(state[True][1], state[False][1]), kw
+
+
+def _frame_sets():
+    g = torch.Generator().manual_seed(4)
+    return [smooth_frames(3, 40, 48, 5, omega=0.8), smooth_frames(2, 33, 70, 4, omega=0.3),
+            torch.rand(5, 3, 17, 23, generator=g) * 2]
+
+
+def test_cached_kernels_give_the_torch_paths_events(fresh):
+    """Runs where the kernels are built (python -m dvsland.events.build_native); compiles nothing."""
+    fresh.setattr(native, "build", _no_build)
+    if not native.cached():
+        pytest.skip("compiled kernels not built here (python -m dvsland.events.build_native)")
+    from test_emulator_fast_paths import CONFIGS
+
+    _compare_with_torch_path(fresh, CONFIGS[:2] + CONFIGS[-2:], _frame_sets()[:2])
 
 
 @pytest.mark.slow
-def test_native_sort_gives_the_same_events(monkeypatch):
-    monkeypatch.setattr(native, "_enabled", True)
+def test_native_kernels_give_the_same_events(fresh):
+    fresh.setattr(native, "_enabled", True)
     if native.load() is None:
         pytest.skip("no C++ toolchain for torch.utils.cpp_extension")
     rng = np.random.default_rng(0)
@@ -50,27 +126,14 @@ def test_native_sort_gives_the_same_events(monkeypatch):
     assert native.radix_sort_(t, 40) and np.array_equal(t.numpy(), np.sort(keys))
     from test_emulator_fast_paths import CONFIGS
 
-    g = torch.Generator().manual_seed(4)
-    frame_sets = [smooth_frames(3, 40, 48, 5, omega=0.8), smooth_frames(2, 33, 70, 4, omega=0.3),
-                  torch.rand(5, 3, 17, 23, generator=g) * 2]
-    for kw in CONFIGS + [dict(leak_rate_hz=2.0, photoreceptor_cutoff_hz=50.0), dict(refractory_us=20_000.0)]:
-        for frames in frame_sets:
-            out, state = {}, {}
-            for on in (True, False):
-                monkeypatch.setattr(native, "_enabled", on)
-                emu = EventEmulator(seed=2, **kw)
-                emu.reset(frames[0], 0)
-                out[on] = [emu.step(frames[k], k * 100_000) for k in range(1, frames.shape[0])]
-                state[on] = (emu.reference.clone(), emu._t_last.clone())
-            for a, b in zip(out[True], out[False]):
-                assert a == b, kw
-            assert sum(len(a) for a in out[True]) > 0
-            assert torch.equal(state[True][0], state[False][0]) and torch.equal(state[True][1], state[False][1]), kw
+    _compare_with_torch_path(fresh, CONFIGS + [dict(leak_rate_hz=2.0, photoreceptor_cutoff_hz=50.0),
+                                               dict(refractory_us=20_000.0), dict(refractory_us=0.0, threshold=0.01)],
+                             _frame_sets())
 
 
 @pytest.mark.slow
-def test_native_kernel_respects_the_event_cap(monkeypatch):
-    monkeypatch.setattr(native, "_enabled", True)
+def test_native_kernel_respects_the_event_cap(fresh):
+    fresh.setattr(native, "_enabled", True)
     if native.load() is None:
         pytest.skip("no C++ toolchain for torch.utils.cpp_extension")
     frames = smooth_frames(2, 40, 48, 3, omega=0.8)

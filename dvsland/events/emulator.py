@@ -442,7 +442,8 @@ class EventEmulator:
             el = float(t1 - self._t_reset)
             l1 = l1.add(self._drift, alpha=el) if pmp.lowpass else l1.add_(self._drift, alpha=el)
         # per event int64 sort keys (see _KeyLayout) of the pixels; updates L_ref and t_last
-        if self._native_pixel_path(l1):  # the compiled one-pass kernel (opt-in): the same keys and state
+        pixel_order = self._native_pixel_path(l1)
+        if pixel_order:  # the compiled one-pass kernel (when built): the same keys and state, in pixel order
             keys = self._native_pixel_events(l1, t0, dt, b_shift)
         else:
             keys = self._scene_keys(l1, f1, t0, dt, b_shift)
@@ -458,7 +459,7 @@ class EventEmulator:
 
         if self._bg_active():
             bg = self._background(b_shift, dt)
-            keys = bg if keys is None else torch.cat((keys, bg))
+            keys, pixel_order = (bg if keys is None else torch.cat((keys, bg))), False
         shot_keys = None
         if shot is not None:
             flat, slot, elem, off = shot
@@ -474,7 +475,7 @@ class EventEmulator:
         if keys is None or keys.numel() == 0:
             ev = Events.empty(dev)
         else:
-            ev = layout.sort_decode(keys, b_shift, t0, sorted_keys=shot_keys)
+            ev = layout.sort_decode(keys, b_shift, t0, sorted_keys=shot_keys, pixel_order=pixel_order)
         return ev if self.denoiser is None else self.denoiser(ev, t1)
 
     def _scene_keys(self, l1: torch.Tensor, f1: torch.Tensor, t0: int, dt: float, b_shift: int
@@ -846,24 +847,22 @@ class _KeyLayout:
         return self.pixel_table(b_shift).index_select(0, pix) | off.to(torch.int64)
 
     def sort_decode(self, keys: torch.Tensor, b_shift: int, t0: int,
-                    sorted_keys: Optional[torch.Tensor] = None) -> Events:
+                    sorted_keys: Optional[torch.Tensor] = None, pixel_order: bool = False) -> Events:
         """Sort the keys (in place on CPU), merge in ``sorted_keys`` (already sorted, or None) and
-        unpack into :class:`Events` (t = t0 + t_rel)."""
-        if _cpu_fast_path(keys):
-            if native.native_sort_enabled() and native.load() is not None:  # compiled (opt-in): same result
-                if sorted_keys is not None and sorted_keys.numel():
-                    keys = torch.cat((keys, sorted_keys))
-                b, x, y, t, p = native.load().sort_decode(keys, b_shift + self.bb, b_shift, self.t_shift,
-                                                          self.y_shift, self.x_mask, self.y_mask, int(t0))
-                return Events(b=b, x=x, y=y, t=t, p=p)
-            else:
-                keys.numpy().sort()
-                if sorted_keys is not None and sorted_keys.numel():
-                    keys = _merge_sorted(keys, sorted_keys)
-        else:
-            if sorted_keys is not None:
-                keys = torch.cat((keys, sorted_keys))
-            keys = torch.sort(keys).values
+        unpack into :class:`Events` (t = t0 + t_rel). ``pixel_order``: the keys come in flat pixel
+        order (those of the compiled pixel kernel alone), so the compiled radix sort only needs
+        their (b, t) bits (a stable sort by those keeps the pixel order among equal times)."""
+        if sorted_keys is not None and sorted_keys.numel():
+            keys, pixel_order = torch.cat((keys, sorted_keys)), False
+        if _cpu_fast_path(keys) and native.native_sort_enabled() and native.load() is not None:
+            # compiled: the same result
+            b, x, y, t, p = native.load().sort_decode(keys, b_shift + self.bb, self.t_shift if pixel_order else 0,
+                                                      b_shift, self.t_shift, self.y_shift, self.x_mask,
+                                                      self.y_mask, int(t0))
+            return Events(b=b, x=x, y=y, t=t, p=p)
+        # torch's sort of int64 (radix on CPU): about 3x faster than numpy's here (182 k keys:
+        # 2.7 against 8.3 ms of CPU, one thread)
+        keys = torch.sort(keys).values
         # in-place where possible: every field is one fresh allocation, b reuses the keys
         if _cpu_fast_path(keys):  # the int64 -> int8 cast keeps the low byte (with the OFF bit)
             p = keys.to(torch.int8).bitwise_and_(1).mul_(-2).add_(1)

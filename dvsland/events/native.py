@@ -1,22 +1,32 @@
-"""Optional compiled kernels of the emulator (CPU): the ideal pixel's step, an LSD radix sort of
-its int64 event keys fused with their decoding, and the loops of the denoising filters.
+"""Compiled kernels of the emulator (CPU): the ideal pixel's step, an LSD radix sort of its int64
+event keys fused with their decoding, and the loops of the denoising filters.
 
-The emulator's per-step sort of packed event keys (:class:`dvsland.events.emulator._KeyLayout`)
-is about half of a dense step with numpy's sort (158 k keys, B = 18 at 128x128, 0.6 events per
-pixel: about 6.5 ms of process CPU on this machine against 1.1 ms for this radix sort). Sorting
-integers has one result, so the events are identical with and without it (tests pin it).
+They give the same events and pixel state as the torch path, which stays the reference (the
+operations are the same float64 ones in the same order; sorting integers has one result; tests
+pin it). On dense frames (B = 18, 128x128, 0.6 events per pixel) they make a step about 2-3x
+cheaper (docs/events.md, "Speed against v2e").
 
-It is opt-in because it is compiled on first use with the C++ compiler through
-``torch.utils.cpp_extension.load_inline`` (about 80 s once on a busy 2-core machine, then cached
-in torch's extension folder): set the environment variable ``DVSLAND_NATIVE_SORT=1`` or call
-:func:`use_native_sort`. Without a compiler (or on any build error) the numpy sort is used, with
-one warning.
+They are compiled once with the C++ compiler through ``torch.utils.cpp_extension.load_inline``
+(about 1-2 min of CPU on a busy 2-core machine) into torch's extension folder, under a name that
+carries a hash of the source, the flags and the torch version, so a stale build is never loaded.
+The environment variable ``DVSLAND_NATIVE_SORT`` (or :func:`use_native_sort`) picks the mode:
+
+- ``auto`` (default, also when unset or empty): use the kernels when their build is already in
+  the cache (loaded in milliseconds, nothing is compiled); otherwise the torch path runs, silently.
+- ``1`` / ``on`` / ``true`` / ``yes``: build on first use when not cached, then use them.
+- ``0`` / ``off`` / ``false`` / ``no``: never use them.
+
+Build once with ``python -m dvsland.events.build_native`` (prints the time and the folder). Without a
+compiler (or on any build or load error) the torch path runs, with one warning.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
+import sys
 import warnings
+from pathlib import Path
 from typing import Optional
 
 import torch
@@ -27,20 +37,26 @@ _SRC = r"""
 #include <cstring>
 #include <vector>
 
-// LSD radix sort of non-negative int64 keys below 2^bits, in place; 11-bit digits.
-void radix_sort_(torch::Tensor keys, int64_t bits) {
+// LSD radix sort of non-negative int64 keys below 2^bits by their bits lo_bit..bits-1, in place, stable;
+// 11-bit digits. With lo_bit = 0 the keys end fully sorted; with lo_bit > 0 keys equal in those bits
+// keep their input order (the emulator's keys come in pixel order, which is their low bits' order).
+void radix_sort_bits_(torch::Tensor keys, int64_t bits, int64_t lo_bit) {
   TORCH_CHECK(keys.is_contiguous() && keys.scalar_type() == torch::kInt64 && keys.device().is_cpu(),
               "radix_sort_: keys must be a contiguous int64 CPU tensor");
   const int64_t n = keys.numel();
   if (n < 2) return;
   int64_t* a = keys.data_ptr<int64_t>();
-  std::vector<int64_t> buf(n);
+  // the work buffer is kept across calls up to 2^22 keys (32 MiB): no fresh pages per step
+  static thread_local std::vector<int64_t> kept;
+  std::vector<int64_t> once;
+  std::vector<int64_t>& buf = n <= (int64_t(1) << 22) ? kept : once;
+  if (int64_t(buf.size()) < n) buf.resize(size_t(n));
   int64_t* src = a;
   int64_t* dst = buf.data();
   const int D = 11;
   const int64_t M = (int64_t(1) << D) - 1;
   std::vector<int64_t> cnt(size_t(1) << D);
-  for (int64_t sh = 0; sh < bits; sh += D) {
+  for (int64_t sh = lo_bit; sh < bits; sh += D) {
     std::fill(cnt.begin(), cnt.end(), 0);
     for (int64_t i = 0; i < n; ++i) cnt[(src[i] >> sh) & M]++;
     if (cnt[(src[0] >> sh) & M] == n) continue;  // one digit value: this pass changes nothing
@@ -52,11 +68,14 @@ void radix_sort_(torch::Tensor keys, int64_t bits) {
   if (src != a) std::memcpy(a, src, size_t(n) * sizeof(int64_t));
 }
 
+void radix_sort_(torch::Tensor keys, int64_t bits) { radix_sort_bits_(keys, bits, 0); }
+
 // radix_sort_ then unpack the keys into the Events fields in one pass (see _KeyLayout):
 // b, x, y, t = t0 + t_rel (int64) and p = +1 / -1 (int8, OFF bit 1 = -1).
-std::vector<torch::Tensor> sort_decode(torch::Tensor keys, int64_t bits, int64_t b_shift, int64_t t_shift,
-                                       int64_t y_shift, int64_t x_mask, int64_t y_mask, int64_t t0) {
-  radix_sort_(keys, bits);
+// lo_bit: see radix_sort_bits_ (t_shift when the keys come in pixel order, else 0).
+std::vector<torch::Tensor> sort_decode(torch::Tensor keys, int64_t bits, int64_t lo_bit, int64_t b_shift,
+                                       int64_t t_shift, int64_t y_shift, int64_t x_mask, int64_t y_mask, int64_t t0) {
+  radix_sort_bits_(keys, bits, lo_bit);
   const int64_t n = keys.numel();
   const int64_t* k = keys.data_ptr<int64_t>();
   auto opt = torch::TensorOptions().dtype(torch::kInt64);
@@ -121,21 +140,22 @@ torch::Tensor refractory_keep(torch::Tensor pix_t, torch::Tensor t_t, torch::Ten
 static inline double clamp_lo(double x, double lo) { return x < lo ? lo : x; }  // NaN stays NaN, as torch
 static inline double clamp_lohi(double x, double lo, double hi) { x = x < lo ? lo : x; return x > hi ? hi : x; }
 
-torch::Tensor pixel_events(torch::Tensor l1_t, torch::Tensor lref_t, torch::Tensor l0_t, torch::Tensor tlast_t,
-                           torch::Tensor code_t, double th_on, double th_off, double r, double t0, double dt,
-                           bool spacing_may_bind, int64_t t_shift, int64_t cap, torch::Tensor n_out) {
+struct Cand { int64_t code; double cnt, first, step; };  // one pixel with >= 1 emitted event
+
+// x86-64: a second copy for CPUs with AVX2/FMA (floor, ceil and fma as single instructions; the
+// same IEEE results: no contraction, -ffp-contract=off), picked at load time by the dynamic loader.
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define DVS_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
+#else
+#define DVS_CLONES
+#endif
+
+DVS_CLONES static double scan_pixels(const double* l1, double* lref, const double* l0, double* tlast,
+                                     const int64_t* code, int64_t P, double th_on, double th_off, double r,
+                                     double t0, double dt, bool spacing_may_bind, std::vector<Cand>& out) {
   const double TOL = 1e-9, shrink = 1.0 - 2 * TOL;
-  const int64_t P = l1_t.numel();
-  const double* l1 = l1_t.data_ptr<double>();
-  double* lref = lref_t.data_ptr<double>();
-  const double* l0 = l0_t.data_ptr<double>();
-  double* tlast = tlast_t.data_ptr<double>();
-  const int64_t* code = code_t.data_ptr<int64_t>();
   const bool same = th_on == th_off;
   const double lo_on = th_on * shrink, lo_off = th_off * shrink;
-  std::vector<int64_t> idx; std::vector<double> cnt_v, first_v, step_v;
-  std::vector<int64_t> off_v;
-  idx.reserve(P / 2); cnt_v.reserve(P / 2); first_v.reserve(P / 2); step_v.reserve(P / 2); off_v.reserve(P / 2);
   double total = 0.0;
   for (int64_t k = 0; k < P; ++k) {
     const double d = l1[k] - lref[k];
@@ -172,61 +192,156 @@ torch::Tensor pixel_events(torch::Tensor l1_t, torch::Tensor lref_t, torch::Tens
     lref[k] = std::fma(n, th, lref[k]);
     if (cnt > 0) {
       tlast[k] = std::fma(cnt - 1.0, step, first) + t0;
-      idx.push_back(k); cnt_v.push_back(cnt); first_v.push_back(first); step_v.push_back(step);
-      off_v.push_back(std::signbit(th) ? 1 : 0);
+      out.push_back({code[k] | (std::signbit(th) ? 1 : 0), cnt, first, step});
       total += cnt;
     }
   }
+  return total;
+}
+
+DVS_CLONES static void write_keys(const std::vector<Cand>& cand, double dt, int64_t t_shift, int64_t* out) {
+  int64_t w = 0;
+  for (const Cand& c : cand) {
+    out[w++] = (int64_t(clamp_lohi(std::floor(c.first + 0.5), 1.0, dt)) << t_shift) + c.code;
+    const int64_t ce = int64_t(c.cnt);
+    for (int64_t i = 1; i < ce; ++i) {
+      const double tau = c.step * double(i) + c.first;
+      out[w++] = (int64_t(clamp_lohi(std::floor(tau + 0.5), 1.0, dt)) << t_shift) + c.code;
+    }
+  }
+}
+
+torch::Tensor pixel_events(torch::Tensor l1_t, torch::Tensor lref_t, torch::Tensor l0_t, torch::Tensor tlast_t,
+                           torch::Tensor code_t, double th_on, double th_off, double r, double t0, double dt,
+                           bool spacing_may_bind, int64_t t_shift, int64_t cap, torch::Tensor n_out) {
+  const int64_t P = l1_t.numel();
+  static thread_local std::vector<Cand> kept;  // kept across calls (no fresh pages per step)
+  std::vector<Cand>& cand = kept;
+  cand.clear();
+  if (cand.capacity() < size_t(P / 2)) cand.reserve(size_t(P / 2));
+  const double total = scan_pixels(l1_t.data_ptr<double>(), lref_t.data_ptr<double>(), l0_t.data_ptr<double>(),
+                                   tlast_t.data_ptr<double>(), code_t.data_ptr<int64_t>(), P, th_on, th_off, r,
+                                   t0, dt, spacing_may_bind, cand);
   n_out.data_ptr<double>()[0] = total;
   if (cap >= 0 && total > double(cap)) return torch::empty({0}, torch::kInt64);
   auto keys = torch::empty({int64_t(total)}, torch::kInt64);
-  int64_t* out = keys.data_ptr<int64_t>();
-  int64_t w = 0;
-  for (size_t a = 0; a < idx.size(); ++a) {
-    const int64_t c0 = code[idx[a]] | off_v[a];
-    out[w++] = (int64_t(clamp_lohi(std::floor(first_v[a] + 0.5), 1.0, dt)) << t_shift) + c0;
-    const int64_t ce = int64_t(cnt_v[a]);
-    for (int64_t i = 1; i < ce; ++i) {
-      const double tau = step_v[a] * double(i) + first_v[a];
-      out[w++] = (int64_t(clamp_lohi(std::floor(tau + 0.5), 1.0, dt)) << t_shift) + c0;
-    }
-  }
+  write_keys(cand, dt, t_shift, keys.data_ptr<int64_t>());
+  if (cand.capacity() > (size_t(1) << 22)) std::vector<Cand>().swap(cand);  // do not keep huge buffers
   return keys;
 }
 """
 
+_FUNCTIONS = ["radix_sort_", "pixel_events", "sort_decode", "baf_keep", "refractory_keep"]
+_CFLAGS = ["-O3", "-ffp-contract=off"]
+
+_ON, _OFF, _AUTO = "on", "off", "auto"
 _module = None
 _failed = False
+#: this process's choice (use_native_sort): True = on, False = off, None = the environment's
 _enabled: Optional[bool] = None
 
 
-def use_native_sort(on: bool = True) -> None:
-    """Switch the compiled sort on or off for this process (default: ``DVSLAND_NATIVE_SORT``)."""
+def use_native_sort(on: Optional[bool] = True) -> None:
+    """Pick the mode for this process: True = on (build when not cached), False = off, None = back
+    to ``DVSLAND_NATIVE_SORT`` (default auto)."""
     global _enabled
-    _enabled = bool(on)
+    _enabled = None if on is None else bool(on)
+
+
+def mode() -> str:
+    """``"on"``, ``"off"`` or ``"auto"``: :func:`use_native_sort`'s choice, else the environment's.
+
+    Raises:
+        ValueError naming ``DVSLAND_NATIVE_SORT`` when it holds another word.
+    """
+    if _enabled is not None:
+        return _ON if _enabled else _OFF
+    v = os.environ.get("DVSLAND_NATIVE_SORT", "").strip().lower()
+    if v in ("", _AUTO):
+        return _AUTO
+    if v in ("1", "on", "true", "yes"):
+        return _ON
+    if v in ("0", "off", "false", "no"):
+        return _OFF
+    raise ValueError(f"DVSLAND_NATIVE_SORT must be auto, 1/on/true/yes or 0/off/false/no, got {v!r}")
+
+
+def module_name() -> str:
+    """The extension's name: a hash of the source, flags, functions, torch and Python versions."""
+    h = hashlib.sha256("\0".join([_SRC, " ".join(_CFLAGS), " ".join(_FUNCTIONS), torch.__version__,
+                                  sys.version]).encode()).hexdigest()[:16]
+    return f"dvsland_events_native_{h}"
+
+
+def build_dir() -> Path:
+    """The folder of the build (torch's extension folder, ``TORCH_EXTENSIONS_DIR`` if set)."""
+    root = os.environ.get("TORCH_EXTENSIONS_DIR")
+    if root is None:
+        from torch.utils.cpp_extension import get_default_build_root
+
+        acc = "cpu" if torch.version.cuda is None else f"cu{torch.version.cuda.replace('.', '')}"
+        if getattr(torch.version, "hip", None):
+            acc = f"rocm{torch.version.hip.replace('.', '')}"
+        py = f"py{sys.version_info.major}{sys.version_info.minor}{getattr(sys, 'abiflags', '')}"
+        root = os.path.join(get_default_build_root(), f"{py}_{acc}")
+    return Path(root) / module_name()
+
+
+def _library() -> Path:
+    from torch.utils.cpp_extension import LIB_EXT
+
+    return build_dir() / f"{module_name()}{LIB_EXT}"
+
+
+def cached() -> bool:
+    """Whether the build of this exact source is in the cache (so auto mode uses it)."""
+    try:
+        return _library().is_file()
+    except Exception:  # no home folder, ...
+        return False
 
 
 def native_sort_enabled() -> bool:
-    """Whether the emulator should try the compiled sort."""
-    if _enabled is not None:
-        return _enabled
-    return os.environ.get("DVSLAND_NATIVE_SORT", "0") not in ("", "0", "false", "no")
+    """Whether the emulator and the denoiser should use the kernels now: mode on, or auto with the
+    build cached (or already loaded). Never compiles."""
+    m = mode()
+    return m == _ON or (m == _AUTO and not _failed and (_module is not None or cached()))
+
+
+def _import_cached():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(module_name(), str(_library()))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def build(verbose: bool = False):
+    """Compile (when not cached) and load the kernels; the module. Raises on any build error."""
+    from torch.utils.cpp_extension import load_inline
+
+    d = build_dir()
+    d.mkdir(parents=True, exist_ok=True)
+    return load_inline(module_name(), cpp_sources=_SRC, functions=_FUNCTIONS, extra_cflags=_CFLAGS,
+                       build_directory=str(d), verbose=verbose)
 
 
 def load():
-    """The compiled module (built on first call), or None when it cannot be built."""
+    """The compiled module, or None: mode off; auto without a cached build; or a failed build or
+    load (one warning, then the torch path for the rest of the process)."""
     global _module, _failed
     if _module is not None or _failed:
         return _module
+    m = mode()
+    if m == _OFF or (m == _AUTO and not cached()):
+        return None
     try:
-        from torch.utils.cpp_extension import load_inline
-
-        _module = load_inline("dvsland_events_native", cpp_sources=_SRC, functions=["radix_sort_", "pixel_events", "sort_decode", "baf_keep", "refractory_keep"],
-                              extra_cflags=["-O3", "-ffp-contract=off"], verbose=False)
-    except Exception as exc:  # no compiler, no headers, ...: the numpy sort stays
+        _module = _import_cached() if cached() else build()
+    except Exception as exc:  # no compiler, no headers, a broken cache entry, ...: the torch path stays
         _failed = True
-        warnings.warn(f"dvsland.events.native: the compiled sort could not be built ({exc}); "
-                      f"using numpy's sort", RuntimeWarning)
+        warnings.warn(f"dvsland.events.native: the compiled kernels could not be built or loaded ({exc}); "
+                      f"using the torch path", RuntimeWarning)
     return _module
 
 
@@ -242,4 +357,5 @@ def radix_sort_(keys: torch.Tensor, bits: int) -> bool:
     return True
 
 
-__all__ = ["use_native_sort", "native_sort_enabled", "load", "radix_sort_"]
+__all__ = ["use_native_sort", "native_sort_enabled", "mode", "cached", "build", "build_dir", "module_name",
+           "load", "radix_sort_"]
