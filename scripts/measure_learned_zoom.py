@@ -7,6 +7,11 @@ config's emulator, and each estimator's median |relative error| and time per upd
 
 B textures per divergence (seeded); the descent starts at --z0 m and follows z = z0 exp(D t);
 the first --warmup steps are not scored. One torch thread.
+
+Any camera of the config (``--set camera.sensor=davis346``); an off-centre principal point
+(``--set "camera.principal_point_px=[140.5,150.5]"``) is recorded as the dataset build records it
+(:mod:`dvsland.data.crop`): a larger centred sensor is rendered and emulated, and the events of the
+off-centre window are kept, so the zoom's focus of expansion is at the principal point.
 """
 
 from __future__ import annotations
@@ -18,34 +23,49 @@ import time
 import torch
 
 
-def _frames(cfg, d: float, B: int, steps: int, z0: float, seed: int):
+def _frames(cam, d: float, B: int, steps: int, z0: float, seed: int):
     from dvsland.evaluate import ZoomTextureFrames
 
-    src = ZoomTextureFrames(B, (cfg.camera.width_px, cfg.camera.height_px), cfg.camera.fov_deg, seed=seed)
+    src = ZoomTextureFrames(B, (cam.width_px, cam.height_px), cam.fov_deg, seed=seed)
     idx = torch.arange(B)
     return [src(torch.full((B,), z0 * float(torch.exp(torch.tensor(d * 0.1 * k)))), idx) for k in range(steps + 1)]
 
 
-def _events(cfg, frames):
+def _events(cfg, frames, crop=None):
     from dvsland.events import EventEmulator
 
     emu = EventEmulator.from_config(cfg.emulator)
     emu.reset(frames[0], 0)
-    return [emu.step(f, 100_000 * k) for k, f in enumerate(frames[1:], start=1)]
+    out = [emu.step(f, 100_000 * k) for k, f in enumerate(frames[1:], start=1)]
+    return out if crop is None else [_crop(ev, crop) for ev in out]
+
+
+def _crop(ev, crop):
+    """The events of the window ``crop`` (a dvsland.data.crop.Crop), in its own pixels."""
+    from dvsland.events import Events
+
+    x, y = ev.x - crop.x0, ev.y - crop.y0
+    k = (x >= 0) & (x < crop.width) & (y >= 0) & (y < crop.height)
+    return Events(b=ev.b[k], x=x[k], y=y[k], t=ev.t[k], p=ev.p[k])
 
 
 def _run(cfg, spec: str, events, B: int, d: float, warmup: int) -> dict:
-    from dvsland.estimators import make_estimator
     from dvsland.estimators.base import Truth
+
+    import dataclasses
+
+    from dvsland.estimators import get_estimator
 
     name, params = spec, {}
     if "[" in spec:
         name, rest = spec.split("[", 1)
         params = dict(kv.split("=", 1) for kv in rest.rstrip("]").split(";"))
     section = getattr(cfg.estimator, name, None)
-    for k, v in params.items():
-        setattr(section, k, type(getattr(section, k))(v))
-    est = make_estimator(cfg, B, name=name)
+    kw = dataclasses.asdict(section) if dataclasses.is_dataclass(section) else {}
+    for k, v in params.items():  # typed by the config's field; keywords the config lacks stay strings
+        kw[k] = type(kw[k])(v) if k in kw else v
+    kw.update(dt_s=cfg.dt_s, seed=cfg.simulation.seed, principal_point_px=cfg.camera.principal_point_px)
+    est = get_estimator(name, B, (cfg.camera.width_px, cfg.camera.height_px), **kw)
     est.reset()
     z = torch.full((B,), 1.0, dtype=torch.float64)
     errs, wall, cpu, act = [], 0.0, 0.0, {}
@@ -84,10 +104,13 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     from dvsland.config import load_config
 
+    from dvsland.data.crop import recording_camera
+
     cfg = load_config(a.config, a.set)
+    cam, crop = recording_camera(cfg.camera)
     rows = []
     for d in (float(v) for v in a.d.split(",")):
-        events = _events(cfg, _frames(cfg, d, a.batch, a.steps, a.z0, a.seed))
+        events = _events(cfg, _frames(cam, d, a.batch, a.steps, a.z0, a.seed), crop)
         for spec in a.estimators.split(","):
             r = _run(load_config(a.config, a.set), spec, events, a.batch, d, a.warmup)
             rows.append(r)

@@ -234,3 +234,50 @@ def test_davis346_sensor(tmp_path):
     ds = EventWindowDataset(out, representation="voxel", split="train", n_bins=3)
     assert ds.sensor_size == (346, 260) and ds[0][0].shape == (3, 260, 346)
     assert ds[0][0].abs().sum() > 0
+
+
+def test_recording_camera_of_an_offcentre_principal_point():
+    """An off-centre principal point is recorded as the window of a larger centred sensor of the
+    same pixel angle; a centred one as itself; a fractional offset is an error naming the field."""
+    from dvsland.config import CameraConfig
+    from dvsland.data.crop import focal_px, recording_camera
+
+    cam = CameraConfig(sensor="davis346", principal_point_px=[140.5, 150.5])
+    big, crop = recording_camera(cam)
+    assert (big.width_px, big.height_px) == (346 + 64, 260 + 42) and big.principal_point_px is None
+    assert crop == (64, 0, 346, 260)  # pixel (140.5, 150.5) of the window = the big sensor's centre
+    assert (crop.x0 + 140.5, crop.y0 + 150.5) == ((big.width_px - 1) / 2, (big.height_px - 1) / 2)
+    assert focal_px(big) == pytest.approx(focal_px(cam)) == pytest.approx(5.5 / 18.5e-3)
+    assert recording_camera(CameraConfig(sensor="davis346")) == (CameraConfig(sensor="davis346"), None)
+    with pytest.raises(ValueError, match="camera.principal_point_px"):
+        recording_camera(CameraConfig(principal_point_px=[60.2, 63.5]))
+
+
+def test_offcentre_build_is_the_window_of_the_centred_sensor(tmp_path):
+    """A build with an off-centre principal point records exactly the events of its window of the
+    larger centred sensor (built on its own here), with the geometry in the manifest."""
+    from dvsland.config import load_config
+    from dvsland.data.crop import recording_camera
+
+    base = SETS + ["simulation.t_max_s=0.6", "camera.width_px=48", "camera.height_px=40"]
+    off = base + ["camera.principal_point_px=[19.5, 24.5]"]
+    big, crop = recording_camera(load_config(CONFIG, off).camera)
+    build_dataset(CONFIG, out=tmp_path / "off", n_seeds=1, sites="A", shard_size=1, quiet=True, overrides=off)
+    build_dataset(CONFIG, out=tmp_path / "big", n_seeds=1, sites="A", shard_size=1, quiet=True,
+                  overrides=SETS + ["simulation.t_max_s=0.6", f"camera.width_px={big.width_px}",
+                                    f"camera.height_px={big.height_px}", f"camera.fov_deg={big.fov_deg!r}"])
+    a = EventWindowDataset(tmp_path / "off", representation="events", split="all", valid_only=False)
+    b = EventWindowDataset(tmp_path / "big", representation="events", split="all", valid_only=False)
+    assert a.sensor_size == (48, 40) and a.principal_point_px == (19.5, 24.5)
+    assert a.focal_px == pytest.approx(48 / (2 * np.tan(np.radians(30.0))))
+    assert len(a) == len(b) > 3
+    n = 0
+    for i in range(len(a)):
+        ea, eb = a[i][0], b[i][0]
+        win = (eb["x"] >= crop.x0) & (eb["x"] < crop.x0 + 48) & (eb["y"] >= crop.y0) & (eb["y"] < crop.y0 + 40)
+        assert np.array_equal(ea["x"], eb["x"][win] - crop.x0) and np.array_equal(ea["y"], eb["y"][win] - crop.y0)
+        assert np.array_equal(ea["t"], eb["t"][win]) and np.array_equal(ea["p"], eb["p"][win])
+        n += len(ea)
+    assert n > 0
+    old = EventWindowDataset(tmp_path / "big", representation="events", split="all", valid_only=False)
+    assert old.principal_point_px == ((big.width_px - 1) / 2, (big.height_px - 1) / 2)

@@ -203,3 +203,84 @@ def test_shipped_checkpoints_load_and_estimate(which):
     assert est.meta["data"]["config_hash"] and est.meta["train"]["model"] == (which or "cnn")
     d = est.update(_events(2, 3000), 100_000)
     assert d.shape == (2,) and torch.isfinite(d).all() and (d < 0).all()
+
+
+# ------------------------------------------------------------------ speed paths and other cameras
+def test_ring_path_agrees_with_the_model(ckpt, tmp_path):
+    """The circular ring with the folded first layer (fast="ring", the default) gives the model's
+    numbers to float32 rounding, across updates and a reset by mask; bfloat16 within 2 %."""
+    _checkpoint(tmp_path / "k4.pt", n_bins=4).eval()
+    ck = torch.load(tmp_path / "k4.pt", weights_only=True)
+    ck["input"]["n_windows"] = 4
+    torch.save(ck, tmp_path / "k4.pt")
+    outs = {}
+    for fast in ("", "ring", "bf16"):
+        est = get_estimator("learned", 3, (128, 128), checkpoint=str(tmp_path / "k4.pt"), min_events=1, fast=fast)
+        rows = []
+        for k in range(1, 8):
+            rows.append(est.update(_events(3, 700, seed=k, t0=(k - 1) * 100_000, t1=k * 100_000), k * 100_000))
+            if k == 3:
+                est.reset(torch.tensor([False, True, False]))
+        outs[fast] = torch.stack(rows)
+    ref = outs[""]
+    assert torch.isfinite(ref).all()
+    assert torch.allclose(outs["ring"], ref, rtol=1e-5, atol=0)
+    assert ((outs["bf16"] - ref).abs() / ref.abs()).max() < 0.02
+    with pytest.raises(ValueError, match="estimator.learned.fast"):
+        get_estimator("learned", 3, (128, 128), checkpoint=str(tmp_path / "k4.pt"), fast="nope")
+
+
+def test_other_camera_events_land_on_the_reference_canvas():
+    """A camera of finer pixels and an off-centre principal point: the principal point maps to the
+    canvas centre, pixels scale by f_ref / f, events off the canvas are dropped; the reference
+    camera itself is the identity."""
+    from dvsland.estimators.learned.inputs import camera_map, to_reference
+
+    spec = InputSpec((128, 128), 8, 2, 64.0, 8)
+    assert camera_map(spec, (128, 128), None, spec.reference_focal_px).identity
+    cm = camera_map(spec, (346, 260), (140.5, 150.5), 297.3)
+    assert not cm.identity and cm.scale == pytest.approx(110.85 / 297.3, rel=1e-3)
+    x = torch.tensor([140, 141, 0, 345, 140])
+    y = torch.tensor([150, 151, 150, 150, 0])
+    xi, yi, keep = to_reference(x, y, cm, spec)
+    assert xi[:2].tolist() == [63, 64] and yi[:2].tolist() == [63, 64]  # either side of the centre 63.5
+    assert keep.tolist() == [True, True, True, False, True]  # 204.5 px right of it: 76 reference px, off
+    assert int(xi[2]) == int(63.5 - 140.5 * cm.scale + 0.5) and int(yi[4]) == int(63.5 - 150.5 * cm.scale + 0.5)
+
+
+def _offcentre_zoom_events(d: float, B: int, steps: int, cam):
+    """Events of a random texture zoomed at divergence d (1/s) on ``cam``, recorded as the dataset
+    build records an off-centre principal point (a larger centred sensor, cropped)."""
+    from dvsland.data.crop import recording_camera
+    from dvsland.evaluate import ZoomTextureFrames
+    from dvsland.events import EventEmulator
+
+    big, crop = recording_camera(cam)
+    src = ZoomTextureFrames(B, (big.width_px, big.height_px), big.fov_deg, seed=3)
+    idx = torch.arange(B)
+    frames = [src(torch.full((B,), 800.0 * float(torch.exp(torch.tensor(d * 0.1 * k)))), idx) for k in range(steps + 1)]
+    emu = EventEmulator()
+    emu.reset(frames[0], 0)
+    out = []
+    for k, f in enumerate(frames[1:], start=1):
+        ev = emu.step(f, 100_000 * k)
+        x, y = ev.x - crop.x0, ev.y - crop.y0
+        keep = (x >= 0) & (x < crop.width) & (y >= 0) & (y < crop.height)
+        out.append(Events(b=ev.b[keep], x=x[keep], y=y[keep], t=ev.t[keep], p=ev.p[keep]))
+    return out
+
+
+def test_davis346_offcentre_zoom_gives_the_divergence():
+    """The shipped CNN (trained on a centred DVS128) on a DAVIS346 whose principal point is 32 px
+    left of and 21 px below the centre: a synthetic zoom at D = -0.2 1/s reads finite, negative
+    estimates of the right size once its 8-step ring is full."""
+    from dvsland.config import CameraConfig
+
+    cam = CameraConfig(sensor="davis346", principal_point_px=[140.5, 150.5])
+    events = _offcentre_zoom_events(-0.2, 2, 10, cam)
+    est = get_estimator("learned", 2, (346, 260), principal_point_px=[140.5, 150.5])
+    assert est.focal_px == pytest.approx(5.5 / 18.5e-3) and not est.cmap.identity
+    d = [est.update(ev, 100_000 * k) for k, ev in enumerate(events, start=1)]
+    late = torch.stack(d[8:])
+    assert torch.isfinite(late).all() and (late < 0).all()
+    assert ((late + 0.2).abs() / 0.2).median() < 0.35

@@ -82,6 +82,15 @@ def resolve_config(config: Union[Config, str, Path, None], overrides: Sequence[s
     return cfg
 
 
+def camera_fields(camera) -> dict:
+    """The camera geometry a dataset records beside ``sensor_size``: ``principal_point_px`` [cx, cy]
+    and ``focal_px`` (px; :mod:`dvsland.data.crop`). Datasets written before have neither: the
+    readers then take the sensor centre and a 60 degree field of view."""
+    from .crop import focal_px, principal_point
+
+    return {"principal_point_px": [float(v) for v in principal_point(camera)], "focal_px": float(focal_px(camera))}
+
+
 def new_manifest(plan, cfg: Config) -> dict:
     """The manifest of a fresh build of ``plan`` (every shard pending)."""
     disp = cfg.dispersion
@@ -89,8 +98,8 @@ def new_manifest(plan, cfg: Config) -> dict:
             "config_hash": config_hash(plan.config), "estimator": cfg.estimator.name,
             "sites": [s.name for s in cfg.simulation.sites], "n_seeds": plan.n_seeds,
             "seed_offset": int(cfg.simulation.seed_offset), "shard_size": plan.shard_seeds,
-            "sensor_size": [int(cfg.camera.width_px), int(cfg.camera.height_px)], "dt_s": float(cfg.dt_s),
-            "n_variants": int(disp.terrain_variants) if disp.enabled else 1, "dvsland_version": __version__,
+            "sensor_size": [int(cfg.camera.width_px), int(cfg.camera.height_px)], **camera_fields(cfg.camera),
+            "dt_s": float(cfg.dt_s), "n_variants": int(disp.terrain_variants) if disp.enabled else 1, "dvsland_version": __version__,
             "shards": [{"id": s.id, "file": f"{SHARDS_DIR}/{s.id}.h5", "seed_offset": s.seed_offset,
                         "n_seeds": s.n_seeds, "status": "pending"} for s in plan.shards]}
 
@@ -239,20 +248,21 @@ def build_shard(plan_config: dict, shard: dict, path: str, compression: Optional
     from dvsland.campaign import Shard
     from dvsland.campaign.plan import config_from_dict
 
-    from .collect import Flight, build_loop_stages, descent_table
+    from .collect import Flight, descent_table, recording_stages
 
     sh = Shard(**shard)
     cfg = config_from_dict(plan_config, sh.overrides())
     if cfg.simulation.torch_threads > 0:
         torch.set_num_threads(int(cfg.simulation.torch_threads))
     t0 = time.perf_counter()
-    stages = build_loop_stages(cfg, cfg.simulation.device)
-    attrs = {"sensor_size": [int(cfg.camera.width_px), int(cfg.camera.height_px)], "dt_s": float(cfg.dt_s),
+    stages, crop = recording_stages(cfg, cfg.simulation.device)
+    attrs = {"sensor_size": [int(cfg.camera.width_px), int(cfg.camera.height_px)], **camera_fields(cfg.camera),
+             "dt_s": float(cfg.dt_s),
              "shard_id": sh.id, "seed_offset": sh.seed_offset, "n_seeds": sh.n_seeds,
              "config_hash": config_hash(plan_config), "estimator": cfg.estimator.name}
     writer = ShardWriter(path, attrs, compression)
     try:
-        flight = Flight(stages)
+        flight = Flight(stages, crop=crop)
         for st in flight:
             writer.append(st.events, st.counts, st.samples)
         writer.finish(descent_table(stages.layout, flight.state))

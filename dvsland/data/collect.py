@@ -49,6 +49,21 @@ def build_loop_stages(cfg: Config, device="cpu"):
     return build_stages(cfg, layout, device, estimator=est)
 
 
+def recording_stages(cfg: Config, device="cpu"):
+    """(stages, crop): :func:`build_loop_stages` of ``cfg`` with the camera that records it and the
+    :class:`~dvsland.data.crop.Crop` of its events (None for a centred principal point; an
+    off-centre one renders a larger centred sensor, see :mod:`dvsland.data.crop`)."""
+    import copy
+
+    from .crop import recording_camera
+
+    cam, crop = recording_camera(cfg.camera)
+    if crop is not None:
+        cfg = copy.deepcopy(cfg)
+        cfg.camera = cam
+    return build_loop_stages(cfg, device), crop
+
+
 class Flight:
     """Flies ``stages`` to the end (every descent finished or ``t_max_s``); iterating yields each
     step's :class:`StepSamples`, and ``state`` is the :class:`dvsland.sim.LoopState` reached so far.
@@ -56,12 +71,14 @@ class Flight:
     Args:
         stages: from :func:`build_loop_stages`.
         state: start state (default :func:`dvsland.sim.init_state`).
+        crop: keep only the events of this window, in its own pixel coordinates (from
+            :func:`recording_stages`; None = every event).
     """
 
-    def __init__(self, stages, state=None):
+    def __init__(self, stages, state=None, crop=None):
         from dvsland.sim import init_state
 
-        self.stages = stages
+        self.stages, self.crop = stages, crop
         self.state = init_state(stages) if state is None else state
 
     def __iter__(self) -> Iterator[StepSamples]:
@@ -71,12 +88,13 @@ class Flight:
         dt_s = self.stages.settings.dt_s
         while not self.state.done and self.state.step < n_max:
             self.state, out = loop_step(self.stages, self.state)
-            yield step_samples(out, dt_s)
+            yield step_samples(out, dt_s, self.crop)
 
 
-def step_samples(out, dt_s: float) -> StepSamples:
+def step_samples(out, dt_s: float, crop=None) -> StepSamples:
     """Cut one :class:`dvsland.sim.StepOutput` into the samples of its active descents; the
-    window starts at the previous step's time, rounded to the µs as the loop rounds it."""
+    window starts at the previous step's time, rounded to the µs as the loop rounds it. ``crop``
+    (a :class:`~dvsland.data.crop.Crop`): keep only its window's events, shifted to its pixels."""
     act = out.active.cpu().numpy()
     idx = np.flatnonzero(act)
     t0_us = int(round(max(out.step - 1, 0) * dt_s * 1e6))
@@ -86,10 +104,13 @@ def step_samples(out, dt_s: float) -> StepSamples:
                                                    ("p", np.int8))}
     else:
         ev = out.events.to("cpu")
-        b = ev.b.numpy()
+        b, x, y = ev.b.numpy(), ev.x.numpy(), ev.y.numpy()
         keep = act[b]
-        counts = np.bincount(b, minlength=len(act))[idx].astype(np.int64)
-        events = {"x": ev.x.numpy()[keep].astype(np.uint16), "y": ev.y.numpy()[keep].astype(np.uint16),
+        if crop is not None:
+            x, y = x - crop.x0, y - crop.y0
+            keep &= (x >= 0) & (x < crop.width) & (y >= 0) & (y < crop.height)
+        counts = np.bincount(b[keep], minlength=len(act))[idx].astype(np.int64)
+        events = {"x": x[keep].astype(np.uint16), "y": y[keep].astype(np.uint16),
                   "dt_us": (ev.t.numpy()[keep] - t0_us).astype(np.int32), "p": ev.p.numpy()[keep].astype(np.int8)}
     return StepSamples(events, counts, _targets(out, idx, t0_us))
 

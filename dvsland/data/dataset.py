@@ -9,6 +9,7 @@ dataset pickles without them, so ``num_workers > 0`` works with any start method
 
 from __future__ import annotations
 
+import math
 import os
 import warnings
 from pathlib import Path
@@ -63,6 +64,11 @@ class EventWindowDataset(torch.utils.data.Dataset):
         self.representation, self.split, self.n_bins = representation, split, int(n_bins)
         self.sites: List[str] = list(self.manifest["sites"])
         self.sensor_size = tuple(self.manifest["sensor_size"])
+        W, H = self.sensor_size
+        #: (cx, cy) px and the focal length in px of the camera (older datasets: centre, 60 degrees)
+        self.principal_point_px = tuple(float(v) for v in self.manifest.get("principal_point_px",
+                                                                             ((W - 1) / 2, (H - 1) / 2)))
+        self.focal_px = float(self.manifest.get("focal_px", W / (2 * math.tan(math.radians(30.0)))))
         self.rule = split_rule or SplitRule()
         self.transform, self.target_transform = transform, target_transform
         self.skipped: Dict[str, str] = {}

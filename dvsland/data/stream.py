@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from .build import resolve_config
-from .collect import Flight, build_loop_stages, descent_table
+from .collect import Flight, descent_table, recording_stages
 from .represent import check_representation, represent, targets_of
 from .splits import SplitRule, check_split
 
@@ -71,11 +71,11 @@ class LoopStream(torch.utils.data.IterableDataset):
         cfg = config_from_dict(self.plan.config, sh.overrides())
         if cfg.simulation.torch_threads > 0:
             torch.set_num_threads(int(cfg.simulation.torch_threads))
-        stages = build_loop_stages(cfg, self.device)
+        stages, crop = recording_stages(cfg, self.device)
         desc = descent_table(stages.layout)
         split = self.rule.assign(desc["site"], desc["variant"], self.n_variants)
         site_index = [self.sites.index(str(s)) for s in desc["site"]]
-        for st in Flight(stages):
+        for st in Flight(stages, crop=crop):
             ends = np.cumsum(st.counts)
             for j, d in enumerate(st.samples["descent"]):
                 if (self.valid_only and not st.samples["valid"][j]) or (self.split not in ("all", split[d])):

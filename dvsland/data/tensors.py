@@ -57,13 +57,20 @@ def _ranges(starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
     return first + np.arange(int(n.sum()), dtype=np.int64)
 
 
-def load_windows(root, split: str = "train", split_rule: Optional[SplitRule] = None) -> Windows:
+def load_windows(root, split: str = "train", split_rule: Optional[SplitRule] = None, keep_share: float = 1.0,
+                 seed: int = 0) -> Windows:
     """Every valid sample of ``split`` of the dataset folder ``root`` (see :class:`Windows`).
+
+    ``keep_share`` in (0, 1]: keep each event with this probability (seeded by ``seed`` and the
+    shard; the shard's events are then read in blocks of samples, so that a large sensor's
+    dataset fits in memory thinned); 1 = every event.
 
     Raises the errors of :class:`~dvsland.data.EventWindowDataset` (folder, split, shards).
     """
     import h5py
 
+    if not 0.0 < float(keep_share) <= 1.0:
+        raise ValueError(f"keep_share must be in (0, 1], got {keep_share}")
     ds = EventWindowDataset(root, representation="events", split=split, split_rule=split_rule)
     cols = {k: [] for k in ("x", "y", "frac", "p")}
     per = {k: [] for k in ("d_true", "site", "descent", "step", "z_m", "n")}
@@ -73,15 +80,17 @@ def load_windows(root, split: str = "train", split_rule: Optional[SplitRule] = N
             continue
         smp = sh["samples"]
         off = smp["event_offset"]
-        sel = _ranges(off[rows], off[rows + 1])
-        with h5py.File(sh["path"], "r") as f:
-            ev = {k: f[f"events/{k}"][()] for k in ("x", "y", "dt_us", "p")}
-        n = off[rows + 1] - off[rows]
-        span = np.repeat(np.maximum(smp["t_us"][rows] - smp["t0_us"][rows], 1), n).astype(np.float64)
-        cols["x"].append(ev["x"][sel].astype(np.int16))
-        cols["y"].append(ev["y"][sel].astype(np.int16))
-        cols["frac"].append((ev["dt_us"][sel] / span).astype(np.float32))
-        cols["p"].append(ev["p"][sel].astype(np.int8))
+        span = np.maximum(smp["t_us"][rows] - smp["t0_us"][rows], 1).astype(np.float64)
+        if keep_share >= 1.0:
+            sel = _ranges(off[rows], off[rows + 1])
+            with h5py.File(sh["path"], "r") as f:
+                ev = {k: f[f"events/{k}"][()] for k in ("x", "y", "dt_us", "p")}
+            n = off[rows + 1] - off[rows]
+            part = _columns(ev, sel, np.repeat(span, n))
+        else:
+            part, n = _thinned(sh["path"], off, rows, span, keep_share, np.random.default_rng([seed, s]))
+        for k in cols:
+            cols[k].append(part[k])
         site_names = np.asarray([ds.sites.index(str(v)) for v in sh["descents"]["site"]], dtype=np.int64)
         d = smp["descent"][rows].astype(np.int64)
         per["d_true"].append(smp["d_true"][rows].astype(np.float32))
@@ -94,6 +103,33 @@ def load_windows(root, split: str = "train", split_rule: Optional[SplitRule] = N
     offset = torch.cat([torch.zeros(1, dtype=torch.int64), torch.cumsum(t.pop("n"), 0)])
     return Windows(t["x"], t["y"], t["frac"], t["p"], offset, t["d_true"], t["site"], t["descent"], t["step"],
                    t["z_m"], *_links(t["descent"], t["step"]), list(ds.sites), tuple(ds.sensor_size))
+
+
+def _columns(ev: dict, sel: np.ndarray, span: np.ndarray) -> dict:
+    """Rows ``sel`` of a shard's event fields as the Windows columns (span: (len(sel),) µs)."""
+    return {"x": ev["x"][sel].astype(np.int16), "y": ev["y"][sel].astype(np.int16),
+            "frac": (ev["dt_us"][sel] / span).astype(np.float32), "p": ev["p"][sel].astype(np.int8)}
+
+
+def _thinned(path, off: np.ndarray, rows: np.ndarray, span: np.ndarray, share: float, rng, block: int = 128):
+    """(columns, events per sample) of samples ``rows`` of shard ``path``, each event kept with
+    probability ``share``; read ``block`` samples at a time (a contiguous range of the file)."""
+    import h5py
+
+    parts, counts = [], []
+    with h5py.File(path, "r") as f:
+        for i in range(0, len(rows), block):  # blocks of samples, not events
+            r = rows[i:i + block]
+            a, z = int(off[r].min()), int(off[r + 1].max())
+            ev = {k: f[f"events/{k}"][a:z] for k in ("x", "y", "dt_us", "p")}
+            sel = _ranges(off[r] - a, off[r + 1] - a)
+            n = off[r + 1] - off[r]
+            keep = rng.random(len(sel)) < share
+            owner = np.repeat(np.arange(len(r)), n)[keep]
+            parts.append(_columns(ev, sel[keep], span[i:i + block][owner]))
+            counts.append(np.bincount(owner, minlength=len(r)))
+    cols = {k: np.concatenate([p[k] for p in parts]) for k in ("x", "y", "frac", "p")}
+    return cols, np.concatenate(counts).astype(np.int64)
 
 
 def _links(descent: torch.Tensor, step: torch.Tensor):
@@ -129,13 +165,17 @@ def gather_batch(w: Windows, idx: torch.Tensor):
 
 def load_manifest_info(root) -> dict:
     """Provenance of a dataset folder for a checkpoint: config name and hash, estimator, sites,
-    seeds, sensor size (W, H), control step, variants and the complete shards."""
+    seeds, sensor size (W, H), principal point and focal length (px; None = not recorded),
+    control step, variants and the complete shards."""
     from .manifest import load_manifest
 
     m = load_manifest(root)
     keys = ("config_hash", "estimator", "sites", "n_seeds", "seed_offset", "sensor_size", "dt_s", "n_variants",
             "dvsland_version")
     out = {k: m.get(k) for k in keys}
+    W, H = out["sensor_size"]
+    out["principal_point_px"] = m.get("principal_point_px", [(W - 1) / 2, (H - 1) / 2])
+    out["focal_px"] = m.get("focal_px")  # None: a dataset written before (a 60 degree field of view)
     out["config"] = (m.get("config") or {}).get("name")
     out["shards"] = sorted(e["id"] if "id" in e else e.get("file") for e in m["shards"] if e.get("status") == "complete")
     return out

@@ -22,13 +22,14 @@ from typing import Callable, Dict, Optional
 
 import torch
 
-from dvsland.data import Windows, concat_windows, load_manifest_info, load_windows
+from dvsland.data import Windows, load_manifest_info
 from dvsland.estimators.learned.checkpoint import read_checkpoint, save_checkpoint
 from dvsland.estimators.learned.inputs import InputSpec, check_input_spec, coord_channels
 from dvsland.estimators.learned.models import build_model
 
 from .batches import make_batch
 from .metrics import predict, score
+from .resample import load_canvas_split, reference_camera
 
 
 @dataclass
@@ -85,9 +86,23 @@ def data_dirs(data_dir) -> list:
     return [Path(d) for d in str(data_dir).split(",") if d.strip()]
 
 
-def load_split(data_dir, split: str) -> Windows:
-    """The ``split`` of every folder of ``data_dir`` (:func:`data_dirs`) in one Windows."""
-    return concat_windows([load_windows(d, split) for d in data_dirs(data_dir)], param="--data")
+def input_spec(data_dir, s: "RecipeSettings") -> InputSpec:
+    """The model input of ``data_dir``: the canvas of its first folder's camera (sensor size and
+    focal length; :mod:`.resample`) with the recipe's bins, cell size and windows."""
+    ref = reference_camera([load_manifest_info(d) for d in data_dirs(data_dir)[:1]])
+    return check_input_spec(InputSpec(ref["sensor_size"], s.n_bins, s.pool_px, s.coord_scale_px, s.n_windows,
+                                      ref["focal_px"]))
+
+
+def load_split(data_dir, split: str, spec: Optional[InputSpec] = None) -> Windows:
+    """The ``split`` of every folder of ``data_dir`` (:func:`data_dirs`) in one Windows, on the
+    canvas of ``spec`` (default: the first folder's camera, :func:`input_spec`; folders of another
+    camera are resampled onto it, :mod:`.resample`)."""
+    dirs = data_dirs(data_dir)
+    infos = [load_manifest_info(d) for d in dirs]
+    if spec is None:
+        spec = check_input_spec(InputSpec(**reference_camera(infos)))
+    return load_canvas_split(dirs, split, spec, infos)
 
 
 def _provenance(data_dir, tr: Windows, va: Windows) -> dict:
@@ -104,20 +119,40 @@ def _val_subset(va: Windows, n_max: int) -> torch.Tensor:
     return torch.linspace(0, va.n_samples - 1, min(n_max, va.n_samples)).round().long().unique()
 
 
-def _resume_state(out: Path, model_desc: dict, provenance: dict, s: RecipeSettings) -> Optional[dict]:
-    """The checkpoint at ``out`` to resume from, checked against this run (ValueError if it differs)."""
+def _resume_state(out: Path, model_desc: dict, provenance: dict, s: RecipeSettings):
+    """(the checkpoint at ``out`` to go on from, whether it is a fine-tune), checked against this
+    run (ValueError if the model or the settings differ). The same data: the run continues at its
+    next epoch. Other data (``--data`` with other folders): a fine-tune, which starts from the
+    checkpoint's best weights with a fresh optimizer and epoch count (``lr`` may then differ too)."""
     ck = read_checkpoint(out)
-    budget = ("epochs", "max_minutes", "patience")  # how long to go on may change; what is trained may not
+    finetune = (ck.get("data") or {}).get("config_hash") != provenance.get("config_hash")
+    budget = ("epochs", "max_minutes", "patience") + (("lr",) if finetune else ())
     old_s = {k: v for k, v in (ck.get("train") or {}).items() if k not in budget}
     new_s = {k: v for k, v in dataclasses.asdict(s).items() if k not in budget}
-    for what, old, new in (("model", ck.get("model"), model_desc), ("settings", old_s, new_s),
-                           ("dataset", (ck.get("data") or {}).get("config_hash"), provenance.get("config_hash"))):
+    for what, old, new in (("model", ck.get("model"), model_desc), ("settings", old_s, new_s)):
         if old != new:
             raise ValueError(f"--resume: {out} was trained with other {what} ({old!r} vs {new!r}); train to a new "
                              f"--out or pass the same arguments")
-    if "last" not in ck:
+    if "last" not in ck and not finetune:
         raise ValueError(f"--resume: {out} holds no resumable state (a shipped or stripped checkpoint)")
-    return ck
+    return ck, finetune
+
+
+def _start_from(ck: dict, finetune: bool, net, opt, run: dict, log: Callable, out: Path) -> None:
+    """Load the resumed (or fine-tuned) checkpoint ``ck`` into ``net``, ``opt`` and ``run``."""
+    if finetune:
+        net.load_state_dict(ck["state_dict"])
+        run.update(history=list(ck.get("history") or []), best_state=copy.deepcopy(net.state_dict()),
+                   finetuned_from=ck.get("data"))
+        log(f"fine-tuning {out} on other data (from its best weights, epoch count and optimizer anew)")
+        return
+    net.load_state_dict(ck["last"]["state_dict"])
+    opt.load_state_dict(ck["last"]["optimizer"])
+    run.update(epoch=ck["epoch"], history=ck["history"], best_val=ck["best_val"], bad_epochs=ck["bad_epochs"],
+               best_state=ck["state_dict"], seconds=ck["last"]["seconds"])
+    if (ck.get("data") or {}).get("finetuned_from") is not None:
+        run["finetuned_from"] = ck["data"]["finetuned_from"]
+    log(f"resuming {out} at epoch {run['epoch']}")
 
 
 def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bool = False,
@@ -129,8 +164,8 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
     """
     s = settings.check()
     torch.manual_seed(s.seed)
-    tr, va = load_split(data_dir, "train"), load_split(data_dir, "val")
-    spec = check_input_spec(InputSpec(tr.sensor_size, s.n_bins, s.pool_px, s.coord_scale_px, s.n_windows))
+    spec = input_spec(data_dir, s)
+    tr, va = load_split(data_dir, "train", spec), load_split(data_dir, "val", spec)
     coords = coord_channels(spec, ((spec.sensor_size[0] - 1) / 2, (spec.sensor_size[1] - 1) / 2))
     net, cls_path = build_model(s.model, {"n_bins": s.n_bins, **s.model_settings})
     model_desc = {"name": s.model, "class": cls_path, "settings": net.settings()}
@@ -140,12 +175,9 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
            "seconds": 0.0}
     out = Path(out)
     if resume:
-        ck = _resume_state(out, model_desc, prov, s)
-        net.load_state_dict(ck["last"]["state_dict"])
-        opt.load_state_dict(ck["last"]["optimizer"])
-        run.update(epoch=ck["epoch"], history=ck["history"], best_val=ck["best_val"], bad_epochs=ck["bad_epochs"],
-                   best_state=ck["state_dict"], seconds=ck["last"]["seconds"])
-        log(f"resuming {out} at epoch {run['epoch']}")
+        _start_from(*_resume_state(out, model_desc, prov, s), net, opt, run, log, out)
+        if run.get("finetuned_from") is not None:
+            prov["finetuned_from"] = run["finetuned_from"]
     writer = _writer(tb_dir)
     val_idx = _val_subset(va, s.val_max_samples)
     t_start = time.perf_counter() - run["seconds"]
@@ -249,7 +281,7 @@ def _finish(out, net, opt, spec, coords, model_desc, prov, s, run, data_dir, va,
     best.load_state_dict(run["best_state"])
     final = {"val": score(*predict(best, va, spec, coords), va)}
     try:
-        te = load_split(data_dir, "test")
+        te = load_split(data_dir, "test", spec)
         final["test"] = score(*predict(best, te, spec, coords), te)
     except ValueError as exc:  # a dataset without a test split
         final["test_error"] = str(exc)

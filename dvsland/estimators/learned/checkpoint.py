@@ -5,7 +5,7 @@ A checkpoint is a ``torch.save`` dict:
 - ``format`` = ``"dvsland-learned"``, ``format_version`` = 1;
 - ``model``: ``{"name": "cnn" | "spiking" | "pkg.mod:Class", "class": import path, "settings": kwargs}``;
 - ``input``: the :class:`~.inputs.InputSpec` fields (``sensor_size``, ``n_bins``, ``pool_px``, ``coord_scale_px``,
-  ``n_windows``);
+  ``n_windows``, ``focal_px``: the reference canvas; a checkpoint without ``focal_px`` has a 60 degree field of view);
 - ``state_dict``: the weights;
 - ``data``: provenance (dataset folder, its config hash, sensor, samples per split);
 - ``history``: one dict per epoch (losses, validation errors, calibration);
@@ -66,14 +66,14 @@ def read_checkpoint(path) -> dict:
 def load_checkpoint(path, sensor_size=None) -> Tuple[torch.nn.Module, InputSpec, dict]:
     """(network in eval mode on CPU, its InputSpec, the whole checkpoint dict) of ``path``.
 
-    ``sensor_size`` (W, H): when given, must equal the checkpoint's (ValueError otherwise: the
-    input grid and the coordinate channels depend on it).
+    ``sensor_size`` (W, H): when given, must equal the checkpoint's (ValueError otherwise). The
+    ``learned`` estimator passes none: it resamples any camera onto the checkpoint's canvas.
     """
     ck = read_checkpoint(path)
     m, i = ck["model"], ck["input"]
     try:
         spec = check_input_spec(InputSpec(tuple(i["sensor_size"]), i["n_bins"], i["pool_px"], i["coord_scale_px"],
-                                          i.get("n_windows", 1)))
+                                          i.get("n_windows", 1), i.get("focal_px")))
         net, _ = build_model(m["name"] if ":" not in m.get("class", "") or m["name"] in ("cnn", "spiking")
                              else m["class"], dict(m["settings"]))
     except (KeyError, TypeError, ValueError) as exc:

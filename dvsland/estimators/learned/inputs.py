@@ -6,15 +6,27 @@ blocks, so a 128 x 128 sensor with ``pool_px = 2`` gives (n_bins, 64, 64). Two c
 channels give every cell's centre relative to the principal point (the focus of expansion), in
 units of ``coord_scale_px`` sensor pixels: divergence is a radial expansion about that point.
 
+A camera other than the model's (another sensor size or lens, an off-centre principal point) is
+resampled onto the model's *reference canvas* (:class:`CameraMap`, :func:`to_reference`): an event
+at pixel (x, y) goes to the reference pixel ``c0 + (x - cx) f_ref / f`` (rounded), where (cx, cy) is
+the camera's principal point, f its focal length in px, c0 the reference sensor's centre and f_ref
+its focal length. So the principal point always lands on the canvas centre and a pixel's angle is the
+reference's: the flow of a divergence D looks the same on any camera; events that fall off the
+canvas are dropped (a crop about the principal point), canvas cells the sensor does not cover stay 0.
+
 Everything is batch first and built with one ``index_put_`` over all events of all B windows
 (no Python loop over the batch or the events).
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple, Tuple
+import math
+from typing import NamedTuple, Optional, Tuple
 
 import torch
+
+#: the field of view of a checkpoint's reference sensor when it names none (the DVS128 set-up), deg
+DEFAULT_FOV_DEG = 60.0
 
 
 class InputSpec(NamedTuple):
@@ -22,13 +34,22 @@ class InputSpec(NamedTuple):
     ``pool_px`` sensor pixels per cell side; ``coord_scale_px`` px per coordinate unit;
     ``n_windows`` control steps the input spans (the last K windows, n_bins / K bins each; with
     K > 1 an event goes to its nearest bin, so the grids of single windows concatenate exactly;
-    with K = 1 bins are bilinear in time)."""
+    with K = 1 bins are bilinear in time); ``focal_px`` the reference sensor's focal length, px
+    (None = a 60 degree field of view across W)."""
 
     sensor_size: Tuple[int, int]
     n_bins: int = 4
     pool_px: int = 2
     coord_scale_px: float = 64.0
     n_windows: int = 1
+    focal_px: Optional[float] = None
+
+    @property
+    def reference_focal_px(self) -> float:
+        """The reference sensor's focal length, px: ``focal_px`` or that of a 60 degree field of view."""
+        if self.focal_px is not None:
+            return float(self.focal_px)
+        return self.sensor_size[0] / (2.0 * math.tan(math.radians(DEFAULT_FOV_DEG) / 2.0))
 
     @property
     def bins_per_window(self) -> int:
@@ -55,7 +76,51 @@ def check_input_spec(spec: InputSpec) -> InputSpec:
         raise ValueError(f"coord_scale_px must be > 0, got {spec.coord_scale_px}")
     if not 1 <= int(spec.n_windows) <= 32 or int(spec.n_bins) % int(spec.n_windows):
         raise ValueError(f"n_windows must be in [1, 32] and divide n_bins = {spec.n_bins}, got {spec.n_windows}")
-    return InputSpec((W, H), int(spec.n_bins), int(spec.pool_px), float(spec.coord_scale_px), int(spec.n_windows))
+    if spec.focal_px is not None and not float(spec.focal_px) > 0:
+        raise ValueError(f"focal_px must be > 0 (or None), got {spec.focal_px}")
+    return InputSpec((W, H), int(spec.n_bins), int(spec.pool_px), float(spec.coord_scale_px), int(spec.n_windows),
+                     None if spec.focal_px is None else float(spec.focal_px))
+
+
+class CameraMap(NamedTuple):
+    """A camera's pixels on a model's reference canvas (module doc). ``principal_point_px`` (cx, cy)
+    and ``scale`` = f_ref / f of the camera; ``identity``: the camera is the reference sensor with
+    its principal point at the centre (events keep their pixels)."""
+
+    principal_point_px: Tuple[float, float]
+    scale: float
+    identity: bool
+
+    @property
+    def count_scale(self) -> float:
+        """scale^2: events per reference pixel per camera event (the event count the model knows)."""
+        return self.scale * self.scale
+
+
+def camera_map(spec: InputSpec, sensor_size, principal_point_px=None, focal_px: Optional[float] = None) -> CameraMap:
+    """The :class:`CameraMap` of a camera of ``sensor_size`` (W, H) px, principal point (None = its
+    centre) and focal length ``focal_px`` (None = the reference's, i.e. the same pixel angle)."""
+    W, H = (int(v) for v in sensor_size)
+    cx, cy = ((W - 1) / 2.0, (H - 1) / 2.0) if principal_point_px is None else (float(v) for v in principal_point_px)
+    if focal_px is not None and not float(focal_px) > 0:
+        raise ValueError(f"focal_px must be > 0 (or None), got {focal_px}")
+    scale = 1.0 if focal_px is None else spec.reference_focal_px / float(focal_px)
+    W0, H0 = spec.sensor_size
+    ident = (W, H) == (W0, H0) and scale == 1.0 and (cx, cy) == ((W0 - 1) / 2.0, (H0 - 1) / 2.0)
+    return CameraMap((cx, cy), float(scale), bool(ident))
+
+
+def to_reference(x: torch.Tensor, y: torch.Tensor, cmap: CameraMap, spec: InputSpec):
+    """Camera pixels (x, y) (N,) integer -> (xi, yi) (N,) int64 reference pixels and ``keep`` (N,)
+    bool (on the canvas). The identity map returns x, y as int64 and keep all True."""
+    if cmap.identity:
+        return x.long(), y.long(), torch.ones(x.shape, dtype=torch.bool, device=x.device)
+    W0, H0 = spec.sensor_size
+    cx, cy = cmap.principal_point_px
+    xi = torch.floor((W0 - 1) / 2.0 + (x.to(torch.float32) - cx) * cmap.scale + 0.5).long()
+    yi = torch.floor((H0 - 1) / 2.0 + (y.to(torch.float32) - cy) * cmap.scale + 0.5).long()
+    keep = (xi >= 0) & (xi < W0) & (yi >= 0) & (yi < H0)
+    return xi, yi, keep
 
 
 def voxel_grid(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, frac: torch.Tensor, p: torch.Tensor,
@@ -65,7 +130,8 @@ def voxel_grid(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, frac: torch.Te
     Args:
         b: (N,) int64 window (batch row) of each event, in [0, B).
         x, y: (N,) integer pixel column and row on the sensor.
-        frac: (N,) float32 event time as a fraction of its window, in [0, 1].
+        frac: (N,) float32 event time as a fraction of its window, in [0, 1] (not read when
+            ``spec.n_windows`` > 1 and the grid has one bin: any tensor).
         p: (N,) polarity, +1 ON / -1 OFF (any integer or float dtype).
         batch_size: B.
         spec: the :class:`InputSpec`.
@@ -78,16 +144,23 @@ def voxel_grid(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, frac: torch.Te
     """
     h, w = spec.grid_hw
     nb = spec.n_bins if n_bins is None else int(n_bins)
-    out = torch.zeros(batch_size * nb * h * w, dtype=torch.float32, device=b.device)
+    size = batch_size * nb * h * w
     if b.numel() == 0:
-        return out.view(batch_size, nb, h, w)
-    cell = (y.long() // spec.pool_px) * w + (x.long() // spec.pool_px)
+        return torch.zeros(size, dtype=torch.float32, device=b.device).view(batch_size, nb, h, w)
+    P = spec.pool_px
+    if P & (P - 1) == 0:  # a power of two: shifts (integer division is several times slower)
+        sh = P.bit_length() - 1
+        cell = (y.long() >> sh) * w + (x.long() >> sh)
+    else:
+        cell = (y.long() // P) * w + (x.long() // P)
     pol = p.to(torch.float32)
     base = b.long() * (nb * h * w) + cell
     if spec.n_windows > 1:
-        k = (frac.to(torch.float32) * nb).long().clamp(0, nb - 1)
-        out.index_put_((base + k * (h * w),), pol, accumulate=True)
-        return out.view(batch_size, nb, h, w)
+        if nb > 1:
+            base = base + (frac.to(torch.float32) * nb).long().clamp(0, nb - 1) * (h * w)
+        # sums of +-1: exact in any order, and bincount is faster than index_put_(accumulate=True)
+        return torch.bincount(base, weights=pol, minlength=size).to(torch.float32).view(batch_size, nb, h, w)
+    out = torch.zeros(size, dtype=torch.float32, device=b.device)
     tb = frac.to(torch.float32).clamp(0.0, 1.0) * (nb - 1)
     lo = tb.floor().long().clamp(max=nb - 1)
     wt_hi = tb - lo.to(torch.float32)
@@ -108,9 +181,30 @@ def coord_channels(spec: InputSpec, principal_point_px: Tuple[float, float], dev
     return torch.stack([gx, gy])[None].to(device)
 
 
-def events_voxel_grid(events, t0_us: int, t_us: int, batch_size: int, spec: InputSpec) -> torch.Tensor:
-    """:func:`voxel_grid` of one :class:`dvsland.events.Events` window (t0_us, t_us], µs int:
-    (B, spec.bins_per_window, h, w)."""
-    span = max(int(t_us) - int(t0_us), 1)
-    frac = (events.t - int(t0_us)).to(torch.float64).div_(span).to(torch.float32)
-    return voxel_grid(events.b, events.x, events.y, frac, events.p, batch_size, spec, spec.bins_per_window)
+def events_voxel_grid(events, t0_us: int, t_us: int, batch_size: int, spec: InputSpec,
+                      cmap: Optional[CameraMap] = None):
+    """:func:`voxel_grid` of one :class:`dvsland.events.Events` window (t0_us, t_us], µs int, on
+    the reference canvas (``cmap``: the camera's :class:`CameraMap`; None = the identity).
+
+    Returns:
+        (grid (B, spec.bins_per_window, h, w) float32, counts (B,) int64 events on the canvas).
+    """
+    if spec.n_windows > 1 and spec.bins_per_window == 1:
+        frac = events.t  # one bin per window: every event goes to it, its time is not needed
+    else:
+        span = max(int(t_us) - int(t0_us), 1)
+        frac = (events.t - int(t0_us)).to(torch.float64).div_(span).to(torch.float32)
+    b, p = events.b, events.p
+    if cmap is None or cmap.identity:
+        x, y = events.x, events.y
+    else:
+        x, y, keep = to_reference(events.x, events.y, cmap, spec)
+        b, x, y, frac, p = b[keep], x[keep], y[keep], frac[keep], p[keep]
+    return voxel_grid(b, x, y, frac, p, batch_size, spec, spec.bins_per_window), row_counts(b, batch_size)
+
+
+def row_counts(b: torch.Tensor, batch_size: int) -> torch.Tensor:
+    """(B,) int64 events per row of a batch index ``b`` (N,) int64 sorted ascending (as every
+    estimator's events are: the estimators' input check sorts them), by binary search."""
+    edges = torch.searchsorted(b, torch.arange(batch_size + 1, device=b.device, dtype=b.dtype))
+    return edges[1:] - edges[:-1]
