@@ -179,22 +179,33 @@ def event_hash(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Tenso
     return h & 0x7FFFFFFF
 
 
+#: corner weights of the score's splat are integers in units of 1 / WEIGHT_UNIT of an event (2^-12): the
+#: image sums are then exact int64 (the same in any summation order, on any device and in the
+#: compiled kernel); rounding moves a weight by at most 1.2e-4 of an event
+WEIGHT_UNIT = 4096.0
+#: largest canvas of one chunk of candidates of the torch path, int64 pixels (32 MiB)
+_CANVAS_MAX = 1 << 22
+
+
 def split_contrast(xc: torch.Tensor, yc: torch.Tensor, b: torch.Tensor, half: torch.Tensor, dt_s: torch.Tensor,
                    candidates: torch.Tensor, centre_xy: Tuple[float, float], canvas_hw: Tuple[int, int],
                    sensor_box: Tuple[float, float, float, float], half_window_s: torch.Tensor,
-                   event_weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+                   event_weight: Optional[torch.Tensor] = None, native: Optional[bool] = None) -> torch.Tensor:
     """Sharpness of the warped event image for each element and candidate D, for all events and
     for each half of them, free of the field-of-view bias.
 
     Events are warped radially about the focus of expansion, r_ref = r exp(D dt), and splatted
-    bilinearly (one ``bincount`` for all elements, candidates and halves). Only the part of the
+    bilinearly into one image per element, candidate and half. Only the part of the
     scene that stays in view during the whole window counts: for a candidate D that is the sensor
     box shrunk about the FoE by g = exp(|D| T / 2). (Counting everything biases the plain image
     variance towards small |D|: with the true D, the earliest events of a descent warp outside
     the latest field of view, so warps that keep every event overlapped win on event density
     alone; on the rendered sites that was a steady 5 % under-estimate of |D|.) The score is the
     index of dispersion of the counted image, sum(I^2) / sum(I) - sum(I) / area: 1 for events
-    without structure whatever their density, larger when they line up.
+    without structure whatever their density, larger when they line up. Corner weights are
+    rounded to multiples of 1 / ``WEIGHT_UNIT`` of an event and the image sums are exact int64,
+    so the compiled kernel (:mod:`dvsland.estimators.native_cmax`) and the torch path give the
+    same score to the bit.
 
     Args:
         xc, yc: (E,) float32 event coordinates on the canvas, px.
@@ -203,9 +214,14 @@ def split_contrast(xc: torch.Tensor, yc: torch.Tensor, b: torch.Tensor, half: to
         dt_s: (E,) float32 event time minus its element's reference time, s.
         candidates: (B, G) candidate D, 1/s.
         centre_xy: FoE (cx, cy) on the canvas, px.
-        canvas_hw: (Hc, Wc) canvas size.
-        sensor_box: (x_lo, x_hi, y_lo, y_hi) the sensor's outer edges on the canvas, px.
+        canvas_hw: (Hc, Wc) canvas size (>= 2 each).
+        sensor_box: (x_lo, x_hi, y_lo, y_hi) the sensor's outer edges on the canvas, px (inside
+            the canvas with a margin of at least 1 px).
         half_window_s: (B,) half of each element's window, s.
+        event_weight: (E,) float weights (default 1; a weight above ~500 000 events per pixel
+            would overflow the int64 sums).
+        native: None = the compiled kernel where enabled (:func:`native_cmax.enabled`, CPU
+            tensors), True = it where it can be loaded, False = the torch path (the reference).
 
     Returns:
         (B, G, 3) float64 score of all events, of half 0 and of half 1 (0 without events).
@@ -217,42 +233,76 @@ def split_contrast(xc: torch.Tensor, yc: torch.Tensor, b: torch.Tensor, half: to
     if xc.numel() == 0:
         return out
     cand = candidates.to(torch.float32)
-    cx, cy = centre_xy
-    scale = torch.exp(cand[b] * dt_s.unsqueeze(1))  # (E, G)
-    xw = (xc - cx).unsqueeze(1) * scale + cx
-    yw = (yc - cy).unsqueeze(1) * scale + cy
+    ginv_t = torch.exp(-cand.abs() * half_window_s.to(torch.float32).unsqueeze(1)).t().contiguous()  # (G, B) = 1 / g
+    scale = torch.exp(cand.t()[:, b] * dt_s.to(torch.float32))  # (G, E)
+    wt = torch.ones_like(xc, dtype=torch.float32) if event_weight is None else event_weight.to(torch.float32)
+    n, s = _splat_sums(xc.to(torch.float32), yc.to(torch.float32), b, half, scale, ginv_t, wt, centre_xy,
+                       sensor_box, Hc, Wc, native)  # (B, G, 2), (B, G, 3) int64
     x_lo, x_hi, y_lo, y_hi = sensor_box
-    ginv = torch.exp(-cand.abs() * half_window_s.to(torch.float32).unsqueeze(1))  # (B, G) = 1 / g
-    gi = ginv[b]
-    inside = ((xw >= cx + (x_lo - cx) * gi) & (xw <= cx + (x_hi - cx) * gi)
-              & (yw >= cy + (y_lo - cy) * gi) & (yw <= cy + (y_hi - cy) * gi))
-    area = ((x_hi - x_lo) * (y_hi - y_lo)) * (ginv.to(torch.float64) ** 2)  # (B, G) px^2
-    w = inside.to(torch.float32)
-    if event_weight is not None:
-        w = w * event_weight.to(torch.float32).unsqueeze(1)
-    # bilinear splat, one bincount; counted samples lie inside the sensor box, which the canvas
-    # holds with a margin, so clamping the corner index only moves weight-0 samples
-    x0 = xw.floor().clamp_(0, Wc - 2)
-    y0 = yw.floor().clamp_(0, Hc - 2)
-    fx = (xw - x0).clamp_(0, 1)
-    fy = (yw - y0).clamp_(0, 1)
-    img = (b.unsqueeze(1) * G + torch.arange(G, device=dev)) * 2 + half.unsqueeze(1)  # (E, G)
-    base = (img * Hc + y0.to(torch.int64)) * Wc + x0.to(torch.int64)
-    idx = torch.stack([base, base + 1, base + Wc, base + Wc + 1], -1)
-    wy1 = w * fy
-    wy0 = w - wy1
-    wts = torch.stack([wy0 - wy0 * fx, wy0 * fx, wy1 - wy1 * fx, wy1 * fx], -1)
-    n_img = B * G * 2
-    ims = torch.bincount(idx.view(-1), weights=wts.view(-1), minlength=n_img * Hc * Wc)
-    ims = ims.view(B, G, 2, Hc * Wc).to(torch.float32)
-    i0, i1 = ims[:, :, 0], ims[:, :, 1]
-    s0 = torch.linalg.vecdot(i0, i0).to(torch.float64)
-    s1 = torch.linalg.vecdot(i1, i1).to(torch.float64)
-    s01 = torch.linalg.vecdot(i0, i1).to(torch.float64)
-    n = ims.sum(-1).to(torch.float64)  # (B, G, 2) counted weight per half
+    area = ((x_hi - x_lo) * (y_hi - y_lo)) * (ginv_t.t().to(torch.float64) ** 2)  # (B, G) px^2
+    u = WEIGHT_UNIT
+    n = n.to(torch.float64) / u  # counted weight per half, events
+    s = s.to(torch.float64) / (u * u)
     n0, n1 = n[..., 0], n[..., 1]
     na = n0 + n1
-    out[..., 0] = (s0 + s1 + 2 * s01) / na.clamp_min(1e-9) - na / area
-    out[..., 1] = s0 / n0.clamp_min(1e-9) - n0 / area
-    out[..., 2] = s1 / n1.clamp_min(1e-9) - n1 / area
+    out[..., 0] = (s[..., 0] + s[..., 1] + 2 * s[..., 2]) / na.clamp_min(1e-9) - na / area
+    out[..., 1] = s[..., 0] / n0.clamp_min(1e-9) - n0 / area
+    out[..., 2] = s[..., 1] / n1.clamp_min(1e-9) - n1 / area
     return out
+
+
+def _splat_sums(xc, yc, b, half, scale, ginv_t, wt, centre_xy, sensor_box, Hc: int, Wc: int, native):
+    """(n (B, G, 2), s (B, G, 3)) int64: per element, candidate and half the summed integer corner
+    weights, and sum I0^2, sum I1^2, sum I0 I1 over the pixels (weights in 1 / WEIGHT_UNIT)."""
+    if native is not False and xc.device.type == "cpu":
+        from . import native_cmax
+
+        mod = native_cmax.load() if (native or native_cmax.enabled()) else None
+        if mod is not None:
+            x_lo, x_hi, y_lo, y_hi = sensor_box
+            n, s = mod.splat_sums(xc.contiguous(), yc.contiguous(), b.contiguous(), half.contiguous(),
+                                  scale.contiguous(), ginv_t, wt.contiguous(), float(centre_xy[0]),
+                                  float(centre_xy[1]), float(x_lo), float(x_hi), float(y_lo), float(y_hi), Hc, Wc,
+                                  WEIGHT_UNIT)
+            return n, s
+    G = scale.shape[0]
+    B = ginv_t.shape[1]
+    chunk = max(1, min(G, _CANVAS_MAX // max(B * 2 * Hc * Wc, 1)))
+    parts = [_splat_sums_torch(xc, yc, b, half, scale[g0:g0 + chunk], ginv_t[g0:g0 + chunk], wt, centre_xy,
+                               sensor_box, Hc, Wc) for g0 in range(0, G, chunk)]
+    return torch.cat([p[0] for p in parts], 1), torch.cat([p[1] for p in parts], 1)
+
+
+def _splat_sums_torch(xc, yc, b, half, scale, ginv_t, wt, centre_xy, sensor_box, Hc: int, Wc: int):
+    """The torch path of :func:`_splat_sums` for (G, E) ``scale`` and (G, B) ``ginv_t``: the
+    reference of the compiled kernel, operation for operation in float32."""
+    G, B = ginv_t.shape
+    P = Hc * Wc
+    cx, cy = float(centre_xy[0]), float(centre_xy[1])
+    x_lo, x_hi, y_lo, y_hi = sensor_box
+    xw = (xc - cx) * scale  # (G, E), about the FoE
+    yw = (yc - cy) * scale
+    gi = ginv_t[:, b]
+    inside = ((xw >= (x_lo - cx) * gi) & (xw <= (x_hi - cx) * gi)
+              & (yw >= (y_lo - cy) * gi) & (yw <= (y_hi - cy) * gi))
+    xs, ys = xw + cx, yw + cy
+    x0 = xs.floor().clamp_(0, Wc - 2)
+    y0 = ys.floor().clamp_(0, Hc - 2)
+    fx = (xs - x0).clamp_(0, 1)
+    fy = (ys - y0).clamp_(0, 1)
+    wy1 = wt * fy
+    wy0 = wt - wy1
+    a, c = wy0 * fx, wy1 * fx
+    img = (torch.arange(G, device=b.device).unsqueeze(1) * B + b) * 2 + half  # (G, E)
+    base = img * P + y0.to(torch.int64) * Wc + x0.to(torch.int64)
+    base = torch.where(inside, base, torch.zeros_like(base))  # outside: weight 0 at a valid index
+    canvas = torch.zeros(G * B * 2 * P, dtype=torch.int64, device=b.device)
+    zero = torch.zeros((), dtype=torch.int64, device=b.device)
+    for off, wk in ((0, wy0 - a), (1, a), (Wc, wy1 - c), (Wc + 1, c)):
+        q = torch.where(inside, (wk * WEIGHT_UNIT).round().to(torch.int64), zero)
+        canvas.index_add_(0, (base + off).view(-1), q.view(-1))
+    ims = canvas.view(G, B, 2, P)
+    i0, i1 = ims[:, :, 0], ims[:, :, 1]
+    n = ims.sum(-1).permute(1, 0, 2)  # (B, G, 2)
+    s = torch.stack([(i0 * i0).sum(-1), (i1 * i1).sum(-1), (i0 * i1).sum(-1)], -1).permute(1, 0, 2)
+    return n, s

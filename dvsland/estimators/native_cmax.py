@@ -1,0 +1,248 @@
+"""Compiled splat-and-sum kernel of ``cmax``'s score (CPU), identical to the torch path.
+
+:func:`dvsland.estimators.contrast.split_contrast` splats every warped event (bilinear, four
+corners) into one image per element, candidate and half of the events, and needs per image the
+total weight and the sums of squares and cross products. The torch path builds all images at once
+(one large canvas, B x G x 2 images); this kernel takes the events element by element (a counting
+sort by element), splats them into one small canvas per (element, candidate) that stays in the
+cache, and sums only the rows touched. Corner weights are integers (multiples of 2^-12 of an
+event, see ``WEIGHT_UNIT`` in contrast.py) and the sums are int64, so the kernel's sums are the
+torch path's exactly, in any order and on any number of threads; its float32 arithmetic (warp,
+box test, corner weights) is the torch path's operation for operation (the exponential comes in
+from torch). Tests pin the two to equality.
+
+Compiled once with the C++ compiler through ``torch.utils.cpp_extension.load_inline`` into
+torch's extension folder, under a name that carries a hash of the source, flags and versions.
+``DVSLAND_NATIVE_CMAX`` (or :func:`use_native_cmax`) picks the mode:
+
+- ``auto`` (default, also when unset or empty): use the kernel when its build is cached (nothing
+  is compiled), else the torch path, silently.
+- ``1`` / ``on`` / ``true`` / ``yes``: build on first use when not cached, then use it.
+- ``0`` / ``off`` / ``false`` / ``no``: never use it.
+
+Build once with ``python -m dvsland.estimators.build_native``. Without a compiler (or on any build
+or load error) the torch path runs, with one warning.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import sys
+import warnings
+from pathlib import Path
+from typing import Optional
+
+import torch
+
+_SRC = r"""
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+// Per element b and candidate g: n[b,g,h] = sum of the integer corner weights of half h, and
+// s[b,g,:] = (sum_p I0^2, sum_p I1^2, sum_p I0 I1) over the canvas pixels p; see the module doc
+// of dvsland/estimators/native_cmax.py and split_contrast in contrast.py (the torch path).
+std::vector<torch::Tensor> splat_sums(torch::Tensor xc, torch::Tensor yc, torch::Tensor b, torch::Tensor half,
+                                      torch::Tensor scale, torch::Tensor ginv, torch::Tensor wt,
+                                      double cx, double cy, double x_lo, double x_hi, double y_lo, double y_hi,
+                                      int64_t Hc, int64_t Wc, double unit) {
+  auto f32 = torch::kFloat32;
+  TORCH_CHECK(xc.is_contiguous() && yc.is_contiguous() && wt.is_contiguous() && xc.scalar_type() == f32 &&
+              yc.scalar_type() == f32 && wt.scalar_type() == f32, "splat_sums: xc, yc, wt contiguous float32");
+  TORCH_CHECK(b.is_contiguous() && half.is_contiguous() && b.scalar_type() == torch::kInt64 &&
+              half.scalar_type() == torch::kInt64, "splat_sums: b, half contiguous int64");
+  TORCH_CHECK(scale.is_contiguous() && ginv.is_contiguous() && scale.scalar_type() == f32 &&
+              ginv.scalar_type() == f32 && scale.dim() == 2 && ginv.dim() == 2, "splat_sums: scale (G,E), ginv (G,B) float32");
+  const int64_t E = xc.numel(), G = scale.size(0), B = ginv.size(1), P = Hc * Wc;
+  TORCH_CHECK(scale.size(1) == E && ginv.size(0) == G && yc.numel() == E && b.numel() == E && half.numel() == E &&
+              wt.numel() == E && Hc >= 2 && Wc >= 2, "splat_sums: shapes");
+  const float* X = xc.data_ptr<float>();
+  const float* Y = yc.data_ptr<float>();
+  const float* S = scale.data_ptr<float>();
+  const float* GI = ginv.data_ptr<float>();
+  const float* W = wt.data_ptr<float>();
+  const int64_t* Bi = b.data_ptr<int64_t>();
+  const int64_t* Hf = half.data_ptr<int64_t>();
+  std::vector<int64_t> start(B + 1, 0), order(E);
+  for (int64_t e = 0; e < E; ++e) {
+    TORCH_CHECK(Bi[e] >= 0 && Bi[e] < B, "splat_sums: b out of range");
+    start[Bi[e] + 1]++;
+  }
+  for (int64_t i = 0; i < B; ++i) start[i + 1] += start[i];
+  {
+    std::vector<int64_t> pos(start.begin(), start.end() - 1);
+    for (int64_t e = 0; e < E; ++e) order[pos[Bi[e]]++] = e;
+  }
+  auto n = torch::zeros({B, G, 2}, torch::kInt64);
+  auto s = torch::zeros({B, G, 3}, torch::kInt64);
+  int64_t* N = n.data_ptr<int64_t>();
+  int64_t* Sq = s.data_ptr<int64_t>();
+  const float fcx = (float)cx, fcy = (float)cy, uf = (float)unit;
+  const float lox = (float)(x_lo - cx), hix = (float)(x_hi - cx), loy = (float)(y_lo - cy), hiy = (float)(y_hi - cy);
+  const float xmax = (float)(Wc - 2), ymax = (float)(Hc - 2);
+  at::parallel_for(0, B * G, 1, [&](int64_t lo, int64_t hi) {
+    std::vector<int64_t> canvas(2 * P, 0);
+    int64_t* c0 = canvas.data();
+    for (int64_t job = lo; job < hi; ++job) {
+      const int64_t bi = job / G, g = job % G;
+      if (start[bi] == start[bi + 1]) continue;
+      const float gi = GI[g * B + bi];
+      const float xl = lox * gi, xh = hix * gi, yl = loy * gi, yh = hiy * gi;
+      const float* Sg = S + g * E;
+      int64_t rmin = Hc, rmax = -1;
+      for (int64_t k = start[bi]; k < start[bi + 1]; ++k) {
+        const int64_t e = order[k];
+        const float sc = Sg[e];
+        const float xw = (X[e] - fcx) * sc;
+        const float yw = (Y[e] - fcy) * sc;
+        if (!(xw >= xl && xw <= xh && yw >= yl && yw <= yh)) continue;  // weight 0: adds nothing
+        const float w = W[e];
+        const float xs = xw + fcx, ys = yw + fcy;
+        const float x0 = std::min(std::max(std::floor(xs), 0.0f), xmax);
+        const float y0 = std::min(std::max(std::floor(ys), 0.0f), ymax);
+        const float fx = std::min(std::max(xs - x0, 0.0f), 1.0f);
+        const float fy = std::min(std::max(ys - y0, 0.0f), 1.0f);
+        const float wy1 = w * fy;
+        const float wy0 = w - wy1;
+        const float a = wy0 * fx, c = wy1 * fx;
+        const float w00 = wy0 - a, w10 = wy1 - c;
+        const int64_t q00 = (int64_t)std::nearbyint(w00 * uf), q01 = (int64_t)std::nearbyint(a * uf);
+        const int64_t q10 = (int64_t)std::nearbyint(w10 * uf), q11 = (int64_t)std::nearbyint(c * uf);
+        const int64_t yi = (int64_t)y0;
+        int64_t* px = c0 + Hf[e] * P + yi * Wc + (int64_t)x0;
+        px[0] += q00; px[1] += q01; px[Wc] += q10; px[Wc + 1] += q11;
+        rmin = std::min(rmin, yi); rmax = std::max(rmax, yi + 1);
+      }
+      if (rmax < 0) continue;
+      int64_t n0 = 0, n1 = 0, s0 = 0, s1 = 0, s01 = 0;
+      int64_t* i0 = c0 + rmin * Wc;
+      int64_t* i1 = c0 + P + rmin * Wc;
+      const int64_t m = (rmax - rmin + 1) * Wc;
+      for (int64_t p = 0; p < m; ++p) {
+        const int64_t u = i0[p], v = i1[p];
+        n0 += u; n1 += v; s0 += u * u; s1 += v * v; s01 += u * v;
+      }
+      std::fill(i0, i0 + m, 0);
+      std::fill(i1, i1 + m, 0);
+      N[(bi * G + g) * 2] = n0; N[(bi * G + g) * 2 + 1] = n1;
+      Sq[(bi * G + g) * 3] = s0; Sq[(bi * G + g) * 3 + 1] = s1; Sq[(bi * G + g) * 3 + 2] = s01;
+    }
+  });
+  return {n, s};
+}
+"""
+
+_FUNCTIONS = ["splat_sums"]
+_CFLAGS = ["-O3", "-ffp-contract=off"]
+_ENV = "DVSLAND_NATIVE_CMAX"
+_ON, _OFF, _AUTO = "on", "off", "auto"
+_module = None
+_failed = False
+_enabled: Optional[bool] = None
+
+
+def use_native_cmax(on: Optional[bool] = True) -> None:
+    """Pick the mode for this process: True = on (build when not cached), False = off, None = back
+    to ``DVSLAND_NATIVE_CMAX`` (default auto)."""
+    global _enabled
+    _enabled = None if on is None else bool(on)
+
+
+def mode() -> str:
+    """``"on"``, ``"off"`` or ``"auto"``: :func:`use_native_cmax`'s choice, else the environment's.
+
+    Raises:
+        ValueError naming ``DVSLAND_NATIVE_CMAX`` when it holds another word.
+    """
+    if _enabled is not None:
+        return _ON if _enabled else _OFF
+    v = os.environ.get(_ENV, "").strip().lower()
+    if v in ("", _AUTO):
+        return _AUTO
+    if v in ("1", "on", "true", "yes"):
+        return _ON
+    if v in ("0", "off", "false", "no"):
+        return _OFF
+    raise ValueError(f"{_ENV} must be auto, 1/on/true/yes or 0/off/false/no, got {v!r}")
+
+
+def module_name() -> str:
+    """The extension's name: a hash of the source, flags, functions, torch and Python versions."""
+    h = hashlib.sha256("\0".join([_SRC, " ".join(_CFLAGS), " ".join(_FUNCTIONS), torch.__version__,
+                                  sys.version]).encode()).hexdigest()[:16]
+    return f"dvsland_cmax_native_{h}"
+
+
+def build_dir() -> Path:
+    """The folder of the build (torch's extension folder, ``TORCH_EXTENSIONS_DIR`` if set)."""
+    root = os.environ.get("TORCH_EXTENSIONS_DIR")
+    if root is None:
+        from torch.utils.cpp_extension import get_default_build_root
+
+        acc = "cpu" if torch.version.cuda is None else f"cu{torch.version.cuda.replace('.', '')}"
+        py = f"py{sys.version_info.major}{sys.version_info.minor}{getattr(sys, 'abiflags', '')}"
+        root = os.path.join(get_default_build_root(), f"{py}_{acc}")
+    return Path(root) / module_name()
+
+
+def _library() -> Path:
+    from torch.utils.cpp_extension import LIB_EXT
+
+    return build_dir() / f"{module_name()}{LIB_EXT}"
+
+
+def cached() -> bool:
+    """Whether the build of this exact source is in the cache (so auto mode uses it)."""
+    try:
+        return _library().is_file()
+    except Exception:  # no home folder, ...
+        return False
+
+
+def enabled() -> bool:
+    """Whether ``cmax`` should use the kernel now: mode on, or auto with the build cached (or
+    loaded). Never compiles."""
+    m = mode()
+    return m == _ON or (m == _AUTO and not _failed and (_module is not None or cached()))
+
+
+def build(verbose: bool = False):
+    """Compile (when not cached) and load the kernel; the module. Raises on any build error."""
+    from torch.utils.cpp_extension import load_inline
+
+    d = build_dir()
+    d.mkdir(parents=True, exist_ok=True)
+    return load_inline(module_name(), cpp_sources=_SRC, functions=_FUNCTIONS, extra_cflags=_CFLAGS,
+                       build_directory=str(d), verbose=verbose)
+
+
+def load():
+    """The compiled module, or None: mode off; auto without a cached build; or a failed build or
+    load (one warning, then the torch path for the rest of the process)."""
+    global _module, _failed
+    if _module is not None or _failed:
+        return _module
+    m = mode()
+    if m == _OFF or (m == _AUTO and not cached()):
+        return None
+    try:
+        if cached():
+            import importlib.util
+
+            spec = importlib.util.spec_from_file_location(module_name(), str(_library()))
+            mod = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(mod)
+            _module = mod
+        else:
+            _module = build()
+    except Exception as exc:  # no compiler, no headers, a broken cache entry, ...: the torch path stays
+        _failed = True
+        warnings.warn(f"dvsland.estimators.native_cmax: the compiled kernel could not be built or loaded ({exc}); "
+                      f"using the torch path", RuntimeWarning)
+    return _module
+
+
+__all__ = ["use_native_cmax", "enabled", "mode", "cached", "build", "build_dir", "module_name", "load"]

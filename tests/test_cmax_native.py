@@ -1,0 +1,149 @@
+"""cmax's compiled splat kernel (dvsland.estimators.native_cmax) against the torch path, the reference.
+
+The kernel's image sums are integers (corner weights in 1 / WEIGHT_UNIT of an event), so it must give
+the torch path's scores and estimates exactly. The comparisons run where the kernel is built
+(``python -m dvsland.estimators.build_native``); the slow test builds it when it is not.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from dvsland.estimators import get_estimator, native_cmax
+from dvsland.estimators.contrast import WEIGHT_UNIT, split_contrast
+from dvsland.events import Events
+
+
+def _events(B=5, n=3000, seed=0, W=128, H=128):
+    """Random events of B elements: a few bright edges zooming out about the centre, plus noise."""
+    g = torch.Generator().manual_seed(seed)
+    b = torch.randint(0, B, (n,), generator=g)
+    r0 = 5 + 50 * torch.rand(n, generator=g)
+    ang = (torch.randint(0, 24, (n,), generator=g).to(torch.float64) / 24 * 2 * math.pi)
+    t_us = torch.randint(0, 1_000_000, (n,), generator=g)
+    d = -0.05 - 0.02 * b.to(torch.float64)
+    r = r0 * torch.exp(-d * t_us * 1e-6)
+    x = (63.5 + r * torch.cos(ang)).round().clamp(0, W - 1).to(torch.int64)
+    y = (63.5 + r * torch.sin(ang)).round().clamp(0, H - 1).to(torch.int64)
+    p = torch.where(torch.rand(n, generator=g) < 0.5, 1, -1).to(torch.int8)
+    return Events(b, x, y, t_us, p, sort=True)
+
+
+def _score_args(seed=0, E=20000, B=7, G=3):
+    g = torch.Generator().manual_seed(seed)
+    xc = 1 + 128 * torch.rand(E, generator=g) - 0.5
+    yc = 1 + 128 * torch.rand(E, generator=g) - 0.5
+    b = torch.randint(0, B, (E,), generator=g)
+    half = torch.randint(0, 2, (E,), generator=g)
+    dt = (torch.rand(E, generator=g) - 0.5).to(torch.float32)
+    cand = -0.3 * torch.rand(B, G, generator=g, dtype=torch.float64) + 0.05
+    hw = 0.5 * torch.ones(B, dtype=torch.float64)
+    wt = (0.1 + 3 * torch.rand(E, generator=g)).to(torch.float32)
+    return (xc, yc, b, half, dt, cand, (64.5, 64.5), (130, 130), (0.5, 128.5, 0.5, 128.5), hw, wt)
+
+
+def test_weight_unit_is_a_power_of_two():
+    assert WEIGHT_UNIT == 2.0 ** round(math.log2(WEIGHT_UNIT))
+
+
+def test_mode_reads_the_environment(monkeypatch):
+    native_cmax.use_native_cmax(None)
+    monkeypatch.setenv("DVSLAND_NATIVE_CMAX", "off")
+    assert native_cmax.mode() == "off" and not native_cmax.enabled()
+    monkeypatch.setenv("DVSLAND_NATIVE_CMAX", "maybe")
+    with pytest.raises(ValueError, match="DVSLAND_NATIVE_CMAX"):
+        native_cmax.mode()
+    monkeypatch.delenv("DVSLAND_NATIVE_CMAX")
+    assert native_cmax.mode() == "auto"
+
+
+def test_torch_path_scores_match_the_float_splat():
+    """The integer weights move the score by < 1e-5 relative against a float64 bilinear splat."""
+    xc, yc, b, half, dt, cand, cen, hw_canvas, box, hw, wt = _score_args(E=5000, B=2, G=3)
+    got = split_contrast(xc, yc, b, half, dt, cand, cen, hw_canvas, box, hw, wt, native=False)
+    # float64 reference of the same score
+    Hc, Wc = hw_canvas
+    ref = torch.zeros_like(got)
+    for bi in range(2):
+        for gi in range(3):
+            m = b == bi
+            d = cand[bi, gi]
+            s = torch.exp(d.float() * dt[m])
+            xw, yw = (xc[m] - cen[0]) * s + cen[0], (yc[m] - cen[1]) * s + cen[1]
+            ginv = math.exp(-abs(float(d)) * 0.5)
+            ins = ((xw >= cen[0] + (box[0] - cen[0]) * ginv) & (xw <= cen[0] + (box[1] - cen[0]) * ginv)
+                   & (yw >= cen[1] + (box[2] - cen[1]) * ginv) & (yw <= cen[1] + (box[3] - cen[1]) * ginv))
+            ims = torch.zeros(2, Hc * Wc, dtype=torch.float64)
+            x0, y0 = xw.floor(), yw.floor()
+            fx, fy = (xw - x0).double(), (yw - y0).double()
+            w = wt[m].double() * ins.double()
+            for dx, dy, ww in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+                idx = ((y0.long() + dy) * Wc + x0.long() + dx).clamp(0, Hc * Wc - 1)  # outside: weight 0
+                ims.index_put_((half[m], idx), w * ww, accumulate=True)
+            area = (box[1] - box[0]) * (box[3] - box[2]) * ginv ** 2
+            n = ims.sum(1)
+            na = n.sum()
+            i0, i1 = ims
+            ref[bi, gi, 0] = ((i0 + i1) ** 2).sum() / na - na / area
+            ref[bi, gi, 1] = (i0 ** 2).sum() / n[0] - n[0] / area
+            ref[bi, gi, 2] = (i1 ** 2).sum() / n[1] - n[1] / area
+    assert torch.allclose(got, ref, rtol=1e-5, atol=0)
+
+
+def _need_kernel():
+    if not native_cmax.cached():
+        pytest.skip("the compiled cmax kernel is not built (python -m dvsland.estimators.build_native)")
+
+
+@pytest.mark.parametrize("seed,B,G", [(0, 7, 3), (1, 3, 21), (2, 1, 9)])
+def test_kernel_scores_equal_torch_path(seed, B, G):
+    _need_kernel()
+    args = _score_args(seed=seed, B=B, G=G)
+    ref = split_contrast(*args, native=False)
+    got = split_contrast(*args, native=True)
+    assert torch.equal(got, ref)
+    # without weights, and with an element that has no events
+    a = list(args)
+    a[10] = None
+    a[2] = torch.where(a[2] == 0, torch.ones_like(a[2]) * min(1, B - 1), a[2])
+    assert torch.equal(split_contrast(*a, native=True), split_contrast(*a, native=False))
+
+
+def test_kernel_estimates_equal_torch_path():
+    """cmax at its defaults over a few updates: the same estimates, standard errors and windows."""
+    _need_kernel()
+    out = []
+    for native in (False, True):
+        native_cmax.use_native_cmax(native)
+        try:
+            est = get_estimator("cmax", batch_size=5, sensor_size=(128, 128), window_ms=400.0)
+            ds = []
+            for k in range(1, 9):
+                ev = _events(seed=k)
+                ev = Events(ev.b, ev.x, ev.y, ev.t + (k - 1) * 100_000, ev.p, sort=True)
+                ds.append(est.update(ev, k * 100_000 + 1_000_000))
+            out.append((torch.stack(ds), est.diagnostics()))
+        finally:
+            native_cmax.use_native_cmax(None)
+    (d0, g0), (d1, g1) = out
+    assert torch.equal(d0.isnan(), d1.isnan()) and torch.equal(d0.nan_to_num(), d1.nan_to_num())
+    for k in ("window_s", "d_std", "contrast"):
+        assert torch.equal(g0[k].nan_to_num(), g1[k].nan_to_num()), k
+
+
+@pytest.mark.slow
+def test_kernel_builds_and_equals_torch_path():
+    """Builds the kernel when it is not cached (about a minute of compiler CPU), then compares."""
+    try:
+        native_cmax.build()
+    except Exception as exc:  # no compiler here: the torch path is what runs
+        pytest.skip(f"cannot build the kernel: {exc}")
+    args = _score_args(seed=5, B=4, G=3)
+    native_cmax.use_native_cmax(True)
+    try:
+        assert torch.equal(split_contrast(*args, native=True), split_contrast(*args, native=False))
+    finally:
+        native_cmax.use_native_cmax(None)
