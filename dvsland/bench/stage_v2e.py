@@ -6,7 +6,11 @@ github.com/SensorsINI/v2e) into a folder outside the package (default bench_env/
 see docs/events.md) and point --v2e-dir at it. Without it, the dvsland rows are still measured.
 
     python scripts/bench_v2e.py [--batch 18] [--steps 12] [--frames descent|synthetic]
-                                [--v2e-dir bench_env/v2e] [--threads 1] [--json out.json]
+                                [--rate 0.6] [--identical] [--v2e-dir bench_env/v2e] [--threads 1]
+                                [--json out.json]
+
+dvsland is timed on the torch path and, where built (python -m dvsland.events.build_native), on the
+compiled kernels; the noise table is given for each.
 """
 
 from __future__ import annotations
@@ -24,6 +28,11 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", choices=("descent", "synthetic"), default="descent")
     ap.add_argument("--omega", type=float, default=0.1, help="synthetic frames: phase step per frame "
                     "(0.1: about 0.5 events per pixel per frame)")
+    ap.add_argument("--rate", type=float, default=None, help="synthetic frames: calibrate omega to about this "
+                    "many events per pixel per frame (e.g. 0.6; overrides --omega)")
+    ap.add_argument("--identical", action="store_true", help="the setting in which both emulators emit the same "
+                    "per-pixel counts: frames scaled into v2e's log region, log_eps 1e-9, refractory 0 "
+                    "(dvsland.events.benchmark)")
     ap.add_argument("--size", type=int, nargs=2, default=(128, 128), metavar=("W", "H"))
     ap.add_argument("--v2e-dir", default=None, help="folder with v2ecore/ (default: bench_env/v2e in the repository)")
     ap.add_argument("--threads", type=int, default=1)
@@ -38,7 +47,8 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(args.threads)
     from dvsland.config import CameraConfig
-    from dvsland.events.benchmark import bench_noise, bench_vs_v2e, format_results, smooth_frames
+    from dvsland.events import native
+    from dvsland.events.benchmark import bench_noise, bench_vs_v2e, calibrated_omega, format_results, smooth_frames
 
     from .frames import descent_frames
 
@@ -50,17 +60,26 @@ def main(argv=None) -> int:
     if args.frames == "descent":
         frames = descent_frames(args.batch, args.steps, CameraConfig(width_px=W, height_px=H))
     else:
+        if args.rate is not None:
+            args.omega = calibrated_omega(args.batch, H, W, args.rate)
         frames = smooth_frames(args.batch, H, W, args.steps, omega=args.omega)
     v2e_dir = args.v2e_dir if Path(args.v2e_dir).exists() else None
-    res = bench_vs_v2e(frames, v2e_dir, threads=args.threads)
+    res = bench_vs_v2e(frames, v2e_dir, threads=args.threads, identical=args.identical)
     if v2e_dir is None:
         res["v2e_error"] = f"no v2e folder at {args.v2e_dir}"
-    noise = None if args.no_noise else bench_noise(frames, threads=args.threads)
+    noise = {}
+    saved = native._enabled
+    for path in ([] if args.no_noise else list(res["paths"])):
+        native.use_native_sort(path == "compiled")
+        noise[path] = bench_noise(frames, threads=args.threads)
+    native._enabled = saved
     try:
         load = os.getloadavg()
     except OSError:
         load = None
-    print(format_results(res, noise))
+    print(format_results(res, None))
+    for path, table in noise.items():
+        print(f"\n[{path} path]" + format_results(None, table))
     den = None
     if args.denoise:
         from dvsland.events.benchmark import bench_denoise, format_denoise
@@ -78,11 +97,13 @@ def main(argv=None) -> int:
             kw = {k: getattr(em, k) for k in keys}
         den = bench_denoise(frames, kw, threads=args.threads)
         print(format_denoise(den))
-    print(f"load average {load}, frames: {args.frames}")
+    print(f"load average {load}, frames: {args.frames}" + (f", omega {args.omega:.4g}" if args.frames == "synthetic" else ""))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"v2e": res, "noise": noise, "denoise": den, "load_average": load,
-                                               "frames": args.frames}, indent=2))
+                                               "frames": args.frames,
+                                               "omega": args.omega if args.frames == "synthetic" else None},
+                                              indent=2))
     return 0
 
 

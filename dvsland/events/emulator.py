@@ -427,8 +427,7 @@ class EventEmulator:
         if pmp.lowpass:
             alpha = pm.photoreceptor_alpha(f1, dt * 1e-6, pmp.photoreceptor_cutoff_hz, pmp.full_irradiance)
         if pmp.shot:  # drawn now: the rate needs the irradiance (f1 becomes L1 below)
-            lay = self._layout
-            shot = pm.draw_shot_noise(self._shot_gens, f1, t1 - t0, pmp, lay.y_shift - 1, lay.t_shift - lay.y_shift)
+            shot = self._shot_noise(f1, t1 - t0, b_shift)
 
         if self.interpolation == "log":
             l1 = f1.add_(self.log_eps).log_()  # f1 is a private copy
@@ -462,14 +461,10 @@ class EventEmulator:
             keys, pixel_order = (bg if keys is None else torch.cat((keys, bg))), False
         shot_keys = None
         if shot is not None:
-            flat, slot, elem, off = shot
+            flat, shot_keys = shot
             if flat.numel():
                 # a shot event resets its pixel's reference to the current level (as v2e)
                 self._lref.view(-1).index_copy_(0, flat, l1.view(-1).index_select(0, flat))
-                # drawn in (b, t, pixel) order: their keys (slot = t_rel - 1 | y | x, see
-                # _KeyLayout) are sorted, so they are merged into the sorted scene keys
-                shot_keys = slot.add_(1 << (layout.t_shift - 1)).bitwise_left_shift_(1).bitwise_or_(
-                    elem.bitwise_left_shift_(b_shift)).bitwise_or_(off.to(torch.int64))
         if keys is None or keys.numel() == 0:
             keys, shot_keys = shot_keys, None
         if keys is None or keys.numel() == 0:
@@ -477,6 +472,30 @@ class EventEmulator:
         else:
             ev = layout.sort_decode(keys, b_shift, t0, sorted_keys=shot_keys, pixel_order=pixel_order)
         return ev if self.denoiser is None else self.denoiser(ev, t1)
+
+    def _shot_noise(self, f1: torch.Tensor, dt_us: int, b_shift: int) -> Tuple[torch.Tensor, torch.Tensor]:
+        """This step's shot-noise events (:func:`pixel_model.draw_shot_noise`, irradiance ``f1``
+        (B, H, W) float64): flat pixel indices (N,) int64 and sort keys (N,) int64 (see _KeyLayout),
+        both in (b, t, pixel) order, so the keys come sorted (merged into the scene's by the compiled
+        kernels, sorted with them by torch.sort otherwise). On CPU
+        with the compiled kernels, thinned and keyed in one pass (the same events)."""
+        lay, pmp = self._layout, self.pixel_model
+        xb, yb = lay.y_shift - 1, lay.t_shift - lay.y_shift
+        if _cpu_fast_path(f1) and native.native_sort_enabled() and native.load() is not None:
+            B, H, W = self._shape
+            k = pmp.shot_noise_bright_factor
+            r_max = pmp.shot_noise_rate_hz * max(1.0, k)
+            slot, elem, u = pm.sorted_candidates(self._shot_gens, r_max, H, W, dt_us, xb, yb)
+            a = pmp.shot_noise_rate_hz / r_max  # as draw_shot_noise: q = a + a (k - 1) min(1, I / I_full)
+            flat, keys = native.load().shot_keys(slot, elem, u, f1.reshape(-1), H, W, xb, yb,
+                                                 1.0 / pmp.full_irradiance, a, a * (k - 1.0),
+                                                 a * min(1.0, k) < 1.0, lay.t_shift, b_shift)
+            return flat, keys
+        flat, slot, elem, off = pm.draw_shot_noise(self._shot_gens, f1, dt_us, pmp, xb, yb)
+        # slot = t_rel - 1 | y | x (see _KeyLayout): drawn in (b, t, pixel) order, so the keys are sorted
+        keys = slot.add_(1 << (lay.t_shift - 1)).bitwise_left_shift_(1).bitwise_or_(
+            elem.bitwise_left_shift_(b_shift)).bitwise_or_(off.to(torch.int64))
+        return flat, keys
 
     def _scene_keys(self, l1: torch.Tensor, f1: torch.Tensor, t0: int, dt: float, b_shift: int
                     ) -> Optional[torch.Tensor]:
@@ -776,22 +795,6 @@ def _nonzero_1d(mask: torch.Tensor) -> torch.Tensor:
     return torch.nonzero(mask).squeeze(1)
 
 
-def _merge_sorted(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Merge two sorted 1-D int64 CPU tensors into one sorted tensor (O(len(a) log len(b)) searches
-    and two scatters instead of a sort of both; equal keys are equal values, so order among them
-    does not matter)."""
-    an, bn = a.numpy(), b.numpy()
-    n = an.size + bn.size
-    pos_a = np.searchsorted(bn, an)
-    pos_a += np.arange(an.size)
-    out = np.empty(n, dtype=np.int64)
-    from_b = np.ones(n, dtype=bool)
-    from_b[pos_a] = False
-    out[pos_a] = an
-    out[from_b] = bn
-    return torch.from_numpy(out)
-
-
 def _segments(cnt: torch.Tensor):
     """For counts (A,) int64: segment id (N,) and index within the segment (N,), N = sum(cnt)."""
     seg = torch.repeat_interleave(cnt)
@@ -805,8 +808,9 @@ class _KeyLayout:
     t_rel = t - t0 in [1, dt] µs, off = 1 for OFF events. Sorting the keys orders events by
     (b, t), then row-major pixel, and every field decodes with shifts and masks, so the sort is
     of values only (no permutation, no gathers) and its result is unique, hence the same on any
-    device. On CPU the sort is numpy's (x86-simd-sort: about 2x faster than torch.sort on
-    int64), in place; on other devices torch.sort. The (b, y, x) bits come from a table of
+    device. The sort is torch.sort (on CPU a radix sort of int64, about 3x faster than numpy's
+    here), or with the compiled kernels (:mod:`.native`) their radix sort fused with the decoding
+    and the merge of the already sorted shot-noise keys. The (b, y, x) bits come from a table of
     B * H * W codes built at reset.
     """
 
@@ -852,14 +856,15 @@ class _KeyLayout:
         unpack into :class:`Events` (t = t0 + t_rel). ``pixel_order``: the keys come in flat pixel
         order (those of the compiled pixel kernel alone), so the compiled radix sort only needs
         their (b, t) bits (a stable sort by those keeps the pixel order among equal times)."""
-        if sorted_keys is not None and sorted_keys.numel():
-            keys, pixel_order = torch.cat((keys, sorted_keys)), False
         if _cpu_fast_path(keys) and native.native_sort_enabled() and native.load() is not None:
-            # compiled: the same result
+            # compiled: sorted, merged and decoded in one pass; the same result
+            more = sorted_keys if sorted_keys is not None else keys.new_empty(0)
             b, x, y, t, p = native.load().sort_decode(keys, b_shift + self.bb, self.t_shift if pixel_order else 0,
-                                                      b_shift, self.t_shift, self.y_shift, self.x_mask,
-                                                      self.y_mask, int(t0))
+                                                      more.contiguous(), b_shift, self.t_shift, self.y_shift,
+                                                      self.x_mask, self.y_mask, int(t0))
             return Events(b=b, x=x, y=y, t=t, p=p)
+        if sorted_keys is not None and sorted_keys.numel():
+            keys = torch.cat((keys, sorted_keys))
         # torch's sort of int64 (radix on CPU): about 3x faster than numpy's here (182 k keys:
         # 2.7 against 8.3 ms of CPU, one thread)
         keys = torch.sort(keys).values

@@ -72,27 +72,71 @@ void radix_sort_(torch::Tensor keys, int64_t bits) { radix_sort_bits_(keys, bits
 
 // radix_sort_ then unpack the keys into the Events fields in one pass (see _KeyLayout):
 // b, x, y, t = t0 + t_rel (int64) and p = +1 / -1 (int8, OFF bit 1 = -1).
+// radix_sort_bits_ then merge in `more` (sorted, may be empty) and unpack all into the Events fields
+// in one pass (see _KeyLayout): b, x, y, t = t0 + t_rel (int64) and p = +1 / -1 (int8, OFF bit 1 = -1).
 // lo_bit: see radix_sort_bits_ (t_shift when the keys come in pixel order, else 0).
-std::vector<torch::Tensor> sort_decode(torch::Tensor keys, int64_t bits, int64_t lo_bit, int64_t b_shift,
-                                       int64_t t_shift, int64_t y_shift, int64_t x_mask, int64_t y_mask, int64_t t0) {
+std::vector<torch::Tensor> sort_decode(torch::Tensor keys, int64_t bits, int64_t lo_bit, torch::Tensor more,
+                                       int64_t b_shift, int64_t t_shift, int64_t y_shift, int64_t x_mask,
+                                       int64_t y_mask, int64_t t0) {
+  TORCH_CHECK(more.is_contiguous() && more.scalar_type() == torch::kInt64 && more.device().is_cpu(),
+              "sort_decode: more must be a contiguous int64 CPU tensor");
   radix_sort_bits_(keys, bits, lo_bit);
-  const int64_t n = keys.numel();
-  const int64_t* k = keys.data_ptr<int64_t>();
+  const int64_t na = keys.numel(), nb = more.numel(), n = na + nb;
+  const int64_t* ka = keys.data_ptr<int64_t>();
+  const int64_t* kb = more.data_ptr<int64_t>();
   auto opt = torch::TensorOptions().dtype(torch::kInt64);
   auto b = torch::empty({n}, opt), x = torch::empty({n}, opt), y = torch::empty({n}, opt), t = torch::empty({n}, opt);
   auto p = torch::empty({n}, torch::TensorOptions().dtype(torch::kInt8));
   int64_t *pb = b.data_ptr<int64_t>(), *px = x.data_ptr<int64_t>(), *py = y.data_ptr<int64_t>(), *pt = t.data_ptr<int64_t>();
   int8_t* pp = p.data_ptr<int8_t>();
   const int64_t t_mask = (int64_t(1) << (b_shift - t_shift)) - 1;
-  for (int64_t i = 0; i < n; ++i) {
-    const int64_t v = k[i];
-    pp[i] = (v & 1) ? -1 : 1;
-    px[i] = (v >> 1) & x_mask;
-    py[i] = (v >> y_shift) & y_mask;
-    pt[i] = ((v >> t_shift) & t_mask) + t0;
-    pb[i] = v >> b_shift;
+  int64_t i = 0, j = 0;
+  const uint64_t END = ~uint64_t(0);  // above every key (keys are < 2^63)
+  for (int64_t w = 0; w < n; ++w) {
+    // branch-free merge step (the two streams interleave at random)
+    const uint64_t va = i < na ? uint64_t(ka[i]) : END, vb = j < nb ? uint64_t(kb[j]) : END;
+    const bool from_a = va <= vb;
+    const int64_t v = int64_t(from_a ? va : vb);
+    i += from_a;
+    j += !from_a;
+    pp[w] = (v & 1) ? -1 : 1;
+    px[w] = (v >> 1) & x_mask;
+    py[w] = (v >> y_shift) & y_mask;
+    pt[w] = ((v >> t_shift) & t_mask) + t0;
+    pb[w] = v >> b_shift;
   }
   return {b, x, y, t, p};
+}
+
+// Shot-noise candidates (slot, elem, u as pixel_model.sorted_candidates draws them, in (element, time,
+// pixel) order) thinned and keyed as pixel_model.draw_shot_noise and EventEmulator.step do, the same
+// float64 operations in the same order: q = min(I / I_full, 1) * c + a with I the pixel's irradiance
+// (float64); kept when u < q (only if thin), OFF when u < q / 2; key = ((slot + 2^(t_shift-1)) << 1)
+// | (elem << b_shift) | OFF. Returns {flat pixel index, key} of the kept ones, in order (sorted keys).
+std::vector<torch::Tensor> shot_keys(torch::Tensor slot_t, torch::Tensor elem_t, torch::Tensor u_t, torch::Tensor irr_t,
+                                     int64_t H, int64_t W, int64_t x_bits, int64_t y_bits, double inv_full, double a,
+                                     double c, bool thin, int64_t t_shift, int64_t b_shift) {
+  TORCH_CHECK(irr_t.scalar_type() == torch::kFloat64 && irr_t.is_contiguous() && u_t.scalar_type() == torch::kFloat64,
+              "shot_keys: irradiance and u must be contiguous float64");
+  const int64_t n = slot_t.numel();
+  const int64_t *slot = slot_t.data_ptr<int64_t>(), *elem = elem_t.data_ptr<int64_t>();
+  const double *u = u_t.data_ptr<double>(), *irr = irr_t.data_ptr<double>();
+  auto flat_t = torch::empty({n}, torch::kInt64), keys_t = torch::empty({n}, torch::kInt64);
+  int64_t *flat = flat_t.data_ptr<int64_t>(), *keys = keys_t.data_ptr<int64_t>();
+  const int64_t xm = (int64_t(1) << x_bits) - 1, ym = (int64_t(1) << y_bits) - 1, t_one = int64_t(1) << (t_shift - 1);
+  int64_t w = 0;
+  for (int64_t i = 0; i < n; ++i) {
+    const int64_t s = slot[i];
+    const int64_t f = (((s >> x_bits) & ym) + elem[i] * H) * W + (s & xm);
+    double q = irr[f] * inv_full;
+    q = q > 1.0 ? 1.0 : q;
+    q = q * c + a;
+    // written always, kept by advancing w: no branch on the random u (half of them mispredicted)
+    flat[w] = f;
+    keys[w] = (((s + t_one) << 1) | (elem[i] << b_shift)) | int64_t(u[i] < q * 0.5);
+    w += int64_t(!thin || u[i] < q);
+  }
+  return {flat_t.narrow(0, 0, w), keys_t.narrow(0, 0, w)};
 }
 
 // The front-end filters of dvsland.events.denoise as tonic writes them: one loop over the events
@@ -231,7 +275,7 @@ torch::Tensor pixel_events(torch::Tensor l1_t, torch::Tensor lref_t, torch::Tens
 }
 """
 
-_FUNCTIONS = ["radix_sort_", "pixel_events", "sort_decode", "baf_keep", "refractory_keep"]
+_FUNCTIONS = ["radix_sort_", "pixel_events", "sort_decode", "shot_keys", "baf_keep", "refractory_keep"]
 _CFLAGS = ["-O3", "-ffp-contract=off"]
 
 _ON, _OFF, _AUTO = "on", "off", "auto"
