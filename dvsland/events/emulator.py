@@ -795,6 +795,18 @@ def _nonzero_1d(mask: torch.Tensor) -> torch.Tensor:
     return torch.nonzero(mask).squeeze(1)
 
 
+def _sort_values(keys: torch.Tensor) -> torch.Tensor:
+    """The int64 keys sorted (a new tensor, or ``keys`` sorted in place). On CPU with one torch
+    thread torch.sort (a radix sort: 182 k keys 2.7 against numpy's 8.3 ms of CPU); with more
+    threads numpy's single-threaded sort in place, because torch's parallel sort of one 1-D
+    tensor took 275 ms wall (186 ms CPU) against 7 ms with one thread on this shared 2-core
+    machine (load 6.6)."""
+    if _cpu_fast_path(keys) and torch.get_num_threads() > 1:
+        keys.numpy().sort()
+        return keys
+    return torch.sort(keys).values
+
+
 def _segments(cnt: torch.Tensor):
     """For counts (A,) int64: segment id (N,) and index within the segment (N,), N = sum(cnt)."""
     seg = torch.repeat_interleave(cnt)
@@ -808,8 +820,8 @@ class _KeyLayout:
     t_rel = t - t0 in [1, dt] µs, off = 1 for OFF events. Sorting the keys orders events by
     (b, t), then row-major pixel, and every field decodes with shifts and masks, so the sort is
     of values only (no permutation, no gathers) and its result is unique, hence the same on any
-    device. The sort is torch.sort (on CPU a radix sort of int64, about 3x faster than numpy's
-    here), or with the compiled kernels (:mod:`.native`) their radix sort fused with the decoding
+    device. The sort is :func:`_sort_values` (torch.sort, or numpy's with several CPU threads),
+    or with the compiled kernels (:mod:`.native`) their radix sort fused with the decoding
     and the merge of the already sorted shot-noise keys. The (b, y, x) bits come from a table of
     B * H * W codes built at reset.
     """
@@ -865,9 +877,7 @@ class _KeyLayout:
             return Events(b=b, x=x, y=y, t=t, p=p)
         if sorted_keys is not None and sorted_keys.numel():
             keys = torch.cat((keys, sorted_keys))
-        # torch's sort of int64 (radix on CPU): about 3x faster than numpy's here (182 k keys:
-        # 2.7 against 8.3 ms of CPU, one thread)
-        keys = torch.sort(keys).values
+        keys = _sort_values(keys)
         # in-place where possible: every field is one fresh allocation, b reuses the keys
         if _cpu_fast_path(keys):  # the int64 -> int8 cast keeps the low byte (with the OFF bit)
             p = keys.to(torch.int8).bitwise_and_(1).mul_(-2).add_(1)
