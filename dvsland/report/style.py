@@ -91,7 +91,10 @@ def save_atomic(fig, path, **savefig_kwargs) -> Path:
 
     path = Path(path)
     buf = io.BytesIO()
-    fig.savefig(buf, format=path.suffix.lstrip(".") or "png", **savefig_kwargs)
+    fmt = path.suffix.lstrip(".").lower() or "png"
+    if fmt == "png":  # zlib level 1: the same pixels, cheaper to encode (~10 % larger files)
+        savefig_kwargs.setdefault("pil_kwargs", {"compress_level": 1})
+    fig.savefig(buf, format=fmt, **savefig_kwargs)
     with writes_under(path.parent):
         path.parent.mkdir(parents=True, exist_ok=True)
     return atomic_write_bytes(path, buf.getbuffer())

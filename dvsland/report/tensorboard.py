@@ -181,6 +181,23 @@ def draw_centroids(rgb: np.ndarray, centroids_xy: Optional[np.ndarray], color=(0
     return rgb
 
 
+def image_summary(tag: str, rgb: np.ndarray):
+    """A TensorBoard image ``Summary`` of ``rgb`` (H, W, 3) uint8: the pixels ``add_image`` would
+    store (it converts uint8 HWC unchanged), PNG-encoded at zlib level 1 instead of 6 (about half
+    the encoding time, ~10 % larger files; PNG is lossless, so TensorBoard shows the same image)."""
+    import io
+
+    from PIL import Image
+    from tensorboard.compat.proto.summary_pb2 import Summary
+
+    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="PNG", compress_level=1)
+    img = Summary.Image(height=int(rgb.shape[0]), width=int(rgb.shape[1]), colorspace=3,
+                        encoded_image_string=buf.getvalue())
+    return Summary(value=[Summary.Value(tag=tag, image=img)])
+
+
 def frame_to_rgb(frame: np.ndarray) -> np.ndarray:
     """(H, W) linear irradiance -> (H, W, 3) uint8, normalised by the 99.5th percentile, gamma 1/2.2."""
     f = np.asarray(frame, dtype=np.float64)
@@ -355,12 +372,11 @@ class TensorBoardLogger:
             if cents is not None:
                 n_c = int(np.isfinite(c).all(axis=1).sum()) if c is not None else 0
                 w.add_scalar("tracking/n_centroids", n_c, step, walltime=wall)
+            fw = w._get_file_writer()
             if frames is not None:
-                w.add_image("images/frame", draw_centroids(frame_to_rgb(frames[b]), c), step, walltime=wall,
-                            dataformats="HWC")
+                fw.add_summary(image_summary("images/frame", draw_centroids(frame_to_rgb(frames[b]), c)), step, wall)
             if counts is not None:
-                w.add_image("images/events", draw_centroids(counts_to_rgb(counts[b]), c), step, walltime=wall,
-                            dataformats="HWC")
+                fw.add_summary(image_summary("images/events", draw_centroids(counts_to_rgb(counts[b]), c)), step, wall)
 
     # -------------------------------------------------------------- hparams
     def add_hparams(self, runs: List[dict], traces: Optional[Dict[str, np.ndarray]] = None,
