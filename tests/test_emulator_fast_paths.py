@@ -90,3 +90,22 @@ def test_shot_noise_slots_at_extreme_rates(rate_hz):
         assert 0.8 * 2 * 16 * 1000 < n <= 2 * 16 * 1000
         key = elem * (1 << 40) + slot
         assert bool((key[1:] > key[:-1]).all()) and int(slot.min()) >= 0 and int(slot.max()) < 16 * 1000
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_cpu_sort_is_the_same_with_one_or_more_threads(threads):
+    """The torch path sorts with torch.sort on one thread and numpy's sort with more: same events."""
+    from dvsland.events.emulator import _sort_values
+
+    g = torch.Generator().manual_seed(1)
+    keys = torch.randint(0, 2 ** 40, (50_001,), generator=g)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        assert torch.equal(_sort_values(keys.clone()), torch.sort(keys).values)
+        frames = smooth_frames(2, 20, 24, 3, omega=0.5)
+        got, _ = _run(frames, dict(shot_noise_rate_hz=50.0))
+    finally:
+        torch.set_num_threads(before)
+    ref, _ = _run(frames, dict(shot_noise_rate_hz=50.0))
+    assert got == ref and sum(len(e) for e in got) > 0
