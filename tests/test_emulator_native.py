@@ -27,8 +27,12 @@ def _no_build(*a, **k):
     pytest.fail("must not compile")
 
 
-def _events(frames, **kw):
+def _events(frames, elem=None, **kw):
+    """Events of every step; ``elem``: per-element values (set_element_params) for B elements."""
     emu = EventEmulator(seed=2, **kw)
+    if elem is not None:
+        B = frames.shape[1]
+        emu.set_element_params(**{k: (v(B) if callable(v) else v) for k, v in elem.items()})
     emu.reset(frames[0], 0)
     return [emu.step(frames[k], k * 100_000) for k in range(1, frames.shape[0])], emu
 
@@ -99,6 +103,14 @@ def _compare_with_torch_path(monkeypatch, configs, frame_sets):
             assert torch.equal(state[True][0], state[False][0]) and torch.equal(state[True][1], state[False][1]), kw
 
 
+#: per-element sensors as a Monte Carlo batch draws them (threshold maps, per-element refractory
+#: periods, some 0 and some long enough to drop crossings)
+ELEMENTS = [dict(elem=dict(threshold_scale=lambda B: np.linspace(0.8, 1.2, B), mismatch_sigma=lambda B: np.full(B, 0.03),
+                           refractory_us=lambda B: np.linspace(0.0, 30_000.0, B))),
+            dict(threshold_off=0.15, elem=dict(refractory_us=lambda B: np.linspace(5.0, 50.0, B))),
+            dict(shot_noise_rate_hz=20.0, elem=dict(mismatch_sigma=lambda B: np.linspace(0.0, 0.1, B)))]
+
+
 def _frame_sets():
     g = torch.Generator().manual_seed(4)
     return [smooth_frames(3, 40, 48, 5, omega=0.8), smooth_frames(2, 33, 70, 4, omega=0.3),
@@ -112,7 +124,7 @@ def test_cached_kernels_give_the_torch_paths_events(fresh):
         pytest.skip("compiled kernels not built here (python -m dvsland.events.build_native)")
     from test_emulator_fast_paths import CONFIGS
 
-    _compare_with_torch_path(fresh, CONFIGS[:2] + CONFIGS[-2:], _frame_sets()[:2])
+    _compare_with_torch_path(fresh, CONFIGS[:2] + CONFIGS[-2:] + ELEMENTS[:1], _frame_sets()[:2])
 
 
 @pytest.mark.slow
@@ -126,8 +138,9 @@ def test_native_kernels_give_the_same_events(fresh):
     assert native.radix_sort_(t, 40) and np.array_equal(t.numpy(), np.sort(keys))
     from test_emulator_fast_paths import CONFIGS
 
-    _compare_with_torch_path(fresh, CONFIGS + [dict(leak_rate_hz=2.0, photoreceptor_cutoff_hz=50.0),
-                                               dict(refractory_us=20_000.0), dict(refractory_us=0.0, threshold=0.01)],
+    _compare_with_torch_path(fresh, CONFIGS + ELEMENTS + [dict(leak_rate_hz=2.0, photoreceptor_cutoff_hz=50.0),
+                                                          dict(refractory_us=20_000.0),
+                                                          dict(refractory_us=0.0, threshold=0.01)],
                              _frame_sets())
 
 

@@ -518,11 +518,11 @@ class EventEmulator:
         return parts[0] if len(parts) == 1 else torch.cat(parts)
 
     def _native_pixel_path(self, l1: torch.Tensor) -> bool:
-        """Whether this step's pixels go through the compiled kernel: opt-in (DVSLAND_NATIVE_SORT),
-        CPU, log interpolation, scalar thresholds and refractory period, and the kernel built."""
+        """Whether this step's pixels go through the compiled kernel: built (DVSLAND_NATIVE_SORT,
+        :mod:`.native`), CPU, log interpolation (scalar or per-pixel thresholds, scalar or
+        per-element refractory periods)."""
         return (native.native_sort_enabled() and _cpu_fast_path(l1) and self.interpolation == "log"
-                and self._th_scalar and self._r_elem is None and l1.dtype == torch.float64
-                and native.load() is not None)
+                and l1.dtype == torch.float64 and native.load() is not None)
 
     def _native_pixel_events(self, l1: torch.Tensor, t0: int, dt: float, b_shift: int) -> torch.Tensor:
         """Keys of the pixels' events from :func:`dvsland.events.native` ``pixel_events``; moves
@@ -531,10 +531,17 @@ class EventEmulator:
         table = layout.pixel_table(b_shift)
         n_out = torch.zeros(1, dtype=torch.float64)
         cap = -1 if self.max_events_per_step is None else int(self.max_events_per_step)
+        none = l1.new_empty(0)
+        if self._th_scalar:
+            th_on, th_off, on_map, off_map = float(self._th_on), float(self._th_off), none, none
+        else:
+            th_on, th_off = 0.0, 0.0
+            on_map, off_map = self._th_on.reshape(-1).contiguous(), self._th_off.reshape(-1).contiguous()
+        r_elem = none if self._r_elem is None else self._r_elem.to(torch.float64).contiguous()
         keys = native.load().pixel_events(l1.reshape(-1), self._lref.view(-1), self._l_prev.reshape(-1),
-                                          self._t_last.view(-1), table, float(self._th_on), float(self._th_off),
-                                          float(self.refractory_us), float(t0), float(dt),
-                                          bool(self._spacing_may_bind), layout.t_shift, cap, n_out)
+                                          self._t_last.view(-1), table, th_on, th_off, on_map, off_map,
+                                          float(self.refractory_us), r_elem, layout.H * layout.W, float(t0),
+                                          float(dt), bool(self._spacing_may_bind), layout.t_shift, cap, n_out)
         self._count_events(n_out)  # ValueError above the cap (the kernel then emitted nothing)
         return keys
 

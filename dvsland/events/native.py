@@ -194,16 +194,24 @@ struct Cand { int64_t code; double cnt, first, step; };  // one pixel with >= 1 
 #define DVS_CLONES
 #endif
 
+// th_on_map / th_off_map: per-pixel thresholds (or null: the scalars th_on / th_off); r_elem: per-
+// element refractory periods (or null: the scalar r), element = pixel / hw. As the torch path: with
+// maps the candidate bounds are th_on * shrink and th_off * -shrink and the general ON/OFF count;
+// per-element r is divided as r / spacing, a scalar r as (1 / spacing) * r (torch's scalar / tensor).
 DVS_CLONES static double scan_pixels(const double* l1, double* lref, const double* l0, double* tlast,
-                                     const int64_t* code, int64_t P, double th_on, double th_off, double r,
-                                     double t0, double dt, bool spacing_may_bind, std::vector<Cand>& out) {
+                                     const int64_t* code, int64_t P, double th_on_s, double th_off_s,
+                                     const double* th_on_map, const double* th_off_map, double r_s,
+                                     const double* r_elem, int64_t hw, double t0, double dt,
+                                     bool spacing_may_bind, std::vector<Cand>& out) {
   const double TOL = 1e-9, shrink = 1.0 - 2 * TOL;
-  const bool same = th_on == th_off;
-  const double lo_on = th_on * shrink, lo_off = th_off * shrink;
+  const bool maps = th_on_map != nullptr;
+  const bool same = !maps && th_on_s == th_off_s;
   double total = 0.0;
   for (int64_t k = 0; k < P; ++k) {
     const double d = l1[k] - lref[k];
-    if (same ? !(std::fabs(d) >= lo_on) : !(d >= lo_on || d <= -lo_off)) continue;
+    const double th_on = maps ? th_on_map[k] : th_on_s, th_off = maps ? th_off_map[k] : th_off_s;
+    if (same ? !(std::fabs(d) >= th_on * shrink)
+             : !(d >= th_on * shrink || d <= (maps ? th_off * -shrink : -(th_off * shrink)))) continue;
     double n, th;
     if (same) {
       n = std::floor(std::fabs(d / th_on) + TOL);
@@ -214,6 +222,7 @@ DVS_CLONES static double scan_pixels(const double* l1, double* lref, const doubl
       n = n_on + n_off;
       th = d > 0 ? th_on : -th_off;
     }
+    const double r = r_elem ? r_elem[k / hw] : r_s;
     const double tl = tlast[k] - t0;
     // _emitted_log
     const double dl = l1[k] - l0[k];
@@ -221,11 +230,11 @@ DVS_CLONES static double scan_pixels(const double* l1, double* lref, const doubl
     const double spacing = th * scale;
     const double base = (lref[k] - l0[k]) * scale;
     double cnt = n, first = base + spacing, step = spacing;
-    if (r > 0) {
+    if (r_elem || r > 0) {
       const bool near = first < tl + r;
       if (spacing_may_bind ? ((spacing < r) || near) : near) {
         const double j0 = clamp_lo(std::ceil(((tl - base) + r) / spacing), 1.0);
-        const double m = clamp_lo(std::ceil((1.0 / spacing) * r), 1.0);  // as r / sp in torch
+        const double m = clamp_lo(std::ceil(r_elem ? r / spacing : (1.0 / spacing) * r), 1.0);  // as torch
         double c = clamp_lo(std::floor((n - j0) / m) + 1.0, 0.0);
         if (!std::isfinite(c)) c = 0.0;
         cnt = c;
@@ -255,17 +264,25 @@ DVS_CLONES static void write_keys(const std::vector<Cand>& cand, double dt, int6
   }
 }
 
+// th_on_map, th_off_map, r_elem: empty tensors for the scalars, else contiguous float64 (see scan_pixels).
 torch::Tensor pixel_events(torch::Tensor l1_t, torch::Tensor lref_t, torch::Tensor l0_t, torch::Tensor tlast_t,
-                           torch::Tensor code_t, double th_on, double th_off, double r, double t0, double dt,
-                           bool spacing_may_bind, int64_t t_shift, int64_t cap, torch::Tensor n_out) {
+                           torch::Tensor code_t, double th_on, double th_off, torch::Tensor th_on_map,
+                           torch::Tensor th_off_map, double r, torch::Tensor r_elem, int64_t hw, double t0,
+                           double dt, bool spacing_may_bind, int64_t t_shift, int64_t cap, torch::Tensor n_out) {
+  auto ptr = [](const torch::Tensor& x) -> const double* {
+    if (x.numel() == 0) return nullptr;
+    TORCH_CHECK(x.is_contiguous() && x.scalar_type() == torch::kFloat64, "pixel_events: maps must be contiguous float64");
+    return x.data_ptr<double>();
+  };
   const int64_t P = l1_t.numel();
   static thread_local std::vector<Cand> kept;  // kept across calls (no fresh pages per step)
   std::vector<Cand>& cand = kept;
   cand.clear();
   if (cand.capacity() < size_t(P / 2)) cand.reserve(size_t(P / 2));
   const double total = scan_pixels(l1_t.data_ptr<double>(), lref_t.data_ptr<double>(), l0_t.data_ptr<double>(),
-                                   tlast_t.data_ptr<double>(), code_t.data_ptr<int64_t>(), P, th_on, th_off, r,
-                                   t0, dt, spacing_may_bind, cand);
+                                   tlast_t.data_ptr<double>(), code_t.data_ptr<int64_t>(), P, th_on, th_off,
+                                   ptr(th_on_map), ptr(th_off_map), r, ptr(r_elem), hw, t0, dt, spacing_may_bind,
+                                   cand);
   n_out.data_ptr<double>()[0] = total;
   if (cap >= 0 && total > double(cap)) return torch::empty({0}, torch::kInt64);
   auto keys = torch::empty({int64_t(total)}, torch::kInt64);
