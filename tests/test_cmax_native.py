@@ -147,3 +147,23 @@ def test_kernel_builds_and_equals_torch_path():
         assert torch.equal(split_contrast(*args, native=True), split_contrast(*args, native=False))
     finally:
         native_cmax.use_native_cmax(None)
+
+
+def test_kernel_hot_pixel_weights_and_counts_equal_torch_path():
+    _need_kernel()
+    from dvsland.estimators.contrast import pixel_counts
+
+    g = torch.Generator().manual_seed(3)
+    B, n_px, E = 6, 32 * 32, 20000
+    b = torch.randint(0, B - 1, (E,), generator=g)  # the last element has no events
+    pix = torch.where(torch.rand(E, generator=g) < 0.1, torch.full((E,), 77), torch.randint(0, n_px, (E,), generator=g))
+    assert torch.equal(pixel_counts(b, pix, B, n_px, native=True), pixel_counts(b, pix, B, n_px, native=False))
+    est = get_estimator("cmax", B, (32, 32))
+    out = []
+    for native in (False, True):
+        native_cmax.use_native_cmax(native)
+        try:
+            out.append(est._hot_pixel_weights(pix, b))
+        finally:
+            native_cmax.use_native_cmax(None)
+    assert torch.equal(out[0], out[1]) and bool((out[0] < 1).any())

@@ -97,18 +97,29 @@ def test_cmax_binned_1280x720_off_centre_principal_point():
     assert np.median(rel_err(d_w[held], d_true[held])) > np.median(rel_err(d[held], d_true[held]))
 
 
-def test_cmax_hot_pixel_weights_cap_a_hot_pixel():
+@pytest.mark.parametrize("native", [False, True])
+def test_cmax_hot_pixel_weights_cap_a_hot_pixel(native):
     """100 pixels with one event each and one with 100: the hot pixel is flagged (100 > 8 x the first
-    mean, 2) and its events together weigh the mean of the others (1); the rest keep weight 1."""
-    est = get_estimator("cmax", 1, (32, 32))
-    xs = torch.cat([torch.arange(100, dtype=torch.float32) % 20, torch.full((100,), 25.0)])
-    ys = torch.cat([(torch.arange(100, dtype=torch.float32) // 20), torch.full((100,), 25.0)])
-    b = torch.zeros(200, dtype=torch.long)
-    w = est._hot_pixel_weights(xs, ys, b)
-    assert torch.equal(w[:100], torch.ones(100))
-    assert float(w[100:].sum()) == pytest.approx(1.0, rel=1e-5)
-    off = get_estimator("cmax", 1, (32, 32), hot_pixel_factor=200.0)._hot_pixel_weights(xs, ys, b)
-    assert torch.equal(off, torch.ones(200))  # not hot at a factor of 200
+    mean, 2) and its events together weigh the mean of the others (1); the rest keep weight 1. The
+    compiled kernel (where built) gives the same weights as the torch path."""
+    from dvsland.estimators import native_cmax
+
+    if native and not native_cmax.cached():
+        pytest.skip("the compiled cmax kernel is not built")
+    native_cmax.use_native_cmax(native)
+    try:
+        est = get_estimator("cmax", 1, (32, 32))
+        xs = torch.cat([torch.arange(100) % 20, torch.full((100,), 25)])
+        ys = torch.cat([torch.arange(100) // 20, torch.full((100,), 25)])
+        pix = ys * 32 + xs
+        b = torch.zeros(200, dtype=torch.long)
+        w = est._hot_pixel_weights(pix, b)
+        assert torch.equal(w[:100], torch.ones(100))
+        assert float(w[100:].sum()) == pytest.approx(1.0, rel=1e-5)
+        off = get_estimator("cmax", 1, (32, 32), hot_pixel_factor=200.0)._hot_pixel_weights(pix, b)
+        assert torch.equal(off, torch.ones(200))  # not hot at a factor of 200
+    finally:
+        native_cmax.use_native_cmax(None)
 
 
 def test_cmax_holds_the_rendered_hover_start():

@@ -53,7 +53,8 @@ from dvsland.checks import check_fields
 from dvsland.config.schema import CMaxConfig
 
 from .base import DivergenceEstimator, Truth, confidence_from_rel_std
-from .contrast import event_hash, split_contrast
+from . import native_cmax
+from .contrast import event_hash, pixel_counts, split_contrast
 from .registry import register_estimator
 
 _HASH_ONE = float(2 ** 31)
@@ -175,6 +176,7 @@ class CMaxEstimator(DivergenceEstimator):
                                     indexing="ij")
             rb = (torch.hypot(xx - cx, yy - cy) / self.radial_bin_px).floor().to(torch.int64).flatten()
             self._n_rbins = int(rb.max()) + 1
+            self._rbin_of_px = rb.to(self.device)  # (H W,) annulus of each pixel centre
             self._px_per_rbin = torch.bincount(rb, minlength=self._n_rbins).to(torch.float64).to(self.device)
         W, H = self.sensor_size
         cx, cy = self.principal_point_px
@@ -246,7 +248,8 @@ class CMaxEstimator(DivergenceEstimator):
     def _store_step(self, events) -> None:
         """Keep the step's events that lie on the sensor, hash-thinned to about 1.25 max_events /
         (steps per window) per element, with what every later update needs precomputed: element,
-        dithered position, time, and a 16-bit hash (window thinning) with the half bit."""
+        dithered position, time, and a key: a 16-bit hash (window thinning) with the half bit, and
+        the event's pixel y W + x above them."""
         dev = self.device
         b, x, y, t = (getattr(events, f).to(dev) for f in ("b", "x", "y", "t"))
         W, H = self.sensor_size
@@ -267,8 +270,8 @@ class CMaxEstimator(DivergenceEstimator):
         if self.dither:  # uniform within the pixel: 8 and 7 fresh hash bits
             xy += torch.stack([((h2 >> 16) & 0xFF).to(torch.float32) / 256.0,
                                ((h2 >> 24) & 0x7F).to(torch.float32) / 128.0]) - 0.5
-        # window-thinning key in bits 0..14, half in bit 15
-        key = h2 & 0xFFFF
+        # window-thinning key in bits 0..14, half in bit 15, the event's pixel y W + x from bit 16
+        key = (h2 & 0xFFFF) | ((y.to(torch.int64) * W + x.to(torch.int64)) << 16)
         start = self._append((b, xy, t, key))
         self._steps.append((start, int(t.max())))
 
@@ -408,9 +411,10 @@ class CMaxEstimator(DivergenceEstimator):
         t_ref_us = t_us - win_s * 0.5e6  # (B,) float64
         tau = ((t - t_ref_us.round().to(torch.int64)[b]).to(torch.float32) * 1e-6)
         xs, ys = xy[0], xy[1]
-        self._wt = self._radial_weights(xs, ys, b) if self.radial_bin_px > 0 and self.radial_power > 0 else None
+        pix = key >> 16
+        self._wt = self._radial_weights(pix, b) if self.radial_bin_px > 0 and self.radial_power > 0 else None
         if self.hot_pixel_factor > 0:
-            hot = self._hot_pixel_weights(xs, ys, b)
+            hot = self._hot_pixel_weights(pix, b)
             self._wt = hot if self._wt is None else self._wt * hot
         # start: last estimate (warm), else the global search
         d0 = self._d_mid.clone()
@@ -511,17 +515,20 @@ class CMaxEstimator(DivergenceEstimator):
         w = torch.where(untrusted, torch.full_like(w, self._window_s_init), w)
         return torch.where(torch.isfinite(d_mid), w, self._window_s)
 
-    def _hot_pixel_weights(self, xs, ys, b) -> torch.Tensor:
+    def _hot_pixel_weights(self, pix, b) -> torch.Tensor:
         """(E,) float32 weights of the events of hot pixels: a pixel holding c events, more than
         ``hot_pixel_factor`` times its element's mean count per active pixel m, weighs m / c per
         event (all of its events together count as one ordinary pixel), else 1. m is the mean over
         the pixels not flagged by a first mean (hot pixels inflate it). A hot pixel, or any pattern
-        fixed to the sensor, then no longer pulls the estimate to D = 0."""
+        fixed to the sensor, then no longer pulls the estimate to D = 0. ``pix``: (E,) int64 pixel
+        y W + x of each event. The compiled kernel (:mod:`native_cmax`) gives the same weights."""
         W, H = self.sensor_size
         B = self.batch_size
-        px = ((ys + 0.5).floor().clamp(0, H - 1) * W + (xs + 0.5).floor().clamp(0, W - 1)).to(torch.int64)
-        cell = b * (H * W) + px
-        c = torch.bincount(cell, minlength=B * H * W)[cell].to(torch.float64)  # (E,) events at its pixel
+        if b.numel() and b.device.type == "cpu" and native_cmax.enabled():
+            mod = native_cmax.load()
+            if mod is not None:
+                return mod.hot_weights(b.contiguous(), pix.contiguous(), B, H * W, self.hot_pixel_factor)
+        c = pixel_counts(b, pix, B, H * W, native=False).to(torch.float64)  # (E,) events at its pixel
         mean = torch.zeros(B, dtype=torch.float64, device=c.device)
         keep = torch.ones_like(c, dtype=torch.bool)
         for _ in range(2):  # mean count per active pixel, then again without the flagged pixels
@@ -531,7 +538,7 @@ class CMaxEstimator(DivergenceEstimator):
             keep = c <= self.hot_pixel_factor * mean[b]
         return torch.where(keep, torch.ones_like(c), mean[b] / c).to(torch.float32)
 
-    def _radial_weights(self, xs, ys, b) -> torch.Tensor:
+    def _radial_weights(self, pix, b) -> torch.Tensor:
         """(E,) weights that flatten each element's event density over radius about the FoE.
 
         The event rate of a pixel grows with its image speed, D r: events crowd towards the edges
@@ -539,10 +546,10 @@ class CMaxEstimator(DivergenceEstimator):
         sharpest un-warped (D = 0), which pulls the estimate towards 0. Weighting each event by
         the inverse of its element's event density in its annulus (``radial_bin_px`` wide)
         removes that pull. The weight is that inverse to the power ``radial_power``: 1 over-
-        corrects on the rendered sites (|D| read about 1 % high), 0.5 leaves no bias there."""
-        cx, cy = self.principal_point_px
+        corrects on the rendered sites (|D| read about 1 % high), 0.5 leaves no bias there. An event's
+        annulus is its pixel centre's (``pix``: (E,) int64 y W + x)."""
         nb = self._n_rbins
-        rb = (torch.hypot(xs - cx, ys - cy) / self.radial_bin_px).floor().to(torch.int64).clamp(0, nb - 1)
+        rb = self._rbin_of_px.index_select(0, pix)
         cnt = torch.bincount(b * nb + rb, minlength=self.batch_size * nb)[: self.batch_size * nb]
         dens = cnt.view(self.batch_size, nb).to(torch.float64) / self._px_per_rbin.clamp_min(1)
         mean = dens.sum(1) / (dens > 0).sum(1).clamp_min(1)

@@ -306,3 +306,25 @@ def _splat_sums_torch(xc, yc, b, half, scale, ginv_t, wt, centre_xy, sensor_box,
     n = ims.sum(-1).permute(1, 0, 2)  # (B, G, 2)
     s = torch.stack([(i0 * i0).sum(-1), (i1 * i1).sum(-1), (i0 * i1).sum(-1)], -1).permute(1, 0, 2)
     return n, s
+
+
+def pixel_counts(b: torch.Tensor, px: torch.Tensor, n_elements: int, n_px: int,
+                 native: Optional[bool] = None) -> torch.Tensor:
+    """For each event, the number of events of its element on its pixel.
+
+    Args:
+        b: (E,) int64 element index in [0, n_elements); px: (E,) int64 pixel index in [0, n_px).
+        native: as in :func:`split_contrast` (the compiled kernel counts element by element in a
+            small canvas; the torch path is one ``bincount`` over n_elements x n_px cells).
+
+    Returns:
+        (E,) int64 counts (the same on both paths).
+    """
+    if b.numel() and native is not False and b.device.type == "cpu":
+        from . import native_cmax
+
+        mod = native_cmax.load() if (native or native_cmax.enabled()) else None
+        if mod is not None:
+            return mod.pixel_counts(b.contiguous(), px.contiguous(), int(n_elements), int(n_px))
+    cell = b * int(n_px) + px
+    return torch.bincount(cell, minlength=int(n_elements) * int(n_px))[cell]

@@ -133,9 +133,65 @@ std::vector<torch::Tensor> splat_sums(torch::Tensor xc, torch::Tensor yc, torch:
   });
   return {n, s};
 }
+
+// For each event, how many events of its element lie on its pixel: bincount(b * n_px + px)[b * n_px + px]
+// computed element by element in a small canvas (b (E,) int64 in [0, B), px (E,) int64 in [0, n_px)).
+torch::Tensor pixel_counts(torch::Tensor b, torch::Tensor px, int64_t B, int64_t n_px) {
+  TORCH_CHECK(b.is_contiguous() && px.is_contiguous() && b.scalar_type() == torch::kInt64 &&
+              px.scalar_type() == torch::kInt64 && b.numel() == px.numel(), "pixel_counts: b, px contiguous int64 (E,)");
+  const int64_t E = b.numel();
+  const int64_t* Bi = b.data_ptr<int64_t>();
+  const int64_t* Px = px.data_ptr<int64_t>();
+  std::vector<int64_t> start(B + 1, 0), order(E);
+  for (int64_t e = 0; e < E; ++e) {
+    TORCH_CHECK(Bi[e] >= 0 && Bi[e] < B && Px[e] >= 0 && Px[e] < n_px, "pixel_counts: b or px out of range");
+    start[Bi[e] + 1]++;
+  }
+  for (int64_t i = 0; i < B; ++i) start[i + 1] += start[i];
+  {
+    std::vector<int64_t> pos(start.begin(), start.end() - 1);
+    for (int64_t e = 0; e < E; ++e) order[pos[Bi[e]]++] = e;
+  }
+  auto out = torch::empty({E}, torch::kInt64);
+  int64_t* O = out.data_ptr<int64_t>();
+  std::vector<int32_t> canvas(n_px, 0);
+  for (int64_t bi = 0; bi < B; ++bi) {
+    for (int64_t k = start[bi]; k < start[bi + 1]; ++k) canvas[Px[order[k]]]++;
+    for (int64_t k = start[bi]; k < start[bi + 1]; ++k) O[order[k]] = canvas[Px[order[k]]];
+    for (int64_t k = start[bi]; k < start[bi + 1]; ++k) canvas[Px[order[k]]] = 0;
+  }
+  return out;
+}
+
+// cmax's hot-pixel weights (CMaxEstimator._hot_pixel_weights, the torch path): c = events of the element on
+// the event's pixel; two rounds of mean = sum(keep) / sum(keep / c) per element (float64, summed in event order
+// as bincount does), keep = c <= factor * mean; weight = 1 where kept, else mean / c (as float32).
+torch::Tensor hot_weights(torch::Tensor b, torch::Tensor px, int64_t B, int64_t n_px, double factor) {
+  torch::Tensor cnt = pixel_counts(b, px, B, n_px);
+  const int64_t E = b.numel();
+  const int64_t* Bi = b.data_ptr<int64_t>();
+  const int64_t* C = cnt.data_ptr<int64_t>();
+  std::vector<double> mean(B, 0.0), n_px_s(B), n_ev_s(B);
+  std::vector<unsigned char> keep(E, 1);
+  for (int round = 0; round < 2; ++round) {
+    std::fill(n_px_s.begin(), n_px_s.end(), 0.0);
+    std::fill(n_ev_s.begin(), n_ev_s.end(), 0.0);
+    for (int64_t e = 0; e < E; ++e) {
+      const double k = keep[e] ? 1.0 : 0.0;
+      n_px_s[Bi[e]] += k / (double)C[e];
+      n_ev_s[Bi[e]] += k;
+    }
+    for (int64_t i = 0; i < B; ++i) mean[i] = n_ev_s[i] / std::max(n_px_s[i], 1e-9);
+    for (int64_t e = 0; e < E; ++e) keep[e] = (double)C[e] <= factor * mean[Bi[e]];
+  }
+  auto out = torch::empty({E}, torch::kFloat32);
+  float* O = out.data_ptr<float>();
+  for (int64_t e = 0; e < E; ++e) O[e] = keep[e] ? 1.0f : (float)(mean[Bi[e]] / (double)C[e]);
+  return out;
+}
 """
 
-_FUNCTIONS = ["splat_sums"]
+_FUNCTIONS = ["splat_sums", "pixel_counts", "hot_weights"]
 _CFLAGS = ["-O3", "-ffp-contract=off"]
 _ENV = "DVSLAND_NATIVE_CMAX"
 _ON, _OFF, _AUTO = "on", "off", "auto"
