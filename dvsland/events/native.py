@@ -80,16 +80,25 @@ std::vector<torch::Tensor> sort_decode(torch::Tensor keys, int64_t bits, int64_t
                                        int64_t y_mask, int64_t t0) {
   TORCH_CHECK(more.is_contiguous() && more.scalar_type() == torch::kInt64 && more.device().is_cpu(),
               "sort_decode: more must be a contiguous int64 CPU tensor");
-  radix_sort_bits_(keys, bits, lo_bit);
+  TORCH_CHECK(keys.is_contiguous() && keys.scalar_type() == torch::kInt64 && keys.device().is_cpu(),
+              "sort_decode: keys must be a contiguous int64 CPU tensor");
   const int64_t na = keys.numel(), nb = more.numel(), n = na + nb;
-  const int64_t* ka = keys.data_ptr<int64_t>();
-  const int64_t* kb = more.data_ptr<int64_t>();
   auto opt = torch::TensorOptions().dtype(torch::kInt64);
   auto b = torch::empty({n}, opt), x = torch::empty({n}, opt), y = torch::empty({n}, opt), t = torch::empty({n}, opt);
   auto p = torch::empty({n}, torch::TensorOptions().dtype(torch::kInt8));
   int64_t *pb = b.data_ptr<int64_t>(), *px = x.data_ptr<int64_t>(), *py = y.data_ptr<int64_t>(), *pt = t.data_ptr<int64_t>();
   int8_t* pp = p.data_ptr<int8_t>();
   const int64_t t_mask = (int64_t(1) << (b_shift - t_shift)) - 1;
+  auto put = [&](int64_t w, int64_t v) {
+    pp[w] = (v & 1) ? -1 : 1;
+    px[w] = (v >> 1) & x_mask;
+    py[w] = (v >> y_shift) & y_mask;
+    pt[w] = ((v >> t_shift) & t_mask) + t0;
+    pb[w] = v >> b_shift;
+  };
+  radix_sort_bits_(keys, bits, lo_bit);
+  const int64_t* ka = keys.data_ptr<int64_t>();
+  const int64_t* kb = more.data_ptr<int64_t>();
   int64_t i = 0, j = 0;
   const uint64_t END = ~uint64_t(0);  // above every key (keys are < 2^63)
   for (int64_t w = 0; w < n; ++w) {
@@ -99,11 +108,7 @@ std::vector<torch::Tensor> sort_decode(torch::Tensor keys, int64_t bits, int64_t
     const int64_t v = int64_t(from_a ? va : vb);
     i += from_a;
     j += !from_a;
-    pp[w] = (v & 1) ? -1 : 1;
-    px[w] = (v >> 1) & x_mask;
-    py[w] = (v >> y_shift) & y_mask;
-    pt[w] = ((v >> t_shift) & t_mask) + t0;
-    pb[w] = v >> b_shift;
+    put(w, v);
   }
   return {b, x, y, t, p};
 }
