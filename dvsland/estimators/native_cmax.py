@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import platform
 import sys
 import warnings
 from pathlib import Path
@@ -83,52 +84,87 @@ std::vector<torch::Tensor> splat_sums(torch::Tensor xc, torch::Tensor yc, torch:
   const float fcx = (float)cx, fcy = (float)cy, uf = (float)unit;
   const float lox = (float)(x_lo - cx), hix = (float)(x_hi - cx), loy = (float)(y_lo - cy), hiy = (float)(y_hi - cy);
   const float xmax = (float)(Wc - 2), ymax = (float)(Hc - 2);
-  at::parallel_for(0, B * G, 1, [&](int64_t lo, int64_t hi) {
-    std::vector<int64_t> canvas(2 * P, 0);
-    int64_t* c0 = canvas.data();
-    for (int64_t job = lo; job < hi; ++job) {
-      const int64_t bi = job / G, g = job % G;
-      if (start[bi] == start[bi + 1]) continue;
-      const float gi = GI[g * B + bi];
-      const float xl = lox * gi, xh = hix * gi, yl = loy * gi, yh = hiy * gi;
-      const float* Sg = S + g * E;
-      int64_t rmin = Hc, rmax = -1;
-      for (int64_t k = start[bi]; k < start[bi + 1]; ++k) {
-        const int64_t e = order[k];
-        const float sc = Sg[e];
-        const float xw = (X[e] - fcx) * sc;
-        const float yw = (Y[e] - fcy) * sc;
-        if (!(xw >= xl && xw <= xh && yw >= yl && yw <= yh)) continue;  // weight 0: adds nothing
-        const float w = W[e];
-        const float xs = xw + fcx, ys = yw + fcy;
-        const float x0 = std::min(std::max(std::floor(xs), 0.0f), xmax);
-        const float y0 = std::min(std::max(std::floor(ys), 0.0f), ymax);
-        const float fx = std::min(std::max(xs - x0, 0.0f), 1.0f);
-        const float fy = std::min(std::max(ys - y0, 0.0f), 1.0f);
-        const float wy1 = w * fy;
-        const float wy0 = w - wy1;
-        const float a = wy0 * fx, c = wy1 * fx;
-        const float w00 = wy0 - a, w10 = wy1 - c;
-        const int64_t q00 = (int64_t)std::nearbyint(w00 * uf), q01 = (int64_t)std::nearbyint(a * uf);
-        const int64_t q10 = (int64_t)std::nearbyint(w10 * uf), q11 = (int64_t)std::nearbyint(c * uf);
-        const int64_t yi = (int64_t)y0;
-        int64_t* px = c0 + Hf[e] * P + yi * Wc + (int64_t)x0;
-        px[0] += q00; px[1] += q01; px[Wc] += q10; px[Wc + 1] += q11;
-        rmin = std::min(rmin, yi); rmax = std::max(rmax, yi + 1);
+  at::parallel_for(0, B, 1, [&](int64_t lo, int64_t hi) {
+    std::vector<int32_t> canvas32(2 * P, 0);
+    std::vector<int64_t> canvas64;
+    std::vector<float> ex, ey, ew, es;
+    std::vector<int64_t> eh, touched;
+    for (int64_t bi = lo; bi < hi; ++bi) {
+      const int64_t n_e = start[bi + 1] - start[bi];
+      if (n_e == 0) continue;
+      // the element's events, contiguous (read G times); an int32 canvas when no pixel can
+      // reach 2^31 (every pixel holds at most the element's whole weight), else int64
+      ex.resize(n_e); ey.resize(n_e); ew.resize(n_e); eh.resize(n_e); es.resize(n_e);
+      double total = 0.0;
+      for (int64_t k = 0; k < n_e; ++k) {
+        const int64_t e = order[start[bi] + k];
+        ex[k] = X[e]; ey[k] = Y[e]; ew[k] = W[e]; eh[k] = Hf[e] * P;
+        total += std::fabs((double)W[e]) * unit + 4.0;
       }
-      if (rmax < 0) continue;
-      int64_t n0 = 0, n1 = 0, s0 = 0, s1 = 0, s01 = 0;
-      int64_t* i0 = c0 + rmin * Wc;
-      int64_t* i1 = c0 + P + rmin * Wc;
-      const int64_t m = (rmax - rmin + 1) * Wc;
-      for (int64_t p = 0; p < m; ++p) {
-        const int64_t u = i0[p], v = i1[p];
-        n0 += u; n1 += v; s0 += u * u; s1 += v * v; s01 += u * v;
+      const bool wide = !(total < 2147483647.0);
+      if (wide && canvas64.empty()) canvas64.assign(2 * P, 0);
+      for (int64_t g = 0; g < G; ++g) {
+        const float* Sg = S + g * E;
+        for (int64_t k = 0; k < n_e; ++k) es[k] = Sg[order[start[bi] + k]];
+        const float gi = GI[g * B + bi];
+        const float xl = lox * gi, xh = hix * gi, yl = loy * gi, yh = hiy * gi;
+        // the sums are kept as the splat goes: adding q to pixel value v of half h (the other half
+        // holding u there) adds q (2 v + q) to sum I_h^2 and q u to sum I0 I1; the touched corners are
+        // cleared afterwards (integers: the same sums as a pass over the finished images)
+        int64_t acc[5] = {0, 0, 0, 0, 0};  // n0, n1, s0, s1, s01
+        touched.clear();
+        for (int64_t k = 0; k < n_e; ++k) {
+          const float sc = es[k];
+          const float xw = (ex[k] - fcx) * sc;
+          const float yw = (ey[k] - fcy) * sc;
+          if (!(xw >= xl && xw <= xh && yw >= yl && yw <= yh)) continue;  // weight 0: adds nothing
+          const float w = ew[k];
+          const float xs = xw + fcx, ys = yw + fcy;
+          const float x0 = std::min(std::max(std::floor(xs), 0.0f), xmax);
+          const float y0 = std::min(std::max(std::floor(ys), 0.0f), ymax);
+          const float fx = std::min(std::max(xs - x0, 0.0f), 1.0f);
+          const float fy = std::min(std::max(ys - y0, 0.0f), 1.0f);
+          const float wy1 = w * fy;
+          const float wy0 = w - wy1;
+          const float a = wy0 * fx, c = wy1 * fx;
+          const float w00 = wy0 - a, w10 = wy1 - c;
+          const int64_t q[4] = {(int64_t)std::nearbyint(w00 * uf), (int64_t)std::nearbyint(a * uf),
+                                (int64_t)std::nearbyint(w10 * uf), (int64_t)std::nearbyint(c * uf)};
+          const int64_t h = eh[k] ? 1 : 0;
+          const int64_t at = eh[k] + (int64_t)y0 * Wc + (int64_t)x0;
+          const int64_t other = at + (h ? -P : P);
+          const int64_t d[4] = {0, 1, Wc, Wc + 1};
+          if (wide) {
+            int64_t* cv = canvas64.data();
+            for (int j = 0; j < 4; ++j) {
+              const int64_t v = cv[at + d[j]], u = cv[other + d[j]];
+              acc[h] += q[j]; acc[2 + h] += q[j] * (2 * v + q[j]); acc[4] += q[j] * u;
+              cv[at + d[j]] = v + q[j];
+            }
+          } else {
+            int32_t* cv = canvas32.data();
+            for (int j = 0; j < 4; ++j) {
+              const int64_t v = cv[at + d[j]], u = cv[other + d[j]];
+              acc[h] += q[j]; acc[2 + h] += q[j] * (2 * v + q[j]); acc[4] += q[j] * u;
+              cv[at + d[j]] = (int32_t)(v + q[j]);
+            }
+          }
+          touched.push_back(at);
+        }
+        for (const int64_t at : touched) {
+          if (wide) {
+            int64_t* cv = canvas64.data() + at;
+            cv[0] = 0; cv[1] = 0; cv[Wc] = 0; cv[Wc + 1] = 0;
+          } else {
+            int32_t* cv = canvas32.data() + at;
+            cv[0] = 0; cv[1] = 0; cv[Wc] = 0; cv[Wc + 1] = 0;
+          }
+        }
+        const int64_t n0 = acc[0], n1 = acc[1], s0 = acc[2], s1 = acc[3], s01 = acc[4];
+        const int64_t j = bi * G + g;
+        N[j * 2] = n0; N[j * 2 + 1] = n1;
+        Sq[j * 3] = s0; Sq[j * 3 + 1] = s1; Sq[j * 3 + 2] = s01;
       }
-      std::fill(i0, i0 + m, 0);
-      std::fill(i1, i1 + m, 0);
-      N[(bi * G + g) * 2] = n0; N[(bi * G + g) * 2 + 1] = n1;
-      Sq[(bi * G + g) * 3] = s0; Sq[(bi * G + g) * 3 + 1] = s1; Sq[(bi * G + g) * 3 + 2] = s01;
     }
   });
   return {n, s};
@@ -192,7 +228,9 @@ torch::Tensor hot_weights(torch::Tensor b, torch::Tensor px, int64_t B, int64_t 
 """
 
 _FUNCTIONS = ["splat_sums", "pixel_counts", "hot_weights"]
-_CFLAGS = ["-O3", "-ffp-contract=off"]
+# SSE4.1 on x86-64 (every x86-64 CPU since about 2008): floor and round-to-nearest-even become one
+# instruction instead of a libm call each (the kernel is about 2x faster); the same IEEE results
+_CFLAGS = ["-O3", "-ffp-contract=off"] + (["-msse4.1"] if platform.machine().lower() in ("x86_64", "amd64") else [])
 _ENV = "DVSLAND_NATIVE_CMAX"
 _ON, _OFF, _AUTO = "on", "off", "auto"
 _module = None
