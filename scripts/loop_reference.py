@@ -5,6 +5,7 @@ SHA-256 of every trace array and the run summaries. ``--write`` stores them in
 ``tests/data/loop_reference.json``; without it the script compares and prints the differences.
 
     python scripts/loop_reference.py --write      # record (from a trusted commit)
+    python scripts/loop_reference.py --write --cases paper_cmax,montecarlo_cmax   # re-record only these
     python scripts/loop_reference.py              # check the working tree against the record
 """
 
@@ -69,8 +70,10 @@ def main(argv=None) -> int:
     names = [c for c in a.cases.split(",") if c]
     got = {name: fly_case(p, e, s, o) for name, p, e, s, o in CASES if not names or name in names}
     if a.write:
-        REF.write_text(json.dumps(got, indent=1, sort_keys=True) + "\n")
-        print(f"wrote {REF} ({len(got)} cases)")
+        # with --cases, only those cases are re-recorded; the others keep their stored reference
+        stored = json.loads(REF.read_text()) if names and REF.exists() else {}
+        REF.write_text(json.dumps({**stored, **got}, indent=1, sort_keys=True) + "\n")
+        print(f"wrote {REF} ({len(got)} cases re-recorded, {len({**stored, **got})} in all)")
         return 0
     ref = json.loads(REF.read_text())
     bad = 0
