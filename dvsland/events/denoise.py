@@ -48,7 +48,7 @@ def _cpu(t: torch.Tensor) -> bool:
 
 
 def _native(t: torch.Tensor) -> bool:
-    """The compiled loops of :mod:`dvsland.events.native` (opt-in, CPU, built)."""
+    """The compiled loops of :mod:`dvsland.events.native` (CPU, where built and not switched off)."""
     return _cpu(t) and native.native_sort_enabled() and native.load() is not None
 
 FILTERS = ("baf", "refractory", "hot_pixel")
@@ -175,7 +175,7 @@ def baf_keep(ev: Events, memory_t_us: torch.Tensor, time_us: float, neighbours: 
     if n == 0:
         return torch.zeros(0, dtype=torch.bool, device=mem.device), memory_t_us.clone()
     window = math.ceil(time_us)  # exact on integers: d < T  <=>  d < ceil(T)
-    if _native(pix):  # the compiled loop over events (opt-in): the same keep mask and memory
+    if _native(pix):  # the compiled loop over events (where built): the same keep mask and memory
         new = mem.clone()
         keep = native.load().baf_keep(pix, ev.x, ev.y, ev.t, new, H, W, window, neighbours)
         return keep, new.view(B, H, W)

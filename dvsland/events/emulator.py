@@ -477,8 +477,8 @@ class EventEmulator:
         """This step's shot-noise events (:func:`pixel_model.draw_shot_noise`, irradiance ``f1``
         (B, H, W) float64): flat pixel indices (N,) int64 and sort keys (N,) int64 (see _KeyLayout),
         both in (b, t, pixel) order, so the keys come sorted (merged into the scene's by the compiled
-        kernels, sorted with them by torch.sort otherwise). On CPU
-        with the compiled kernels, thinned and keyed in one pass (the same events)."""
+        kernels, sorted with them by :func:`_sort_values` otherwise). On CPU with the compiled
+        kernels, thinned and keyed in one pass (the same events)."""
         lay, pmp = self._layout, self.pixel_model
         xb, yb = lay.y_shift - 1, lay.t_shift - lay.y_shift
         if _cpu_fast_path(f1) and native.native_sort_enabled() and native.load() is not None:
