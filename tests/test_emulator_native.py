@@ -19,6 +19,7 @@ def fresh(monkeypatch):
     """No module loaded, no failure recorded, the environment's mode."""
     monkeypatch.setattr(native, "_module", None)
     monkeypatch.setattr(native, "_failed", False)
+    monkeypatch.setattr(native, "_absent", False)
     monkeypatch.setattr(native, "_enabled", None)
     return monkeypatch
 
@@ -42,6 +43,8 @@ def test_auto_without_a_cached_build_never_compiles(fresh):
     fresh.setattr(native, "cached", lambda: False)
     fresh.setattr(native, "build", _no_build)
     assert native.mode() == "auto" and not native.native_sort_enabled() and native.load() is None
+    fresh.setattr(native, "cached", lambda: pytest.fail("looked at the cache again"))
+    assert not native.native_sort_enabled()  # once per process
     frames = smooth_frames(2, 20, 24, 3, omega=0.5)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # silent fallback

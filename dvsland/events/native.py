@@ -22,6 +22,7 @@ compiler (or on any build or load error) the torch path runs, with one warning.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import sys
@@ -303,6 +304,7 @@ _CFLAGS = ["-O3", "-ffp-contract=off"]
 _ON, _OFF, _AUTO = "on", "off", "auto"
 _module = None
 _failed = False
+_absent = False  # auto mode found no cached build in this process (not looked for again)
 #: this process's choice (use_native_sort): True = on, False = off, None = the environment's
 _enabled: Optional[bool] = None
 
@@ -334,8 +336,12 @@ def mode() -> str:
 
 def module_name() -> str:
     """The extension's name: a hash of the source, flags, functions, torch and Python versions."""
-    h = hashlib.sha256("\0".join([_SRC, " ".join(_CFLAGS), " ".join(_FUNCTIONS), torch.__version__,
-                                  sys.version]).encode()).hexdigest()[:16]
+    return _name_for(_SRC, " ".join(_CFLAGS), " ".join(_FUNCTIONS))
+
+
+@functools.lru_cache(maxsize=4)
+def _name_for(src: str, flags: str, functions: str) -> str:
+    h = hashlib.sha256("\0".join([src, flags, functions, torch.__version__, sys.version]).encode()).hexdigest()[:16]
     return f"dvsland_events_native_{h}"
 
 
@@ -369,9 +375,22 @@ def cached() -> bool:
 
 def native_sort_enabled() -> bool:
     """Whether the emulator and the denoiser should use the kernels now: mode on, or auto with the
-    build cached (or already loaded). Never compiles."""
+    build cached (or already loaded). Never compiles. In auto mode the cache is looked at once per
+    process (a build made later by another process is used from the next process on)."""
+    global _absent
     m = mode()
-    return m == _ON or (m == _AUTO and not _failed and (_module is not None or cached()))
+    if m == _ON:
+        return True
+    if m == _OFF or _failed:
+        return False
+    if _module is not None:
+        return True
+    if _absent:
+        return False
+    if cached():
+        return True
+    _absent = True
+    return False
 
 
 def _import_cached():
@@ -400,7 +419,7 @@ def load():
     if _module is not None or _failed:
         return _module
     m = mode()
-    if m == _OFF or (m == _AUTO and not cached()):
+    if m == _OFF or (m == _AUTO and not native_sort_enabled()):
         return None
     try:
         _module = _import_cached() if cached() else build()
