@@ -261,6 +261,10 @@ class TensorBoardLogger:
         self._written_rows = 0
         self._rows: List[dict] = []  # buffered step rows, written every flush_every steps
         self._closed = False
+        # images are converted and PNG-encoded on one background thread (zlib and most numpy work
+        # release the GIL: on a machine with a free core the loop does not wait for them)
+        self._image_pool = None
+        self._image_jobs: list = []
 
     def _wall(self, t_s: float) -> float:
         return self.start_wall + float(t_s)
@@ -349,11 +353,12 @@ class TensorBoardLogger:
         self._rows = []
 
     def _images(self, out) -> None:
+        """Queue the step's frame and event images of every active descent (written by
+        :meth:`_write_images` on the background thread; at most two steps wait)."""
         try:
             diag = out.diagnostics() or {}
         except Exception:  # diagnostics are optional; never break the run for them
             diag = {}
-        row = out.step
         cents = diag.get("centroids")
         cents = cents.detach().cpu().numpy() if isinstance(cents, torch.Tensor) else None
         active = out.active.cpu().numpy()
@@ -363,8 +368,28 @@ class TensorBoardLogger:
         if ev is not None and frames is not None and hasattr(ev, "to_count_image"):
             B, H, W = frames.shape
             counts = ev.to_count_image(B, H, W).detach().cpu().numpy()
-        t_s = row * self.dt_s  # the time of trace row `row` (t = row * dt)
-        step, wall = flight_step(t_s), self._wall(t_s)
+        t_s = out.step * self.dt_s  # the time of trace row `row` (t = row * dt)
+        args = (cents, active, frames, counts, flight_step(t_s), self._wall(t_s))
+        if self._image_pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._image_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dvsland-tb-images")
+        while len(self._image_jobs) >= 2:
+            self._finish_image_job(self._image_jobs.pop(0))
+        self._image_jobs.append(self._image_pool.submit(self._write_images, *args))
+
+    @staticmethod
+    def _finish_image_job(job) -> None:
+        try:
+            job.result()
+        except Exception as exc:  # images are optional; never lose the run over them
+            import warnings
+
+            warnings.warn(f"TensorBoard images not written: {type(exc).__name__}: {exc}")
+
+    def _write_images(self, cents, active, frames, counts, step: int, wall: float) -> None:
+        """Per active descent: ``tracking/n_centroids`` and the images ``images/frame`` and
+        ``images/events`` (centroids drawn as crosses) at ``step``."""
         for b, w in enumerate(self.writers):
             if not active[b]:
                 continue
@@ -422,6 +447,12 @@ class TensorBoardLogger:
         if self._closed:
             return
         try:
+            for job in self._image_jobs:
+                self._finish_image_job(job)
+            self._image_jobs = []
+            if self._image_pool is not None:
+                self._image_pool.shutdown(wait=True)
+                self._image_pool = None
             self._flush_buffered()
             if result is not None:
                 traces = result.traces
