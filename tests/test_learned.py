@@ -284,3 +284,16 @@ def test_davis346_offcentre_zoom_gives_the_divergence():
     late = torch.stack(d[8:])
     assert torch.isfinite(late).all() and (late < 0).all()
     assert ((late + 0.2).abs() / 0.2).median() < 0.35
+
+
+def test_pixel_table_grid_equals_the_mapped_grid():
+    """The look-up path of another camera builds the same grid and canvas counts as the float mapping."""
+    from dvsland.estimators.learned.inputs import camera_map, events_voxel_grid, pixel_cells
+
+    for nw in (8, 4):
+        spec = InputSpec((128, 128), 8, 2, 64.0, nw)
+        cm = camera_map(spec, (346, 260), (140.5, 150.5), 297.3)
+        ev = _events(3, 5000, W=346, H=260, seed=4)
+        a = events_voxel_grid(ev, 0, 100_000, 3, spec, cm)
+        b = events_voxel_grid(ev, 0, 100_000, 3, spec, cm, pixel_cells(cm, spec, (346, 260)))
+        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]) and a[0].abs().sum() > 0

@@ -26,7 +26,7 @@ from ..registry import register_estimator
 from .checkpoint import load_checkpoint
 from .models import VoxelCNN
 from .fast import RingCNN
-from .inputs import DEFAULT_FOV_DEG, InputSpec, camera_map, coord_channels, events_voxel_grid, row_counts
+from .inputs import DEFAULT_FOV_DEG, InputSpec, camera_map, coord_channels, events_voxel_grid, pixel_cells, row_counts
 
 #: the shipped checkpoints (trained by `dvsland train`, commands in docs/learning.md)
 SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"), "spiking": Path(__file__).with_name("learned_spiking.pt")}
@@ -134,6 +134,7 @@ class LearnedEstimator(DivergenceEstimator):
             check_range("estimator.learned.focal_px", focal_px, 1e-3, 1e7)
         self.focal_px = float(focal_px) if focal_px is not None else default_focal_px(self.sensor_size)
         self.cmap = camera_map(self.spec, self.sensor_size, self.principal_point_px, self.focal_px)
+        self.cells = None if self.cmap.identity else pixel_cells(self.cmap, self.spec, self.sensor_size, self.device)
         W0, H0 = self.spec.sensor_size
         self.coords = coord_channels(self.spec, ((W0 - 1) / 2.0, (H0 - 1) / 2.0), self.device)
         #: the CNN on its circular ring (:mod:`.fast`); None for other models (they get the ordered ring)
@@ -153,7 +154,7 @@ class LearnedEstimator(DivergenceEstimator):
         t0 = self._t_prev if self._t_prev is not None and self._t_prev < t_us else t_us - int(round(self.dt_s * 1e6))
         self._t_prev = t_us
         B = self.batch_size
-        grid, on_canvas = events_voxel_grid(events, t0, t_us, B, self.spec, self.cmap)
+        grid, on_canvas = events_voxel_grid(events, t0, t_us, B, self.spec, self.cmap, self.cells)
         n = row_counts(events.b, B) if not self.cmap.identity else on_canvas
         st = self.state
         K, bpw = self.spec.n_windows, self.spec.bins_per_window

@@ -181,10 +181,46 @@ def coord_channels(spec: InputSpec, principal_point_px: Tuple[float, float], dev
     return torch.stack([gx, gy])[None].to(device)
 
 
+class PixelCells(NamedTuple):
+    """``table`` (H W,) int64: the canvas cell (index in the (h, w) grid, row-major) of every camera
+    pixel y W + x, h w for a pixel off the canvas; ``width`` W."""
+
+    table: torch.Tensor
+    width: int
+
+
+def pixel_cells(cmap: CameraMap, spec: InputSpec, sensor_size, device=None) -> PixelCells:
+    """The :class:`PixelCells` of a camera of ``sensor_size`` (W, H) on ``spec``'s canvas: one
+    look-up per event instead of the float mapping of :func:`to_reference`."""
+    W, H = (int(v) for v in sensor_size)
+    ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    xi, yi, keep = to_reference(xs.flatten(), ys.flatten(), cmap, spec)
+    h, w = spec.grid_hw
+    cell = (yi // spec.pool_px) * w + (xi // spec.pool_px)
+    return PixelCells(torch.where(keep, cell, torch.full_like(cell, h * w)).to(device), W)
+
+
+def _grid_by_table(events, frac, batch_size: int, spec: InputSpec, cells: PixelCells):
+    """(grid (B, bins_per_window, h, w) float32, counts (B,) int64 on the canvas) with the look-up
+    ``cells``; one bincount over (row, bin, cell or off-canvas slot, polarity)."""
+    h, w = spec.grid_hw
+    hw1, nb = h * w + 1, spec.bins_per_window
+    base = events.b * (nb * hw1) + cells.table[events.y * cells.width + events.x]
+    if nb > 1:
+        base = base + (frac * nb).long().clamp(0, nb - 1) * hw1
+    c = torch.bincount(base * 2 + (events.p > 0), minlength=batch_size * nb * hw1 * 2)
+    c = c.view(batch_size, nb, hw1, 2)[:, :, :h * w]
+    grid = (c[..., 1] - c[..., 0]).to(torch.float32).view(batch_size, nb, h, w)
+    return grid, c.sum(dim=(1, 2, 3))
+
+
 def events_voxel_grid(events, t0_us: int, t_us: int, batch_size: int, spec: InputSpec,
-                      cmap: Optional[CameraMap] = None):
+                      cmap: Optional[CameraMap] = None, cells: Optional[PixelCells] = None):
     """:func:`voxel_grid` of one :class:`dvsland.events.Events` window (t0_us, t_us], µs int, on
     the reference canvas (``cmap``: the camera's :class:`CameraMap`; None = the identity).
+
+    ``cells``: the camera's :func:`pixel_cells` (a faster path for another camera with inputs of
+    K > 1 windows, the same grid as ``cmap``'s).
 
     Returns:
         (grid (B, spec.bins_per_window, h, w) float32, counts (B,) int64 events on the canvas).
@@ -194,6 +230,8 @@ def events_voxel_grid(events, t0_us: int, t_us: int, batch_size: int, spec: Inpu
     else:
         span = max(int(t_us) - int(t0_us), 1)
         frac = (events.t - int(t0_us)).to(torch.float64).div_(span).to(torch.float32)
+    if cells is not None and spec.n_windows > 1:
+        return _grid_by_table(events, frac, batch_size, spec, cells)
     b, p = events.b, events.p
     if cmap is None or cmap.identity:
         x, y = events.x, events.y
