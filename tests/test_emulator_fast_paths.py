@@ -109,3 +109,13 @@ def test_cpu_sort_is_the_same_with_one_or_more_threads(threads):
         torch.set_num_threads(before)
     ref, _ = _run(frames, dict(shot_noise_rate_hz=50.0))
     assert got == ref and sum(len(e) for e in got) > 0
+
+
+def test_merge_of_sorted_keys_equals_a_sort():
+    from dvsland.events.emulator import _merge_sorted
+
+    g = torch.Generator().manual_seed(2)
+    a = torch.sort(torch.randint(0, 1000, (3_001,), generator=g)).values  # with ties inside and across
+    b = torch.sort(torch.randint(0, 1000, (10_007,), generator=g)).values
+    assert torch.equal(_merge_sorted(a, b), torch.sort(torch.cat((a, b))).values)
+    assert torch.equal(_merge_sorted(a[:0], b), b) and torch.equal(_merge_sorted(a, b[:0]), a)

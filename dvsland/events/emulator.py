@@ -802,6 +802,22 @@ def _nonzero_1d(mask: torch.Tensor) -> torch.Tensor:
     return torch.nonzero(mask).squeeze(1)
 
 
+def _merge_sorted(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Merge two sorted 1-D int64 CPU tensors into one sorted tensor (O(len(a) log len(b)) searches
+    and two scatters instead of a sort of both; equal keys are equal values, so order among them
+    does not matter)."""
+    an, bn = a.numpy(), b.numpy()
+    n = an.size + bn.size
+    pos_a = np.searchsorted(bn, an)
+    pos_a += np.arange(an.size)
+    out = np.empty(n, dtype=np.int64)
+    from_b = np.ones(n, dtype=bool)
+    from_b[pos_a] = False
+    out[pos_a] = an
+    out[from_b] = bn
+    return torch.from_numpy(out)
+
+
 def _sort_values(keys: torch.Tensor) -> torch.Tensor:
     """The int64 keys sorted (a new tensor, or ``keys`` sorted in place). On CPU with one torch
     thread torch.sort (a radix sort: 182 k keys 2.7 against numpy's 8.3 ms of CPU); with more
@@ -883,8 +899,14 @@ class _KeyLayout:
                                                       self.x_mask, self.y_mask, int(t0))
             return Events(b=b, x=x, y=y, t=t, p=p)
         if sorted_keys is not None and sorted_keys.numel():
-            keys = torch.cat((keys, sorted_keys))
-        keys = _sort_values(keys)
+            if _cpu_fast_path(keys) and sorted_keys.numel() > keys.numel():
+                # mostly shot noise (dim scenes): sort the scene's keys and merge (descent frames,
+                # B = 18: 2.4 against 4.8 ms for sorting all); else one sort of all is cheaper
+                keys = _merge_sorted(_sort_values(keys), sorted_keys)
+            else:
+                keys = _sort_values(torch.cat((keys, sorted_keys)))
+        else:
+            keys = _sort_values(keys)
         # in-place where possible: every field is one fresh allocation, b reuses the keys
         if _cpu_fast_path(keys):  # the int64 -> int8 cast keeps the low byte (with the OFF bit)
             p = keys.to(torch.int8).bitwise_and_(1).mul_(-2).add_(1)
