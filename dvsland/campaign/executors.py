@@ -64,6 +64,10 @@ def _watch_parent(parent_pid: int) -> None:
             os._exit(1)
 
 
+class WorkerLostError(RuntimeError):
+    """A pool worker ended without returning (killed: most often by the system's out-of-memory killer)."""
+
+
 def make_pool(workers: int):
     """A spawned process pool of ``workers`` processes that die with this process."""
     import multiprocessing as mp
@@ -103,7 +107,7 @@ def run_local(config: dict, shards: List[dict], workers: int = 1, keep_dirs: Opt
     try:
         futs = [pool.submit(run_shard, config, sh, kd) for sh, kd in zip(shards, keep_dirs)]
         for f in as_completed(futs):
-            yield f.result()
+            yield _result(f)
     except BaseException:
         # Ctrl-C / SIGTERM / a failing shard: stop now. Waiting for the running shards (minutes
         # each) would leave the campaign deaf to the interrupt; finished shards are already on
@@ -112,6 +116,19 @@ def run_local(config: dict, shards: List[dict], workers: int = 1, keep_dirs: Opt
             _stop_pool(pool)
         raise
     pool.shutdown(wait=True)
+
+
+def _result(fut) -> dict:
+    """``fut.result()``, with a worker that died (BrokenProcessPool) as one :class:`WorkerLostError`."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    try:
+        return fut.result()
+    except BrokenProcessPool as exc:
+        raise WorkerLostError("a campaign worker process was killed before finishing its shard (most often by "
+                              "the system's out-of-memory killer: `dmesg | grep -i killed`); finished shards are "
+                              "kept: resume with `dvsland campaign --resume RUN_DIR` and fewer --workers, a smaller --shard-seeds or a lower "
+                              "simulation.max_memory_gb") from exc
 
 
 def run_ray(config: dict, shards: List[dict], workers: Optional[int] = None,

@@ -33,7 +33,7 @@ from dvsland.config import Config
 from dvsland.report.stats import default_group_keys, format_group_table, group_stats
 from dvsland.runs import RunWriteError, deferred_interrupts, make_run_dir
 
-from .executors import EXECUTORS, run_local, run_ray
+from .executors import EXECUTORS, WorkerLostError, run_local, run_ray
 from .plan import CampaignPlan, Shard, auto_shard_seeds, config_digest, make_plan, shard_hash
 
 SHARDS_DIR = "shards"
@@ -334,6 +334,8 @@ def _finish(plan: CampaignPlan, run_dir: Path, fly: dict, session: dict, quiet: 
                            figures=bool(log.get("figures", True)) and status != "interrupted", results=False)
     if not quiet:
         _print_summary(plan, run_dir, runs, groups, by, outputs, status, missing, fly, dpm)
+    if isinstance(exc, WorkerLostError):
+        raise WorkerLostError(str(exc).replace("RUN_DIR", str(run_dir))) from exc
     if exc is not None:
         raise exc
     return CampaignResult(run_dir=run_dir, runs=runs, groups=groups, group_by=by, status=status,

@@ -4,6 +4,8 @@ a Monte Carlo campaign (grid x seeds in shards, merged report with success-rate 
 
 from __future__ import annotations
 
+import sys
+
 from .common import add_config_args, add_sites_arg, add_threads_arg, config_from_args, parse_sites, restrict_sites
 
 
@@ -37,6 +39,7 @@ def register(subparsers) -> None:
 
 def run_campaign_cmd(args) -> int:
     from dvsland.campaign import run_campaign
+    from dvsland.campaign.executors import WorkerLostError
 
     cfg = None
     sites = parse_sites(args.sites)  # before anything is loaded or written
@@ -52,4 +55,7 @@ def run_campaign_cmd(args) -> int:
     except KeyboardInterrupt:
         print("dvsland: campaign interrupted; finished shards are kept: resume with --resume <folder>", flush=True)
         return 130
+    except WorkerLostError as exc:
+        print(f"dvsland: error: {exc}", file=sys.stderr, flush=True)
+        return 1
     return 0 if res.status == "complete" else 1
