@@ -51,3 +51,23 @@ def test_campaign_without_shard_seeds_plans_the_estimated_size(tmp_path):
     plan = CampaignPlan.load(tmp_path / "c")
     assert plan.shard_seeds == 3 == auto_shard_seeds(cfg, 3, 1) and len(plan.shards) == 1
     assert res.status != "complete"  # no shard was flown (max_shards=0)
+
+
+def test_auto_shard_default_budget_is_what_is_free_now(monkeypatch):
+    """max_memory_gb = 0: the budget follows the memory available now, not the machine's total
+    (other jobs on a shared machine); an explicit max_memory_gb is taken as given."""
+    import dvsland.campaign.plan as plan_mod
+
+    cfg = load_config("montecarlo_efference", ["estimator.name=cmax"])
+    monkeypatch.setattr(plan_mod, "available_memory_bytes", lambda: 1e15)
+    roomy = auto_shard_seeds(cfg, 50, 2)
+    monkeypatch.setattr(plan_mod, "available_memory_bytes", lambda: 5.0 * 2 ** 30)
+    tight = auto_shard_seeds(cfg, 50, 2)
+    assert tight < roomy and shard_bytes(cfg, tight) <= 0.8 * 5.0 * 2 ** 30 / 2 < shard_bytes(cfg, tight + 1)
+    assert auto_shard_seeds(_cfg(1e4), 50, 2) == 25  # explicit: not capped by what is free
+
+
+def test_available_memory_is_positive():
+    from dvsland.campaign.plan import available_memory_bytes
+
+    assert available_memory_bytes() > 0

@@ -255,11 +255,27 @@ def shard_bytes(cfg: Config, shard_seeds: int) -> float:
     return estimate_run_bytes(c, len(layout.scene_names), layout.batch_size)
 
 
+def available_memory_bytes() -> float:
+    """Memory the system can give a new process now (``MemAvailable`` of /proc/meminfo), bytes;
+    inf where that cannot be read (not Linux)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
+    return math.inf
+
+
 def auto_shard_seeds(cfg: Config, n_seeds: int, workers: int = 1) -> int:
     """Seeds per shard chosen from the memory estimate: the most seeds (at most
     ``ceil(n_seeds / workers)``, so that every worker gets a shard, and at most
-    :data:`MAX_SHARD_SEEDS`) whose shard fits ``simulation.max_memory_gb`` (0 = 80 % of this
-    machine's memory) divided among the ``workers`` processes that hold a shard each. Finished
+    :data:`MAX_SHARD_SEEDS`) whose shard fits ``simulation.max_memory_gb`` divided among the
+    ``workers`` processes that hold a shard each. At the default ``max_memory_gb = 0`` the budget
+    is 80 % of the memory available now (:func:`available_memory_bytes`), at most 80 % of the
+    machine's: other processes on a shared machine keep theirs (on this 23 GB machine two workers
+    took 14-seed shards of 4-6 GB each while other jobs held 9 GB, and the system killed one). Finished
     descents cost almost nothing (``simulation.compact``), so one large shard per worker wastes
     little on the descents that end first. 1 when not even one seed fits (the plan's memory check
     then names the parts).
@@ -271,7 +287,10 @@ def auto_shard_seeds(cfg: Config, n_seeds: int, workers: int = 1) -> int:
 
     if int(n_seeds) < 1 or int(workers) < 1:
         raise ValueError(f"n_seeds and workers must be >= 1, got {n_seeds} and {workers}")
-    budget = memory_limit_bytes(cfg) / int(workers)
+    budget = memory_limit_bytes(cfg)
+    if not float(getattr(cfg.simulation, "max_memory_gb", 0.0) or 0.0):  # the default: what is free now
+        budget = min(budget, 0.8 * available_memory_bytes())
+    budget /= int(workers)
     lo, hi = 1, min(MAX_SHARD_SEEDS, math.ceil(int(n_seeds) / int(workers)))
     if shard_bytes(cfg, hi) <= budget:
         return hi
