@@ -167,3 +167,24 @@ def test_kernel_hot_pixel_weights_and_counts_equal_torch_path():
         finally:
             native_cmax.use_native_cmax(None)
     assert torch.equal(out[0], out[1]) and bool((out[0] < 1).any())
+
+
+@pytest.mark.parametrize("max_events,seed", [(4000, 0), (300, 2 ** 62 + 12345), (0, 7)])
+def test_kernel_store_thinning_equals_torch_path(max_events, seed):
+    """The events kept at store time (on the sensor, in the batch, hash-thinned per element)."""
+    _need_kernel()
+    g = torch.Generator().manual_seed(11)
+    E = 50000
+    b = torch.randint(-1, 5, (E,), generator=g)  # -1 and 4 (B = 4) are outside the batch
+    x = torch.randint(-2, 34, (E,), generator=g)
+    y = torch.randint(-2, 34, (E,), generator=g)
+    t = torch.randint(0, 10 ** 9, (E,), generator=g)
+    est = get_estimator("cmax", 4, (32, 32), max_events=max_events, seed=seed)
+    out = []
+    for native in (False, True):
+        native_cmax.use_native_cmax(native)
+        try:
+            out.append(est._store_keep(b, x, y, t))
+        finally:
+            native_cmax.use_native_cmax(None)
+    assert torch.equal(out[0], out[1]) and 0 < out[0].numel() < E

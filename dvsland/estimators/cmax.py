@@ -54,7 +54,7 @@ from dvsland.config.schema import CMaxConfig
 
 from .base import DivergenceEstimator, Truth, confidence_from_rel_std
 from . import native_cmax
-from .contrast import event_hash, pixel_counts, split_contrast
+from .contrast import event_hash, pixel_counts, seed_term, split_contrast
 from .registry import register_estimator
 
 _HASH_ONE = float(2 ** 31)
@@ -253,18 +253,10 @@ class CMaxEstimator(DivergenceEstimator):
         dev = self.device
         b, x, y, t = (getattr(events, f).to(dev) for f in ("b", "x", "y", "t"))
         W, H = self.sensor_size
-        ok = (b >= 0) & (b < self.batch_size) & (x >= 0) & (x < W) & (y >= 0) & (y < H)
-        h = event_hash(b, x, y, t, self.seed)
-        if self.max_events > 0:
-            n_per = torch.bincount(torch.where(ok, b, torch.zeros_like(b)), weights=ok.to(torch.float64),
-                                   minlength=self.batch_size)[: self.batch_size]
-            cap = (1.25 * self.max_events / self._steps_per_window()).ceil()
-            p = (cap / n_per.clamp_min(1)).clamp(max=1.0)
-            ok &= (h & 0xFFFF).to(torch.float64) < p[b.clamp(0, self.batch_size - 1)] * 65536.0
-        keep = ok.nonzero().squeeze(1)
+        keep = self._store_keep(b, x, y, t)
         if keep.numel() == 0:
             return
-        b, x, y, t, h = b[keep], x[keep], y[keep], t[keep], h[keep]
+        b, x, y, t = b[keep], x[keep], y[keep], t[keep]
         xy = torch.stack([x, y]).to(torch.float32)
         h2 = event_hash(b, x, y, t, self.seed + 1)
         if self.dither:  # uniform within the pixel: 8 and 7 fresh hash bits
@@ -274,6 +266,28 @@ class CMaxEstimator(DivergenceEstimator):
         key = (h2 & 0xFFFF) | ((y.to(torch.int64) * W + x.to(torch.int64)) << 16)
         start = self._append((b, xy, t, key))
         self._steps.append((start, int(t.max())))
+
+    def _store_keep(self, b, x, y, t) -> torch.Tensor:
+        """(K,) int64 indices of the step's events kept: on the sensor and in the batch, and (with
+        ``max_events``) passing the hash thinning to about 1.25 max_events / (steps per window)
+        per element. The compiled kernel (:mod:`native_cmax`) keeps the same events."""
+        W, H = self.sensor_size
+        B = self.batch_size
+        cap = (1.25 * self.max_events / self._steps_per_window()).ceil() if self.max_events > 0 else \
+            torch.full((B,), float("inf"), dtype=torch.float64, device=b.device)
+        if b.numel() and b.device.type == "cpu" and native_cmax.enabled():
+            mod = native_cmax.load()
+            if mod is not None:
+                i64 = [v.to(torch.int64).contiguous() for v in (b, x, y, t)]
+                return mod.store_select(*i64, cap.to(torch.float64).contiguous(), W, H, seed_term(self.seed))
+        ok = (b >= 0) & (b < B) & (x >= 0) & (x < W) & (y >= 0) & (y < H)
+        if self.max_events > 0:
+            h = event_hash(b, x, y, t, self.seed)
+            n_per = torch.bincount(torch.where(ok, b, torch.zeros_like(b)), weights=ok.to(torch.float64),
+                                   minlength=B)[:B]
+            p = (cap / n_per.clamp_min(1)).clamp(max=1.0)
+            ok &= (h & 0xFFFF).to(torch.float64) < p[b.clamp(0, B - 1)] * 65536.0
+        return ok.nonzero().squeeze(1)
 
     def _empty_buf(self, n: int):
         dev = self.device

@@ -155,6 +155,14 @@ def warped_contrast(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor, dt_s: tor
 
 # ---------------------------------------------------------------------- fast path of ``cmax``
 
+def seed_term(seed: int) -> int:
+    """The seed's term of :func:`event_hash`: any Python int folded to 31 bits (campaign seeds are
+    63-bit; seeds below 2^31 are used as they are), times its multiplier (below 2^62)."""
+    seed = int(seed)
+    seed = (seed ^ (seed >> 31) ^ (seed >> 62)) & 0x7FFFFFFF
+    return seed * 0x3C6EF372
+
+
 def event_hash(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, seed: int = 0) -> torch.Tensor:
     """A pseudo-random 31-bit integer per event from its fields (splitmix64-style mixing).
 
@@ -168,10 +176,8 @@ def event_hash(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Tenso
     Returns:
         (E,) int64 in [0, 2^31).
     """
-    seed = int(seed)
-    seed = (seed ^ (seed >> 31) ^ (seed >> 62)) & 0x7FFFFFFF  # any Python int (campaign seeds are 63-bit)
     h = (b.to(torch.int64) * 0x1F1F1F1F + x.to(torch.int64) * 0x2545F491 + y.to(torch.int64) * 0x9E3779B1
-         + t.to(torch.int64) * 0x6A09E667 + seed * 0x3C6EF372)
+         + t.to(torch.int64) * 0x6A09E667 + seed_term(seed))
     # two rounds of xorshift-multiply (int64 products wrap, which is what a hash wants)
     h = (h ^ (h >> 31)) * 0x7FB5D329728EA185
     h = (h ^ (h >> 27)) * 0x81DADEF4BC2DD44D

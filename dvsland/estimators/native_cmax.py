@@ -41,6 +41,7 @@ _SRC = r"""
 #include <ATen/Parallel.h>
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <vector>
 
 // Per element b and candidate g: n[b,g,h] = sum of the integer corner weights of half h, and
@@ -225,9 +226,50 @@ torch::Tensor hot_weights(torch::Tensor b, torch::Tensor px, int64_t B, int64_t 
   for (int64_t e = 0; e < E; ++e) O[e] = keep[e] ? 1.0f : (float)(mean[Bi[e]] / (double)C[e]);
   return out;
 }
+
+// dvsland.estimators.contrast.event_hash for one event (int64 products wrap as uint64 ones; >> is arithmetic).
+static inline int64_t event_hash1(int64_t b, int64_t x, int64_t y, int64_t t, int64_t seed_term) {
+  uint64_t u = (uint64_t)b * 0x1F1F1F1FULL + (uint64_t)x * 0x2545F491ULL + (uint64_t)y * 0x9E3779B1ULL +
+               (uint64_t)t * 0x6A09E667ULL + (uint64_t)seed_term;
+  int64_t h = (int64_t)u;
+  h = (int64_t)((uint64_t)(h ^ (h >> 31)) * 0x7FB5D329728EA185ULL);
+  h = (int64_t)((uint64_t)(h ^ (h >> 27)) * 0x81DADEF4BC2DD44DULL);
+  h = h ^ (h >> 33);
+  return h & 0x7FFFFFFF;
+}
+
+// cmax's store thinning (CMaxEstimator._store_step, the torch path): the indices of the events on the sensor
+// and in the batch whose hash (seed_term = folded seed * 0x3C6EF372) passes (h & 0xFFFF) < p[b] 65536 with
+// p = min(cap[b] / max(n[b], 1), 1), n[b] the element's events on the sensor (float64, as bincount).
+torch::Tensor store_select(torch::Tensor b, torch::Tensor x, torch::Tensor y, torch::Tensor t, torch::Tensor cap,
+                           int64_t W, int64_t H, int64_t seed_term) {
+  auto i64 = torch::kInt64;
+  TORCH_CHECK(b.is_contiguous() && x.is_contiguous() && y.is_contiguous() && t.is_contiguous() &&
+              b.scalar_type() == i64 && x.scalar_type() == i64 && y.scalar_type() == i64 && t.scalar_type() == i64,
+              "store_select: b, x, y, t contiguous int64");
+  TORCH_CHECK(cap.is_contiguous() && cap.scalar_type() == torch::kFloat64, "store_select: cap contiguous float64 (B,)");
+  const int64_t E = b.numel(), B = cap.numel();
+  const int64_t *Bi = b.data_ptr<int64_t>(), *X = x.data_ptr<int64_t>(), *Y = y.data_ptr<int64_t>(),
+                *T = t.data_ptr<int64_t>();
+  const double* C = cap.data_ptr<double>();
+  std::vector<double> n(B, 0.0), p(B);
+  for (int64_t e = 0; e < E; ++e)
+    if (Bi[e] >= 0 && Bi[e] < B && X[e] >= 0 && X[e] < W && Y[e] >= 0 && Y[e] < H) n[Bi[e]] += 1.0;
+  for (int64_t i = 0; i < B; ++i) p[i] = std::min(C[i] / std::max(n[i], 1.0), 1.0);
+  std::vector<int64_t> keep;
+  keep.reserve(size_t(E));
+  for (int64_t e = 0; e < E; ++e) {
+    if (!(Bi[e] >= 0 && Bi[e] < B && X[e] >= 0 && X[e] < W && Y[e] >= 0 && Y[e] < H)) continue;
+    const int64_t h = event_hash1(Bi[e], X[e], Y[e], T[e], seed_term);
+    if ((double)(h & 0xFFFF) < p[Bi[e]] * 65536.0) keep.push_back(e);
+  }
+  auto out = torch::empty({(int64_t)keep.size()}, i64);
+  if (!keep.empty()) std::memcpy(out.data_ptr<int64_t>(), keep.data(), keep.size() * sizeof(int64_t));
+  return out;
+}
 """
 
-_FUNCTIONS = ["splat_sums", "pixel_counts", "hot_weights"]
+_FUNCTIONS = ["splat_sums", "pixel_counts", "hot_weights", "store_select"]
 # SSE4.1 on x86-64 (every x86-64 CPU since about 2008): floor and round-to-nearest-even become one
 # instruction instead of a libm call each (the kernel is about 2x faster); the same IEEE results
 _CFLAGS = ["-O3", "-ffp-contract=off"] + (["-msse4.1"] if platform.machine().lower() in ("x86_64", "amd64") else [])
