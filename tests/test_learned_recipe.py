@@ -163,3 +163,29 @@ def _window(w, r: int, k: int):
     order = torch.argsort(t, stable=True)
     return Events(b=torch.zeros(b - a, dtype=torch.long), x=w.x[a:b].long()[order], y=w.y[a:b].long()[order],
                   t=t[order], p=w.p[a:b][order])
+
+
+@pytest.mark.slow
+def test_mixed_cameras_train_on_one_canvas_and_resume_on_other_data_fine_tunes(data, tmp_path):
+    """A dataset of another camera (96 x 80, principal point off the centre) joins the DVS128 one on
+    the first folder's canvas; --resume of a checkpoint on other data fine-tunes it (fresh epochs
+    and optimizer, old history kept, the old data recorded)."""
+    from dvsland.learn.recipe import input_spec, load_split
+
+    other = tmp_path / "oc"
+    build_dataset("montecarlo_efference", out=other, n_seeds=2, sites="A", shard_size=2, quiet=True,
+                  overrides=SETS + ["camera.width_px=96", "camera.height_px=80",
+                                    "camera.principal_point_px=[40.5, 45.5]", "simulation.seed_offset=1"])
+    both = f"{data},{other}"
+    spec = input_spec(both, RecipeSettings(**FAST))
+    assert spec.sensor_size == (128, 128)
+    w, w0 = load_split(both, "train", spec), load_split(data, "train")
+    assert w.n_samples > w0.n_samples and w.sensor_size == (128, 128)
+    assert int(w.x.min()) >= 0 and int(w.x.max()) < 128 and int(w.y.max()) < 128
+    assert torch.equal(w.x[:len(w0.x)], w0.x)  # the reference camera's events as they were
+    quiet = dict(progress=False, log=lambda *a: None)
+    base = train(data, tmp_path / "m.pt", RecipeSettings(**FAST), **quiet)
+    ft = train(both, tmp_path / "m.pt", RecipeSettings(**{**FAST, "epochs": 1, "lr": 1e-3}), resume=True, **quiet)
+    assert ft["epoch"] == 1 and len(ft["history"]) == 3
+    assert ft["data"]["finetuned_from"]["config_hash"] == base["data"]["config_hash"]
+    assert "+" in ft["data"]["config_hash"]

@@ -55,6 +55,8 @@ class RingCNN(nn.Module):
             self.w_vox = self.w_vox.to(dtype)
             self.const = self.const.to(dtype).contiguous(memory_format=torch.channels_last)
         self.head = net.head
+        # the first layer's vox weights for each position of the newest slot (K small tensors)
+        self.w_by_newest = [self.w_vox[:, (torch.arange(K) - q - 1) % K].flatten(1, 2).contiguous() for q in range(K)]
 
     def forward(self, ring: torch.Tensor, abs_sums: torch.Tensor, newest: int,
                 log_count: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -67,8 +69,7 @@ class RingCNN(nn.Module):
             log_count: (B,) float32.
         """
         B, nb, h, w = ring.shape
-        age = (torch.arange(self.K) - int(newest) - 1) % self.K  # slot q holds the window of logical position age[q]
-        wq = self.w_vox[:, age.to(self.w_vox.device)].flatten(1, 2)
+        wq = self.w_by_newest[int(newest)]  # [:, slot q] = the weights of the window's age (q - newest - 1) mod K
         s = (abs_sums.sum(1) / float(nb * h * w)).clamp_min(1e-3)
         if self.dtype != torch.float32:
             ring = ring.to(self.dtype).contiguous(memory_format=torch.channels_last)
