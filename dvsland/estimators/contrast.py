@@ -266,7 +266,8 @@ def _splat_sums(xc, yc, b, half, scale, ginv_t, wt, centre_xy, sensor_box, Hc: i
         mod = native_cmax.load() if (native or native_cmax.enabled()) else None
         if mod is not None:
             x_lo, x_hi, y_lo, y_hi = sensor_box
-            n, s = mod.splat_sums(xc.contiguous(), yc.contiguous(), b.contiguous(), half.contiguous(),
+            n, s = mod.splat_sums(xc.contiguous(), yc.contiguous(), b.to(torch.int64).contiguous(),
+                                  half.to(torch.int64).contiguous(),
                                   scale.contiguous(), ginv_t, wt.contiguous(), float(centre_xy[0]),
                                   float(centre_xy[1]), float(x_lo), float(x_hi), float(y_lo), float(y_hi), Hc, Wc,
                                   WEIGHT_UNIT)
@@ -331,6 +332,7 @@ def pixel_counts(b: torch.Tensor, px: torch.Tensor, n_elements: int, n_px: int,
 
         mod = native_cmax.load() if (native or native_cmax.enabled()) else None
         if mod is not None:
-            return mod.pixel_counts(b.contiguous(), px.contiguous(), int(n_elements), int(n_px))
+            return mod.pixel_counts(b.to(torch.int64).contiguous(), px.to(torch.int64).contiguous(), int(n_elements),
+                                    int(n_px))
     cell = b * int(n_px) + px
     return torch.bincount(cell, minlength=int(n_elements) * int(n_px))[cell]

@@ -70,7 +70,7 @@ std::vector<torch::Tensor> splat_sums(torch::Tensor xc, torch::Tensor yc, torch:
   const int64_t* Hf = half.data_ptr<int64_t>();
   std::vector<int64_t> start(B + 1, 0), order(E);
   for (int64_t e = 0; e < E; ++e) {
-    TORCH_CHECK(Bi[e] >= 0 && Bi[e] < B, "splat_sums: b out of range");
+    TORCH_CHECK(Bi[e] >= 0 && Bi[e] < B && (Hf[e] == 0 || Hf[e] == 1), "splat_sums: b out of [0, B) or half not 0/1");
     start[Bi[e] + 1]++;
   }
   for (int64_t i = 0; i < B; ++i) start[i + 1] += start[i];
