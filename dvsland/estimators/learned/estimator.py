@@ -39,7 +39,9 @@ class LearnedState(NamedTuple):
     (slot q = bins q bpw .. (q + 1) bpw - 1; slot ``newest`` the latest, newest + 1 mod K the
     oldest: :func:`ordered_ring` gives them oldest first), ``ring_counts`` (B, n_windows) int64
     their events on the reference canvas, ``ring_abs`` (B, n_windows) float32 their sums of
-    |value|, ``newest`` the slot of the latest window (an int, the same for every row)."""
+    |value|, ``newest`` the slot of the latest window (an int, the same for every row). ``update``
+    writes the new window into ``ring`` in place (a state kept from before sees it too); the other
+    tensors are new each update."""
 
     d: torch.Tensor
     sigma_rel: torch.Tensor
