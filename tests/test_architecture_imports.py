@@ -32,6 +32,7 @@ DOC = REPO / "docs" / "architecture.md"
 LAYERS: Tuple[str, ...] = (
     "dvsland._version",
     "dvsland.checks",       # argument checks
+    "dvsland.native_build", # the build cache of the optional compiled kernels
     "dvsland.plugins",      # the registry mechanism of every extension point
     "dvsland.config",       # typed config, YAML, validation: imports no stage
     "dvsland.layout",       # the batch layout of B descents and its dispersion draws

@@ -22,15 +22,14 @@ compiler (or on any build or load error) the torch path runs, with one warning.
 
 from __future__ import annotations
 
-import functools
-import hashlib
-import os
-import sys
 import warnings
 from pathlib import Path
 from typing import Optional
 
 import torch
+
+from dvsland.native_build import (AUTO, OFF, ON, build_extension, extension_cached, extension_dir, extension_name,
+                                  import_extension, mode_from_env)
 
 _SRC = r"""
 #include <torch/extension.h>
@@ -301,7 +300,7 @@ torch::Tensor pixel_events(torch::Tensor l1_t, torch::Tensor lref_t, torch::Tens
 _FUNCTIONS = ["radix_sort_", "pixel_events", "sort_decode", "shot_keys", "baf_keep", "refractory_keep"]
 _CFLAGS = ["-O3", "-ffp-contract=off"]
 
-_ON, _OFF, _AUTO = "on", "off", "auto"
+_ON, _OFF, _AUTO = ON, OFF, AUTO
 _module = None
 _failed = False
 _absent = False  # auto mode found no cached build in this process (not looked for again)
@@ -322,55 +321,22 @@ def mode() -> str:
     Raises:
         ValueError naming ``DVSLAND_NATIVE_SORT`` when it holds another word.
     """
-    if _enabled is not None:
-        return _ON if _enabled else _OFF
-    v = os.environ.get("DVSLAND_NATIVE_SORT", "").strip().lower()
-    if v in ("", _AUTO):
-        return _AUTO
-    if v in ("1", "on", "true", "yes"):
-        return _ON
-    if v in ("0", "off", "false", "no"):
-        return _OFF
-    raise ValueError(f"DVSLAND_NATIVE_SORT must be auto, 1/on/true/yes or 0/off/false/no, got {v!r}")
+    return mode_from_env("DVSLAND_NATIVE_SORT", _enabled)
 
 
 def module_name() -> str:
     """The extension's name: a hash of the source, flags, functions, torch and Python versions."""
-    return _name_for(_SRC, " ".join(_CFLAGS), " ".join(_FUNCTIONS))
-
-
-@functools.lru_cache(maxsize=4)
-def _name_for(src: str, flags: str, functions: str) -> str:
-    h = hashlib.sha256("\0".join([src, flags, functions, torch.__version__, sys.version]).encode()).hexdigest()[:16]
-    return f"dvsland_events_native_{h}"
+    return extension_name("dvsland_events_native", _SRC, " ".join(_CFLAGS), " ".join(_FUNCTIONS))
 
 
 def build_dir() -> Path:
     """The folder of the build (torch's extension folder, ``TORCH_EXTENSIONS_DIR`` if set)."""
-    root = os.environ.get("TORCH_EXTENSIONS_DIR")
-    if root is None:
-        from torch.utils.cpp_extension import get_default_build_root
-
-        acc = "cpu" if torch.version.cuda is None else f"cu{torch.version.cuda.replace('.', '')}"
-        if getattr(torch.version, "hip", None):
-            acc = f"rocm{torch.version.hip.replace('.', '')}"
-        py = f"py{sys.version_info.major}{sys.version_info.minor}{getattr(sys, 'abiflags', '')}"
-        root = os.path.join(get_default_build_root(), f"{py}_{acc}")
-    return Path(root) / module_name()
-
-
-def _library() -> Path:
-    from torch.utils.cpp_extension import LIB_EXT
-
-    return build_dir() / f"{module_name()}{LIB_EXT}"
+    return extension_dir(module_name())
 
 
 def cached() -> bool:
     """Whether the build of this exact source is in the cache (so auto mode uses it)."""
-    try:
-        return _library().is_file()
-    except Exception:  # no home folder, ...
-        return False
+    return extension_cached(module_name())
 
 
 def native_sort_enabled() -> bool:
@@ -393,23 +359,9 @@ def native_sort_enabled() -> bool:
     return False
 
 
-def _import_cached():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(module_name(), str(_library()))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def build(verbose: bool = False):
     """Compile (when not cached) and load the kernels; the module. Raises on any build error."""
-    from torch.utils.cpp_extension import load_inline
-
-    d = build_dir()
-    d.mkdir(parents=True, exist_ok=True)
-    return load_inline(module_name(), cpp_sources=_SRC, functions=_FUNCTIONS, extra_cflags=_CFLAGS,
-                       build_directory=str(d), verbose=verbose)
+    return build_extension(module_name(), _SRC, _FUNCTIONS, _CFLAGS, verbose)
 
 
 def load():
@@ -422,7 +374,7 @@ def load():
     if m == _OFF or (m == _AUTO and not native_sort_enabled()):
         return None
     try:
-        _module = _import_cached() if cached() else build()
+        _module = import_extension(module_name()) if cached() else build()
     except Exception as exc:  # no compiler, no headers, a broken cache entry, ...: the torch path stays
         _failed = True
         warnings.warn(f"dvsland.events.native: the compiled kernels could not be built or loaded ({exc}); "

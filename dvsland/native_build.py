@@ -1,0 +1,102 @@
+"""The build cache of dvsland's optional compiled kernels (the emulator's, ``cmax``'s).
+
+Each kernel module (:mod:`dvsland.events.native`, :mod:`dvsland.estimators.native_cmax`) keeps its
+own C++ source and its process state; this module holds what they share: the mode word read from
+an environment variable, the extension's name (a hash of source, flags, functions, torch and
+Python versions, so a stale build is never loaded), its folder in torch's extension cache, the
+import of a cached build and the compile. Nothing here compiles unless :func:`build_extension` is
+called.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import sys
+from pathlib import Path
+from typing import List, Optional
+
+ON, OFF, AUTO = "on", "off", "auto"
+
+
+def mode_from_env(env_var: str, chosen: Optional[bool]) -> str:
+    """``"on"``, ``"off"`` or ``"auto"``: the process's ``chosen`` mode (True / False), else the
+    environment variable ``env_var`` (empty or unset = auto).
+
+    Raises:
+        ValueError naming ``env_var`` when it holds another word.
+    """
+    if chosen is not None:
+        return ON if chosen else OFF
+    v = os.environ.get(env_var, "").strip().lower()
+    if v in ("", AUTO):
+        return AUTO
+    if v in ("1", "on", "true", "yes"):
+        return ON
+    if v in ("0", "off", "false", "no"):
+        return OFF
+    raise ValueError(f"{env_var} must be auto, 1/on/true/yes or 0/off/false/no, got {v!r}")
+
+
+@functools.lru_cache(maxsize=8)
+def extension_name(prefix: str, src: str, flags: str, functions: str) -> str:
+    """``{prefix}_{hash}``: 16 hex digits of the SHA-256 of source, flags, functions, torch and Python."""
+    import torch
+
+    h = hashlib.sha256("\0".join([src, flags, functions, torch.__version__, sys.version]).encode()).hexdigest()[:16]
+    return f"{prefix}_{h}"
+
+
+def extension_dir(name: str) -> Path:
+    """The build folder of extension ``name`` (torch's extension folder, ``TORCH_EXTENSIONS_DIR`` if set)."""
+    root = os.environ.get("TORCH_EXTENSIONS_DIR")
+    if root is None:
+        import torch
+        from torch.utils.cpp_extension import get_default_build_root
+
+        acc = "cpu" if torch.version.cuda is None else f"cu{torch.version.cuda.replace('.', '')}"
+        if getattr(torch.version, "hip", None):
+            acc = f"rocm{torch.version.hip.replace('.', '')}"
+        py = f"py{sys.version_info.major}{sys.version_info.minor}{getattr(sys, 'abiflags', '')}"
+        root = os.path.join(get_default_build_root(), f"{py}_{acc}")
+    return Path(root) / name
+
+
+def extension_library(name: str) -> Path:
+    """The shared library a build of ``name`` leaves in :func:`extension_dir`."""
+    from torch.utils.cpp_extension import LIB_EXT
+
+    return extension_dir(name) / f"{name}{LIB_EXT}"
+
+
+def extension_cached(name: str) -> bool:
+    """Whether the build of ``name`` (this exact source) is in the cache."""
+    try:
+        return extension_library(name).is_file()
+    except Exception:  # no home folder, ...
+        return False
+
+
+def import_extension(name: str):
+    """Import the cached build of ``name`` (no compiler involved)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, str(extension_library(name)))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def build_extension(name: str, src: str, functions: List[str], cflags: List[str], verbose: bool = False):
+    """Compile (when not cached) and load extension ``name``; the module. Raises on any build error."""
+    from torch.utils.cpp_extension import load_inline
+
+    d = extension_dir(name)
+    d.mkdir(parents=True, exist_ok=True)
+    return load_inline(name, cpp_sources=src, functions=functions, extra_cflags=cflags,
+                       build_directory=str(d), verbose=verbose)
+
+
+__all__ = ["ON", "OFF", "AUTO", "mode_from_env", "extension_name", "extension_dir", "extension_library",
+           "extension_cached", "import_extension", "build_extension"]
