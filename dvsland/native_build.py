@@ -98,5 +98,27 @@ def build_extension(name: str, src: str, functions: List[str], cflags: List[str]
                        build_directory=str(d), verbose=verbose)
 
 
-__all__ = ["ON", "OFF", "AUTO", "mode_from_env", "extension_name", "extension_dir", "extension_library",
+def timed_build(label: str, kernel_module) -> int:
+    """Build ``kernel_module``'s extension (a module with ``cached()``, ``build()`` and ``build_dir()``)
+    and print whether it was already cached, the wall and CPU time (the compiler's included) and the
+    folder; 0, or 1 with the error on stderr when it cannot be built."""
+    import resource
+    import time
+
+    was = kernel_module.cached()
+    w0 = time.perf_counter()
+    r0 = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    try:
+        kernel_module.build()
+    except Exception as exc:
+        print(f"could not build {label}: {exc}", file=sys.stderr)
+        return 1
+    r1 = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = sum(b.ru_utime + b.ru_stime - a.ru_utime - a.ru_stime for a, b in zip(r0, r1))
+    print(f"{label}: {'already cached' if was else 'built'} in {time.perf_counter() - w0:.1f} s wall, "
+          f"{cpu:.1f} s CPU (compiler included): {kernel_module.build_dir()}")
+    return 0
+
+
+__all__ = ["timed_build", "ON", "OFF", "AUTO", "mode_from_env", "extension_name", "extension_dir", "extension_library",
            "extension_cached", "import_extension", "build_extension"]

@@ -157,3 +157,24 @@ def test_native_kernel_respects_the_event_cap(fresh):
     emu.reset(frames[0], 0)
     with pytest.raises(ValueError, match="max_events_per_step"):
         emu.step(frames[1], 100_000)
+
+
+def test_cli_build_native_builds_both_kernels_and_reports(monkeypatch, capsys):
+    """`dvsland build-native` builds the emulator's and cmax's kernels (compile mocked here) and
+    returns 1 when one cannot be built, naming it."""
+    from dvsland.cli.main import main
+    from dvsland.estimators import native_cmax
+
+    built = []
+    monkeypatch.setattr(native, "build", lambda verbose=False: built.append("events"))
+    monkeypatch.setattr(native_cmax, "build", lambda verbose=False: built.append("cmax"))
+    assert main(["build-native"]) == 0 and built == ["events", "cmax"]
+    out = capsys.readouterr().out
+    assert "dvsland.events.native" in out and "dvsland.estimators.native_cmax" in out
+
+    def broken(verbose=False):
+        raise RuntimeError("no compiler")
+
+    monkeypatch.setattr(native_cmax, "build", broken)
+    assert main(["build-native"]) == 1
+    assert "could not build the cmax kernel" in capsys.readouterr().err
