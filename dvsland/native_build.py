@@ -98,6 +98,21 @@ def build_extension(name: str, src: str, functions: List[str], cflags: List[str]
                        build_directory=str(d), verbose=verbose)
 
 
+def load_or_warn(name: str, cached: bool, build, label: str):
+    """The cached build of ``name`` imported (``cached``: the caller's word that it is there), else
+    ``build()``'s module; None, with one
+    RuntimeWarning naming ``label``, when either fails (no compiler, no headers, a broken cache
+    entry, ...): the caller keeps its torch path."""
+    import warnings
+
+    try:
+        return import_extension(name) if cached else build()
+    except Exception as exc:
+        warnings.warn(f"{label}: the compiled kernels could not be built or loaded ({exc}); using the torch path",
+                      RuntimeWarning)
+        return None
+
+
 def timed_build(label: str, kernel_module) -> int:
     """Build ``kernel_module``'s extension (a module with ``cached()``, ``build()`` and ``build_dir()``)
     and print whether it was already cached, the wall and CPU time (the compiler's included) and the
@@ -120,5 +135,5 @@ def timed_build(label: str, kernel_module) -> int:
     return 0
 
 
-__all__ = ["timed_build", "ON", "OFF", "AUTO", "mode_from_env", "extension_name", "extension_dir", "extension_library",
+__all__ = ["load_or_warn", "timed_build", "ON", "OFF", "AUTO", "mode_from_env", "extension_name", "extension_dir", "extension_library",
            "extension_cached", "import_extension", "build_extension"]

@@ -22,14 +22,13 @@ compiler (or on any build or load error) the torch path runs, with one warning.
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 from typing import Optional
 
 import torch
 
 from dvsland.native_build import (AUTO, OFF, ON, build_extension, extension_cached, extension_dir, extension_name,
-                                  import_extension, mode_from_env)
+                                  load_or_warn, mode_from_env)
 
 _SRC = r"""
 #include <torch/extension.h>
@@ -373,12 +372,8 @@ def load():
     m = mode()
     if m == _OFF or (m == _AUTO and not native_sort_enabled()):
         return None
-    try:
-        _module = import_extension(module_name()) if cached() else build()
-    except Exception as exc:  # no compiler, no headers, a broken cache entry, ...: the torch path stays
-        _failed = True
-        warnings.warn(f"dvsland.events.native: the compiled kernels could not be built or loaded ({exc}); "
-                      f"using the torch path", RuntimeWarning)
+    _module = load_or_warn(module_name(), cached(), build, "dvsland.events.native")
+    _failed = _module is None
     return _module
 
 
