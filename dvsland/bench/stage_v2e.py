@@ -68,11 +68,9 @@ def main(argv=None) -> int:
     if v2e_dir is None:
         res["v2e_error"] = f"no v2e folder at {args.v2e_dir}"
     noise = {}
-    saved = native._enabled
     for path in ([] if args.no_noise else list(res["paths"])):
-        native.use_native_sort(path == "compiled")
-        noise[path] = bench_noise(frames, threads=args.threads)
-    native._enabled = saved
+        with native.native_sort_mode(path == "compiled"):
+            noise[path] = bench_noise(frames, threads=args.threads)
     try:
         load = os.getloadavg()
     except OSError:

@@ -275,11 +275,10 @@ class CMaxEstimator(DivergenceEstimator):
         B = self.batch_size
         cap = (1.25 * self.max_events / self._steps_per_window()).ceil() if self.max_events > 0 else \
             torch.full((B,), float("inf"), dtype=torch.float64, device=b.device)
-        if b.numel() and b.device.type == "cpu" and native_cmax.enabled():
-            mod = native_cmax.load()
-            if mod is not None:
-                i64 = [v.to(torch.int64).contiguous() for v in (b, x, y, t)]
-                return mod.store_select(*i64, cap.to(torch.float64).contiguous(), W, H, seed_term(self.seed))
+        mod = native_cmax.kernel_for(b) if b.numel() else None
+        if mod is not None:
+            i64 = [v.to(torch.int64).contiguous() for v in (b, x, y, t)]
+            return mod.store_select(*i64, cap.to(torch.float64).contiguous(), W, H, seed_term(self.seed))
         ok = (b >= 0) & (b < B) & (x >= 0) & (x < W) & (y >= 0) & (y < H)
         if self.max_events > 0:
             h = event_hash(b, x, y, t, self.seed)
@@ -538,10 +537,9 @@ class CMaxEstimator(DivergenceEstimator):
         y W + x of each event. The compiled kernel (:mod:`native_cmax`) gives the same weights."""
         W, H = self.sensor_size
         B = self.batch_size
-        if b.numel() and b.device.type == "cpu" and native_cmax.enabled():
-            mod = native_cmax.load()
-            if mod is not None:
-                return mod.hot_weights(b.contiguous(), pix.contiguous(), B, H * W, self.hot_pixel_factor)
+        mod = native_cmax.kernel_for(b) if b.numel() else None
+        if mod is not None:
+            return mod.hot_weights(b.contiguous(), pix.contiguous(), B, H * W, self.hot_pixel_factor)
         c = pixel_counts(b, pix, B, H * W, native=False).to(torch.float64)  # (E,) events at its pixel
         mean = torch.zeros(B, dtype=torch.float64, device=c.device)
         keep = torch.ones_like(c, dtype=torch.bool)

@@ -19,6 +19,8 @@ from typing import Optional, Tuple
 import torch
 import torch.nn.functional as F
 
+from . import native_cmax
+
 
 def radial_warp(x: torch.Tensor, y: torch.Tensor, dt_s: torch.Tensor, candidates: torch.Tensor,
                 centre_xy: Tuple[float, float]) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -260,18 +262,13 @@ def split_contrast(xc: torch.Tensor, yc: torch.Tensor, b: torch.Tensor, half: to
 def _splat_sums(xc, yc, b, half, scale, ginv_t, wt, centre_xy, sensor_box, Hc: int, Wc: int, native):
     """(n (B, G, 2), s (B, G, 3)) int64: per element, candidate and half the summed integer corner
     weights, and sum I0^2, sum I1^2, sum I0 I1 over the pixels (weights in 1 / WEIGHT_UNIT)."""
-    if native is not False and xc.device.type == "cpu":
-        from . import native_cmax
-
-        mod = native_cmax.load() if (native or native_cmax.enabled()) else None
-        if mod is not None:
-            x_lo, x_hi, y_lo, y_hi = sensor_box
-            n, s = mod.splat_sums(xc.contiguous(), yc.contiguous(), b.to(torch.int64).contiguous(),
-                                  half.to(torch.int64).contiguous(),
-                                  scale.contiguous(), ginv_t, wt.contiguous(), float(centre_xy[0]),
-                                  float(centre_xy[1]), float(x_lo), float(x_hi), float(y_lo), float(y_hi), Hc, Wc,
-                                  WEIGHT_UNIT)
-            return n, s
+    mod = native_cmax.kernel_for(xc, native)
+    if mod is not None:
+        x_lo, x_hi, y_lo, y_hi = sensor_box
+        return mod.splat_sums(xc.contiguous(), yc.contiguous(), b.to(torch.int64).contiguous(),
+                              half.to(torch.int64).contiguous(), scale.contiguous(), ginv_t, wt.contiguous(),
+                              float(centre_xy[0]), float(centre_xy[1]), float(x_lo), float(x_hi), float(y_lo),
+                              float(y_hi), Hc, Wc, WEIGHT_UNIT)
     G = scale.shape[0]
     B = ginv_t.shape[1]
     chunk = max(1, min(G, _CANVAS_MAX // max(B * 2 * Hc * Wc, 1)))
@@ -327,12 +324,9 @@ def pixel_counts(b: torch.Tensor, px: torch.Tensor, n_elements: int, n_px: int,
     Returns:
         (E,) int64 counts (the same on both paths).
     """
-    if b.numel() and native is not False and b.device.type == "cpu":
-        from . import native_cmax
-
-        mod = native_cmax.load() if (native or native_cmax.enabled()) else None
-        if mod is not None:
-            return mod.pixel_counts(b.to(torch.int64).contiguous(), px.to(torch.int64).contiguous(), int(n_elements),
-                                    int(n_px))
+    mod = native_cmax.kernel_for(b, native) if b.numel() else None
+    if mod is not None:
+        return mod.pixel_counts(b.to(torch.int64).contiguous(), px.to(torch.int64).contiguous(), int(n_elements),
+                                int(n_px))
     cell = b * int(n_px) + px
     return torch.bincount(cell, minlength=int(n_elements) * int(n_px))[cell]

@@ -317,6 +317,15 @@ def enabled() -> bool:
     return m == _ON or (m == _AUTO and not _failed and (_module is not None or cached()))
 
 
+def kernel_for(t: torch.Tensor, native: Optional[bool] = None):
+    """The compiled module for work on ``t``'s device, or None for the torch path: CPU tensors only;
+    ``native`` None = where :func:`enabled` (never compiles in auto mode), True = :func:`load` it
+    whatever the mode says, False = never."""
+    if native is False or t.device.type != "cpu":
+        return None
+    return load() if (native or enabled()) else None
+
+
 def build(verbose: bool = False):
     """Compile (when not cached) and load the kernel; the module. Raises on any build error."""
     return build_extension(module_name(), _SRC, _FUNCTIONS, _CFLAGS, verbose)
@@ -336,4 +345,4 @@ def load():
     return _module
 
 
-__all__ = ["use_native_cmax", "enabled", "mode", "cached", "build", "build_dir", "module_name", "load"]
+__all__ = ["use_native_cmax", "enabled", "kernel_for", "mode", "cached", "build", "build_dir", "module_name", "load"]

@@ -213,15 +213,11 @@ def bench_vs_v2e(frames: torch.Tensor, v2e_dir=None, threshold: float = 0.1, ref
         return EventEmulator(threshold=threshold, refractory_us=refractory_us, log_eps=log_eps)
 
     counts_dvs: list = []
-    saved = native._enabled
-    try:
-        for path in _paths():
-            native.use_native_sort(path == "compiled")
+    for path in _paths():
+        with native.native_sort_mode(path == "compiled"):
             out["paths"][path] = {
                 "per_stream": _time_dvsland(frames, make, True, warmup, counts=counts_dvs if path == "torch" else None),
                 "batched": _time_dvsland(frames, make, False, warmup, repeats=BATCHED_REPEATS)}
-    finally:
-        native._enabled = saved
     best = min(out["paths"], key=lambda p: out["paths"][p]["batched"]["cpu_ms_per_frame"])
     out["fastest_path"] = best
     out["dvsland_per_stream"] = out["paths"][best]["per_stream"]

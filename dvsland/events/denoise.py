@@ -49,7 +49,7 @@ def _cpu(t: torch.Tensor) -> bool:
 
 def _native(t: torch.Tensor) -> bool:
     """The compiled loops of :mod:`dvsland.events.native` (CPU, where built and not switched off)."""
-    return _cpu(t) and native.native_sort_enabled() and native.load() is not None
+    return _cpu(t) and native.kernels() is not None
 
 FILTERS = ("baf", "refractory", "hot_pixel")
 

@@ -481,13 +481,14 @@ class EventEmulator:
         kernels, thinned and keyed in one pass (the same events)."""
         lay, pmp = self._layout, self.pixel_model
         xb, yb = lay.y_shift - 1, lay.t_shift - lay.y_shift
-        if _cpu_fast_path(f1) and native.native_sort_enabled() and native.load() is not None:
+        mod = native.kernels() if _cpu_fast_path(f1) else None
+        if mod is not None:
             B, H, W = self._shape
             k = pmp.shot_noise_bright_factor
             r_max = pmp.shot_noise_rate_hz * max(1.0, k)
             slot, elem, u = pm.sorted_candidates(self._shot_gens, r_max, H, W, dt_us, xb, yb)
             a = pmp.shot_noise_rate_hz / r_max  # as draw_shot_noise: q = a + a (k - 1) min(1, I / I_full)
-            flat, keys = native.load().shot_keys(slot, elem, u, f1.reshape(-1), H, W, xb, yb,
+            flat, keys = mod.shot_keys(slot, elem, u, f1.reshape(-1), H, W, xb, yb,
                                                  1.0 / pmp.full_irradiance, a, a * (k - 1.0),
                                                  a * min(1.0, k) < 1.0, lay.t_shift, b_shift)
             return flat, keys
@@ -521,8 +522,8 @@ class EventEmulator:
         """Whether this step's pixels go through the compiled kernel: built (DVSLAND_NATIVE_SORT,
         :mod:`.native`), CPU, log interpolation (scalar or per-pixel thresholds, scalar or
         per-element refractory periods)."""
-        return (native.native_sort_enabled() and _cpu_fast_path(l1) and self.interpolation == "log"
-                and l1.dtype == torch.float64 and native.load() is not None)
+        return (_cpu_fast_path(l1) and self.interpolation == "log" and l1.dtype == torch.float64
+                and native.kernels() is not None)
 
     def _native_pixel_events(self, l1: torch.Tensor, t0: int, dt: float, b_shift: int) -> torch.Tensor:
         """Keys of the pixels' events from :func:`dvsland.events.native` ``pixel_events``; moves
@@ -891,10 +892,11 @@ class _KeyLayout:
         unpack into :class:`Events` (t = t0 + t_rel). ``pixel_order``: the keys come in flat pixel
         order (those of the compiled pixel kernel alone), so the compiled radix sort only needs
         their (b, t) bits (a stable sort by those keeps the pixel order among equal times)."""
-        if _cpu_fast_path(keys) and native.native_sort_enabled() and native.load() is not None:
+        mod = native.kernels() if _cpu_fast_path(keys) else None
+        if mod is not None:
             # compiled: sorted, merged and decoded in one pass; the same result
             more = sorted_keys if sorted_keys is not None else keys.new_empty(0)
-            b, x, y, t, p = native.load().sort_decode(keys, b_shift + self.bb, self.t_shift if pixel_order else 0,
+            b, x, y, t, p = mod.sort_decode(keys, b_shift + self.bb, self.t_shift if pixel_order else 0,
                                                       more.contiguous(), b_shift, self.t_shift, self.y_shift,
                                                       self.x_mask, self.y_mask, int(t0))
             return Events(b=b, x=x, y=y, t=t, p=p)

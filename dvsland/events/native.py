@@ -22,6 +22,7 @@ compiler (or on any build or load error) the torch path runs, with one warning.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Optional
 
@@ -314,6 +315,19 @@ def use_native_sort(on: Optional[bool] = True) -> None:
     _enabled = None if on is None else bool(on)
 
 
+@contextlib.contextmanager
+def native_sort_mode(on: Optional[bool]):
+    """:func:`use_native_sort` (``on``) inside the block, the process's earlier choice after it
+    (how the benchmarks time the torch and the compiled path in one process)."""
+    global _enabled
+    saved = _enabled
+    use_native_sort(on)
+    try:
+        yield
+    finally:
+        _enabled = saved
+
+
 def mode() -> str:
     """``"on"``, ``"off"`` or ``"auto"``: :func:`use_native_sort`'s choice, else the environment's.
 
@@ -356,6 +370,12 @@ def native_sort_enabled() -> bool:
         return True
     _absent = True
     return False
+
+
+def kernels():
+    """The compiled module when the kernels are to be used now (:func:`native_sort_enabled`, then
+    :func:`load`), else None (the torch path). Never compiles in auto mode."""
+    return load() if native_sort_enabled() else None
 
 
 def build(verbose: bool = False):
