@@ -67,6 +67,19 @@ class CameraConfig:
         _apply_sensor_preset(self)
 
 
+#: The DVS128 set-up's horizontal field of view (the paper's), deg: ``camera.fov_deg``'s default,
+#: and the one assumed for a dataset or checkpoint that records no focal length.
+DEFAULT_FOV_DEG = 60.0
+
+
+def focal_length_px(width_px: float, fov_deg: float) -> float:
+    """Focal length in pixels of a pinhole camera ``width_px`` wide with the horizontal field of
+    view ``fov_deg`` (degrees): (W / 2) / tan(fov / 2)."""
+    import math
+
+    return 0.5 * float(width_px) / math.tan(math.radians(float(fov_deg)) / 2.0)
+
+
 #: Sensor presets: (width_px, height_px, pixel_pitch_um, focal_length_mm or None). The lenses are
 #: chosen for a horizontal field of view near the DVS128 default of 60 degrees (not vendor kits);
 #: set camera.focal_length_mm for another lens. DVS128 keeps fov_deg (60, the paper's set-up).

@@ -16,6 +16,9 @@ import copy
 import math
 from typing import NamedTuple, Optional, Tuple
 
+from dvsland.config.schema import focal_length_px
+from dvsland.estimators.base import resolve_principal_point
+
 
 class Crop(NamedTuple):
     """The window ``x0 <= x < x0 + width``, ``y0 <= y < y0 + height`` of the rendered sensor, px."""
@@ -29,15 +32,12 @@ class Crop(NamedTuple):
 def focal_px(camera) -> float:
     """Focal length of ``camera`` (a :class:`dvsland.config.CameraConfig`) in pixels:
     (W / 2) / tan(fov_deg / 2)."""
-    return 0.5 * float(camera.width_px) / math.tan(math.radians(float(camera.fov_deg)) / 2.0)
+    return focal_length_px(camera.width_px, camera.fov_deg)
 
 
 def principal_point(camera) -> Tuple[float, float]:
     """(cx, cy) px of ``camera``: ``principal_point_px`` or the sensor centre."""
-    if camera.principal_point_px is None:
-        return ((camera.width_px - 1) / 2.0, (camera.height_px - 1) / 2.0)
-    cx, cy = camera.principal_point_px
-    return (float(cx), float(cy))
+    return resolve_principal_point(camera.principal_point_px, (camera.width_px, camera.height_px))
 
 
 def recording_camera(camera) -> Tuple[object, Optional[Crop]]:

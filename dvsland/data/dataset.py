@@ -9,7 +9,6 @@ dataset pickles without them, so ``num_workers > 0`` works with any start method
 
 from __future__ import annotations
 
-import math
 import os
 import warnings
 from pathlib import Path
@@ -17,6 +16,8 @@ from typing import Callable, Dict, List, Optional
 
 import numpy as np
 import torch
+
+from dvsland.config.schema import DEFAULT_FOV_DEG, focal_length_px
 
 from .manifest import load_manifest
 from .represent import check_representation, represent, targets_of
@@ -68,7 +69,7 @@ class EventWindowDataset(torch.utils.data.Dataset):
         #: (cx, cy) px and the focal length in px of the camera (older datasets: centre, 60 degrees)
         self.principal_point_px = tuple(float(v) for v in self.manifest.get("principal_point_px",
                                                                              ((W - 1) / 2, (H - 1) / 2)))
-        self.focal_px = float(self.manifest.get("focal_px", W / (2 * math.tan(math.radians(30.0)))))
+        self.focal_px = float(self.manifest.get("focal_px", focal_length_px(W, DEFAULT_FOV_DEG)))
         self.rule = split_rule or SplitRule()
         self.transform, self.target_transform = transform, target_transform
         self.skipped: Dict[str, str] = {}

@@ -16,6 +16,7 @@ from typing import List
 
 import torch
 
+from dvsland.config.schema import DEFAULT_FOV_DEG, focal_length_px
 from dvsland.data import Windows, concat_windows, load_manifest_info, load_windows
 from dvsland.estimators.learned.inputs import InputSpec, camera_map, to_reference
 
@@ -31,8 +32,7 @@ def folder_map(spec: InputSpec, info: dict):
     if focal is None and tuple(info["sensor_size"]) == spec.sensor_size:
         focal = spec.reference_focal_px
     elif focal is None:
-        W = int(info["sensor_size"][0])
-        focal = InputSpec((W, 8)).reference_focal_px  # a 60 degree field of view, as the older builds flew
+        focal = focal_length_px(info["sensor_size"][0], DEFAULT_FOV_DEG)  # as the older builds flew
     return camera_map(spec, info["sensor_size"], info.get("principal_point_px"), focal)
 
 

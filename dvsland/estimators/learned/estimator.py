@@ -13,7 +13,6 @@ standard deviation of log|D| (about the relative error of D_hat); 0 where the es
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import NamedTuple, Optional
 
@@ -26,7 +25,7 @@ from ..registry import register_estimator
 from .checkpoint import load_checkpoint
 from .models import VoxelCNN
 from .fast import RingCNN
-from .inputs import DEFAULT_FOV_DEG, InputSpec, camera_map, coord_channels, events_voxel_grid, pixel_cells, row_counts
+from .inputs import InputSpec, camera_map, coord_channels, events_voxel_grid, pixel_cells, row_counts
 
 #: the shipped checkpoints (trained by `dvsland train`, commands in docs/learning.md)
 SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"), "spiking": Path(__file__).with_name("learned_spiking.pt")}
@@ -85,13 +84,13 @@ def ordered_ring(state: LearnedState, spec: InputSpec) -> torch.Tensor:
 def default_focal_px(sensor_size) -> float:
     """Focal length in px of the sensor preset of ``sensor_size`` (W, H) with a lens
     (``davis346``: 5.5 mm on 18.5 um), else of a 60 degree field of view across W."""
-    from dvsland.config.schema import SENSOR_PRESETS
+    from dvsland.config.schema import DEFAULT_FOV_DEG, SENSOR_PRESETS, focal_length_px
 
     W, H = (int(v) for v in sensor_size)
     for w, h, pitch_um, focal_mm in SENSOR_PRESETS.values():
         if (w, h) == (W, H) and focal_mm is not None:
             return 1000.0 * focal_mm / pitch_um
-    return W / (2.0 * math.tan(math.radians(DEFAULT_FOV_DEG) / 2.0))
+    return focal_length_px(W, DEFAULT_FOV_DEG)
 
 
 def resolve_checkpoint(checkpoint: str) -> Path:

@@ -20,13 +20,13 @@ Everything is batch first and built with one ``index_put_`` over all events of a
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple, Optional, Tuple
 
 import torch
 
-#: the field of view of a checkpoint's reference sensor when it names none (the DVS128 set-up), deg
-DEFAULT_FOV_DEG = 60.0
+from dvsland.config.schema import DEFAULT_FOV_DEG, focal_length_px
+
+from ..base import resolve_principal_point
 
 
 class InputSpec(NamedTuple):
@@ -49,7 +49,7 @@ class InputSpec(NamedTuple):
         """The reference sensor's focal length, px: ``focal_px`` or that of a 60 degree field of view."""
         if self.focal_px is not None:
             return float(self.focal_px)
-        return self.sensor_size[0] / (2.0 * math.tan(math.radians(DEFAULT_FOV_DEG) / 2.0))
+        return focal_length_px(self.sensor_size[0], DEFAULT_FOV_DEG)
 
     @property
     def bins_per_window(self) -> int:
@@ -101,7 +101,7 @@ def camera_map(spec: InputSpec, sensor_size, principal_point_px=None, focal_px: 
     """The :class:`CameraMap` of a camera of ``sensor_size`` (W, H) px, principal point (None = its
     centre) and focal length ``focal_px`` (None = the reference's, i.e. the same pixel angle)."""
     W, H = (int(v) for v in sensor_size)
-    cx, cy = ((W - 1) / 2.0, (H - 1) / 2.0) if principal_point_px is None else (float(v) for v in principal_point_px)
+    cx, cy = resolve_principal_point(principal_point_px, (W, H))
     if focal_px is not None and not float(focal_px) > 0:
         raise ValueError(f"focal_px must be > 0 (or None), got {focal_px}")
     scale = 1.0 if focal_px is None else spec.reference_focal_px / float(focal_px)
