@@ -27,6 +27,16 @@ def device(request) -> torch.device:
     return torch.device(request.param)
 
 
+@pytest.fixture(scope="module")
+def torch_event_path():
+    """The emulator's and denoiser's torch path for a whole test module, whether or not the compiled
+    kernels are built (``pytestmark = pytest.mark.usefixtures("torch_event_path")``)."""
+    from dvsland.events import native
+
+    with native.native_sort_mode(False):
+        yield
+
+
 @pytest.fixture
 def repo_root() -> Path:
     return REPO

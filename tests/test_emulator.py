@@ -14,17 +14,11 @@ import torch
 
 from dvsland.config.schema import EmulatorConfig
 from dvsland.events import LEVEL_TOL, EventEmulator, Events
-from dvsland.events import native
 
 
-def setup_module():
-    # the torch path is the reference here, whether or not the compiled kernels are built
-    # (test_emulator_native compares them with it)
-    native.use_native_sort(False)
-
-
-def teardown_module():
-    native.use_native_sort(None)
+# the torch path is the reference here, whether or not the compiled kernels are built
+# (test_emulator_native compares them with it)
+pytestmark = pytest.mark.usefixtures("torch_event_path")
 
 
 # ----------------------------------------------------------------------------- reference

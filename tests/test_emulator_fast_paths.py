@@ -9,17 +9,11 @@ import torch
 from dvsland.events import emulator as emu_mod
 from dvsland.events.benchmark import smooth_frames
 from dvsland.events.emulator import EventEmulator
-from dvsland.events import native
 
 
-def setup_module():
-    # the torch path is the reference here, whether or not the compiled kernels are built
-    # (test_emulator_native compares them with it)
-    native.use_native_sort(False)
-
-
-def teardown_module():
-    native.use_native_sort(None)
+# the torch path is the reference here, whether or not the compiled kernels are built
+# (test_emulator_native compares them with it)
+pytestmark = pytest.mark.usefixtures("torch_event_path")
 
 
 CONFIGS = [dict(), dict(refractory_us=0.0), dict(refractory_us=3000.0), dict(threshold=0.05, threshold_off=0.2),

@@ -3,22 +3,17 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dvsland.events import LEVEL_TOL, EventEmulator
-from dvsland.events import native
 
 
-def setup_module():
-    # the torch path is the reference here, whether or not the compiled kernels are built
-    # (test_emulator_native compares them with it)
-    native.use_native_sort(False)
-
-
-def teardown_module():
-    native.use_native_sort(None)
+# the torch path is the reference here, whether or not the compiled kernels are built
+# (test_emulator_native compares them with it)
+pytestmark = pytest.mark.usefixtures("torch_event_path")
 
 
 SETTINGS = settings(max_examples=30, deadline=None)
