@@ -32,6 +32,7 @@ DOC = REPO / "docs" / "architecture.md"
 LAYERS: Tuple[str, ...] = (
     "dvsland._version",
     "dvsland.checks",       # argument checks
+    "dvsland.pytree",       # the stage contract: state trees, counter-based random numbers, object stages
     "dvsland.native_build", # the build cache of the optional compiled kernels
     "dvsland.plugins",      # the registry mechanism of every extension point
     "dvsland.config",       # typed config, YAML, validation: imports no stage
