@@ -6,7 +6,7 @@ Public names: :class:`DivergenceEstimator`, :class:`Truth`, :func:`get_estimator
 (``dpr``, ``cmax``, ``oracle``, ``snn``, ``learned``).
 """
 
-from .base import DivergenceEstimator, Truth
+from .base import DivergenceEstimator, EstimateOut, Truth
 from .registry import (available_estimators, estimator_label, get_estimator, refresh_entry_points,
                        register_estimator)
 from . import oracle  # noqa: F401  (registers 'oracle')
@@ -16,6 +16,6 @@ from . import snn  # noqa: F401  (registers 'snn')
 from . import learned  # noqa: F401  (registers 'learned')
 from .factory import estimator_params, make_estimator
 
-__all__ = ["DivergenceEstimator", "Truth", "get_estimator", "register_estimator", "available_estimators",
+__all__ = ["DivergenceEstimator", "EstimateOut", "Truth", "get_estimator", "register_estimator", "available_estimators",
            "estimator_label",
            "refresh_entry_points", "make_estimator", "estimator_params"]

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import math
-from typing import Any, Dict, Optional, Sequence, Tuple
+from typing import Any, Dict, NamedTuple, Optional, Sequence, Tuple
 
 import torch
 
@@ -31,6 +31,21 @@ class Truth:
     def divergence(self) -> torch.Tensor:
         """True D = v / z, (B,) float64, 1/s."""
         return self.velocity_mps / self.altitude_m
+
+
+class EstimateOut(NamedTuple):
+    """What an estimator's pure step returns besides its next state.
+
+    Attributes:
+        d_hat: (B,) float32 D_hat, 1/s (negative while descending), NaN = no estimate.
+        confidence: (B,) float32 in [0, 1], 0 where there is no estimate.
+        diagnostics: what the estimator tracks at this step, for logging (tensors, e.g.
+            ``centroids`` (B, N, 2)); every built-in includes ``confidence``.
+    """
+
+    d_hat: torch.Tensor
+    confidence: torch.Tensor
+    diagnostics: Dict[str, torch.Tensor]
 
 
 def resolve_principal_point(principal_point_px: Optional[Sequence[float]],
@@ -59,7 +74,13 @@ def confidence_from_rel_std(rel_std: torch.Tensor, d_hat: torch.Tensor) -> torch
 
 
 class DivergenceEstimator:
-    """Base class of divergence estimators (stateful, batched).
+    """Base class of divergence estimators (batched).
+
+    The stage contract (:mod:`dvsland.pytree`): a built-in estimator holds only settings and offers
+    ``init_state() -> State``, the pure ``step_state(state, events, t_us, truth) -> (State,
+    EstimateOut)`` and ``reset_where(state, mask) -> State``. The object API (``reset``, ``update``,
+    ``confidence``, ``diagnostics``) is then provided here on top of them, holding one state in
+    ``self.state``; a third-party estimator may implement the object API alone.
 
     Args:
         batch_size: B, number of independent descents.
@@ -82,6 +103,9 @@ class DivergenceEstimator:
         upd = cls.__dict__.get("update")
         if upd is not None and not getattr(upd, "_dvsland_checked", False):
             cls.update = _checked_update(upd)
+        stp = cls.__dict__.get("step_state")
+        if stp is not None and not getattr(stp, "_dvsland_checked", False):
+            cls.step_state = _checked_step_state(stp)
 
     def __init__(self, batch_size: int, sensor_size: Tuple[int, int], device: Any = "cpu",
                  dt_s: float = 0.1, principal_point_px: Optional[Sequence[float]] = None, **params):
@@ -107,9 +131,39 @@ class DivergenceEstimator:
                              f"got shape {tuple(mask.shape)} dtype {mask.dtype}")
         return mask
 
+    # ------------------------------------------------------------------ the object API over the contract
+    def _has_contract(self) -> bool:
+        return type(self).step_state is not DivergenceEstimator.step_state
+
+    def init_state(self):
+        """The state of B descents that have seen nothing (contract; built-ins implement it)."""
+        raise NotImplementedError(f"{type(self).__name__} implements the object API only (reset/update)")
+
+    def step_state(self, state, events, t_us: int, truth: Optional[Truth] = None):
+        """Pure step: (next state, :class:`EstimateOut`); ``state`` is left unchanged."""
+        raise NotImplementedError(f"{type(self).__name__} implements the object API only (reset/update)")
+
+    def reset_where(self, state, mask: torch.Tensor):
+        """``state`` with the descents where ``mask`` (B,) bool is True restarted."""
+        raise NotImplementedError(f"{type(self).__name__} implements the object API only (reset/update)")
+
     def reset(self, mask: Optional[torch.Tensor] = None) -> None:
         """Start over the batch elements where ``mask`` (B,) bool is True (all when None)."""
-        raise NotImplementedError
+        if not self._has_contract():
+            raise NotImplementedError
+        st = getattr(self, "state", None)
+        if mask is None or st is None:
+            self.state = self.init_state()
+            if mask is None:
+                self._last = None
+                return
+        self.state = self.reset_where(self.state, self._mask(mask))
+        last = getattr(self, "_last", None)
+        if last is not None:  # a restarted descent has no estimate until its next update
+            m = self._mask(mask)
+            nan = torch.full_like(last.d_hat, float("nan"))
+            self._last = last._replace(d_hat=torch.where(m, nan, last.d_hat),
+                                       confidence=torch.where(m, torch.zeros_like(last.confidence), last.confidence))
 
     def update(self, events, t_us: int, truth: Optional[Truth] = None) -> torch.Tensor:
         """Take the events of the last interval (up to ``t_us``, int µs) and return D_hat.
@@ -123,12 +177,20 @@ class DivergenceEstimator:
         Returns:
             (B,) float32 tensor, D_hat in 1/s (negative while descending), NaN = no estimate.
         """
-        raise NotImplementedError
+        if not self._has_contract():
+            raise NotImplementedError
+        if getattr(self, "state", None) is None:
+            self.state = self.init_state()
+        self.state, self._last = self.step_state(self.state, events, t_us, truth)
+        return self._last.d_hat.clone()
 
     def confidence(self) -> torch.Tensor:
         """How much the last estimate can be trusted, (B,) float32 in [0, 1]: 0 = no estimate (NaN)
         or no information, 1 = as good as it gets. The default is 1 where the last estimate is
         finite; estimators override it with their own measure (see the module doc)."""
+        last = getattr(self, "_last", None)
+        if last is not None:
+            return last.confidence
         d = getattr(self, "_d", None)
         if d is None:
             return torch.zeros(self.batch_size, dtype=torch.float32, device=self.device)
@@ -137,6 +199,9 @@ class DivergenceEstimator:
     def diagnostics(self) -> Dict[str, torch.Tensor]:
         """What the estimator tracks, for logging (e.g. ``centroids`` (B, N, 2), ``n_tracked`` (B,)).
         Every built-in estimator includes ``confidence`` (B,) float32 in [0, 1]."""
+        last = getattr(self, "_last", None)
+        if last is not None:
+            return dict(last.diagnostics)
         return {"confidence": self.confidence()}
 
 
@@ -153,6 +218,24 @@ def _checked_update(update):
             W, H = self.sensor_size
             events = checked_for_estimator(events, self.batch_size, W, H, what=f"{type(self).__name__}.update events")
         return update(self, events, t_us, *args, **kwargs)
+
+    wrapper._dvsland_checked = True
+    return wrapper
+
+
+def _checked_step_state(step_state):
+    """Wrap an estimator's ``step_state`` with the same input check as ``update``."""
+    import functools
+
+    @functools.wraps(step_state)
+    def wrapper(self, state, events, t_us, *args, **kwargs):
+        if events is not None and hasattr(events, "b"):
+            from dvsland.events.validate import checked_for_estimator
+
+            W, H = self.sensor_size
+            events = checked_for_estimator(events, self.batch_size, W, H,
+                                           what=f"{type(self).__name__}.step_state events")
+        return step_state(self, state, events, t_us, *args, **kwargs)
 
     wrapper._dvsland_checked = True
     return wrapper

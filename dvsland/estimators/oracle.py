@@ -2,15 +2,51 @@
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import NamedTuple, Optional, Tuple
 
 import torch
 
 from dvsland.checks import check_fields
 from dvsland.config.schema import OracleConfig
 
-from .base import DivergenceEstimator, Truth
+from dvsland.pytree import hash_normal, tree_where
+
+from .base import DivergenceEstimator, EstimateOut, Truth
 from .registry import register_estimator
+
+
+class OracleState(NamedTuple):
+    """State of the ``oracle`` estimator for B descents.
+
+    Attributes:
+        ring: (B, delay_steps + 1) float64 past true divergences, 1/s (NaN = not yet available).
+        k: (B,) int64 updates since each descent's (re)start (the ring's write position and the
+            noise draw's counter).
+        seed: (B,) int64 noise seed of each descent.
+    """
+
+    ring: torch.Tensor
+    k: torch.Tensor
+    seed: torch.Tensor
+
+
+#: stream tag of the oracle's noise draws (:func:`dvsland.pytree.hash_normal`)
+TAG_ORACLE_NOISE = 0x0AC1E
+
+
+def oracle_step(p: OracleConfig, state: OracleState, truth: Truth) -> Tuple[OracleState, torch.Tensor]:
+    """Pure step of the ``oracle``: (next state, D_hat (B,) float64, the estimate of ``delay_steps``
+    updates ago, NaN before that many exist). Noise is a counter-based draw of (seed, k)."""
+    ring, k = state.ring, state.k
+    d = truth.divergence.to(device=ring.device, dtype=torch.float64)
+    if p.noise_abs > 0 or p.noise_rel > 0:
+        n = hash_normal(state.seed, k, TAG_ORACLE_NOISE)
+        d = d + n * (p.noise_abs + p.noise_rel * d.abs())
+    n_slots = ring.shape[1]
+    rows = torch.arange(ring.shape[0], device=ring.device)
+    ring = ring.index_put((rows, k % n_slots), d)
+    k = k + 1
+    return OracleState(ring, k, state.seed), ring[rows, k % n_slots]
 
 
 @register_estimator("oracle")
@@ -22,7 +58,9 @@ class OracleEstimator(DivergenceEstimator):
         noise_rel: proportional noise sigma (fraction of |D|).
         delay_steps: the estimate returned at step k is the one of step k - delay_steps
             (NaN before enough steps exist).
-        seed: seed of the noise generator (drawn on CPU, then moved).
+        seed: seed of the noise (counter-based draws of (seed, descent, update)).
+
+    Its params are :class:`dvsland.config.schema.OracleConfig`; its state :class:`OracleState`.
     """
 
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, noise_abs: float = 0.0,
@@ -30,45 +68,37 @@ class OracleEstimator(DivergenceEstimator):
         super().__init__(batch_size, sensor_size, device, dt_s, principal_point_px=principal_point_px)
         # the ranges of the config schema (estimator.oracle), written once there
         check_fields(OracleConfig, noise_abs=noise_abs, noise_rel=noise_rel, delay_steps=delay_steps)
-        self.noise_abs = float(noise_abs)
-        self.noise_rel = float(noise_rel)
-        self.delay_steps = int(delay_steps)
+        self.params = OracleConfig(noise_abs=float(noise_abs), noise_rel=float(noise_rel), delay_steps=int(delay_steps))
+        self.seed = int(seed)
         self.needs_events = False
-        self._gen = torch.Generator(device="cpu").manual_seed(int(seed))
-        # ring of past estimates, (delay + 1, B); NaN = not yet available
-        self._ring = torch.full((self.delay_steps + 1, self.batch_size), float("nan"),
-                                dtype=torch.float32, device=self.device)
-        self._k = 0  # updates so far (ring write position)
+        self.state = self.init_state()
 
-    def reset(self, mask: Optional[torch.Tensor] = None) -> None:
-        mask = self._mask(mask)
-        self._ring[:, mask] = float("nan")
-        if hasattr(self, "_d"):
-            self._d[mask] = float("nan")
+    @property
+    def noise_abs(self) -> float:
+        return self.params.noise_abs
 
-    def update(self, events, t_us: int, truth: Optional[Truth] = None) -> torch.Tensor:
+    @property
+    def noise_rel(self) -> float:
+        return self.params.noise_rel
+
+    @property
+    def delay_steps(self) -> int:
+        return self.params.delay_steps
+
+    def init_state(self) -> OracleState:
+        B, dev = self.batch_size, self.device
+        seeds = (self.seed * 1_000_003 + torch.arange(B, dtype=torch.int64)) % (2 ** 62)
+        return OracleState(torch.full((B, self.delay_steps + 1), float("nan"), dtype=torch.float64, device=dev),
+                           torch.zeros(B, dtype=torch.int64, device=dev), seeds.to(dev))
+
+    def reset_where(self, state: OracleState, mask: torch.Tensor) -> OracleState:
+        return tree_where(self._mask(mask), self.init_state(), state)
+
+    def step_state(self, state: OracleState, events, t_us: int, truth: Optional[Truth] = None):
         if truth is None:
             raise ValueError("the 'oracle' estimator needs truth=Truth(altitude_m, velocity_mps)")
-        d = truth.divergence.to(device=self.device, dtype=torch.float64)
-        if self.noise_abs > 0 or self.noise_rel > 0:
-            n = torch.randn(self.batch_size, generator=self._gen, dtype=torch.float64).to(self.device)
-            d = d + n * (self.noise_abs + self.noise_rel * d.abs())
-        # slot k mod (delay + 1) takes this step; the one written delay steps ago is next in line
-        n_slots = self.delay_steps + 1
-        self._ring[self._k % n_slots] = d
-        self._k += 1
-        self._d = self._ring[self._k % n_slots].clone()
-        return self._d.clone()
-
-    def confidence(self) -> torch.Tensor:
-        """(B,) float32: 1 / (1 + (noise_rel / 0.1)^2) where the estimate is finite (additive noise
-        ignored), 0 where NaN."""
-        d = getattr(self, "_d", None)
-        if d is None:
-            return torch.zeros(self.batch_size, dtype=torch.float32, device=self.device)
-        c = torch.full_like(d, 1.0 / (1.0 + (self.noise_rel / 0.1) ** 2))
-        return torch.where(torch.isfinite(d), c, torch.zeros_like(c))
-
-    def diagnostics(self):
-        return {"d_oracle": self._ring[(self._k - 1) % (self.delay_steps + 1)].clone(),
-                "confidence": self.confidence()}
+        state, d = oracle_step(self.params, state, truth)
+        d32 = d.to(torch.float32)
+        c = torch.full_like(d32, 1.0 / (1.0 + (self.noise_rel / 0.1) ** 2))
+        conf = torch.where(torch.isfinite(d32), c, torch.zeros_like(c))
+        return state, EstimateOut(d32, conf, {"d_oracle": d32, "confidence": conf})
