@@ -202,14 +202,17 @@ class ObjectStage:
     Args:
         obj: the object.
         call: ``call(obj, *inputs) -> outputs``, the object's step.
-        reset: ``reset(obj, mask)``, the object's per-descent restart.
+        reset: ``reset(obj, mask, *args)``, the object's restart of the masked descents (mask None =
+            all); ``args`` are what ``reset_where`` is given after the mask.
+        init: ``init(obj, *args)``, the object's start (default ``reset(obj, None)``).
 
     Cost: one deep copy of the object's attributes per step (the price of a state that can be kept,
     cloned and resumed); the object is not restored when stepped from the state it produced last.
     """
 
-    def __init__(self, obj: Any, call: Callable[..., Any], reset: Callable[[Any, Any], None]):
-        self.obj, self._call, self._reset = obj, call, reset
+    def __init__(self, obj: Any, call: Callable[..., Any], reset: Callable[..., None],
+                 init: Optional[Callable[..., None]] = None):
+        self.obj, self._call, self._reset, self._init = obj, call, reset, init
         self._held: Optional[ObjectState] = None
 
     def _memo(self) -> dict:
@@ -234,9 +237,12 @@ class ObjectStage:
         vars(self.obj).update(fresh)
         self._held = state
 
-    def init_state(self) -> ObjectState:
-        """The object's state after ``reset(None)``."""
-        self._reset(self.obj, None)
+    def init_state(self, *args) -> ObjectState:
+        """The object's state after its start (``init(obj, *args)`` or ``reset(obj, None)``)."""
+        if self._init is not None:
+            self._init(self.obj, *args)
+        else:
+            self._reset(self.obj, None, *args)
         return self._snapshot()
 
     def step_state(self, state: ObjectState, *inputs, **kw):
@@ -245,10 +251,10 @@ class ObjectStage:
         out = self._call(self.obj, *inputs, **kw)
         return self._snapshot(), out
 
-    def reset_where(self, state: ObjectState, mask: torch.Tensor) -> ObjectState:
-        """The state with the masked descents restarted (the object's ``reset(mask)``)."""
+    def reset_where(self, state: ObjectState, mask: torch.Tensor, *args) -> ObjectState:
+        """The state with the masked descents restarted (the object's ``reset(mask, *args)``)."""
         self._adopt(state)
-        self._reset(self.obj, mask)
+        self._reset(self.obj, mask, *args)
         return self._snapshot()
 
 

@@ -8,8 +8,9 @@ datasets of :mod:`dvsland.data` and the environment of :mod:`dvsland.envs`.
 
 Public names: :func:`simulate`, :class:`SimulationResult`, :class:`ClosedLoop`, :class:`LoopState`,
 :class:`StepOutput`, :func:`init_state`, :func:`loop_step` (and its halves :func:`sense_step`,
-:func:`act_step`), :func:`clone_state`, :func:`save_state`,
-:func:`load_state`, :class:`StaleStateError`, :func:`build_layout`, :class:`BatchLayout`,
+:func:`act_step`, and its pure parts :func:`render`, :func:`sense`, :func:`estimate`, :func:`act`,
+:func:`advance`), :func:`reset_where` (restart some descents), :func:`clone_state`,
+:func:`save_state`, :func:`load_state`, :class:`StageStates`, :func:`build_layout`, :class:`BatchLayout`,
 :func:`termination_code`, :data:`OUTCOMES`.
 """
 
@@ -18,12 +19,13 @@ from dvsland.layout import BatchLayout, build_layout, expand_seeds, setting_labe
 from .api import simulate
 from .loop import ClosedLoop, run_summaries
 from .result import TRACE_FIELDS, SimulationResult, TraceRecorder
-from .state import LoopState, StaleStateError, clone_state, load_state, save_state
-from .step import Sensed, StepOutput, act_step, init_state, loop_step, sense_step
+from .reset import init_state, reset_where, restart_finished
+from .state import LoopState, StageStates, clone_state, load_state, save_state
+from .step import Sensed, StepOutput, act, act_step, advance, estimate, loop_step, render, sense, sense_step
 from .termination import OUTCOMES, termination_code
 
 __all__ = ["simulate", "SimulationResult", "ClosedLoop", "LoopState", "StepOutput", "init_state", "loop_step",
-           "sense_step", "act_step", "Sensed",
-           "clone_state", "save_state", "load_state", "StaleStateError", "run_summaries", "BatchLayout",
+           "sense_step", "act_step", "Sensed", "render", "sense", "estimate", "act", "advance", "reset_where",
+           "restart_finished", "StageStates", "clone_state", "save_state", "load_state", "run_summaries", "BatchLayout",
            "build_layout", "expand_seeds", "setting_label", "termination_code", "OUTCOMES", "TRACE_FIELDS",
            "TraceRecorder"]

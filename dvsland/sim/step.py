@@ -1,4 +1,4 @@
-"""The loop body: ``init_state`` and the one pure step ``loop_step(stages, state, thrust=None)``.
+"""The loop body: the one pure step ``loop_step(stages, state, thrust=None)`` and its parts.
 
 Everything that flies descents runs on :func:`loop_step`: :func:`dvsland.simulate` and the
 campaigns, the open-loop evaluation (``thrust`` given), the bench, the training data of
@@ -15,6 +15,13 @@ advance the dynamics over ``dt`` with the thrust held, and end descents that met
 condition. Finished descents stay in the state, frozen by ``active``, and leave the hot path
 (``simulation.compact``): they are not rendered again and their events are dropped before the
 estimator (:func:`compacted`, :func:`active_events`).
+
+The step is a composition of public pure parts over the :class:`LoopState` (none of them changes
+its inputs; each stage's state goes in and comes out, :mod:`dvsland.pytree`):
+:func:`render` (frames), :func:`sense` (events), :func:`estimate` (D_hat), :func:`act` (filter
+and law) and :func:`advance` (dynamics and termination). :func:`sense_step` runs the first four and
+:func:`act_step` the last, for callers that choose the thrust after seeing the estimates (an
+environment's agent).
 """
 
 from __future__ import annotations
@@ -25,9 +32,12 @@ from typing import Any, Callable, NamedTuple, Optional, Tuple
 import torch
 
 from dvsland.estimators import Truth
-from dvsland.plugins import PluginError, call_plugin, check_batch_tensor
+from dvsland.plugins import check_batch_tensor
+from dvsland.pytree import ObjectState, tree_where
 
-from .state import LiveStages, LoopState, StaleStateError, adopt_state, advance_generation, live_handle
+from .contracts import check_no_nan_thrust, checked_thrust_out, stage_fns
+from .reset import init_state, reset_where
+from .state import LoopState, StageStates
 from .termination import RUNNING, termination_code
 
 #: an estimate with |D_hat| above this (1/s) is not a divergence (a descent crashes at |D| = 0.5 1/s
@@ -59,8 +69,10 @@ class StepOutput(NamedTuple):
         ended: bool, ended at this step's end (``outcome`` of the returned state tells how).
         frames: (B, H, W) float32 frames rendered at ``t_s`` (None without events).
         events: :class:`dvsland.events.Events` of ``(t_prev, t_s]`` (None at step 0 or without events).
-        diagnostics: zero-argument callable returning the estimator's ``diagnostics()`` dict for this
-            step (valid until the next step; ``{}`` when it has none).
+        diagnostics: zero-argument callable returning the estimator's diagnostics dict for this
+            step (``{}`` when it has none).
+        t_flight_s: (B,) float64 flight time of each descent at the step's start, s (``t_s``
+            unless a descent was restarted by :func:`dvsland.sim.reset_where`).
     """
 
     step: int
@@ -84,6 +96,7 @@ class StepOutput(NamedTuple):
     frames: Optional[torch.Tensor]
     events: Any
     diagnostics: Callable[[], dict]
+    t_flight_s: Optional[torch.Tensor] = None
 
 
 def sanitise_estimates(d_hat: torch.Tensor, abs_max: float = D_HAT_ABS_MAX):
@@ -102,99 +115,189 @@ def sanitise_estimates(d_hat: torch.Tensor, abs_max: float = D_HAT_ABS_MAX):
     return torch.where(bad, torch.full_like(d_hat, float("nan")), d_hat), bad
 
 
-def estimator_confidence(estimator, d_hat: torch.Tensor, name: str = "estimator") -> torch.Tensor:
-    """The estimator's ``confidence()`` (B,) as float64 in [0, 1] on ``d_hat``'s device; 1 where an
-    estimator has no ``confidence()`` (or it returns None) and its estimate is finite; 0 where
-    ``d_hat`` is NaN (missing or sanitised) or the confidence is not finite.
 
-    Raises:
-        PluginError: ``confidence()`` raised or returned something other than None or a (B,)
-            floating tensor on the loop's device (``name`` is the plug-in's name in the message).
-    """
-    fn = getattr(estimator, "confidence", None)
-    c = None if not callable(fn) else call_plugin(name, "confidence", fn)
-    c = check_batch_tensor(c, d_hat.shape[0], d_hat.device, name, "confidence", allow_none=True)
-    if c is None:
-        c = torch.ones_like(d_hat)
-    c = c.to(dtype=torch.float64)
+def confidence_of(conf: torch.Tensor, d_hat: torch.Tensor) -> torch.Tensor:
+    """An estimator's confidence (B,) as float64 in [0, 1]; 0 where ``d_hat`` is NaN (missing or
+    sanitised) or the confidence is not finite."""
+    c = conf.to(dtype=torch.float64)
     ok = torch.isfinite(d_hat) & torch.isfinite(c)
     return torch.where(ok, c.clamp(0.0, 1.0), torch.zeros_like(c))
 
 
-# ------------------------------------------------------------------ initial state
-def init_state(stages, z_m=None, v_mps=None, m_kg=None) -> LoopState:
-    """The state at step 0: every descent at its initial conditions, every stage reset.
-
-    Args:
-        stages: :class:`dvsland.stages.Stages`.
-        z_m, v_mps, m_kg: optional initial altitude (m, > 0), velocity (m/s) and mass (kg, > 0):
-            scalars or (B,) values; default the layout's z0, v0 and ``dynamics.mass_kg``. The
-            controller's target and the filter's prior keep the configured (planned) start.
-
-    Raises:
-        ValueError: a start value of the wrong shape, not finite, or out of range (names it).
-    """
-    L, dev, f64 = stages.layout, torch.device(stages.device), torch.float64
-    B = L.batch_size
-    z = _start("z_m", L.tensor("z0_m", dev, f64) if z_m is None else z_m, B, dev, positive=True)
-    v = _start("v_mps", L.tensor("v0_mps", dev, f64) if v_mps is None else v_mps, B, dev)
-    m = _start("m_kg", stages.settings.mass_kg if m_kg is None else m_kg, B, dev, positive=True)
-    names = (stages.settings.estimator_name, "filter", _controller_name(stages))
-    for name, stage in zip(names, (stages.estimator, stages.filter, stages.controller)):
-        call_plugin(name, "reset", stage.reset, None)
-    zeros_i = torch.zeros(B, dtype=torch.int64, device=dev)
-    zeros_f = torch.zeros(B, dtype=f64, device=dev)
-    state = LoopState(step=0, z_m=z, v_mps=v, m_kg=m, active=torch.ones(B, dtype=torch.bool, device=dev),
-                      outcome=torch.full((B,), RUNNING, dtype=torch.int8, device=dev), t_end_s=zeros_f,
-                      lowest_m=z.clone(), max_thrust_n=zeros_f.clone(), n_held=zeros_i, n_missing=zeros_i.clone(),
-                      n_sanitised=zeros_i.clone(), n_positive=zeros_i.clone(), last_thrust_n=None,
-                      last_mass_kg=None, last_frames=None, stage_state=advance_generation(stages))
-    return state
-
-
-def _controller_name(stages) -> str:
-    ctl = stages.controller
-    return str(getattr(ctl, "controller_name", None) or stages.cfg.controller.name)
-
-
-def _start(name: str, value, B: int, dev, positive: bool = False) -> torch.Tensor:
-    t = torch.as_tensor(value, dtype=torch.float64).to(dev)
-    if t.dim() == 0:
-        t = t.expand(B).clone()
-    if t.shape != (B,):
-        raise ValueError(f"{name} must be a scalar or of shape ({B},), got shape {tuple(t.shape)}")
-    if not bool(torch.isfinite(t).all()) or (positive and not bool((t > 0).all())):
-        raise ValueError(f"{name} must be finite{' and > 0' if positive else ''}, got {t.tolist()}")
-    return t
-
-
-# ------------------------------------------------------------------ the step
-class Sensed(NamedTuple):
-    """A step that has sensed but not yet acted (:func:`sense_step`), for callers that choose the
-    thrust after seeing the step's estimates (an environment's agent).
+class Estimate(NamedTuple):
+    """What :func:`estimate` returns besides the estimator's next state; (B,) tensors.
 
     Attributes:
-        state: the state the step started from (consumed: its stage state moved on).
+        d_hat: float64 D_hat, 1/s, sanitised (NaN = none).
+        confidence: float64 in [0, 1].
+        bad: bool, estimates replaced by NaN at this step.
+        diagnostics: the estimator's diagnostics dict.
+    """
+
+    d_hat: torch.Tensor
+    confidence: torch.Tensor
+    bad: torch.Tensor
+    diagnostics: dict
+
+
+class Command(NamedTuple):
+    """What :func:`act` returns besides the filter's and the law's next states.
+
+    Attributes:
+        control: the law's :class:`dvsland.control.ControlOutput` (thrust checked).
+        d_filtered: (B,) float64 filtered D, 1/s.
+        n_used: (B,) estimates the filter used.
+        z_est_m: (B,) float64 the filter's altitude estimate, m, or None.
+    """
+
+    control: Any
+    d_filtered: torch.Tensor
+    n_used: torch.Tensor
+    z_est_m: Optional[torch.Tensor]
+
+
+class Sensed(NamedTuple):
+    """A step that has sensed but not yet acted (:func:`sense_step`), for callers that choose the
+    thrust after seeing the step's estimates (an environment's agent). Plain data: it can be acted
+    on any number of times.
+
+    Attributes:
+        state: the state the step started from (unchanged).
         out: the :class:`StepOutput` so far; ``thrust_n`` is the law's command (0 for finished
             descents) and ``ended`` is all False until :func:`act_step`.
         bad: (B,) bool, estimates replaced by NaN at this step.
-        handle: the stages' state right after sensing (checked by :func:`act_step`).
+        stage_state: the :class:`StageStates` after sensing, estimating, filtering and the law.
     """
 
     state: LoopState
     out: StepOutput
     bad: torch.Tensor
-    handle: LiveStages
+    stage_state: StageStates
 
 
+# ------------------------------------------------------------------ the parts
+def flight_time_s(stages, state: LoopState) -> torch.Tensor:
+    """(B,) float64 flight time of each descent at the state's step, s."""
+    return state.flight_step.to(torch.float64) * stages.settings.dt_s
+
+
+def render(stages, state: LoopState) -> Optional[torch.Tensor]:
+    """Frames (B, H, W) float32 at the current altitudes of the active descents (finished ones keep
+    their last frame); None when the estimator needs no events."""
+    if stages.events is None:
+        return None
+    s = stages.settings
+    alt = state.z_m.clamp(s.render_min_altitude_m, s.render_max_altitude_m)
+    if state.last_frames is None or bool(state.active.all()):
+        return stages.events.render(alt, state.scene_idx)
+    idx = state.active.nonzero().squeeze(1)
+    frames = state.last_frames.clone()
+    frames[idx] = stages.events.render(alt[idx], state.scene_idx[idx]).to(frames.dtype)
+    return frames
+
+
+def sense(stages, state: LoopState, frames: Optional[torch.Tensor], t_us: int, compact: bool = False):
+    """The emulator's step to ``t_us`` on ``frames``: (emulator state, Events of (t_prev, t_us] or None).
+
+    The first frame (and a batch without events) gives no events. Descents restarted since the last
+    step (``state.restarted``) restart their pixels on these frames: their events are dropped.
+    Finished descents' events are dropped when ``compact``.
+    """
+    if frames is None:
+        return None, None
+    emu, st = stage_fns(stages).emulator, state.stage_state.emulator
+    if st is None:
+        return emu.init_state(frames, t_us, state.noise_seed), None
+    st, events = emu.step_state(st, frames, t_us)
+    keep = state.active if compact else None
+    if state.restarted is not None:
+        st = emu.reset_where(st, state.restarted, frames, t_us, state.noise_seed)
+        keep = ~state.restarted if keep is None else keep & ~state.restarted
+    if keep is not None:
+        events = active_events(events, keep)
+    return st, events
+
+
+def estimate(stages, state: LoopState, events, t_us: int) -> Tuple[Any, Estimate]:
+    """The estimator's step on ``events``: (estimator state, :class:`Estimate`).
+
+    Event estimators give no estimate on the first frame and for descents restarted at this step.
+    """
+    fns = stage_fns(stages)
+    B, dev, name = state.batch_size, state.z_m.device, fns.estimator_name
+    st = state.stage_state.estimator
+    if stages.events is not None and events is None:  # first frame: no events yet
+        d = torch.full((B,), float("nan"), dtype=torch.float64, device=dev)
+        return st, Estimate(d, torch.zeros_like(d), torch.zeros(B, dtype=torch.bool, device=dev), {})
+    truth = Truth(altitude_m=state.z_m, velocity_mps=state.v_mps)
+    st, out = fns.estimator.step_state(st, events, t_us, truth)
+    d_hat = check_batch_tensor(out.d_hat, B, dev, name, "update").to(dtype=torch.float64)
+    if stages.events is not None and state.restarted is not None:
+        d_hat = torch.where(state.restarted, torch.full_like(d_hat, float("nan")), d_hat)
+    d_hat, bad = sanitise_estimates(d_hat)  # +-inf or absurd |D_hat| -> NaN, counted
+    conf = check_batch_tensor(out.confidence, B, dev, name, "confidence")
+    return st, Estimate(d_hat, confidence_of(conf, d_hat), bad, out.diagnostics)
+
+
+def act(stages, state: LoopState, est: Estimate) -> Tuple[Any, Any, Command]:
+    """Filter the estimate (with the efference copy) and run the law at each descent's flight time:
+    (filter state, law state, :class:`Command`)."""
+    fns = stage_fns(stages)
+    accel = thrust_accel = None
+    if state.last_thrust_n is not None:  # the craft knows the acceleration it applied
+        thrust_accel = state.last_thrust_n / state.last_mass_kg
+        accel = thrust_accel - stages.settings.g_mps2
+    f_st, f_out = fns.filter.step_state(state.stage_state.filter, est.d_hat, state.active, accel, thrust_accel,
+                                        est.confidence)
+    if state.restarted is not None and accel is not None and not isinstance(f_st, ObjectState):
+        # a restarted descent's first update has no efference copy to predict with (as step 0)
+        f0, out0 = fns.filter.step_state(state.stage_state.filter, est.d_hat, state.active, None, None, est.confidence)
+        f_st = tree_where(state.restarted, f0, f_st)
+        f_out = tuple(None if a is None else torch.where(state.restarted, b, a) for a, b in zip(f_out, out0))
+    d_f, n_used, z_hat = f_out[0], f_out[1], f_out[2]
+    c_st, ctl = fns.controller.step_state(state.stage_state.controller, flight_time_s(stages, state), d_f,
+                                          state.m_kg, state.active, z_hat)
+    checked_thrust_out(ctl, state.batch_size, state.z_m.device, fns.controller_name)
+    check_no_nan_thrust(ctl.thrust_n, fns.controller_name)
+    return f_st, c_st, Command(ctl, d_f, n_used, z_hat)
+
+
+def advance(stages, state: LoopState, thrust: torch.Tensor, held: torch.Tensor, est: Estimate,
+            frames: Optional[torch.Tensor], stage_state: StageStates) -> Tuple[LoopState, torch.Tensor]:
+    """Dynamics over dt with ``thrust`` (B,) N held, bookkeeping and termination: (next state with
+    ``stage_state``, ended (B,) bool)."""
+    s, act_ = stages.settings, state.active
+    z, v, m, _ = stages.dynamics.step(state.z_m, state.v_mps, state.m_kg, thrust, s.dt_s)
+    z = torch.where(act_, z, state.z_m)
+    v = torch.where(act_, v, state.v_mps)
+    m = torch.where(act_, m, state.m_kg)
+    t_next = (state.flight_step + 1).to(torch.float64) * s.dt_s
+    code = termination_code(z, v, t_next, s.success_altitude_m, s.crash_divergence, s.t_max_s)
+    ended = act_ & (code != RUNNING)
+    i64, d_hat = torch.int64, est.d_hat
+    nxt = state._replace(
+        step=state.step + 1, flight_step=state.flight_step + 1, z_m=z, v_mps=v, m_kg=m, active=act_ & ~ended,
+        outcome=torch.where(ended, code, state.outcome), t_end_s=torch.where(act_, t_next, state.t_end_s),
+        lowest_m=torch.where(act_, torch.minimum(state.lowest_m, z), state.lowest_m),
+        max_thrust_n=torch.where(act_, torch.maximum(state.max_thrust_n, thrust), state.max_thrust_n),
+        n_held=state.n_held + held.to(i64), n_missing=state.n_missing + (torch.isnan(d_hat) & act_).to(i64),
+        n_sanitised=state.n_sanitised + (est.bad & act_).to(i64),
+        n_positive=state.n_positive + ((d_hat > 0) & act_).to(i64),
+        last_thrust_n=thrust, last_mass_kg=state.m_kg, last_frames=frames if frames is not None else state.last_frames,
+        restarted=None, stage_state=stage_state)
+    return nxt, ended
+
+
+# ------------------------------------------------------------------ the step
 def loop_step(stages, state: LoopState, thrust: Optional[torch.Tensor] = None,
               timer: Optional[Callable[[str], Any]] = None) -> Tuple[LoopState, StepOutput]:
     """Fly one control step of every active descent: :func:`sense_step` then :func:`act_step`.
 
+    Pure: ``state`` is not changed and can be stepped from again (the same outputs).
+
     Args:
         stages: :class:`dvsland.stages.Stages` (built by :func:`dvsland.stages.build_stages`).
-        state: the state to step from. A live state (as returned by the previous call) is consumed;
-            a cloned one (:func:`dvsland.sim.clone_state`) can be stepped from again.
+        state: the state to step from.
         thrust: None (the controller's command) or (B,) thrust in N to apply instead (open loop,
             a learned controller, an environment's action); must be finite and >= 0. The filter and
             controller still run (their outputs are reported), the given thrust is what flies.
@@ -204,39 +307,38 @@ def loop_step(stages, state: LoopState, thrust: Optional[torch.Tensor] = None,
         (the next :class:`LoopState`, the :class:`StepOutput` of this step).
 
     Raises:
-        StaleStateError: ``state`` was already consumed.
         ValueError: ``thrust`` of the wrong shape, NaN or negative.
         PluginError: the estimator or the law broke its contract (:mod:`dvsland.plugins`).
     """
-    thrust = _checked_thrust(thrust, state.z_m)  # before sensing: a bad thrust consumes nothing
+    thrust = _checked_thrust(thrust, state.z_m)  # before sensing: a bad thrust costs nothing
     return act_step(stages, sense_step(stages, state, timer), thrust, timer)
 
 
 def sense_step(stages, state: LoopState, timer: Optional[Callable[[str], Any]] = None) -> Sensed:
-    """The first half of a step: render, emulate, estimate, filter and run the law at ``t_k``.
-
-    Consumes ``state`` like :func:`loop_step`; finish the step with :func:`act_step`.
-    """
+    """The first half of a step: render, emulate, estimate, filter and run the law at ``t_k``;
+    finish the step with :func:`act_step`. ``state`` is not changed."""
     tm = timer or (lambda name: nullcontext())
-    adopt_state(stages, state)
     k = state.step
     t_s = k * stages.settings.dt_s
     t_us = int(round(t_s * 1e6))
     compact = compacted(stages, state)
-    frames, events = _sense(stages, state, t_us, tm, compact)
+    with tm("render"):
+        frames = render(stages, state)
+    with tm("emulate"):
+        emu_st, events = sense(stages, state, frames, t_us, compact)
     with tm("estimate"):
-        d_hat, conf, bad = _estimate(stages, state, events, t_us)
+        est_st, est = estimate(stages, state, events, t_us)
     with tm("control"):
-        ctl, d_f, n_used, z_hat = _control(stages, state, d_hat, conf, t_s)
-        u = _applied_thrust(ctl.thrust_n, None, state.active)
-    diag = getattr(stages.estimator, "diagnostics", None)
+        f_st, c_st, cmd = act(stages, state, est)
+        u = _applied_thrust(cmd.control.thrust_n, None, state.active)
+    ctl, diag = cmd.control, est.diagnostics
     out = StepOutput(step=k, t_s=t_s, t_us=t_us, z_m=state.z_m, v_mps=state.v_mps, m_kg=state.m_kg,
-                     d_true=Truth(state.z_m, state.v_mps).divergence, d_est=d_hat, d_conf=conf, d_filtered=d_f,
-                     n_used=n_used.to(torch.float64), thrust_n=u, held=ctl.held & state.active,
-                     tau_target_s=ctl.tau_target_s, tau_hat_s=ctl.tau_hat_s, z_est_m=z_hat, active=state.active,
-                     ended=torch.zeros_like(state.active), frames=frames, events=events,
-                     diagnostics=(lambda: (diag() or {})) if callable(diag) else dict)
-    return Sensed(state, out, bad, advance_generation(stages))
+                     d_true=Truth(state.z_m, state.v_mps).divergence, d_est=est.d_hat, d_conf=est.confidence,
+                     d_filtered=cmd.d_filtered, n_used=cmd.n_used.to(torch.float64), thrust_n=u,
+                     held=ctl.held & state.active, tau_target_s=ctl.tau_target_s, tau_hat_s=ctl.tau_hat_s,
+                     z_est_m=cmd.z_est_m, active=state.active, ended=torch.zeros_like(state.active), frames=frames,
+                     events=events, diagnostics=lambda: dict(diag or {}), t_flight_s=flight_time_s(stages, state))
+    return Sensed(state, out, est.bad, StageStates(emu_st, est_st, f_st, c_st))
 
 
 def act_step(stages, sensed: Sensed, thrust: Optional[torch.Tensor] = None,
@@ -245,34 +347,15 @@ def act_step(stages, sensed: Sensed, thrust: Optional[torch.Tensor] = None,
     (B,) N held, then bookkeeping and termination; returns (next state, the step's StepOutput).
 
     Raises:
-        StaleStateError: ``sensed`` is not the stages' latest sensing (acted on already).
         ValueError: ``thrust`` of the wrong shape, NaN or negative.
     """
-    if sensed.handle != live_handle(stages):
-        raise StaleStateError(f"step {sensed.out.step} was already acted on (or the stages moved on): "
-                              "sense again from the newest state")
     tm = timer or (lambda name: nullcontext())
     state, out = sensed.state, sensed.out
     u = _applied_thrust(out.thrust_n, _checked_thrust(thrust, state.z_m), state.active)
+    est = Estimate(out.d_est, out.d_conf, sensed.bad, {})
     with tm("dynamics"):
-        nxt, ended = _advance(stages, state, u, out.held, out.d_est, sensed.bad, out.frames)
+        nxt, ended = advance(stages, state, u, out.held, est, out.frames, sensed.stage_state)
     return nxt, out._replace(thrust_n=u, ended=ended)
-
-
-def _sense(stages, state: LoopState, t_us: int, tm, compact: bool = False):
-    """Render (active descents; finished ones keep their last frame) and emulate; (frames, events)."""
-    if stages.events is None:
-        return None, None
-    with tm("render"):
-        frames = _render(stages, state)
-    with tm("emulate"):
-        if state.step == 0:
-            stages.emulator.reset(frames, t_us)
-            return frames, None
-        events = stages.emulator.step(frames, t_us)
-        if compact:  # finished descents' events never reach the estimator
-            events = active_events(events, state.active)
-    return frames, events
 
 
 def compacted(stages, state: LoopState) -> bool:
@@ -290,52 +373,6 @@ def active_events(events, active: torch.Tensor):
         return events
     keep = active[events.b]
     return events if bool(keep.all()) else events[keep]
-
-
-def _render(stages, state: LoopState) -> torch.Tensor:
-    s = stages.settings
-    alt = state.z_m.clamp(s.render_min_altitude_m, s.render_max_altitude_m)
-    site_idx = stages.scene_idx
-    if state.last_frames is None or bool(state.active.all()):
-        return stages.events.render(alt, site_idx)
-    idx = state.active.nonzero().squeeze(1)
-    frames = state.last_frames.clone()
-    frames[idx] = stages.events.render(alt[idx], site_idx[idx]).to(frames.dtype)
-    return frames
-
-
-def _estimate(stages, state: LoopState, events, t_us: int):
-    """(d_hat (B,) float64 sanitised, confidence (B,) float64, bad (B,) bool)."""
-    B, dev, name = state.batch_size, state.z_m.device, stages.settings.estimator_name
-    if stages.events is not None and events is None:  # first frame: no events yet
-        d_hat = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
-    else:
-        truth = Truth(altitude_m=state.z_m, velocity_mps=state.v_mps)
-        d_hat = call_plugin(name, "update", stages.estimator.update, events, t_us, truth=truth)
-        d_hat = check_batch_tensor(d_hat, B, dev, name, "update")
-    d_hat = d_hat.to(dtype=torch.float64)
-    d_hat, bad = sanitise_estimates(d_hat)  # +-inf or absurd |D_hat| -> NaN, counted
-    return d_hat, estimator_confidence(stages.estimator, d_hat, name), bad
-
-
-def _control(stages, state: LoopState, d_hat, conf, t_s: float):
-    """Filter the estimate (with the efference copy) and run the law; (ControlOutput, d_f, n_used, z_hat)."""
-    accel = thrust_accel = None
-    if state.last_thrust_n is not None:  # the craft knows the acceleration it applied
-        thrust_accel = state.last_thrust_n / state.last_mass_kg
-        accel = thrust_accel - stages.settings.g_mps2
-    d_f, n_used = stages.filter.update(d_hat, mask=state.active, accel_mps2=accel,
-                                       thrust_accel_mps2=thrust_accel, confidence=conf)
-    z_hat = getattr(stages.filter, "altitude_m", None)
-    ctl, name = stages.controller, _controller_name(stages)
-    kw = {"altitude_m": z_hat} if getattr(ctl, "needs_altitude", False) else {}
-    out = call_plugin(name, "__call__", ctl, t_s, d_f, state.m_kg, state.active, **kw)
-    thrust = getattr(out, "thrust_n", None)
-    thrust = check_batch_tensor(thrust, state.batch_size, state.z_m.device, name, "__call__ (thrust_n)")
-    if bool(torch.isnan(thrust).any()):
-        raise PluginError(name, "__call__", "thrust_n is NaN; a law must command a number (hover or hold when "
-                                            "its input is missing)")
-    return out, d_f, n_used, z_hat
 
 
 def _checked_thrust(thrust, like: torch.Tensor) -> Optional[torch.Tensor]:
@@ -362,29 +399,6 @@ def _applied_thrust(ctl_thrust: torch.Tensor, thrust: Optional[torch.Tensor], ac
     return torch.where(active, u, torch.zeros_like(u))
 
 
-def _advance(stages, state: LoopState, u, held, d_hat, bad, frames) -> Tuple[LoopState, torch.Tensor]:
-    """Dynamics over dt with ``u`` held, bookkeeping and termination; (next state, ended (B,) bool)."""
-    s, act = stages.settings, state.active
-    z, v, m, _ = stages.dynamics.step(state.z_m, state.v_mps, state.m_kg, u, s.dt_s)
-    z = torch.where(act, z, state.z_m)
-    v = torch.where(act, v, state.v_mps)
-    m = torch.where(act, m, state.m_kg)
-    t_next = (state.step + 1) * s.dt_s
-    code = termination_code(z, v, t_next, s.success_altitude_m, s.crash_divergence, s.t_max_s)
-    ended = act & (code != RUNNING)
-    i64 = torch.int64
-    nxt = state._replace(
-        step=state.step + 1, z_m=z, v_mps=v, m_kg=m, active=act & ~ended,
-        outcome=torch.where(ended, code, state.outcome),
-        t_end_s=torch.where(act, torch.full_like(state.t_end_s, t_next), state.t_end_s),
-        lowest_m=torch.where(act, torch.minimum(state.lowest_m, z), state.lowest_m),
-        max_thrust_n=torch.where(act, torch.maximum(state.max_thrust_n, u), state.max_thrust_n),
-        n_held=state.n_held + held.to(i64), n_missing=state.n_missing + (torch.isnan(d_hat) & act).to(i64),
-        n_sanitised=state.n_sanitised + (bad & act).to(i64), n_positive=state.n_positive + ((d_hat > 0) & act).to(i64),
-        last_thrust_n=u, last_mass_kg=state.m_kg, last_frames=frames if frames is not None else state.last_frames,
-        stage_state=advance_generation(stages))
-    return nxt, ended
-
-
-__all__ = ["StepOutput", "Sensed", "init_state", "loop_step", "sense_step", "act_step", "sanitise_estimates",
-           "estimator_confidence", "D_HAT_ABS_MAX"]
+__all__ = ["StepOutput", "Sensed", "Estimate", "Command", "init_state", "reset_where", "loop_step", "sense_step",
+           "act_step", "render", "sense", "estimate", "act", "advance", "flight_time_s", "sanitise_estimates",
+           "confidence_of", "compacted", "active_events", "D_HAT_ABS_MAX"]

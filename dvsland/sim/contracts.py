@@ -1,0 +1,144 @@
+"""The stages as the loop calls them: each stateful stage under the stage contract.
+
+A built-in stage offers the contract itself (:mod:`dvsland.pytree`: ``init_state``,
+``step_state``, ``reset_where``). A third-party object that only has the object API (an estimator
+with ``update``/``reset``, a law with ``__call__``, a filter with ``update``) is run through a
+:class:`dvsland.pytree.ObjectStage` adapter built here, so ``--estimator file.py:Class`` keeps
+working unchanged. Everything a plug-in returns is checked at this boundary
+(:mod:`dvsland.plugins`): one :class:`~dvsland.plugins.PluginError` naming it when it breaks its
+contract.
+
+The loop reads :func:`stage_fns` (built once per :class:`dvsland.stages.Stages`):
+
+- ``emulator``: ``init_state(frames, t_us, seed)``, ``step_state(st, frames, t_us) -> (st, Events)``,
+  ``reset_where(st, mask, frames, t_us, seed)``;
+- ``estimator``: ``init_state()``, ``step_state(st, events, t_us, truth) -> (st, EstimateOut)``,
+  ``reset_where(st, mask)``;
+- ``filter``: ``init_state()``, ``step_state(st, d_hat, active, accel_mps2, thrust_accel_mps2,
+  confidence) -> (st, (d_filtered, n_used, altitude_m or None))``, ``reset_where(st, mask)``;
+- ``controller``: ``init_state()``, ``step_state(st, t_s (B,), d_filtered, mass_kg, active,
+  altitude_m) -> (st, ControlOutput)``, ``reset_where(st, mask)``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Optional
+
+import torch
+
+from dvsland.estimators import EstimateOut
+from dvsland.plugins import PluginError, call_plugin, check_batch_tensor
+from dvsland.pytree import ObjectStage, has_stage_contract
+
+
+class StageFns(NamedTuple):
+    """The stateful stages under the contract (``emulator`` None when the estimator needs no events)."""
+
+    emulator: Any
+    estimator: Any
+    filter: Any
+    controller: Any
+    estimator_name: str
+    controller_name: str
+
+
+def controller_name(stages) -> str:
+    """The law's name for messages and results."""
+    ctl = stages.controller
+    return str(getattr(ctl, "controller_name", None) or stages.cfg.controller.name)
+
+
+def stage_fns(stages) -> StageFns:
+    """The contract objects of ``stages`` (built on first use and kept with them)."""
+    fns = getattr(stages, "_stage_fns", None)
+    if fns is None or fns[0] is not stages.estimator:
+        fns = (stages.estimator, _build(stages))
+        stages._stage_fns = fns
+    return fns[1]
+
+
+def _build(stages) -> StageFns:
+    est_name, ctl_name = stages.settings.estimator_name, controller_name(stages)
+    emu = stages.emulator
+    if emu is not None and not has_stage_contract(emu):
+        emu = ObjectStage(emu, call=lambda o, frames, t_us: o.step(frames, int(t_us)),
+                          reset=_emulator_restart, init=lambda o, frames, t_us, seed=None: o.reset(frames, int(t_us)))
+    est = stages.estimator
+    if not has_stage_contract(est) or _object_api_only(est):
+        est = ObjectStage(est, call=_estimator_call(est_name), reset=_reset_call(est_name))
+    filt = stages.filter
+    if not has_stage_contract(filt):
+        filt = ObjectStage(filt, call=_filter_call, reset=_reset_call("filter"))
+    ctl = stages.controller
+    if not has_stage_contract(ctl):
+        ctl = ObjectStage(ctl, call=_controller_call(ctl_name), reset=_reset_call(ctl_name))
+    return StageFns(emu, est, filt, ctl, est_name, ctl_name)
+
+
+def _object_api_only(est) -> bool:
+    """An estimator subclass that inherits the base's contract methods but only implements the
+    object API (``update``/``reset``)."""
+    from dvsland.estimators.base import DivergenceEstimator
+
+    return isinstance(est, DivergenceEstimator) and not est._has_contract()
+
+
+def _emulator_restart(obj, mask, frames=None, t_us=None, seed=None):
+    if mask is not None and not bool(torch.as_tensor(mask).all()):
+        raise ValueError(f"{type(obj).__name__}: an object emulator can only restart every descent at once")
+    obj.reset(frames, int(t_us))
+
+
+def _reset_call(name: str):
+    def reset(obj, mask):
+        call_plugin(name, "reset", obj.reset, mask)
+    return reset
+
+
+def _estimator_call(name: str):
+    def call(obj, events, t_us, truth):
+        B = truth.altitude_m.shape[0]
+        dev = truth.altitude_m.device
+        d = call_plugin(name, "update", obj.update, events, t_us, truth=truth)
+        d = check_batch_tensor(d, B, dev, name, "update")
+        fn = getattr(obj, "confidence", None)
+        c = None if not callable(fn) else call_plugin(name, "confidence", fn)
+        c = check_batch_tensor(c, B, dev, name, "confidence", allow_none=True)
+        diag = getattr(obj, "diagnostics", None)
+        dg = {}
+        if callable(diag):
+            dg = call_plugin(name, "diagnostics", diag) or {}
+        if c is None:
+            c = torch.isfinite(d).to(torch.float32)
+        return EstimateOut(d, c, dict(dg))
+    return call
+
+
+def _filter_call(obj, d_hat, active, accel_mps2=None, thrust_accel_mps2=None, confidence=None):
+    d_f, n_used = obj.update(d_hat, mask=active, accel_mps2=accel_mps2, thrust_accel_mps2=thrust_accel_mps2,
+                             confidence=confidence)
+    return d_f, n_used, getattr(obj, "altitude_m", None)
+
+
+def _controller_call(name: str):
+    def call(obj, t_s, d_f, m_kg, active, altitude_m=None):
+        kw = {"altitude_m": altitude_m} if getattr(obj, "needs_altitude", False) else {}
+        return call_plugin(name, "__call__", obj, t_s, d_f, m_kg, active, **kw)
+    return call
+
+
+def checked_thrust_out(out, B: int, dev, name: str) -> torch.Tensor:
+    """The law's ``thrust_n`` (B,) checked (a :class:`PluginError` naming the law otherwise)."""
+    thrust = getattr(out, "thrust_n", None)
+    thrust = check_batch_tensor(thrust, B, dev, name, "__call__ (thrust_n)")
+    return thrust
+
+
+def check_no_nan_thrust(thrust: torch.Tensor, name: str) -> None:
+    """A law must command a number; one host sync."""
+    if bool(torch.isnan(thrust).any()):
+        raise PluginError(name, "__call__", "thrust_n is NaN; a law must command a number (hover or hold when "
+                                            "its input is missing)")
+
+
+__all__ = ["StageFns", "stage_fns", "controller_name", "checked_thrust_out", "check_no_nan_thrust"]
