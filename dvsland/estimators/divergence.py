@@ -19,7 +19,7 @@ def pairwise_divergence(prev_xy: torch.Tensor, cur_xy: torch.Tensor, valid: torc
         prev_xy: (B, N, 2) float, centroids (x, y) at t - dt, px.
         cur_xy: (B, N, 2) float, the same centroids at t, px.
         valid: (B, N) bool, centroids tracked at both times.
-        dt_s: time between the two, s (> 0).
+        dt_s: time between the two, s (> 0): a float, or a (B,) float64 tensor per element.
         min_length_px: pairs shorter than this at t - dt are skipped (no division by ~0).
         weighting: "none" (the paper: plain mean) or "length" (weights l_{t-dt}: long pairs, whose
             ratio is least disturbed by centroid jitter, count more; not in paper).
@@ -33,7 +33,9 @@ def pairwise_divergence(prev_xy: torch.Tensor, cur_xy: torch.Tensor, valid: torc
                          f"and {tuple(cur_xy.shape)}")
     if valid.shape != prev_xy.shape[:2]:
         raise ValueError(f"valid must be (B, N) = {tuple(prev_xy.shape[:2])}, got {tuple(valid.shape)}")
-    if not dt_s > 0:
+    if isinstance(dt_s, torch.Tensor):
+        dt_s = dt_s.to(torch.float64).view(-1, 1, 1)  # (B, 1, 1): no check here (a device sync)
+    elif not dt_s > 0:
         raise ValueError(f"dt_s must be > 0, got {dt_s}")
     if weighting not in ("none", "length"):
         raise ValueError(f"weighting must be 'none' or 'length', got {weighting!r}")

@@ -3,10 +3,12 @@
 Per step:
 
 1. The interval's events become a count image (ON + OFF summed: shadows and lit rims both mark a
-   feature, and the clustering only needs where events are). A ring of the last
-   ``K = round(memory_ms / dt)`` steps gives the windowed count image over T = memory_ms; the ring
-   holds each step's events as pixel indices and the window is a running sum (add the new step,
-   subtract the oldest: two ``scatter_add_`` calls, no dense image per step).
+   feature, and the clustering only needs where events are). The windowed count image over
+   T = memory_ms is the sum of the last ``K = round(memory_ms / dt)`` steps' images, kept as a
+   running sum: the state holds the window's events as pixel indices in arrival order
+   (``ring_packed``) with each descent's count per step (``ring_counts``), and each step adds the
+   new step's events and subtracts the ones K steps old, a prefix of the ring (two
+   ``scatter_add_`` calls, no dense image per step).
 2. Mean-shift (flat kernel R = ``radius_px``) seeded with last step's centroids, iterated to
    convergence on the windowed image, batched over (B, N_max).
 3. A centroid is dropped when fewer than ``n_min`` events lie within R of it, when it is closer
@@ -19,23 +21,290 @@ Per step:
    (blur, max-pool local maxima, top ``n_max`` by density) on the windowed image, followed by
    mean-shift to convergence on the same image (so the next step compares like with like). DPR
    runs only for those elements.
+
+The stage contract (:mod:`dvsland.pytree`): params are :class:`~dvsland.config.schema.DPRConfig`
+(``DPREstimator.params``) with the sensor constants :class:`DPRConsts`; the state is
+:class:`DPRState`; the step is the pure :func:`dpr_step`.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Optional
+from typing import Dict, NamedTuple, Optional, Tuple
 
 import torch
 
 from dvsland.checks import check_fields
 from dvsland.config.schema import DPRConfig
+from dvsland.pytree import check_state_like, tree_where
 
-from .base import DivergenceEstimator, Truth, confidence_from_rel_std
+from .base import DivergenceEstimator, EstimateOut, Truth, confidence_from_rel_std
 from .density_peaks import density_peaks
 from .divergence import baseline_divergence, pairwise_divergence
 from .meanshift import meanshift_flat
 from .registry import register_estimator
+
+
+class DPRState(NamedTuple):
+    """State of the ``dpr`` estimator for B descents (N = n_max, K = the ring's steps,
+    kb = baseline_steps + 1, q = the window's zero border, Hp = H + 2q, Wp = W + 2q).
+
+    Attributes:
+        ring_packed: (E,) int64, the E events of every descent's window as flat indices
+            (b Hp + y + q) Wp + x + q into ``window``, in the order they came in (the events of
+            the oldest step first). Variable length (all descents packed together).
+        ring_counts: (B, K) int64 events of each descent in each step of the window, oldest step
+            first (the oldest column's events are the ring's prefix that leaves next).
+        window: (B, Hp, Wp) float32 windowed count image (events per pixel over the last K steps,
+            ON + OFF) with a zero border of q px (mean-shift patches never leave it).
+        centroids: (B, N, 2) float32 tracked centroids (x, y), px; NaN where not tracked.
+        valid: (B, N) bool, which centroids are tracked.
+        counts: (B, N) float32 events within R of each centroid (0 where not tracked).
+        reinit: (B,) bool, DPR re-initialised the descent at the last step.
+        n_pairs: (B,) int64 pairs of the last estimate.
+        age: (B,) int64 steps since the descent's (re)start.
+        last_t_us: (B,) int64 time of the last step, µs (-1 = none yet).
+        hist: (B, kb, N, 2) float32 the centroids after each of the last kb steps, oldest first
+            (NaN where not tracked).
+        hist_t: (B, kb) float64 the window mean event time of those steps, s.
+        slot_age: (B, N) int64 consecutive steps each centroid slot has been tracked.
+    """
+
+    ring_packed: torch.Tensor
+    ring_counts: torch.Tensor
+    window: torch.Tensor
+    centroids: torch.Tensor
+    valid: torch.Tensor
+    counts: torch.Tensor
+    reinit: torch.Tensor
+    n_pairs: torch.Tensor
+    age: torch.Tensor
+    last_t_us: torch.Tensor
+    hist: torch.Tensor
+    hist_t: torch.Tensor
+    slot_age: torch.Tensor
+
+
+class DPRConsts(NamedTuple):
+    """Constants of a ``dpr`` estimator besides its :class:`DPRConfig` (made once, never written).
+
+    Attributes:
+        batch_size: B. sensor_size: (W, H) px. dt_s: nominal step, s (the first step's dt).
+        n_ring: K, steps in the memory window. pad: q, the window's zero border, px.
+        lo_xy, hi_xy: (2,) float32 edge bounds of the r_min rule, px. upper: (N, N) bool strict
+            upper triangle (merge rule). n_min, merge, nan, zero: float32 scalars. two_one: (2,)
+            float32 (2, 1), Eq. 8's factor while the ring fills. unit: (2,) float32 (+1, -1).
+    """
+
+    batch_size: int
+    sensor_size: Tuple[int, int]
+    dt_s: float
+    n_ring: int
+    pad: int
+    lo_xy: torch.Tensor
+    hi_xy: torch.Tensor
+    upper: torch.Tensor
+    n_min: torch.Tensor
+    merge: torch.Tensor
+    nan: torch.Tensor
+    zero: torch.Tensor
+    two_one: torch.Tensor
+    unit: torch.Tensor
+
+
+def dpr_consts(p: DPRConfig, batch_size: int, sensor_size: Tuple[int, int], dt_s: float, device) -> DPRConsts:
+    """The :class:`DPRConsts` of ``p`` for B descents on a (W, H) sensor at a ``dt_s`` step."""
+    W, H = sensor_size
+    dev = torch.device(device)
+    f32 = dict(dtype=torch.float32, device=dev)
+    r = float(p.r_min_px)
+    return DPRConsts(int(batch_size), (int(W), int(H)), float(dt_s),
+                     max(1, int(round(float(p.memory_ms) / (1000.0 * float(dt_s))))),
+                     int(math.ceil(float(p.radius_px))) + 1,
+                     torch.tensor([r, r], **f32), torch.tensor([W - 1 - r, H - 1 - r], **f32),
+                     torch.ones(p.n_max, p.n_max, dtype=torch.bool, device=dev).triu(1),
+                     torch.tensor(float(p.n_min), **f32), torch.tensor(float(p.merge_px), **f32),
+                     torch.full((), float("nan"), **f32), torch.zeros((), **f32),
+                     torch.tensor([2.0, 1.0], **f32), torch.tensor([1.0, -1.0], **f32))
+
+
+def dpr_init_state(p: DPRConfig, c: DPRConsts) -> DPRState:
+    """The :class:`DPRState` of B descents that have seen nothing."""
+    B, N, kb = c.batch_size, int(p.n_max), int(p.baseline_steps) + 1
+    W, H = c.sensor_size
+    q, dev = c.pad, c.lo_xy.device
+    i64 = dict(dtype=torch.int64, device=dev)
+    return DPRState(ring_packed=torch.zeros(0, **i64), ring_counts=torch.zeros(B, c.n_ring, **i64),
+                    window=torch.zeros(B, H + 2 * q, W + 2 * q, dtype=torch.float32, device=dev),
+                    centroids=torch.full((B, N, 2), float("nan"), dtype=torch.float32, device=dev),
+                    valid=torch.zeros(B, N, dtype=torch.bool, device=dev),
+                    counts=torch.zeros(B, N, dtype=torch.float32, device=dev),
+                    reinit=torch.zeros(B, dtype=torch.bool, device=dev), n_pairs=torch.zeros(B, **i64),
+                    age=torch.zeros(B, **i64), last_t_us=torch.full((B,), -1, **i64),
+                    hist=torch.full((B, kb, N, 2), float("nan"), dtype=torch.float32, device=dev),
+                    hist_t=torch.zeros(B, kb, dtype=torch.float64, device=dev), slot_age=torch.zeros(B, N, **i64))
+
+
+def dpr_reset_where(p: DPRConfig, c: DPRConsts, state: DPRState, mask: torch.Tensor) -> DPRState:
+    """``state`` with the descents where ``mask`` (B,) bool is True restarted (their events leave
+    the ring); the others bit-identical. The clock ``last_t_us`` is kept: it is the caller's."""
+    plane = state.window.shape[1] * state.window.shape[2]
+    ring = state.ring_packed
+    ring = ring[~mask[ring // plane]]
+    fresh = dpr_init_state(p, c)._replace(ring_packed=ring, last_t_us=state.last_t_us)
+    return tree_where(mask, fresh, state._replace(ring_packed=ring))
+
+
+def _window_step(c: DPRConsts, state: DPRState, events) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(ring_packed, ring_counts, window) after the step's events came in and the ones K steps
+    old (the ring's prefix) left. One host read: the prefix's length.
+
+    ``events`` must lie on the sensor and in the batch (the estimator's input gate checks that)."""
+    W, H = c.sensor_size
+    q, dev = c.pad, state.window.device
+    Hp, Wp = H + 2 * q, W + 2 * q
+    ring, rc = state.ring_packed, state.ring_counts
+    n_old = int(rc[:, 0].sum()) if ring.numel() else 0
+    old, kept = ring[:n_old], ring[n_old:]
+    window = state.window.clone()
+    flat = window.view(-1)
+    # scatter_add_ (about 2x faster than index_add_ on CPU for these scattered indices); counts
+    # are integers, which float32 adds exactly in any order
+    if old.numel():
+        flat.scatter_add_(0, old, c.unit[1].expand(old.numel()))
+    if events is None or events.b.numel() == 0:
+        return kept, torch.cat([rc[:, 1:], torch.zeros_like(rc[:, :1])], 1), window
+    b = events.b.to(dev)
+    # lin = (b * Hp + y + q) * Wp + x + q, in three integer ops
+    new = torch.add(events.x.to(dev), events.y.to(dev), alpha=Wp).add_(b, alpha=Hp * Wp).add_(q * Wp + q)
+    flat.scatter_add_(0, new, c.unit[0].expand(new.numel()))
+    n_new = torch.bincount(b, minlength=c.batch_size).unsqueeze(1)
+    return torch.cat([kept, new]), torch.cat([rc[:, 1:], n_new], 1), window
+
+
+def capped_window(window: torch.Tensor, factor: float) -> torch.Tensor:
+    """``window`` (B, Hp, Wp) float32 with every pixel capped at ``factor`` times its element's
+    mean count per active pixel (a new tensor; the ``hot_pixel_factor`` rule)."""
+    n_act = (window > 0).sum((1, 2)).clamp_min(1).to(window.dtype)
+    cap = factor * window.sum((1, 2)) / n_act
+    return torch.minimum(window, cap.view(-1, 1, 1))
+
+
+def dpr_keep(p: DPRConfig, c: DPRConsts, cen: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    """The n_min, r_min and merge rules on mean-shift's output ``cen`` (B', N, 2) and ``counts``
+    (B', N): the kept mask (B', N) bool. (counts >= n_min >= 1 implies a valid seed that was not
+    lost: mean-shift gives 0 counts otherwise, and NaN centroids fail the edge rule.)"""
+    inside = ((cen >= c.lo_xy) & (cen <= c.hi_xy)).all(-1)  # NaN compares False
+    keep = (counts >= c.n_min) & inside
+    if p.merge_px > 0 and keep.shape[1] > 1:
+        # pairs with a dropped centroid get a NaN distance (never close)
+        cc = torch.where(keep.unsqueeze(-1), cen, c.nan)
+        dist = torch.linalg.vector_norm(cc.unsqueeze(2) - cc.unsqueeze(1), dim=-1)  # (B', N, N)
+        close = (dist < c.merge) & c.upper
+        keep = keep & ~close.any(1)  # j merged into a better-ranked i < j
+    return keep
+
+
+def dpr_initialise(p: DPRConfig, c: DPRConsts, padded: torch.Tensor):
+    """DPR + mean-shift to convergence on windowed images given with their zero border
+    (B', Hp, Wp) float32: (centroids (B', N, 2) float32 px, counts (B', N) float32, keep (B', N)
+    bool), kept centroids first in rank order."""
+    q = c.pad
+    W, H = c.sensor_size
+    peaks, _, ok = density_peaks(padded[:, q:q + H, q:q + W], p.n_max, p.blur_sigma_px, p.nms_px)
+    cen, counts, _ = meanshift_flat(padded, peaks, ok, p.radius_px, p.meanshift_iters, p.meanshift_tol_px,
+                                    image_pad_px=q)
+    keep = dpr_keep(p, c, cen, counts)
+    order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)
+    cen = torch.gather(cen, 1, order.unsqueeze(-1).expand(-1, -1, 2))
+    return cen, torch.gather(counts, 1, order), torch.gather(keep, 1, order)
+
+
+def _divergence(p: DPRConfig, c: DPRConsts, state: DPRState, cen, keep, dt, t_mean, age):
+    """Eq. 8 (or the multi-step baseline) between ``state``'s centroids and the tracked ``cen``:
+    (d (B,) float32 1/s, n_pairs (B,) int64, rel_std (B,) float64, slot ages (B, N) int64)."""
+    kb = p.baseline_steps + 1
+    age_now = torch.where(keep, state.slot_age + 1, torch.zeros_like(state.slot_age)).clamp(max=p.baseline_steps)
+    lag = torch.minimum(age_now.unsqueeze(2), age_now.unsqueeze(1))  # (B, N, N)
+    ring = (kb - lag) % kb  # hist index of the step `lag` steps ago (lag 0: unused, the oldest)
+    hp = state.hist.permute(0, 2, 1, 3)  # (B, N, kb, 2)
+    past_i = hp.gather(2, ring.unsqueeze(-1).expand(-1, -1, -1, 2))
+    past_j = hp.gather(2, ring.transpose(1, 2).unsqueeze(-1).expand(-1, -1, -1, 2)).transpose(1, 2)
+    elapsed = t_mean.view(-1, 1, 1) - state.hist_t.gather(1, ring.flatten(1)).view_as(ring)
+    d_b, n_b, rel = baseline_divergence(cen, torch.stack([past_i, past_j], 3), lag, elapsed)
+    if p.baseline_steps > 1:
+        return d_b, n_b, rel, age_now
+    # the paper's Eq. 8 (rel from the same pairs over one step, for the confidence). While the ring
+    # fills after a reset the window's mean event time advances by dt / 2 per step instead of dt:
+    # Eq. 8 then uses dt / 2 (not in paper; removes a x2 bias at start)
+    d, n_pairs = pairwise_divergence(state.centroids, cen, keep, dt, weighting=p.pair_weighting)
+    d = d * torch.where(age <= c.n_ring, c.two_one[0], c.two_one[1])
+    return d, n_pairs, rel, age_now
+
+
+def _reinitialise(p: DPRConfig, c: DPRConsts, image, centroids, valid, counts):
+    """Re-initialise (DPR) the descents left with fewer than c_min centroids, only those; writes
+    into ``centroids``, ``valid``, ``counts`` (this step's new tensors). Returns need (B,) bool."""
+    need = valid.sum(1) < p.c_min
+    if bool(need.any()):
+        idx = need.nonzero().squeeze(1)
+        padded = image[idx]
+        # an element with an empty window (e.g. a finished descent) has no density peak, so DPR
+        # would give it no centroid; its state already says so (a kept centroid needs n_min >= 1
+        # events within R): skip it
+        busy = padded.sum((1, 2)) > 0
+        if not bool(busy.all()):
+            sel = busy.nonzero().squeeze(1)
+            idx, padded = idx[sel], padded[sel]
+        if idx.numel():
+            ci, ni, ki = dpr_initialise(p, c, padded)
+            centroids[idx] = torch.where(ki.unsqueeze(-1), ci, c.nan)
+            valid[idx] = ki
+            counts[idx] = torch.where(ki, ni, c.zero)
+    return need
+
+
+def dpr_step(p: DPRConfig, c: DPRConsts, state: DPRState, events, t_us: int) -> Tuple[DPRState, EstimateOut]:
+    """Pure step of ``dpr`` (module doc): (next state, :class:`EstimateOut`); ``state`` unchanged.
+
+    Args:
+        p, c: the params and constants. state: :class:`DPRState` of B descents.
+        events: :class:`dvsland.events.Events` of the interval (b in [0, B), x, y on the sensor),
+            or None / empty.
+        t_us: end of the interval, int µs; dt = the time since the last step (``dt_s`` at first).
+    """
+    t_us = int(t_us)
+    last = state.last_t_us
+    dt = torch.where((last >= 0) & (last < t_us), (t_us - last).to(torch.float64) * 1e-6,
+                     torch.full(last.shape, c.dt_s, dtype=torch.float64, device=last.device))  # (B,) s
+    ring, ring_counts, window = _window_step(c, state, events)
+    image = capped_window(window, p.hot_pixel_factor) if p.hot_pixel_factor > 0 else window
+    cen, counts, _ = meanshift_flat(image, state.centroids, state.valid, p.radius_px, p.meanshift_iters,
+                                    p.meanshift_tol_px, image_pad_px=c.pad)
+    keep = dpr_keep(p, c, cen, counts)
+    age = state.age + 1
+    # window mean event time (the ring holds min(age, K) steps), s
+    t_mean = t_us * 1e-6 - age.clamp(max=c.n_ring).to(torch.float64) * (0.5 * dt)
+    d, n_pairs, rel, slot_age = _divergence(p, c, state, cen, keep, dt, t_mean, age)
+    centroids = torch.where(keep.unsqueeze(-1), cen, c.nan)
+    counts = torch.where(keep, counts, c.zero)
+    valid = keep.clone()
+    need = _reinitialise(p, c, image, centroids, valid, counts)
+    new = DPRState(ring, ring_counts, window, centroids, valid, counts, need, n_pairs, age,
+                   torch.full_like(last, t_us), torch.cat([state.hist[:, 1:], centroids.unsqueeze(1)], 1),
+                   torch.cat([state.hist_t[:, 1:], t_mean.unsqueeze(1)], 1),
+                   torch.where(need.unsqueeze(1), torch.zeros_like(slot_age), slot_age))
+    conf = confidence_from_rel_std(rel, d)
+    return new, EstimateOut(d, conf, dpr_diagnostics(new, conf))
+
+
+def dpr_diagnostics(state: DPRState, confidence: torch.Tensor) -> Dict[str, torch.Tensor]:
+    """centroids (B, N_max, 2) float32 (x, y) px, NaN = unused; n_tracked (B,) int64; reinit (B,)
+    bool (DPR ran this step); counts (B, N_max) events within R; n_pairs (B,) pairs used by Eq. 8;
+    window_events (B,) float32 events in the memory window; confidence (B,) float32."""
+    return {"centroids": state.centroids, "n_tracked": state.valid.sum(1), "reinit": state.reinit,
+            "counts": state.counts, "n_pairs": state.n_pairs,
+            "window_events": state.ring_counts.sum(1).to(torch.float32), "confidence": confidence}
 
 
 @register_estimator("dpr")
@@ -70,8 +339,9 @@ class DPREstimator(DivergenceEstimator):
             centroids, which a zoom about any point scales alike, so ``dpr`` needs no FoE; it is
             accepted for the common interface.
 
-    ``confidence()``: 1 / (1 + (sigma_rel / 0.1)^2) from the relative standard error of the
-    pairs' mean (0 with fewer than two pairs or no estimate).
+    Params: ``params`` (:class:`DPRConfig`) and ``consts`` (:class:`DPRConsts`); state:
+    :class:`DPRState`. ``confidence()``: 1 / (1 + (sigma_rel / 0.1)^2) from the relative standard
+    error of the pairs' mean (0 with fewer than two pairs or no estimate).
     """
 
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, n_max: int = 15,
@@ -86,240 +356,46 @@ class DPREstimator(DivergenceEstimator):
                      memory_ms=memory_ms, blur_sigma_px=blur_sigma_px, meanshift_iters=meanshift_iters,
                      meanshift_tol_px=meanshift_tol_px, merge_px=merge_px, nms_px=nms_px,
                      pair_weighting=pair_weighting, baseline_steps=baseline_steps, hot_pixel_factor=hot_pixel_factor)
-        self.hot_pixel_factor = float(hot_pixel_factor)
-        self.baseline_steps = int(baseline_steps)
         if int(nms_px) < 1 or int(nms_px) % 2 == 0:
             raise ValueError(f"nms_px must be an odd integer >= 1, got {nms_px}")
-        self.n_max, self.n_min, self.c_min = int(n_max), int(n_min), int(c_min)
-        self.radius_px, self.r_min_px = float(radius_px), float(r_min_px)
-        self.memory_ms, self.blur_sigma_px = float(memory_ms), float(blur_sigma_px)
-        self.meanshift_iters, self.meanshift_tol_px = int(meanshift_iters), float(meanshift_tol_px)
-        self.merge_px, self.nms_px = float(merge_px), int(nms_px)
         if pair_weighting not in ("none", "length"):
             raise ValueError(f"pair_weighting must be 'none' or 'length', got {pair_weighting!r}")
-        self.pair_weighting = pair_weighting
-        #: number of per-step count images in the ring (T / dt, at least 1)
-        self.n_ring = max(1, int(round(self.memory_ms / (1000.0 * self.dt_s))))
-        B, N = self.batch_size, self.n_max
-        W, H = self.sensor_size
-        dev = self.device
-        # ring of the last K steps' events as flat indices into the padded window (sparse: the
-        # window is updated by adding the new step's events and removing the oldest step's)
-        self._ring = [torch.zeros(0, dtype=torch.int64, device=dev) for _ in range(self.n_ring)]
-        self._slot = 0
-        # running ring sum, stored with a zero border so mean-shift patches never leave it
-        self._pad = int(math.ceil(self.radius_px)) + 1
-        q = self._pad
-        self._window_padded = torch.zeros(B, H + 2 * q, W + 2 * q, dtype=torch.float32, device=dev)
-        self._window = self._window_padded[:, q:q + H, q:q + W]  # a view
-        self._centroids = torch.full((B, N, 2), float("nan"), dtype=torch.float32, device=dev)
-        self._valid = torch.zeros(B, N, dtype=torch.bool, device=dev)
-        self._counts = torch.zeros(B, N, dtype=torch.float32, device=dev)
-        self._reinit = torch.zeros(B, dtype=torch.bool, device=dev)
-        self._n_pairs = torch.zeros(B, dtype=torch.int64, device=dev)
-        self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
-        self._last_t_us: Optional[int] = None
-        self._age = torch.zeros(B, dtype=torch.int64, device=dev)  # steps since reset
-        # per-step constants, made once: +-1 sources of scatter_add_ (grown on demand), scalars,
-        # the edge bounds of the r_min rule and the strict upper triangle of the merge rule
-        self._ones = torch.tensor([[1.0], [-1.0]], device=dev).repeat(1, 4096)
-        self._nan = torch.full((), float("nan"), dtype=torch.float32, device=dev)
-        self._zero = torch.zeros((), dtype=torch.float32, device=dev)
-        r = self.r_min_px
-        self._lo_xy = torch.tensor([r, r], dtype=torch.float32, device=dev)
-        self._hi_xy = torch.tensor([W - 1 - r, H - 1 - r], dtype=torch.float32, device=dev)
-        self._upper = torch.ones(N, N, dtype=torch.bool, device=dev).triu(1)
-        self._n_min_t = torch.tensor(float(self.n_min), dtype=torch.float32, device=dev)
-        self._merge_t = torch.tensor(self.merge_px, dtype=torch.float32, device=dev)
-        self._two_one = torch.tensor([2.0, 1.0], dtype=torch.float32, device=dev)
-        self._rel_std = torch.full((B,), float("inf"), dtype=torch.float64, device=dev)
-        # multi-step baseline: ring of the last k + 1 steps' centroids and window mean times, and
-        # for each slot the number of consecutive steps its centroid has been tracked
-        kb = self.baseline_steps + 1
-        self._hist = torch.full((B, kb, N, 2), float("nan"), dtype=torch.float32, device=dev)
-        self._hist_t = torch.zeros(B, kb, dtype=torch.float64, device=dev)
-        self._hist_ptr = 0
-        self._slot_age = torch.zeros(B, N, dtype=torch.int64, device=dev)
+        self.params = DPRConfig(n_max=int(n_max), n_min=int(n_min), radius_px=float(radius_px), c_min=int(c_min),
+                                r_min_px=float(r_min_px), memory_ms=float(memory_ms),
+                                blur_sigma_px=float(blur_sigma_px), meanshift_iters=int(meanshift_iters),
+                                meanshift_tol_px=float(meanshift_tol_px), merge_px=float(merge_px),
+                                nms_px=int(nms_px), pair_weighting=pair_weighting,
+                                baseline_steps=int(baseline_steps), hot_pixel_factor=float(hot_pixel_factor))
+        self.consts = dpr_consts(self.params, self.batch_size, self.sensor_size, self.dt_s, self.device)
+        #: number of per-step count images in the window (T / dt, at least 1)
+        self.n_ring = self.consts.n_ring
+        #: zero border of the windowed image, px
+        self._pad = self.consts.pad
+        self._template = dpr_init_state(self.params, self.consts)
+        self.state = self.init_state()
 
-    # ------------------------------------------------------------------ state
-    def reset(self, mask: Optional[torch.Tensor] = None) -> None:
-        mask = self._mask(mask)
-        plane = self._window_padded.shape[1] * self._window_padded.shape[2]
-        self._ring = [r[~mask[r // plane]] for r in self._ring]
-        self._window_padded[mask] = 0.0
-        self._centroids[mask] = float("nan")
-        self._valid[mask] = False
-        self._counts[mask] = 0.0
-        self._reinit[mask] = False
-        self._n_pairs[mask] = 0
-        self._d[mask] = float("nan")
-        self._age[mask] = 0
-        self._rel_std[mask] = float("inf")
-        self._slot_age[mask] = 0
+    # ------------------------------------------------------------------ the stage contract
+    def init_state(self) -> DPRState:
+        """B descents that have seen nothing (:class:`DPRState`)."""
+        return dpr_init_state(self.params, self.consts)
 
+    def reset_where(self, state: DPRState, mask: torch.Tensor) -> DPRState:
+        """``state`` with the descents where ``mask`` (B,) bool is True restarted."""
+        return dpr_reset_where(self.params, self.consts, state, self._mask(mask))
+
+    def step_state(self, state: DPRState, events, t_us: int, truth: Optional[Truth] = None):
+        """Pure step (:func:`dpr_step`): (next :class:`DPRState`, :class:`EstimateOut`)."""
+        check_state_like("dpr", state, self._template)
+        return dpr_step(self.params, self.consts, state, events, t_us)
+
+    # ------------------------------------------------------------------ object API extras
     def window_image(self) -> torch.Tensor:
-        """The windowed count image over the last T, (B, H, W) float32 (a copy).
-
-        Kept as a running sum of the ring (counts are integers: float32 adds them exactly)."""
-        return self._window.clone()
-
-    def _event_index(self, events) -> torch.Tensor:
-        """Flat indices of the events into the padded window, (E,) int64 (off-sensor dropped)."""
-        if events is None or events.b.numel() == 0:
-            return torch.zeros(0, dtype=torch.int64, device=self.device)
-        W, H = self.sensor_size
-        q = self._pad
-        Hp, Wp = H + 2 * q, W + 2 * q
-        b = events.b.to(self.device)
-        x = events.x.to(self.device)
-        y = events.y.to(self.device)
-        # lin = (b * Hp + y + q) * Wp + x + q, in three integer ops
-        lin = torch.add(x, y, alpha=Wp).add_(b, alpha=Hp * Wp).add_(q * Wp + q)
-        # range check from the extremes (one sync); the mask is built only when needed
-        lo_hi = torch.stack([*torch.aminmax(b), *torch.aminmax(x), *torch.aminmax(y)]).tolist()
-        if (lo_hi[0] < 0 or lo_hi[1] >= self.batch_size or lo_hi[2] < 0 or lo_hi[3] >= W or lo_hi[4] < 0
-                or lo_hi[5] >= H):
-            ok = (b >= 0) & (b < self.batch_size) & (x >= 0) & (x < W) & (y >= 0) & (y < H)
-            lin = lin[ok]
-        return lin
-
-    def _capped(self) -> torch.Tensor:
-        """The padded windowed image (B, H + 2q, W + 2q) float32 with every pixel capped at
-        ``hot_pixel_factor`` times its element's mean count per active pixel (a new tensor)."""
-        img = self._window_padded
-        n_act = (img > 0).sum((1, 2)).clamp_min(1).to(img.dtype)
-        cap = self.hot_pixel_factor * img.sum((1, 2)) / n_act
-        return torch.minimum(img, cap.view(-1, 1, 1))
-
-    def _unit(self, n: int) -> torch.Tensor:
-        """(2, n) float32 view: row 0 = +1, row 1 = -1, the window's scatter sources (kept
-        between steps, grown on demand)."""
-        if self._ones.shape[1] < n:
-            self._ones = torch.tensor([[1.0], [-1.0]], device=self.device).repeat(1, 2 * n)
-        return self._ones[:, :n]
-
-    # ------------------------------------------------------------------ rules
-    def _keep(self, c: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
-        """Apply n_min, r_min and merge rules to mean-shift's output; returns the kept mask
-        (B', N) bool. (counts >= n_min >= 1 implies a valid seed that was not lost: mean-shift
-        gives 0 counts otherwise, and NaN centroids fail the edge rule.)"""
-        inside = ((c >= self._lo_xy) & (c <= self._hi_xy)).all(-1)  # NaN compares False
-        keep = (counts >= self._n_min_t) & inside
-        if self.merge_px > 0 and keep.shape[1] > 1:
-            # pairs with a dropped centroid get a NaN distance (never close)
-            cc = torch.where(keep.unsqueeze(-1), c, self._nan)
-            dist = torch.linalg.vector_norm(cc.unsqueeze(2) - cc.unsqueeze(1), dim=-1)  # (B', N, N)
-            close = (dist < self._merge_t) & self._upper
-            keep = keep & ~close.any(1)  # j merged into a better-ranked i < j
-        return keep
-
-    def _initialise(self, padded: torch.Tensor):
-        """DPR + mean-shift to convergence on the windowed image, given with its zero border
-        (B', H + 2q, W + 2q); returns (c, counts, keep)."""
+        """The windowed count image over the last T, (B, H, W) float32 (a copy)."""
         q = self._pad
         W, H = self.sensor_size
-        peaks, _, ok = density_peaks(padded[:, q:q + H, q:q + W], self.n_max, self.blur_sigma_px, self.nms_px)
-        c, counts, _ = meanshift_flat(padded, peaks, ok, self.radius_px, self.meanshift_iters,
-                                      self.meanshift_tol_px, image_pad_px=q)
-        keep = self._keep(c, counts)
-        # compact: kept centroids first, in rank order
-        order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)
-        c = torch.gather(c, 1, order.unsqueeze(-1).expand(-1, -1, 2))
-        counts = torch.gather(counts, 1, order)
-        keep = torch.gather(keep, 1, order)
-        return c, counts, keep
+        return self.state.window[:, q:q + H, q:q + W].clone()
 
-    # ------------------------------------------------------------------ step
-    def update(self, events, t_us: int, truth: Optional[Truth] = None) -> torch.Tensor:
-        W, H = self.sensor_size
-        t_us = int(t_us)
-        dt = self.dt_s
-        if self._last_t_us is not None and t_us > self._last_t_us:
-            dt = (t_us - self._last_t_us) * 1e-6
-        self._last_t_us = t_us
-        new = self._event_index(events)
-        flat = self._window_padded.view(-1)
-        old = self._ring[self._slot]
-        # scatter_add_ (about 2x faster than index_add_ on CPU for these scattered indices)
-        if old.numel():
-            flat.scatter_add_(0, old, self._unit(old.numel())[1])
-        if new.numel():
-            flat.scatter_add_(0, new, self._unit(new.numel())[0])
-        self._ring[self._slot] = new
-        self._slot = (self._slot + 1) % self.n_ring
+    def diagnostics(self) -> Dict[str, torch.Tensor]:
+        """:func:`dpr_diagnostics` of the held state (copies), also right after a reset."""
+        return {k: v.clone() for k, v in dpr_diagnostics(self.state, self.confidence()).items()}
 
-        # 1. track: mean-shift from last step's centroids
-        prev = self._centroids
-        image = self._capped() if self.hot_pixel_factor > 0 else self._window_padded
-        c, counts, _ = meanshift_flat(image, prev, self._valid, self.radius_px, self.meanshift_iters,
-                                      self.meanshift_tol_px, image_pad_px=self._pad)
-        keep = self._keep(c, counts)
-        # 2. Eq. 8 over the pairs tracked at both steps (computed before any re-initialisation).
-        # While the ring fills after a reset the window's mean event time advances by dt / 2 per
-        # step instead of dt: Eq. 8 then uses dt / 2 (not in paper; removes a x2 bias at start).
-        self._age += 1
-        # window mean event time (the ring holds min(age, K) steps), s
-        t_mean = t_us * 1e-6 - self._age.clamp(max=self.n_ring).to(torch.float64) * (0.5 * dt)
-        kb = self.baseline_steps + 1
-        age_now = torch.where(keep, self._slot_age + 1, torch.zeros_like(self._slot_age)).clamp(max=self.baseline_steps)
-        lag = torch.minimum(age_now.unsqueeze(2), age_now.unsqueeze(1))  # (B, N, N)
-        ring = (self._hist_ptr - lag) % kb
-        hp = self._hist.permute(0, 2, 1, 3)  # (B, N, kb, 2)
-        past_i = hp.gather(2, ring.unsqueeze(-1).expand(-1, -1, -1, 2))
-        past_j = hp.gather(2, ring.transpose(1, 2).unsqueeze(-1).expand(-1, -1, -1, 2)).transpose(1, 2)
-        elapsed = t_mean.view(-1, 1, 1) - self._hist_t.gather(1, ring.flatten(1)).view_as(ring)
-        d_b, n_b, rel = baseline_divergence(c, torch.stack([past_i, past_j], 3), lag, elapsed)
-        if self.baseline_steps > 1:
-            d, n_pairs = d_b, n_b
-        else:  # the paper's Eq. 8 (rel from the same pairs over one step, for the confidence)
-            d, n_pairs = pairwise_divergence(prev, c, keep, dt, weighting=self.pair_weighting)
-            d = d * torch.where(self._age <= self.n_ring, self._two_one[0], self._two_one[1])
-        self._rel_std = rel
-        self._hist[:, self._hist_ptr] = torch.where(keep.unsqueeze(-1), c, self._nan)
-        self._hist_t[:, self._hist_ptr] = t_mean
-        self._slot_age = age_now
-        self._centroids = torch.where(keep.unsqueeze(-1), c, self._nan)
-        self._valid = keep
-        self._counts = torch.where(keep, counts, self._zero)
-        # 3. re-initialise (DPR) the elements below C_min, only those
-        need = keep.sum(1) < self.c_min
-        self._reinit = need
-        if bool(need.any()):
-            idx = need.nonzero().squeeze(1)
-            padded = image[idx]
-            # an element with an empty window (e.g. a finished descent) has no density peak, so
-            # DPR would give it no centroid; its state already says so (a kept centroid needs
-            # n_min >= 1 events within R): skip it
-            busy = padded.sum((1, 2)) > 0
-            if not bool(busy.all()):
-                sel = busy.nonzero().squeeze(1)
-                idx, padded = idx[sel], padded[sel]
-            if idx.numel():
-                ci, ni, ki = self._initialise(padded)
-                self._centroids[idx] = torch.where(ki.unsqueeze(-1), ci, self._nan)
-                self._valid[idx] = ki
-                self._counts[idx] = torch.where(ki, ni, self._zero)
-                self._hist[idx, self._hist_ptr] = self._centroids[idx]
-        self._slot_age = torch.where(need.unsqueeze(1), torch.zeros_like(self._slot_age), self._slot_age)
-        self._hist_ptr = (self._hist_ptr + 1) % (self.baseline_steps + 1)
-        self._n_pairs = n_pairs
-        self._d = d
-        return d.clone()
-
-    def diagnostics(self):
-        """centroids (B, N_max, 2) float32 (x, y) px, NaN = unused; n_tracked (B,) int64;
-        reinit (B,) bool (DPR ran this step); counts (B, N_max) events within R; n_pairs (B,)
-        pairs used by Eq. 8; window_events (B,) events in the memory window; confidence (B,)."""
-        return {
-            "centroids": self._centroids.clone(),
-            "n_tracked": self._valid.sum(1),
-            "reinit": self._reinit.clone(),
-            "counts": self._counts.clone(),
-            "n_pairs": self._n_pairs.clone(),
-            "window_events": self._window.sum((1, 2)),
-            "confidence": self.confidence(),
-        }
-
-    def confidence(self) -> torch.Tensor:
-        """(B,) float32 in [0, 1] from the relative standard error of the pairs (see class doc)."""
-        return confidence_from_rel_std(self._rel_std, self._d)
