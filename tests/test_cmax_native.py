@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from dvsland.estimators import get_estimator, native_cmax
+from dvsland.estimators.cmax import hot_pixel_weights, store_keep
 from dvsland.estimators.contrast import WEIGHT_UNIT, split_contrast
 from dvsland.events import Events
 
@@ -163,7 +164,7 @@ def test_kernel_hot_pixel_weights_and_counts_equal_torch_path():
     for native in (False, True):
         native_cmax.use_native_cmax(native)
         try:
-            out.append(est._hot_pixel_weights(pix, b))
+            out.append(hot_pixel_weights(est.params, est.setup, pix, b))
         finally:
             native_cmax.use_native_cmax(None)
     assert torch.equal(out[0], out[1]) and bool((out[0] < 1).any())
@@ -184,7 +185,7 @@ def test_kernel_store_thinning_equals_torch_path(max_events, seed):
     for native in (False, True):
         native_cmax.use_native_cmax(native)
         try:
-            out.append(est._store_keep(b, x, y, t))
+            out.append(store_keep(est.params, est.setup, est.state, b, x, y, t))
         finally:
             native_cmax.use_native_cmax(None)
     assert torch.equal(out[0], out[1]) and 0 < out[0].numel() < E

@@ -103,6 +103,7 @@ def test_cmax_hot_pixel_weights_cap_a_hot_pixel(native):
     mean, 2) and its events together weigh the mean of the others (1); the rest keep weight 1. The
     compiled kernel (where built) gives the same weights as the torch path."""
     from dvsland.estimators import native_cmax
+    from dvsland.estimators.cmax import hot_pixel_weights
 
     if native and not native_cmax.cached():
         pytest.skip("the compiled cmax kernel is not built")
@@ -113,10 +114,11 @@ def test_cmax_hot_pixel_weights_cap_a_hot_pixel(native):
         ys = torch.cat([torch.arange(100) // 20, torch.full((100,), 25)])
         pix = ys * 32 + xs
         b = torch.zeros(200, dtype=torch.long)
-        w = est._hot_pixel_weights(pix, b)
+        w = hot_pixel_weights(est.params, est.setup, pix, b)
         assert torch.equal(w[:100], torch.ones(100))
         assert float(w[100:].sum()) == pytest.approx(1.0, rel=1e-5)
-        off = get_estimator("cmax", 1, (32, 32), hot_pixel_factor=200.0)._hot_pixel_weights(pix, b)
+        high = get_estimator("cmax", 1, (32, 32), hot_pixel_factor=200.0)
+        off = hot_pixel_weights(high.params, high.setup, pix, b)
         assert torch.equal(off, torch.ones(200))  # not hot at a factor of 200
     finally:
         native_cmax.use_native_cmax(None)

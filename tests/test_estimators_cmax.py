@@ -110,7 +110,7 @@ def test_cmax_extreme_search_range_is_bounded_and_still_finds_d(d_min):
     for tens of GB); events a candidate sends off the canvas only lower its score."""
     est = get_estimator("cmax", 2, (W, H), "cpu", dt_s=0.1, window_ms=300.0, d_min=d_min, d_max=0.5,
                         n_grid=int(max(21, -d_min * 20)), n_refine=2, min_events=20)
-    assert est.pad_cap_px <= max(W, H) and est._pad_for(abs(d_min), 0.3) <= max(W, H)
+    assert est.setup.pad_px <= max(W, H)  # the canvas margin does not grow with |d_min|
     d = _run(est, torch.tensor([-0.5, -0.5]), 12)[-4:]
     assert torch.isfinite(d).all() and torch.allclose(d.mean(0), torch.tensor([-0.5, -0.5]), atol=0.08), d
 
@@ -249,10 +249,10 @@ def test_cmax_smoothing_resets_by_mask():
     est = get_estimator("cmax", 2, (W, H), "cpu", dt_s=0.1, window_ms=300.0, min_events=20, trend_steps=10,
                         smooth_steps=10)
     _run(est, D, 15)
-    assert bool(torch.isfinite(est._hist_d).all())
+    assert bool(torch.isfinite(est.state.hist_d).all())
     est.reset(torch.tensor([True, False]))
-    assert bool(torch.isnan(est._hist_d[0]).all() and torch.isnan(est._hist_s[0]).all())
-    assert bool(torch.isfinite(est._hist_d[1]).all())
+    assert bool(torch.isnan(est.state.hist_d[0]).all() and torch.isnan(est.state.hist_s[0]).all())
+    assert bool(torch.isfinite(est.state.hist_d[1]).all())
     dg = est.diagnostics()
     assert est.confidence()[0] == 0 and torch.isnan(dg["d_std"][0]) and torch.isfinite(dg["d_std"][1])
     fresh = get_estimator("cmax", 2, (W, H), "cpu", dt_s=0.1, window_ms=300.0, min_events=20, trend_steps=10,

@@ -157,15 +157,24 @@ def warped_contrast(x: torch.Tensor, y: torch.Tensor, b: torch.Tensor, dt_s: tor
 
 # ---------------------------------------------------------------------- fast path of ``cmax``
 
-def seed_term(seed: int) -> int:
-    """The seed's term of :func:`event_hash`: any Python int folded to 31 bits (campaign seeds are
-    63-bit; seeds below 2^31 are used as they are), times its multiplier (below 2^62)."""
+def fold_seed(seed):
+    """A seed folded to 31 bits, ``(s ^ (s >> 31) ^ (s >> 62)) & 0x7FFFFFFF``: any Python int (campaign
+    seeds are 63-bit), or an int64 tensor of seeds (element-wise, the same values as the ints). Seeds in
+    [0, 2^31) are kept as they are, so folding a folded seed changes nothing."""
+    if isinstance(seed, torch.Tensor):
+        s = seed.to(torch.int64)
+        return (s ^ (s >> 31) ^ (s >> 62)) & 0x7FFFFFFF
     seed = int(seed)
-    seed = (seed ^ (seed >> 31) ^ (seed >> 62)) & 0x7FFFFFFF
-    return seed * 0x3C6EF372
+    return (seed ^ (seed >> 31) ^ (seed >> 62)) & 0x7FFFFFFF
 
 
-def event_hash(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, seed: int = 0) -> torch.Tensor:
+def seed_term(seed):
+    """The seed's term of :func:`event_hash`: the seed folded to 31 bits (:func:`fold_seed`), times
+    its multiplier (below 2^62). An int for an int seed, an int64 tensor for a tensor of seeds."""
+    return fold_seed(seed) * 0x3C6EF372
+
+
+def event_hash(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, seed=0) -> torch.Tensor:
     """A pseudo-random 31-bit integer per event from its fields (splitmix64-style mixing).
 
     Depends only on the event (b, x, y, t) and ``seed``, never on the order of the events, so
@@ -173,7 +182,8 @@ def event_hash(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Tenso
 
     Args:
         b, x, y, t: (E,) integer tensors.
-        seed: any integer (folded to 31 bits; seeds below 2^31 are used as they are).
+        seed: any integer (folded to 31 bits; seeds below 2^31 are used as they are), or an (E,)
+            int64 tensor, each event's own seed (e.g. its element's seed: the same hash as the int).
 
     Returns:
         (E,) int64 in [0, 2^31).

@@ -199,7 +199,7 @@ torch::Tensor pixel_counts(torch::Tensor b, torch::Tensor px, int64_t B, int64_t
   return out;
 }
 
-// cmax's hot-pixel weights (CMaxEstimator._hot_pixel_weights, the torch path): c = events of the element on
+// cmax's hot-pixel weights (cmax.hot_pixel_weights, the torch path): c = events of the element on
 // the event's pixel; two rounds of mean = sum(keep) / sum(keep / c) per element (float64, summed in event order
 // as bincount does), keep = c <= factor * mean; weight = 1 where kept, else mean / c (as float32).
 torch::Tensor hot_weights(torch::Tensor b, torch::Tensor px, int64_t B, int64_t n_px, double factor) {
@@ -237,11 +237,11 @@ static inline int64_t event_hash1(int64_t b, int64_t x, int64_t y, int64_t t, in
   return h & 0x7FFFFFFF;
 }
 
-// cmax's store thinning (CMaxEstimator._store_step, the torch path): the indices of the events on the sensor
-// and in the batch whose hash (seed_term = folded seed * 0x3C6EF372) passes (h & 0xFFFF) < p[b] 65536 with
+// cmax's store thinning (cmax.store_keep, the torch path): the indices of the events on the sensor and in the
+// batch whose hash (seed_terms[b] = element b's folded seed * 0x3C6EF372) passes (h & 0xFFFF) < p[b] 65536 with
 // p = min(cap[b] / max(n[b], 1), 1), n[b] the element's events on the sensor (float64, as bincount).
 torch::Tensor store_select(torch::Tensor b, torch::Tensor x, torch::Tensor y, torch::Tensor t, torch::Tensor cap,
-                           int64_t W, int64_t H, int64_t seed_term) {
+                           int64_t W, int64_t H, torch::Tensor seed_terms) {
   auto i64 = torch::kInt64;
   TORCH_CHECK(b.is_contiguous() && x.is_contiguous() && y.is_contiguous() && t.is_contiguous() &&
               b.scalar_type() == i64 && x.scalar_type() == i64 && y.scalar_type() == i64 && t.scalar_type() == i64,
@@ -250,7 +250,10 @@ torch::Tensor store_select(torch::Tensor b, torch::Tensor x, torch::Tensor y, to
   const int64_t E = b.numel(), B = cap.numel();
   const int64_t *Bi = b.data_ptr<int64_t>(), *X = x.data_ptr<int64_t>(), *Y = y.data_ptr<int64_t>(),
                 *T = t.data_ptr<int64_t>();
+  TORCH_CHECK(seed_terms.is_contiguous() && seed_terms.scalar_type() == i64 && seed_terms.numel() == B,
+              "store_select: seed_terms contiguous int64 (B,)");
   const double* C = cap.data_ptr<double>();
+  const int64_t* ST = seed_terms.data_ptr<int64_t>();
   std::vector<double> n(B, 0.0), p(B);
   for (int64_t e = 0; e < E; ++e)
     if (Bi[e] >= 0 && Bi[e] < B && X[e] >= 0 && X[e] < W && Y[e] >= 0 && Y[e] < H) n[Bi[e]] += 1.0;
@@ -259,7 +262,7 @@ torch::Tensor store_select(torch::Tensor b, torch::Tensor x, torch::Tensor y, to
   keep.reserve(size_t(E));
   for (int64_t e = 0; e < E; ++e) {
     if (!(Bi[e] >= 0 && Bi[e] < B && X[e] >= 0 && X[e] < W && Y[e] >= 0 && Y[e] < H)) continue;
-    const int64_t h = event_hash1(Bi[e], X[e], Y[e], T[e], seed_term);
+    const int64_t h = event_hash1(Bi[e], X[e], Y[e], T[e], ST[Bi[e]]);
     if ((double)(h & 0xFFFF) < p[Bi[e]] * 65536.0) keep.push_back(e);
   }
   auto out = torch::empty({(int64_t)keep.size()}, i64);
