@@ -185,14 +185,14 @@ def test_fit_with_forgetting_reads_a_bounded_history_and_agrees_with_the_whole_o
     plan_z, plan_v = torch.tensor([4000.0, 4000.0], dtype=F64), torch.tensor([-100.0, -100.0], dtype=F64)
     cut = EfferenceFitFilter(plan_z, plan_v, dt, prior_rel_sigma=0.1, meas_sigma_rel=0.05, forget_s=1.0)
     whole = EfferenceFitFilter(plan_z, plan_v, dt, prior_rel_sigma=0.1, meas_sigma_rel=0.05, forget_s=1.0)
-    whole._cut_forget = 1e9  # never cut
+    whole.params = whole.params._replace(cut_forget=1e9)  # never cut
     for i in range(n):
         a = None if i == 0 else accel[i - 1]
         d_cut, _ = cut.update(d[i], accel_mps2=a)
         d_whole, _ = whole.update(d[i], accel_mps2=a)
         torch.testing.assert_close(d_cut, d_whole, rtol=1e-6, atol=0.0)
     torch.testing.assert_close(cut.altitude_m, whole.altitude_m, rtol=1e-6, atol=0.0)
-    assert int(cut.n.min()) == n and math.ceil(cut._cut_forget * cut.forget_s / dt) < n  # the cut was active
+    assert int(cut.n.min()) == n and math.ceil(cut.params.cut_forget * cut.forget_s / dt) < n  # the cut was active
 
 
 @pytest.mark.parametrize("field,value", [("huber_k", "-1"), ("max_step_rel", "-0.1"), ("cov_cap_rel", "-1"),

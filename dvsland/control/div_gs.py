@@ -20,15 +20,21 @@ the target needs: (1 - c2) D*^2 z_hat on the TTC part, D*^2 z_hat on the constan
 With ``v_min_mps`` > 0 the final approach is floored at that sink rate (constant velocity below
 z_hat = v_min / d_final). The constant-TTC-decrease descent alone reaches 50 m at 11-14 m/s on the paper's sites. A
 missing filtered estimate holds the last thrust (or hovers).
+
+Params :class:`~dvsland.control.base.LawParams` (options: :class:`dvsland.config.schema.DivGSConfig`),
+state :class:`~dvsland.control.base.HoldLastState`, pure step :func:`div_gs_step`.
 """
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Tuple
 
 import torch
 
-from .base import ControlOutput, Controller, HoldLast, check_bounds
+from dvsland.config.schema import DivGSConfig
+
+from .base import (ControlOutput, Controller, HoldLastState, LawParams, check_bounds, clamp_thrust,
+                   hold_last_finish, hold_last_init, law_inputs, law_params)
 from .registry import register_controller
 
 Tensor = torch.Tensor
@@ -53,6 +59,37 @@ def divergence_target(t_s, tau0_s: Tensor, c2: float, d_final_per_s: float):
     d_star = -torch.where(final, torch.full_like(inv, d_final_per_s), inv)
     coef = torch.where(final, 1.0, 1.0 - c2)
     return d_star, coef
+
+
+def div_gs_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
+                active: Optional[Tensor], altitude_m: Optional[Tensor]) -> Tuple[HoldLastState, ControlOutput]:
+    """Pure step of ``div_gs``: (next state, :class:`ControlOutput`).
+
+    Args:
+        t_s: flight time of each descent, (B,) float64 s (or a float for all).
+        d_filtered: (B,) filtered divergence, 1/s (NaN = none).
+        mass_kg: (B,) current mass, kg.
+        active: (B,) bool or None (all); inactive descents keep their last command.
+        altitude_m: (B,) the filter's altitude estimate z_hat, m (required).
+    """
+    if altitude_m is None:
+        raise ValueError("controller 'div_gs' needs altitude_m (use the 'efference' filter)")
+    o = p.options
+    d, m, mg, t_s = law_inputs(p, t_s, d_filtered, mass_kg)
+    z = altitude_m.to(torch.float64).clamp_min(1.0)
+    d_star, coef = divergence_target(t_s, p.tau0_s, p.c2, o.d_final_per_s)
+    if o.v_min_mps > 0:  # final approach (coef 1) floored at v_min: constant velocity, a_ref = 0
+        floor = -o.v_min_mps / z
+        use = (coef == 1.0) & (floor < d_star)
+        d_star = torch.where(use, floor, d_star)
+        coef = torch.where(use, 0.0, coef)
+    usable = ~torch.isnan(d)
+    a_ref = coef * d_star * d_star * z
+    u = m * (p.g_mps2 + a_ref) + o.lambda_per_s * m * z * (d_star - torch.where(usable, d, 0.0))
+    u = clamp_thrust(p, u)
+    state, thrust = hold_last_finish(p, state, usable, u, mg, active)
+    tau_hat = torch.where(d < 0, -1.0 / d, float("nan"))
+    return state, ControlOutput(thrust_n=thrust, tau_hat_s=tau_hat, tau_target_s=-1.0 / d_star, held=~usable)
 
 
 @register_controller("div_gs")
@@ -81,17 +118,17 @@ class DivGSController(Controller):
         check_bounds(thrust_min_n, thrust_max_n, missing_policy)
         if not v_min_mps >= 0:
             raise ValueError(f"v_min_mps must be >= 0, got {v_min_mps}")
-        self.v_min_mps = float(v_min_mps)
         for name, val in (("lambda_per_s", lambda_per_s), ("d_final_per_s", d_final_per_s)):
             if not val > 0:
                 raise ValueError(f"{name} must be > 0, got {val}")
         if not 0 < c2 < 1:
             raise ValueError(f"c2 must be in (0, 1), got {c2}")
-        self.tau0_s = torch.as_tensor(tau0_s, dtype=torch.float64)
-        self.c2, self.g_mps2 = float(c2), float(g_mps2)
-        self.missing_policy = missing_policy
-        self.lambda_per_s, self.d_final_per_s = float(lambda_per_s), float(d_final_per_s)
-        self._mem = HoldLast(thrust_min_n, thrust_max_n)
+        options = DivGSConfig(lambda_per_s=float(lambda_per_s), d_final_per_s=float(d_final_per_s),
+                              v_min_mps=float(v_min_mps))
+        self.params = law_params(None, torch.as_tensor(tau0_s, dtype=torch.float64), c2, g_mps2, thrust_min_n,
+                                 thrust_max_n, missing_policy, options)
+        self._template = self.init_state()
+        self.state = self.init_state()
 
     @classmethod
     def from_params(cls, p, **options) -> "DivGSController":
@@ -99,32 +136,15 @@ class DivGSController(Controller):
         (the settings' Kp is not used: the gain is lambda m z_hat)."""
         return cls(p.tau0_s, p.c2, p.g_mps2, p.thrust_min_n, p.thrust_max_n, p.missing_policy, **options)
 
-    def reset(self, mask: Optional[Tensor] = None) -> None:
-        self._mem.reset(mask)
+    def init_state(self) -> HoldLastState:
+        return hold_last_init(self.params)
+
+    def step_state(self, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
+                   active: Optional[Tensor] = None, altitude_m: Optional[Tensor] = None):
+        """Pure step (:func:`div_gs_step`); ``altitude_m`` (B,) m is required."""
+        self._check(state)
+        return div_gs_step(self.params, state, t_s, d_filtered, mass_kg, active, altitude_m)
 
     def loop_gain_fields(self, m_kg: Tensor, z_m: Tensor) -> dict:
         """The scheduled divergence-loop gain is lambda at every altitude: it never crosses the limit."""
         return {"loop_gain": torch.full_like(m_kg, self.lambda_per_s), "loop_gain_kind": "div"}
-
-    def __call__(self, t_s, d_filtered: Tensor, mass_kg: Tensor, active: Optional[Tensor] = None,
-                 altitude_m: Optional[Tensor] = None) -> ControlOutput:
-        if altitude_m is None:
-            raise ValueError("controller 'div_gs' needs altitude_m (use the 'efference' filter)")
-        d = d_filtered.to(torch.float64)
-        m = mass_kg.to(torch.float64)
-        mg = m * self.g_mps2
-        z = altitude_m.to(torch.float64).clamp_min(1.0)
-        d_star, coef = divergence_target(t_s, self.tau0_s, self.c2, self.d_final_per_s)
-        if self.v_min_mps > 0:  # final approach (coef 1) floored at v_min: constant velocity, a_ref = 0
-            floor = -self.v_min_mps / z
-            use = (coef == 1.0) & (floor < d_star)
-            d_star = torch.where(use, floor, d_star)
-            coef = torch.where(use, 0.0, coef)
-        usable = ~torch.isnan(d)
-        a_ref = coef * d_star * d_star * z
-        u = m * (self.g_mps2 + a_ref) + self.lambda_per_s * m * z * (d_star - torch.where(usable, d, 0.0))
-        u = self._mem.clamp(u)
-        self._mem.before(mg)
-        thrust = self._mem.finish(usable, u, mg, self.missing_policy, active)
-        tau_hat = torch.where(d < 0, -1.0 / d, float("nan"))
-        return ControlOutput(thrust_n=thrust, tau_hat_s=tau_hat, tau_target_s=-1.0 / d_star, held=~usable)

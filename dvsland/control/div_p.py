@@ -12,19 +12,48 @@ A missing filtered estimate (NaN) triggers ``missing_policy`` (hold the last thr
 a non-negative D is used as it is (the error is then negative and the thrust drops to the
 lower bound). Past t = tau0 / c2 the target tau* is <= 0 and -1/tau* changes sign, as in the
 formula; descents end long before that in practice.
+
+Params :class:`~dvsland.control.base.LawParams` (options: :class:`dvsland.config.schema.DivPConfig`),
+state :class:`~dvsland.control.base.HoldLastState`, pure step :func:`div_p_step`.
 """
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Tuple
 
 import torch
 
-from .base import ControlOutput, Controller, HoldLast, check_bounds, check_gain_and_target
+from dvsland.config.schema import DivPConfig
+
+from .base import (ControlOutput, Controller, HoldLastState, LawParams, check_bounds, check_gain_and_target,
+                   clamp_thrust, hold_last_finish, hold_last_init, law_inputs, law_params)
 from .gain import div_loop_gain, gain_limit_altitude_m
 from .registry import register_controller
 
 Tensor = torch.Tensor
+
+
+def div_p_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
+               active: Optional[Tensor] = None) -> Tuple[HoldLastState, ControlOutput]:
+    """Pure step of ``div_p``: (next state, :class:`ControlOutput`).
+
+    Args:
+        t_s: flight time of each descent, (B,) float64 s (or a float for all).
+        d_filtered: (B,) filtered divergence, 1/s (NaN = none).
+        mass_kg: (B,) current mass, kg.
+        active: (B,) bool or None (all); inactive descents keep their last command.
+    """
+    d, _, mg, t_s = law_inputs(p, t_s, d_filtered, mass_kg)
+    tau_star = p.tau0_s - p.c2 * t_s
+    usable = ~torch.isnan(d)
+    e = -1.0 / tau_star - torch.where(usable, d, 0.0)
+    u = p.kp * e
+    if p.options.feedforward_mg:
+        u = u + mg
+    u = clamp_thrust(p, torch.nan_to_num(u, nan=0.0))
+    state, thrust = hold_last_finish(p, state, usable, u, mg, active)
+    tau_hat = torch.where(d < 0, -1.0 / d, float("nan"))
+    return state, ControlOutput(thrust_n=thrust, tau_hat_s=tau_hat, tau_target_s=tau_star, held=~usable)
 
 
 @register_controller("div_p")
@@ -48,13 +77,13 @@ class DivPController(Controller):
                  thrust_max_n: Optional[float] = None, missing_policy: str = "hold", feedforward_mg: bool = False,
                  n_bin: Optional[Tensor] = None, dt_s: float = 0.1):
         check_bounds(thrust_min_n, thrust_max_n, missing_policy)
-        self.kp, self.tau0_s = check_gain_and_target(kp, tau0_s, c2)
-        self.c2, self.g_mps2 = float(c2), float(g_mps2)
-        self.missing_policy = missing_policy
-        self.feedforward_mg = bool(feedforward_mg)
+        kp, tau0_s = check_gain_and_target(kp, tau0_s, c2)
+        self.params = law_params(kp, tau0_s, c2, g_mps2, thrust_min_n, thrust_max_n, missing_policy,
+                                 DivPConfig(feedforward_mg=bool(feedforward_mg)))
         self.n_bin = n_bin
         self.dt_s = float(dt_s)
-        self._mem = HoldLast(thrust_min_n, thrust_max_n)
+        self._template = self.init_state()
+        self.state = self.init_state()
 
     @classmethod
     def from_params(cls, p, feedforward_mg: bool = False) -> "DivPController":
@@ -62,8 +91,14 @@ class DivPController(Controller):
         return cls(p.kp, p.tau0_s, p.c2, p.g_mps2, p.thrust_min_n, p.thrust_max_n, p.missing_policy,
                    feedforward_mg=feedforward_mg, n_bin=p.n_bin, dt_s=p.dt_s)
 
-    def reset(self, mask: Optional[Tensor] = None) -> None:
-        self._mem.reset(mask)
+    def init_state(self) -> HoldLastState:
+        return hold_last_init(self.params)
+
+    def step_state(self, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
+                   active: Optional[Tensor] = None, altitude_m: Optional[Tensor] = None):
+        """Pure step (:func:`div_p_step`); ``altitude_m`` is not used."""
+        self._check(state)
+        return div_p_step(self.params, state, t_s, d_filtered, mass_kg, active)
 
     def loop_gain_fields(self, m_kg: Tensor, z_m: Tensor) -> dict:
         """Kp / (m z) at the given (final) state, and the altitude where Kp / (m z) dt crosses the
@@ -72,18 +107,3 @@ class DivPController(Controller):
         if self.n_bin is not None:
             out["gain_limit_altitude_m"] = gain_limit_altitude_m(self.kp, m_kg, self.dt_s, self.n_bin)
         return out
-
-    def __call__(self, t_s, d_filtered: Tensor, mass_kg: Tensor, active: Optional[Tensor] = None) -> ControlOutput:
-        d = d_filtered.to(torch.float64)
-        mg = mass_kg.to(torch.float64) * self.g_mps2
-        tau_star = self.tau0_s - self.c2 * t_s
-        usable = ~torch.isnan(d)
-        e = -1.0 / tau_star - torch.where(usable, d, 0.0)
-        u = self.kp * e
-        if self.feedforward_mg:
-            u = u + mg
-        u = self._mem.clamp(torch.nan_to_num(u, nan=0.0))
-        self._mem.before(mg)
-        thrust = self._mem.finish(usable, u, mg, self.missing_policy, active)
-        tau_hat = torch.where(d < 0, -1.0 / d, float("nan"))
-        return ControlOutput(thrust_n=thrust, tau_hat_s=tau_hat, tau_target_s=tau_star, held=~usable)

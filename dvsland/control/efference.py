@@ -37,13 +37,21 @@ craft does not know its dispersion.
 
 Output per step: the filtered divergence v/z (B,), the number of estimates used this step (0 or
 1), and :attr:`altitude_m` / :attr:`velocity_mps` (B,) for controllers that use them.
+
+Params :class:`EfferenceParams` (the planned start and the ``controller.efference`` section), state
+:class:`EfferenceState`, pure step :func:`efference_step` (:func:`efference_predict`, then
+:func:`efference_correct`).
 """
 
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import NamedTuple, Optional, Tuple
 
 import torch
+
+from dvsland.config.schema import EfferenceConfig
+
+from .filter import DivergenceFilter, FilterOut
 
 Tensor = torch.Tensor
 
@@ -77,7 +85,173 @@ def cap_covariance(pzz: Tensor, pzv: Tensor, pvv: Tensor, sz_max: Tensor, sv_max
     return pzz * fz * fz, pzv * fz * fv, pvv * fv * fv
 
 
-class EfferenceFilter:
+class EfferenceParams(NamedTuple):
+    """Settings of the ``efference`` EKF for B descents; frozen in flight.
+
+    Attributes:
+        z0_m: (B,) float64 nominal initial altitude, m (> 0).
+        v0_mps: (B,) float64 nominal initial velocity, m/s.
+        dt_s: control interval, s.
+        cfg: the ``controller.efference`` section (``prior_rel_sigma_v`` resolved: never None).
+    """
+
+    z0_m: Tensor
+    v0_mps: Tensor
+    dt_s: float
+    cfg: EfferenceConfig
+
+
+class EfferenceState(NamedTuple):
+    """State of the ``efference`` EKF for B descents, all (B,).
+
+    Attributes:
+        z, v: float64 estimated altitude (m) and velocity (m/s).
+        pzz, pzv, pvv: float64 covariance [[pzz, pzv], [pzv, pvv]] of (z, v), m^2, m^2/s, m^2/s^2.
+        n_rejected: int64 estimates rejected by the gate since the descent's (re)start.
+    """
+
+    z: Tensor
+    v: Tensor
+    pzz: Tensor
+    pzv: Tensor
+    pvv: Tensor
+    n_rejected: Tensor
+
+
+def efference_prior(p: EfferenceParams) -> EfferenceState:
+    """The prior of every descent: (prior_scale z0, prior_scale v0), relative std. dev.
+    ``prior_rel_sigma`` on z and ``prior_rel_sigma_v`` on v, uncorrelated, nothing rejected."""
+    c = p.cfg
+    z = p.z0_m * c.prior_scale
+    v = p.v0_mps * c.prior_scale
+    return EfferenceState(z, v, (c.prior_rel_sigma * z) ** 2, torch.zeros_like(z), (c.prior_rel_sigma_v * v) ** 2,
+                          torch.zeros(z.shape, dtype=torch.int64, device=z.device))
+
+
+def efference_predict(p: EfferenceParams, s: EfferenceState, accel_mps2: Tensor,
+                      thrust_accel_mps2: Optional[Tensor] = None, active: Optional[Tensor] = None) -> EfferenceState:
+    """Advance by dt with the known acceleration ``accel_mps2`` (B,) (u/m - g), m/s^2;
+    ``thrust_accel_mps2`` (B,) = u/m scales the process noise (default: |accel + 0|). Descents not
+    ``active`` (B,) bool keep their state."""
+    c, dt = p.cfg, p.dt_s
+    a = accel_mps2.to(torch.float64)
+    ua = a.abs() if thrust_accel_mps2 is None else thrust_accel_mps2.to(torch.float64).abs()
+    sa2 = (c.accel_sigma_mps2 + c.accel_sigma_rel * ua) ** 2
+    z = s.z + s.v * dt + 0.5 * a * dt * dt
+    v = s.v + a * dt
+    # P = F P F^T + Q, F = [[1, dt], [0, 1]]
+    pzz = s.pzz + 2 * dt * s.pzv + dt * dt * s.pvv + sa2 * dt ** 4 / 4
+    pzv = s.pzv + dt * s.pvv + sa2 * dt ** 3 / 2
+    pvv = s.pvv + sa2 * dt * dt
+    z = z.clamp_min(c.min_altitude_m)
+    if c.cov_cap_rel > 0:
+        pzz, pzv, pvv = cap_covariance(pzz, pzv, pvv, c.cov_cap_rel * z, c.cov_cap_rel * v.abs())
+    if active is not None:
+        z, v = torch.where(active, z, s.z), torch.where(active, v, s.v)
+        pzz, pzv, pvv = (torch.where(active, pzz, s.pzz), torch.where(active, pzv, s.pzv),
+                         torch.where(active, pvv, s.pvv))
+    return EfferenceState(z, v, pzz, pzv, pvv, s.n_rejected)
+
+
+def _measurement(c: EfferenceConfig, d: Tensor, h: Tensor, confidence: Optional[Tensor]):
+    """(R (B,) float64, usable (B,) bool) of the estimates ``d`` against the prediction ``h``."""
+    r = (c.meas_sigma_rel * h.abs() + c.meas_sigma_abs) ** 2
+    finite = torch.isfinite(d)
+    if confidence is not None and c.min_confidence > 0:
+        finite = finite & (confidence.to(device=d.device, dtype=torch.float64) >= c.min_confidence)
+    if c.meas_noise == "confidence" and confidence is not None:
+        sig_c = confidence_rel_sigma(confidence.to(device=d.device, dtype=torch.float64))
+        finite = finite & torch.isfinite(sig_c)
+        scale = torch.maximum(torch.where(finite, d, 0.0).abs(), h.abs())  # a near-0 D_hat is no surer
+        r = r + (torch.where(torch.isfinite(sig_c), sig_c, 0.0) * scale) ** 2
+    return r, finite
+
+
+def _limited_step(c: EfferenceConfig, z: Tensor, v: Tensor, kz: Tensor, kv: Tensor, innov: Tensor, s: Tensor):
+    """(dz, dv) of one update after the Huber clip of the innovation and the step limit."""
+    if c.huber_k > 0:  # Huber: a far estimate pulls like one at huber_k sigma
+        lim = c.huber_k * s.sqrt()
+        innov = torch.maximum(torch.minimum(innov, lim), -lim)
+    dz, dv = kz * innov, kv * innov
+    if c.max_step_rel > 0:  # one update moves z, v by at most max_step_rel of their value
+        lz, lv = c.max_step_rel * z, c.max_step_rel * v.abs().clamp_min(1e-3)
+        dz = torch.maximum(torch.minimum(dz, lz), -lz)
+        dv = torch.maximum(torch.minimum(dv, lv), -lv)
+    return dz, dv
+
+
+def efference_correct(p: EfferenceParams, st: EfferenceState, d_hat: Tensor, active: Optional[Tensor] = None,
+                      confidence: Optional[Tensor] = None) -> Tuple[EfferenceState, Tensor]:
+    """Fuse one D_hat (B,) (1/s, NaN = none); returns (next state, (B,) bool: which descents used it).
+
+    ``confidence`` (B,) in [0, 1] (the estimator's ``confidence()``) is used with
+    ``meas_noise="confidence"``: 0 or not finite = no update, else it adds its relative error
+    sigma_c = 0.1 sqrt(1/c - 1) to R. Ignored with ``meas_noise="fixed"``."""
+    c = p.cfg
+    d = d_hat.to(torch.float64)
+    z, v = st.z, st.v
+    h = v / z
+    hz, hv = -v / (z * z), 1.0 / z
+    r, finite = _measurement(c, d, h, confidence)
+    s = hz * hz * st.pzz + 2 * hz * hv * st.pzv + hv * hv * st.pvv + r
+    innov = d - h
+    ok = finite & (innov * innov <= c.gate_sigma ** 2 * s)
+    rejected = finite & ~ok
+    if active is not None:
+        ok, rejected = ok & active, rejected & active
+    # K = P H^T / s
+    kz = (st.pzz * hz + st.pzv * hv) / s
+    kv = (st.pzv * hz + st.pvv * hv) / s
+    dz, dv = _limited_step(c, z, v, kz, kv, torch.where(ok, innov, 0.0), s)
+    z_new = (z + dz).clamp_min(c.min_altitude_m)
+    v_new = v + dv
+    # P = (I - K H) P, symmetric form
+    pzz = st.pzz - kz * kz * s
+    pzv = st.pzv - kz * kv * s
+    pvv = st.pvv - kv * kv * s
+    return EfferenceState(torch.where(ok, z_new, z), torch.where(ok, v_new, v),
+                          torch.where(ok, pzz.clamp_min(1e-12), st.pzz), torch.where(ok, pzv, st.pzv),
+                          torch.where(ok, pvv.clamp_min(1e-12), st.pvv),
+                          st.n_rejected + rejected.to(torch.int64)), ok
+
+
+def efference_step(p: EfferenceParams, state: EfferenceState, d_hat: Tensor, active: Optional[Tensor] = None,
+                   accel_mps2: Optional[Tensor] = None, thrust_accel_mps2: Optional[Tensor] = None,
+                   confidence: Optional[Tensor] = None) -> Tuple[EfferenceState, FilterOut]:
+    """Pure step of the ``efference`` EKF: predict with the acceleration applied since the last step
+    (skipped when ``accel_mps2`` is None: the first step), then fuse ``d_hat``.
+
+    Returns:
+        (next state, FilterOut(v/z (B,) float64, 1 where D_hat was fused (B,) int64, z (B,) float64 m)).
+    """
+    if accel_mps2 is not None:
+        state = efference_predict(p, state, accel_mps2, thrust_accel_mps2, active)
+    state, used = efference_correct(p, state, d_hat, active, confidence)
+    return state, FilterOut(state.v / state.z, used.to(torch.int64), state.z)
+
+
+def check_filter_plan(z0_m, v0_mps) -> Tuple[Tensor, Tensor]:
+    """(z0, v0) as (B,) float64 tensors on z0's device; ValueError unless they match and z0 > 0."""
+    z0 = torch.as_tensor(z0_m, dtype=torch.float64).reshape(-1)
+    v0 = torch.as_tensor(v0_mps, dtype=torch.float64, device=z0.device).reshape(-1)
+    if z0.shape != v0.shape:
+        raise ValueError(f"z0_m and v0_mps must have one shape (B,), got {tuple(z0.shape)}, {tuple(v0.shape)}")
+    if bool((z0 <= 0).any()):
+        raise ValueError("z0_m must be > 0 for every element")
+    return z0, v0
+
+
+def check_positive(checks: dict, min_confidence: float) -> None:
+    """ValueError naming the first option out of range: ``checks`` maps name -> (value, lower bound,
+    bound allowed); ``min_confidence`` must lie in [0, 1]."""
+    if not 0.0 <= min_confidence <= 1.0:
+        raise ValueError(f"min_confidence must be in [0, 1], got {min_confidence}")
+    for name, (val, lo, inclusive) in checks.items():
+        if not (val >= lo if inclusive else val > lo):
+            raise ValueError(f"{name} must be {'>=' if inclusive else '>'} {lo}, got {val}")
+
+
+class EfferenceFilter(DivergenceFilter):
     """Batched EKF on (altitude, velocity) fed by D_hat and the known acceleration.
 
     Args:
@@ -99,6 +273,9 @@ class EfferenceFilter:
         max_step_rel: largest relative change of z_hat, v_hat per update (>= 0, 0 = off).
         cov_cap_rel: cap of the std. dev. of z and v relative to z_hat, |v_hat| (>= 0, 0 = off).
         min_confidence: estimates whose ``confidence`` is below this are not used (in [0, 1]).
+
+    Params :class:`EfferenceParams`, state :class:`EfferenceState` (its fields read as attributes:
+    ``z``, ``v``, ``pzz``, ``pzv``, ``pvv``, ``n_rejected``).
     """
 
     provides_altitude = True
@@ -109,39 +286,29 @@ class EfferenceFilter:
                  min_altitude_m: float = 1.0, prior_rel_sigma_v: Optional[float] = None,
                  meas_noise: str = "fixed", huber_k: float = 0.0, max_step_rel: float = 0.0,
                  cov_cap_rel: float = 0.0, min_confidence: float = 0.0):
-        z0 = torch.as_tensor(z0_m, dtype=torch.float64).reshape(-1)
-        v0 = torch.as_tensor(v0_mps, dtype=torch.float64, device=z0.device).reshape(-1)
-        if z0.shape != v0.shape:
-            raise ValueError(f"z0_m and v0_mps must have one shape (B,), got {tuple(z0.shape)}, {tuple(v0.shape)}")
-        if bool((z0 <= 0).any()):
-            raise ValueError("z0_m must be > 0 for every element")
+        z0, v0 = check_filter_plan(z0_m, v0_mps)
         checks = {"dt_s": (dt_s, 0, False), "prior_scale": (prior_scale, 0, False),
                   "prior_rel_sigma": (prior_rel_sigma, 0, False), "accel_sigma_mps2": (accel_sigma_mps2, 0, True),
                   "accel_sigma_rel": (accel_sigma_rel, 0, True), "meas_sigma_rel": (meas_sigma_rel, 0, True),
                   "meas_sigma_abs": (meas_sigma_abs, 0, False), "gate_sigma": (gate_sigma, 0, False),
                   "min_altitude_m": (min_altitude_m, 0, False), "huber_k": (huber_k, 0, True),
                   "max_step_rel": (max_step_rel, 0, True), "cov_cap_rel": (cov_cap_rel, 0, True)}
-        if not 0.0 <= min_confidence <= 1.0:
-            raise ValueError(f"min_confidence must be in [0, 1], got {min_confidence}")
-        self.min_confidence = float(min_confidence)
         if prior_rel_sigma_v is not None:
             checks["prior_rel_sigma_v"] = (prior_rel_sigma_v, 0, False)
-        for name, (val, lo, inclusive) in checks.items():
-            if not (val >= lo if inclusive else val > lo):
-                raise ValueError(f"{name} must be {'>=' if inclusive else '>'} {lo}, got {val}")
-        self.z0_m, self.v0_mps, self.dt_s = z0, v0, float(dt_s)
-        self.prior_scale, self.prior_rel_sigma = float(prior_scale), float(prior_rel_sigma)
-        self.accel_sigma_mps2, self.accel_sigma_rel = float(accel_sigma_mps2), float(accel_sigma_rel)
-        self.meas_sigma_rel, self.meas_sigma_abs = float(meas_sigma_rel), float(meas_sigma_abs)
-        self.gate_sigma, self.min_altitude_m = float(gate_sigma), float(min_altitude_m)
+        check_positive(checks, min_confidence)
         if meas_noise not in ("fixed", "confidence"):
             raise ValueError(f"meas_noise must be 'fixed' or 'confidence', got {meas_noise!r}")
-        self.prior_rel_sigma_v = self.prior_rel_sigma if prior_rel_sigma_v is None else float(prior_rel_sigma_v)
-        self.meas_noise, self.huber_k = meas_noise, float(huber_k)
-        self.max_step_rel, self.cov_cap_rel = float(max_step_rel), float(cov_cap_rel)
-        self.batch_size = int(z0.numel())
-        self.n_rejected = torch.zeros(self.batch_size, dtype=torch.int64, device=z0.device)
-        self.reset(None)
+        psv = prior_rel_sigma if prior_rel_sigma_v is None else prior_rel_sigma_v
+        cfg = EfferenceConfig(prior_scale=float(prior_scale), prior_rel_sigma=float(prior_rel_sigma),
+                              accel_sigma_mps2=float(accel_sigma_mps2), accel_sigma_rel=float(accel_sigma_rel),
+                              meas_sigma_rel=float(meas_sigma_rel), meas_sigma_abs=float(meas_sigma_abs),
+                              gate_sigma=float(gate_sigma), min_altitude_m=float(min_altitude_m),
+                              prior_rel_sigma_v=float(psv), meas_noise=meas_noise, huber_k=float(huber_k),
+                              max_step_rel=float(max_step_rel), cov_cap_rel=float(cov_cap_rel),
+                              min_confidence=float(min_confidence))
+        self.params = EfferenceParams(z0, v0, float(dt_s), cfg)
+        self._template = self.init_state()
+        self.state = self.init_state()
 
     @classmethod
     def from_params(cls, p, **options) -> "EfferenceFilter":
@@ -150,139 +317,47 @@ class EfferenceFilter:
         options = {k: v for k, v in options.items() if k not in _NOT_MINE}
         return cls(p.z0_m, p.v0_mps, p.dt_s, **options)
 
-    # ------------------------------------------------------------------ state
-    def reset(self, mask: Optional[Tensor] = None) -> None:
-        """Back to the prior where ``mask`` (B,) bool is True (all when None)."""
-        z = self.z0_m * self.prior_scale
-        v = self.v0_mps * self.prior_scale
-        pzz = (self.prior_rel_sigma * z) ** 2
-        pvv = (self.prior_rel_sigma_v * v) ** 2
-        pzv = torch.zeros_like(z)
-        if mask is None:
-            self.z, self.v, self.pzz, self.pzv, self.pvv = z.clone(), v.clone(), pzz, pzv, pvv
-            self.n_rejected.zero_()
-            return
-        self.z = torch.where(mask, z, self.z)
-        self.v = torch.where(mask, v, self.v)
-        self.pzz = torch.where(mask, pzz, self.pzz)
-        self.pzv = torch.where(mask, pzv, self.pzv)
-        self.pvv = torch.where(mask, pvv, self.pvv)
-        self.n_rejected = torch.where(mask, 0, self.n_rejected)
+    @property
+    def batch_size(self) -> int:
+        return int(self.params.z0_m.numel())
 
+    @property
+    def device(self) -> torch.device:
+        return self.params.z0_m.device
+
+    # ------------------------------------------------------------------ the contract
+    def init_state(self) -> EfferenceState:
+        return efference_prior(self.params)
+
+    def step_state(self, state: EfferenceState, d_hat: Tensor, active: Optional[Tensor] = None,
+                   accel_mps2: Optional[Tensor] = None, thrust_accel_mps2: Optional[Tensor] = None,
+                   confidence: Optional[Tensor] = None) -> Tuple[EfferenceState, FilterOut]:
+        """Pure step (:func:`efference_step`)."""
+        self._check_inputs(state, d_hat, confidence)
+        return efference_step(self.params, state, d_hat, active, accel_mps2, thrust_accel_mps2, confidence)
+
+    # ------------------------------------------------------------------ the object API
     @property
     def altitude_m(self) -> Tensor:
         """(B,) float64 altitude estimate, m."""
-        return self.z
+        return self.state.z
 
     @property
     def velocity_mps(self) -> Tensor:
         """(B,) float64 velocity estimate, m/s."""
-        return self.v
+        return self.state.v
 
     @property
     def divergence(self) -> Tensor:
         """(B,) float64 filtered divergence v / z, 1/s."""
-        return self.v / self.z
+        return self.state.v / self.state.z
 
-    # ------------------------------------------------------------------ steps
     def predict(self, accel_mps2: Tensor, thrust_accel_mps2: Optional[Tensor] = None,
                 mask: Optional[Tensor] = None) -> None:
-        """Advance by dt with the known acceleration ``accel_mps2`` (B,) (u/m - g), m/s^2;
-        ``thrust_accel_mps2`` (B,) = u/m scales the process noise (default: |accel + 0|)."""
-        dt = self.dt_s
-        a = accel_mps2.to(torch.float64)
-        ua = a.abs() if thrust_accel_mps2 is None else thrust_accel_mps2.to(torch.float64).abs()
-        sa2 = (self.accel_sigma_mps2 + self.accel_sigma_rel * ua) ** 2
-        z = self.z + self.v * dt + 0.5 * a * dt * dt
-        v = self.v + a * dt
-        # P = F P F^T + Q, F = [[1, dt], [0, 1]]
-        pzz = self.pzz + 2 * dt * self.pzv + dt * dt * self.pvv + sa2 * dt ** 4 / 4
-        pzv = self.pzv + dt * self.pvv + sa2 * dt ** 3 / 2
-        pvv = self.pvv + sa2 * dt * dt
-        z = z.clamp_min(self.min_altitude_m)
-        if self.cov_cap_rel > 0:
-            pzz, pzv, pvv = cap_covariance(pzz, pzv, pvv, self.cov_cap_rel * z, self.cov_cap_rel * v.abs())
-        if mask is not None:
-            z, v = torch.where(mask, z, self.z), torch.where(mask, v, self.v)
-            pzz, pzv, pvv = (torch.where(mask, pzz, self.pzz), torch.where(mask, pzv, self.pzv),
-                             torch.where(mask, pvv, self.pvv))
-        self.z, self.v, self.pzz, self.pzv, self.pvv = z, v, pzz, pzv, pvv
+        """The held state advanced by :func:`efference_predict`."""
+        self.state = efference_predict(self.params, self.state, accel_mps2, thrust_accel_mps2, mask)
 
     def correct(self, d_hat: Tensor, mask: Optional[Tensor] = None, confidence: Optional[Tensor] = None) -> Tensor:
-        """Fuse one D_hat (B,) (1/s, NaN = none); returns (B,) bool: which elements used it.
-
-        ``confidence`` (B,) in [0, 1] (the estimator's ``confidence()``) is used with
-        ``meas_noise="confidence"``: 0 or not finite = no update, else it adds its relative error
-        sigma_c = 0.1 sqrt(1/c - 1) to R. Ignored with ``meas_noise="fixed"``."""
-        d = d_hat.to(torch.float64)
-        z, v = self.z, self.v
-        h = v / z
-        hz, hv = -v / (z * z), 1.0 / z
-        r = (self.meas_sigma_rel * h.abs() + self.meas_sigma_abs) ** 2
-        finite = torch.isfinite(d)
-        if confidence is not None and self.min_confidence > 0:
-            finite = finite & (confidence.to(device=d.device, dtype=torch.float64) >= self.min_confidence)
-        if self.meas_noise == "confidence" and confidence is not None:
-            sig_c = confidence_rel_sigma(confidence.to(device=d.device, dtype=torch.float64))
-            finite = finite & torch.isfinite(sig_c)
-            scale = torch.maximum(torch.where(finite, d, 0.0).abs(), h.abs())  # a near-0 D_hat is no surer
-            r = r + (torch.where(torch.isfinite(sig_c), sig_c, 0.0) * scale) ** 2
-        s = hz * hz * self.pzz + 2 * hz * hv * self.pzv + hv * hv * self.pvv + r
-        innov = d - h
-        ok = finite & (innov * innov <= self.gate_sigma ** 2 * s)
-        if mask is not None:
-            ok = ok & mask
-        rejected = finite & ~ok
-        if mask is not None:
-            rejected = rejected & mask
-        self.n_rejected += rejected.to(torch.int64)
-        # K = P H^T / s
-        kz = (self.pzz * hz + self.pzv * hv) / s
-        kv = (self.pzv * hz + self.pvv * hv) / s
-        innov = torch.where(ok, innov, 0.0)
-        if self.huber_k > 0:  # Huber: a far estimate pulls like one at huber_k sigma
-            lim = self.huber_k * s.sqrt()
-            innov = torch.maximum(torch.minimum(innov, lim), -lim)
-        dz, dv = kz * innov, kv * innov
-        if self.max_step_rel > 0:  # one update moves z, v by at most max_step_rel of their value
-            lz, lv = self.max_step_rel * z, self.max_step_rel * v.abs().clamp_min(1e-3)
-            dz = torch.maximum(torch.minimum(dz, lz), -lz)
-            dv = torch.maximum(torch.minimum(dv, lv), -lv)
-        z_new = (z + dz).clamp_min(self.min_altitude_m)
-        v_new = v + dv
-        # P = (I - K H) P, symmetric form
-        pzz = self.pzz - kz * kz * s
-        pzv = self.pzv - kz * kv * s
-        pvv = self.pvv - kv * kv * s
-        self.z = torch.where(ok, z_new, z)
-        self.v = torch.where(ok, v_new, v)
-        self.pzz = torch.where(ok, pzz.clamp_min(1e-12), self.pzz)
-        self.pzv = torch.where(ok, pzv, self.pzv)
-        self.pvv = torch.where(ok, pvv.clamp_min(1e-12), self.pvv)
+        """The held state corrected by :func:`efference_correct`; returns (B,) bool: which descents used it."""
+        self.state, ok = efference_correct(self.params, self.state, d_hat, mask, confidence)
         return ok
-
-    def update(self, d_hat: Tensor, mask: Optional[Tensor] = None, accel_mps2: Optional[Tensor] = None,
-               thrust_accel_mps2: Optional[Tensor] = None,
-               confidence: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
-        """One control step: predict with the acceleration applied since the last update (skipped
-        when ``accel_mps2`` is None: the first step), then fuse ``d_hat``.
-
-        Args:
-            d_hat: (B,) float estimates, 1/s; NaN = missing.
-            mask: optional (B,) bool: only these elements advance (others stay frozen).
-            accel_mps2: (B,) float64 known acceleration u/m - g over the last step, m/s^2, or None.
-            thrust_accel_mps2: (B,) float64 u/m over the last step (scales the process noise).
-            confidence: optional (B,) float in [0, 1], the estimator's ``confidence()`` (used with
-                ``meas_noise="confidence"``).
-
-        Returns:
-            (d_filtered (B,) float64 = v/z, n_used (B,) int64 = 1 where D_hat was fused).
-        """
-        if d_hat.shape != (self.batch_size,):
-            raise ValueError(f"d_hat must have shape ({self.batch_size},), got {tuple(d_hat.shape)}")
-        if accel_mps2 is not None:
-            self.predict(accel_mps2, thrust_accel_mps2, mask)
-        if confidence is not None and confidence.shape != (self.batch_size,):
-            raise ValueError(f"confidence must have shape ({self.batch_size},), got {tuple(confidence.shape)}")
-        used = self.correct(d_hat, mask, confidence)
-        return self.divergence, used.to(torch.int64)

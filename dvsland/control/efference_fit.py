@@ -32,17 +32,26 @@ kept, 40 bytes per element and step): on one torch thread of a loaded 2-core CPU
 
 Output per step: the filtered divergence v_hat / z_hat (B,) float64, whether this step's estimate
 got weight > 0.5 (B,) int64, and :attr:`altitude_m` / :attr:`velocity_mps`.
+
+Params :class:`EfferenceFitParams`, state :class:`EfferenceFitState`, pure step
+:func:`efference_fit_step`. The history is kept per step since :meth:`EfferenceFitFilter.init_state`
+(one row per step for every descent, NaN where a descent had no estimate or was not active), so
+the step needs no host sync: the rows to fit are known from the history's shape. A restart of some
+descents blanks their rows; rows no descent uses any more are dropped then.
 """
 
 from __future__ import annotations
 
 import math
 
-from typing import Optional, Tuple
+from typing import NamedTuple, Optional, Tuple
 
 import torch
 
-from .efference import confidence_rel_sigma
+from dvsland.config.schema import EfferenceConfig
+
+from .efference import check_filter_plan, check_positive, confidence_rel_sigma
+from .filter import DivergenceFilter, FilterOut
 
 Tensor = torch.Tensor
 
@@ -50,8 +59,204 @@ Tensor = torch.Tensor
 #: ``controller.efference`` options that are not this filter's (the loop's, and the EKF's)
 _NOT_MINE = ("prior_state", "accel_sigma_mps2", "accel_sigma_rel", "huber_k", "max_step_rel", "cov_cap_rel")
 
+#: the five columns of a history row
+ROW_FIELDS = ("z_dr_m", "v_dr_mps", "t_s", "d_hat", "sigma_c")
 
-class EfferenceFitFilter:
+
+class EfferenceFitParams(NamedTuple):
+    """Settings of the ``efference_fit`` filter for B descents; frozen in flight.
+
+    Attributes:
+        z0_m: (B,) float64 planned initial altitude times ``prior_scale``, m.
+        v0_mps: (B,) float64 planned initial velocity times ``prior_scale``, m/s.
+        sz0: (B,) float64 prior std. dev. of the altitude offset, m (prior_rel_sigma |z0|).
+        sv0: (B,) float64 prior std. dev. of the velocity offset, m/s (prior_rel_sigma_v max(|v0|, 1e-3)).
+        dt_s: control interval, s.
+        cfg: the ``controller.efference`` section (``prior_rel_sigma_v`` resolved).
+        cut_forget: with ``forget_s`` > 0, rows older than this many forget_s are left out of the fit.
+    """
+
+    z0_m: Tensor
+    v0_mps: Tensor
+    sz0: Tensor
+    sv0: Tensor
+    dt_s: float
+    cfg: EfferenceConfig
+    cut_forget: float = 12.0
+
+
+class EfferenceFitState(NamedTuple):
+    """State of the ``efference_fit`` filter for B descents.
+
+    Attributes:
+        zdr, vdr: (B,) float64 dead-reckoned planned altitude (m) and velocity (m/s).
+        t_s: (B,) float64 flight time since the descent's (re)start, s.
+        theta: (B, 2) float64 fitted offset (dz m, dv m/s) of the initial state.
+        info: (B, 3) float64 posterior information (a, b, c) of [[a, b], [b, c]] of theta.
+        n: (B,) int64 estimates pushed since the descent's (re)start (NaN ones included).
+        n_rejected: (B,) int64 estimates that got weight 0 since the (re)start.
+        rows_packed: (B, L, 5) float64 one row per step since :meth:`~EfferenceFitFilter.init_state`
+            (L grows by one each step): :data:`ROW_FIELDS` = (z_dr m, v_dr m/s, t s, D_hat 1/s,
+            sigma_c); NaN where the descent had no row.
+    """
+
+    zdr: Tensor
+    vdr: Tensor
+    t_s: Tensor
+    theta: Tensor
+    info: Tensor
+    n: Tensor
+    n_rejected: Tensor
+    rows_packed: Tensor
+
+
+def fit_prior(p: EfferenceFitParams) -> EfferenceFitState:
+    """Every descent at the planned start: no offset, the prior's information, no history."""
+    B, dev, f64 = p.z0_m.shape[0], p.z0_m.device, torch.float64
+    zeros_i = torch.zeros(B, dtype=torch.int64, device=dev)
+    prior = torch.stack([1.0 / p.sz0 ** 2, torch.zeros_like(p.sz0), 1.0 / p.sv0 ** 2], 1)
+    return EfferenceFitState(p.z0_m.clone(), p.v0_mps.clone(), torch.zeros(B, dtype=f64, device=dev),
+                             torch.zeros(B, 2, dtype=f64, device=dev), prior, zeros_i, zeros_i.clone(),
+                             torch.empty(B, 0, 5, dtype=f64, device=dev))
+
+
+def fit_altitude(p: EfferenceFitParams, s: EfferenceFitState) -> Tensor:
+    """(B,) float64 altitude estimate z_dr + dz + dv t, m (at least ``min_altitude_m``)."""
+    return (s.zdr + s.theta[:, 0] + s.theta[:, 1] * s.t_s).clamp_min(p.cfg.min_altitude_m)
+
+
+def fit_velocity(s: EfferenceFitState) -> Tensor:
+    """(B,) float64 velocity estimate v_dr + dv, m/s."""
+    return s.vdr + s.theta[:, 1]
+
+
+def _estimates(c: EfferenceConfig, d_hat: Tensor, confidence: Optional[Tensor], dev) -> Tuple[Tensor, Tensor]:
+    """(D_hat (B,) float64, NaN where not to be used; sigma_c (B,) float64, 0 unless ``meas_noise="confidence"``)."""
+    d = d_hat.to(device=dev, dtype=torch.float64)
+    d = torch.where(torch.isfinite(d), d, float("nan"))
+    if confidence is None:
+        return d, torch.zeros_like(d)
+    sig = confidence_rel_sigma(confidence.to(device=dev, dtype=torch.float64))
+    low = confidence.to(device=dev, dtype=torch.float64) < c.min_confidence
+    d = torch.where(torch.isfinite(sig) & ~low, d, float("nan"))  # confidence 0 (or too low): no estimate
+    sig = torch.where(torch.isfinite(sig), sig, 0.0) if c.meas_noise == "confidence" else torch.zeros_like(sig)
+    return d, sig
+
+
+def _gn_round(p: EfferenceFitParams, cols, fade: Tensor, theta: Tensor, info: Tensor, mask: Tensor):
+    """One robust Gauss-Newton round on theta over the history columns ``cols`` (each (N, B)):
+    (theta (B, 2), info (B, 3), weights w (N, B), R (N, B)); descents not in ``mask`` keep theta, info."""
+    c = p.cfg
+    zdr, vdr, t, d0, sig_c, have = cols
+    iz, iv = 1.0 / p.sz0 ** 2, 1.0 / p.sv0 ** 2
+    dz, dv = theta[:, 0], theta[:, 1]
+    z = (zdr + dz + dv * t).clamp_min(c.min_altitude_m)
+    v = vdr + dv
+    h = v / z
+    jz = -v / (z * z)
+    jv = (z - v * t) / (z * z)
+    r_fix = (c.meas_sigma_rel * h.abs() + c.meas_sigma_abs) ** 2
+    r_c = (torch.where(torch.isfinite(sig_c), sig_c, 0.0) * torch.maximum(d0.abs(), h.abs())) ** 2
+    r = r_fix + r_c
+    # current posterior covariance of theta: inverse of [[a, b], [b, c]]
+    det = (info[:, 0] * info[:, 2] - info[:, 1] ** 2).clamp_min(1e-300)
+    pzz, pzv, pvv = info[:, 2] / det, -info[:, 1] / det, info[:, 0] / det
+    s = r + jz * jz * pzz + 2 * jz * jv * pzv + jv * jv * pvv
+    res = d0 - h
+    u2 = res * res / s
+    keep = have & (u2 <= c.gate_sigma ** 2) & torch.isfinite(sig_c) & torch.isfinite(u2)
+    w = torch.where(keep, 1.0 / (1.0 + u2 / c.cauchy_c ** 2) / r, 0.0)
+    w_info = w * fade
+    a = (w_info * jz * jz).sum(0) + iz
+    b = (w_info * jz * jv).sum(0)
+    cc = (w_info * jv * jv).sum(0) + iv
+    gz = (w_info * jz * res).sum(0) - dz * iz
+    gv = (w_info * jv * res).sum(0) - dv * iv
+    det = (a * cc - b * b).clamp_min(1e-300)
+    step_z = (cc * gz - b * gv) / det
+    step_v = (a * gv - b * gz) / det
+    # stay inside 4 prior sigmas (a wild step cannot leave the physically possible)
+    new_z = (dz + step_z).clamp(-4 * p.sz0, 4 * p.sz0)
+    new_v = (dv + step_v).clamp(-4 * p.sv0, 4 * p.sv0)
+    m = mask.unsqueeze(1)
+    return (torch.where(m, torch.stack([new_z, new_v], 1), theta), torch.where(m, torch.stack([a, b, cc], 1), info),
+            w, r)
+
+
+def fit_rounds(p: EfferenceFitParams, rows: Tensor, t_now: Tensor, theta: Tensor, info: Tensor, mask: Tensor):
+    """``cfg.iterations`` robust Gauss-Newton rounds on theta for the descents of ``mask``.
+
+    Args:
+        rows: (5, N, B) float64 the history rows to fit (:data:`ROW_FIELDS`), oldest first.
+        t_now: (B,) float64 flight time now, s (the age of a row for ``forget_s``).
+        theta, info: (B, 2), (B, 3) float64 the fit so far.
+
+    Returns:
+        (theta (B, 2), info (B, 3), the robust weights in [0, 1] of the newest row (B,) float64).
+    """
+    c = p.cfg
+    zdr, vdr, t, d, sig_c = rows.unbind(0)
+    have = torch.isfinite(d)
+    d0 = torch.where(have, d, 0.0)
+    zdr, vdr, t = torch.where(have, zdr, 1e3), torch.where(have, vdr, 0.0), torch.where(have, t, 0.0)
+    fade = (torch.exp(-(t_now.unsqueeze(0) - t).clamp_min(0.0) / c.forget_s)
+            if c.forget_s > 0 else torch.ones_like(d))
+    w = r = torch.zeros_like(d)
+    for _ in range(c.iterations):  # a fixed number of rounds: no data-dependent branch
+        theta, info, w, r = _gn_round(p, (zdr, vdr, t, d0, sig_c, have), fade, theta, info, mask)
+    return theta, info, w[-1] * r[-1]
+
+
+def efference_fit_step(p: EfferenceFitParams, state: EfferenceFitState, d_hat: Tensor,
+                       active: Optional[Tensor] = None, accel_mps2: Optional[Tensor] = None,
+                       confidence: Optional[Tensor] = None) -> Tuple[EfferenceFitState, FilterOut]:
+    """Pure step of ``efference_fit``: dead-reckon with the acceleration applied since the last step
+    (skipped when ``accel_mps2`` is None: the first step), append this step's row, re-fit.
+
+    Returns:
+        (next state, FilterOut(v_hat / z_hat (B,) float64, 1 where this step's estimate got weight
+        > 0.5 (B,) int64, z_hat (B,) float64 m)).
+    """
+    c, dt, dev = p.cfg, p.dt_s, p.z0_m.device
+    m = torch.ones(p.z0_m.shape[0], dtype=torch.bool, device=dev) if active is None else active.to(dev)
+    zdr, vdr, t_s = state.zdr, state.vdr, state.t_s
+    if accel_mps2 is not None:
+        a = accel_mps2.to(device=dev, dtype=torch.float64)
+        zdr = torch.where(m, zdr + vdr * dt + 0.5 * a * dt * dt, zdr)
+        vdr = torch.where(m, vdr + a * dt, vdr)
+        t_s = torch.where(m, t_s + dt, t_s)
+    d, sig = _estimates(c, d_hat, confidence, dev)
+    row = torch.where(m.unsqueeze(1), torch.stack([zdr, vdr, t_s, d, sig], 1), float("nan"))  # (B, 5)
+    # the history in the fit's layout (5, L + 1, B), kept batch first as a (B, L + 1, 5) view of it
+    hist = torch.cat([state.rows_packed.permute(2, 1, 0), row.t().unsqueeze(1)], 1)
+    L = hist.shape[1]
+    lo = 0
+    if c.forget_s > 0:  # rows older than cut_forget forget_s weigh < exp(-cut_forget): left out
+        lo = max(0, L - int(math.ceil(p.cut_forget * c.forget_s / dt)))
+    theta, info, w_now = fit_rounds(p, hist[:, lo:], t_s, state.theta, state.info, m)
+    fresh = m & torch.isfinite(d)
+    new = EfferenceFitState(zdr, vdr, t_s, theta, info, state.n + m.to(torch.int64),
+                            state.n_rejected + (fresh & (w_now == 0)).to(torch.int64), hist.permute(2, 1, 0))
+    z_hat = fit_altitude(p, new)
+    return new, FilterOut(fit_velocity(new) / z_hat, (fresh & (w_now > 0.5)).to(torch.int64), z_hat)
+
+
+def fit_reset_where(p: EfferenceFitParams, state: EfferenceFitState, mask: Tensor) -> EfferenceFitState:
+    """``state`` with the descents of ``mask`` (B,) bool back at the planned start, their history
+    rows blanked (NaN); the other descents bit-identical. Leading rows that hold no estimate of any
+    descent any more are dropped (one host sync: not on the step path)."""
+    fresh = fit_prior(p)
+    m1 = mask.unsqueeze(1)
+    rows = torch.where(mask.view(-1, 1, 1), float("nan"), state.rows_packed)
+    used = torch.isfinite(rows[:, :, 3]).any(0).nonzero()
+    first = int(used[0, 0]) if used.numel() else rows.shape[1]
+    return EfferenceFitState(torch.where(mask, fresh.zdr, state.zdr), torch.where(mask, fresh.vdr, state.vdr),
+                             torch.where(mask, fresh.t_s, state.t_s), torch.where(m1, fresh.theta, state.theta),
+                             torch.where(m1, fresh.info, state.info), torch.where(mask, fresh.n, state.n),
+                             torch.where(mask, fresh.n_rejected, state.n_rejected), rows[:, first:])
+
+
+class EfferenceFitFilter(DivergenceFilter):
     """Batched robust MAP fit of the initial-state offset (dz, dv) to all D_hat so far.
 
     Args:
@@ -71,50 +276,39 @@ class EfferenceFitFilter:
         forget_s: an estimate's weight decays as exp(-age / forget_s) (>= 0 s; 0 = never): old
             estimates fade, the posterior widens again and newer ones can correct the fit.
         min_confidence: estimates with a confidence below this are not used (in [0, 1]).
+
+    Params :class:`EfferenceFitParams`, state :class:`EfferenceFitState` (its fields read as
+    attributes: ``theta``, ``n``, ``n_rejected``, ...).
     """
 
     provides_altitude = True
-    _cut_forget = 12.0  # history older than this many forget_s is left out of the fit
 
     def __init__(self, z0_m: Tensor, v0_mps: Tensor, dt_s: float, prior_rel_sigma: float = 0.1,
                  prior_rel_sigma_v: Optional[float] = None, meas_sigma_rel: float = 0.05,
                  meas_sigma_abs: float = 0.001, meas_noise: str = "fixed", gate_sigma: float = 5.0,
                  cauchy_c: float = 2.0, iterations: int = 3, min_altitude_m: float = 1.0,
                  prior_scale: float = 1.0, forget_s: float = 0.0, min_confidence: float = 0.0):
-        z0 = torch.as_tensor(z0_m, dtype=torch.float64).reshape(-1)
-        v0 = torch.as_tensor(v0_mps, dtype=torch.float64, device=z0.device).reshape(-1)
-        if z0.shape != v0.shape:
-            raise ValueError(f"z0_m and v0_mps must have one shape (B,), got {tuple(z0.shape)}, {tuple(v0.shape)}")
-        if bool((z0 <= 0).any()):
-            raise ValueError("z0_m must be > 0 for every element")
+        z0, v0 = check_filter_plan(z0_m, v0_mps)
         psv = prior_rel_sigma if prior_rel_sigma_v is None else prior_rel_sigma_v
-        checks = {"dt_s": (dt_s, 0, False), "prior_rel_sigma": (prior_rel_sigma, 0, False),
-                  "prior_rel_sigma_v": (psv, 0, False), "meas_sigma_rel": (meas_sigma_rel, 0, True),
-                  "meas_sigma_abs": (meas_sigma_abs, 0, False), "gate_sigma": (gate_sigma, 0, False),
-                  "cauchy_c": (cauchy_c, 0, False), "iterations": (iterations, 1, True),
-                  "min_altitude_m": (min_altitude_m, 0, False), "prior_scale": (prior_scale, 0, False),
-                  "forget_s": (forget_s, 0, True)}
-        if not 0.0 <= min_confidence <= 1.0:
-            raise ValueError(f"min_confidence must be in [0, 1], got {min_confidence}")
-        self.min_confidence = float(min_confidence)
-        for name, (val, lo, inclusive) in checks.items():
-            if not (val >= lo if inclusive else val > lo):
-                raise ValueError(f"{name} must be {'>=' if inclusive else '>'} {lo}, got {val}")
+        check_positive({"dt_s": (dt_s, 0, False), "prior_rel_sigma": (prior_rel_sigma, 0, False),
+                        "prior_rel_sigma_v": (psv, 0, False), "meas_sigma_rel": (meas_sigma_rel, 0, True),
+                        "meas_sigma_abs": (meas_sigma_abs, 0, False), "gate_sigma": (gate_sigma, 0, False),
+                        "cauchy_c": (cauchy_c, 0, False), "iterations": (iterations, 1, True),
+                        "min_altitude_m": (min_altitude_m, 0, False), "prior_scale": (prior_scale, 0, False),
+                        "forget_s": (forget_s, 0, True)}, min_confidence)
         if meas_noise not in ("fixed", "confidence"):
             raise ValueError(f"meas_noise must be 'fixed' or 'confidence', got {meas_noise!r}")
-        self.z0_m, self.v0_mps, self.dt_s = z0 * prior_scale, v0 * prior_scale, float(dt_s)
-        self.sz0 = float(prior_rel_sigma) * self.z0_m.abs()
-        self.sv0 = float(psv) * self.v0_mps.abs().clamp_min(1e-3)
-        self.meas_sigma_rel, self.meas_sigma_abs = float(meas_sigma_rel), float(meas_sigma_abs)
-        self.meas_noise, self.gate_sigma, self.cauchy_c = meas_noise, float(gate_sigma), float(cauchy_c)
-        self.iterations, self.min_altitude_m = int(iterations), float(min_altitude_m)
-        self.forget_s = float(forget_s)
-        self.batch_size = B = int(z0.numel())
-        dev = z0.device
-        self.n_rejected = torch.zeros(B, dtype=torch.int64, device=dev)
-        self._cap = 0
-        self._hist = None
-        self.reset(None)
+        cfg = EfferenceConfig(prior_scale=float(prior_scale), prior_rel_sigma=float(prior_rel_sigma),
+                              prior_rel_sigma_v=float(psv), meas_sigma_rel=float(meas_sigma_rel),
+                              meas_sigma_abs=float(meas_sigma_abs), meas_noise=meas_noise,
+                              gate_sigma=float(gate_sigma), cauchy_c=float(cauchy_c), iterations=int(iterations),
+                              min_altitude_m=float(min_altitude_m), forget_s=float(forget_s),
+                              min_confidence=float(min_confidence))
+        z0, v0 = z0 * prior_scale, v0 * prior_scale
+        self.params = EfferenceFitParams(z0, v0, float(prior_rel_sigma) * z0.abs(),
+                                         float(psv) * v0.abs().clamp_min(1e-3), float(dt_s), cfg)
+        self._template = self.init_state()
+        self.state = self.init_state()
 
     @classmethod
     def from_params(cls, p, **options) -> "EfferenceFitFilter":
@@ -122,160 +316,42 @@ class EfferenceFitFilter:
         options = {k: v for k, v in options.items() if k not in _NOT_MINE}
         return cls(p.z0_m, p.v0_mps, p.dt_s, **options)
 
-    # ------------------------------------------------------------------ state
-    def reset(self, mask: Optional[Tensor] = None) -> None:
-        """Back to the planned start, with no estimates, where ``mask`` (B,) bool is True (all when None)."""
-        B, dev, f64 = self.batch_size, self.z0_m.device, torch.float64
-        if mask is None:
-            mask = torch.ones(B, dtype=torch.bool, device=dev)
-        if self._hist is None:
-            self._cap = 256
-            self._hist = torch.full((5, self._cap, B), float("nan"), dtype=f64, device=dev)
-            self.zdr, self.vdr = self.z0_m.clone(), self.v0_mps.clone()
-            self.theta = torch.zeros(2, B, dtype=f64, device=dev)
-            self.t_s = torch.zeros(B, dtype=f64, device=dev)
-            self.n = torch.zeros(B, dtype=torch.int64, device=dev)
-            self.info = torch.zeros(3, B, dtype=f64, device=dev)  # posterior information (a, b, c) of [[a, b], [b, c]]
-        self.zdr = torch.where(mask, self.z0_m, self.zdr)
-        self.vdr = torch.where(mask, self.v0_mps, self.vdr)
-        self.theta = torch.where(mask, 0.0, self.theta)
-        self.t_s = torch.where(mask, 0.0, self.t_s)
-        self.n = torch.where(mask, 0, self.n)
-        self._hist[:, :, mask] = float("nan")
-        prior = torch.stack([1.0 / self.sz0 ** 2, torch.zeros_like(self.sz0), 1.0 / self.sv0 ** 2])
-        self.info = torch.where(mask, prior, self.info)
-        self.n_rejected = torch.where(mask, 0, self.n_rejected)
+    @property
+    def batch_size(self) -> int:
+        return int(self.params.z0_m.numel())
 
+    @property
+    def device(self) -> torch.device:
+        return self.params.z0_m.device
+
+    # ------------------------------------------------------------------ the contract
+    def init_state(self) -> EfferenceFitState:
+        return fit_prior(self.params)
+
+    def step_state(self, state: EfferenceFitState, d_hat: Tensor, active: Optional[Tensor] = None,
+                   accel_mps2: Optional[Tensor] = None, thrust_accel_mps2: Optional[Tensor] = None,
+                   confidence: Optional[Tensor] = None) -> Tuple[EfferenceFitState, FilterOut]:
+        """Pure step (:func:`efference_fit_step`); ``thrust_accel_mps2`` is not used (no process
+        noise: the dynamics are exact)."""
+        self._check_inputs(state, d_hat, confidence)
+        return efference_fit_step(self.params, state, d_hat, active, accel_mps2, confidence)
+
+    def reset_where(self, state: EfferenceFitState, mask: Tensor) -> EfferenceFitState:
+        """:func:`fit_reset_where` (the history is packed: written by hand)."""
+        return fit_reset_where(self.params, state, self._mask(mask))
+
+    # ------------------------------------------------------------------ the object API
     @property
     def altitude_m(self) -> Tensor:
         """(B,) float64 altitude estimate, m."""
-        return (self.zdr + self.theta[0] + self.theta[1] * self.t_s).clamp_min(self.min_altitude_m)
+        return fit_altitude(self.params, self.state)
 
     @property
     def velocity_mps(self) -> Tensor:
         """(B,) float64 velocity estimate, m/s."""
-        return self.vdr + self.theta[1]
+        return fit_velocity(self.state)
 
     @property
     def divergence(self) -> Tensor:
         """(B,) float64 filtered divergence v_hat / z_hat, 1/s."""
         return self.velocity_mps / self.altitude_m
-
-    # ------------------------------------------------------------------ steps
-    def _push(self, d: Tensor, rel_sig: Tensor, mask: Tensor) -> None:
-        """Append (z_dr, v_dr, t, D_hat, sigma_c) at each active element's row ``n``."""
-        if int(self.n.max()) >= self._cap:
-            extra = torch.full((5, self._cap, self.batch_size), float("nan"), dtype=self._hist.dtype,
-                               device=self._hist.device)
-            self._hist = torch.cat([self._hist, extra], 1)
-            self._cap *= 2
-        row = self.n.clamp_max(self._cap - 1)
-        new = torch.stack([self.zdr, self.vdr, self.t_s, d, rel_sig])  # (5, B)
-        cur = self._hist.gather(1, row.view(1, 1, -1).expand(5, 1, -1)).squeeze(1)
-        val = torch.where(mask, new, cur)
-        self._hist.scatter_(1, row.view(1, 1, -1).expand(5, 1, -1), val.unsqueeze(1))
-        self.n = self.n + mask.to(torch.int64)
-
-    def _fit(self, mask: Tensor) -> Tensor:
-        """Robust Gauss-Newton rounds on theta for the elements of ``mask``; returns the weights (N, B)."""
-        n_max = int(self.n.max())
-        lo = 0
-        if self.forget_s > 0 and bool(mask.any()):
-            # rows older than 12 forget_s weigh < exp(-12) = 6e-6: left out, so the cost stops growing
-            # with the flight (cut only below every fitted element's own history: rows are per element)
-            window = int(math.ceil(self._cut_forget * self.forget_s / self.dt_s))
-            lo = max(0, int(self.n[mask].min()) - window)
-        zdr, vdr, t, d, sig_c = (h[lo:n_max] for h in self._hist)
-        have = torch.isfinite(d)
-        d0 = torch.where(have, d, 0.0)
-        zdr, vdr, t = torch.where(have, zdr, 1e3), torch.where(have, vdr, 0.0), torch.where(have, t, 0.0)
-        fade = (torch.exp(-(self.t_s.unsqueeze(0) - t).clamp_min(0.0) / self.forget_s)
-                if self.forget_s > 0 else torch.ones_like(d))
-        iz, iv = 1.0 / self.sz0 ** 2, 1.0 / self.sv0 ** 2
-        theta = self.theta.clone()
-        info = self.info
-        w = torch.zeros_like(d)
-        for _ in range(self.iterations):
-            dz, dv = theta[0], theta[1]
-            z = (zdr + dz + dv * t).clamp_min(self.min_altitude_m)
-            v = vdr + dv
-            h = v / z
-            jz = -v / (z * z)
-            jv = (z - v * t) / (z * z)
-            r_fix = (self.meas_sigma_rel * h.abs() + self.meas_sigma_abs) ** 2
-            r_c = (torch.where(torch.isfinite(sig_c), sig_c, 0.0) * torch.maximum(d0.abs(), h.abs())) ** 2
-            r = r_fix + r_c
-            # current posterior covariance of theta: inverse of [[a, b], [b, c]]
-            det = (info[0] * info[2] - info[1] ** 2).clamp_min(1e-300)
-            pzz, pzv, pvv = info[2] / det, -info[1] / det, info[0] / det
-            s = r + jz * jz * pzz + 2 * jz * jv * pzv + jv * jv * pvv
-            res = d0 - h
-            u2 = res * res / s
-            keep = have & (u2 <= self.gate_sigma ** 2) & torch.isfinite(sig_c) & torch.isfinite(u2)
-            w = torch.where(keep, 1.0 / (1.0 + u2 / self.cauchy_c ** 2) / r, 0.0)
-            w_info = w * fade
-            a = (w_info * jz * jz).sum(0) + iz
-            b = (w_info * jz * jv).sum(0)
-            c = (w_info * jv * jv).sum(0) + iv
-            gz = (w_info * jz * res).sum(0) - dz * iz
-            gv = (w_info * jv * res).sum(0) - dv * iv
-            det = (a * c - b * b).clamp_min(1e-300)
-            step_z = (c * gz - b * gv) / det
-            step_v = (a * gv - b * gz) / det
-            # stay inside 4 prior sigmas (a wild step cannot leave the physically possible)
-            new_z = (dz + step_z).clamp(-4 * self.sz0, 4 * self.sz0)
-            new_v = (dv + step_v).clamp(-4 * self.sv0, 4 * self.sv0)
-            theta = torch.where(mask, torch.stack([new_z, new_v]), theta)
-            info = torch.where(mask, torch.stack([a, b, c]), info)
-        self.theta, self.info = theta, info
-        self._fit_lo = lo
-        return w * r  # the robust weights in [0, 1] of rows lo .. n_max - 1
-
-    def update(self, d_hat: Tensor, mask: Optional[Tensor] = None, accel_mps2: Optional[Tensor] = None,
-               thrust_accel_mps2: Optional[Tensor] = None,
-               confidence: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
-        """One control step: dead-reckon with the acceleration applied since the last update
-        (skipped when ``accel_mps2`` is None: the first step), store ``d_hat``, re-fit.
-
-        Args:
-            d_hat: (B,) float estimates, 1/s; NaN = missing.
-            mask: optional (B,) bool: only these elements advance (others stay frozen).
-            accel_mps2: (B,) float64 known acceleration u/m - g over the last step, m/s^2, or None.
-            thrust_accel_mps2: ignored (no process noise: the dynamics are exact).
-            confidence: optional (B,) float in [0, 1], the estimator's ``confidence()``
-                (0 = no update; with ``meas_noise="confidence"`` it also sets the noise).
-
-        Returns:
-            (d_filtered (B,) float64, used (B,) int64: 1 where this step's estimate got weight > 0.5).
-        """
-        B = self.batch_size
-        if d_hat.shape != (B,):
-            raise ValueError(f"d_hat must have shape ({B},), got {tuple(d_hat.shape)}")
-        if confidence is not None and confidence.shape != (B,):
-            raise ValueError(f"confidence must have shape ({B},), got {tuple(confidence.shape)}")
-        dev = self.z0_m.device
-        m = torch.ones(B, dtype=torch.bool, device=dev) if mask is None else mask.to(dev)
-        if accel_mps2 is not None:
-            a = accel_mps2.to(device=dev, dtype=torch.float64)
-            dt = self.dt_s
-            self.zdr = torch.where(m, self.zdr + self.vdr * dt + 0.5 * a * dt * dt, self.zdr)
-            self.vdr = torch.where(m, self.vdr + a * dt, self.vdr)
-            self.t_s = torch.where(m, self.t_s + dt, self.t_s)
-        d = d_hat.to(device=dev, dtype=torch.float64)
-        d = torch.where(torch.isfinite(d), d, float("nan"))
-        if confidence is not None:
-            sig = confidence_rel_sigma(confidence.to(device=dev, dtype=torch.float64))
-            low = confidence.to(device=dev, dtype=torch.float64) < self.min_confidence
-            d = torch.where(torch.isfinite(sig) & ~low, d, float("nan"))  # confidence 0 (or too low): no estimate
-            sig = torch.where(torch.isfinite(sig), sig, 0.0) if self.meas_noise == "confidence" else torch.zeros_like(sig)
-        else:
-            sig = torch.zeros_like(d)
-        self._push(d, sig, m)
-        if int(self.n.max()) == 0:
-            return self.divergence, torch.zeros(B, dtype=torch.int64, device=dev)
-        w = self._fit(m)
-        row = (self.n - 1 - self._fit_lo).clamp(0, w.shape[0] - 1)
-        w_now = w.gather(0, row.view(1, -1)).squeeze(0)
-        used = m & torch.isfinite(d) & (w_now > 0.5)
-        self.n_rejected += (m & torch.isfinite(d) & (w_now == 0)).to(torch.int64)
-        return self.divergence, used.to(torch.int64)

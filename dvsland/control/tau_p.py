@@ -6,19 +6,45 @@ When the filtered divergence is missing (NaN) or has the wrong sign (D >= 0 mean
 is not approaching, so tau_hat is meaningless) the law does not act on it: it holds the last
 thrust command (``missing_policy="hold"``) or commands hover m g (``"hover"``), and reports
 which elements did so. The output is always finite.
+
+Params :class:`~dvsland.control.base.LawParams`, state :class:`~dvsland.control.base.HoldLastState`,
+pure step :func:`tau_p_step`.
 """
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Optional, Tuple
 
 import torch
 
-from .base import ControlOutput, Controller, HoldLast, check_bounds, check_gain_and_target
+from .base import (ControlOutput, Controller, HoldLastState, LawParams, check_bounds, check_gain_and_target,
+                   clamp_thrust, hold_last_finish, hold_last_init, law_inputs, law_params)
 from .gain import tau_loop_gain
 from .registry import register_controller
 
 Tensor = torch.Tensor
+
+
+def tau_p_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
+               active: Optional[Tensor] = None) -> Tuple[HoldLastState, ControlOutput]:
+    """Pure step of ``tau_p``: (next state, :class:`ControlOutput`).
+
+    Args:
+        t_s: flight time of each descent, (B,) float64 s (or a float for all).
+        d_filtered: (B,) filtered divergence, 1/s (NaN = none).
+        mass_kg: (B,) current mass, kg.
+        active: (B,) bool or None (all); inactive descents keep their last command.
+
+    Finite by construction: a usable D < 0 gives tau_hat = -1/D in (0, inf], so
+    Kp (tau* - tau_hat) is finite or -inf, and the clamp maps -inf to ``thrust_min_n``.
+    """
+    d, _, mg, t_s = law_inputs(p, t_s, d_filtered, mass_kg)
+    tau_star = p.tau0_s - p.c2 * t_s
+    usable = d < 0  # False for NaN and for D >= 0 (not approaching)
+    tau_hat = torch.where(usable, -1.0 / d, float("nan"))
+    u = clamp_thrust(p, p.kp * (tau_star - tau_hat) + mg)
+    state, thrust = hold_last_finish(p, state, usable, u, mg, active)
+    return state, ControlOutput(thrust_n=thrust, tau_hat_s=tau_hat, tau_target_s=tau_star, held=~usable)
 
 
 @register_controller("tau_p")
@@ -41,14 +67,11 @@ class TauPController(Controller):
     def __init__(self, kp: Tensor, tau0_s: Tensor, c2: float, g_mps2: float, thrust_min_n: float = 0.0,
                  thrust_max_n: Optional[float] = None, missing_policy: str = "hold", z0_m=None, v0_mps=None, m0_kg=None):
         check_bounds(thrust_min_n, thrust_max_n, missing_policy)
-        self.kp, self.tau0_s = check_gain_and_target(kp, tau0_s, c2)
-        self.c2 = float(c2)
-        self.g_mps2 = float(g_mps2)
-        self.thrust_min_n = float(thrust_min_n)
-        self.thrust_max_n = None if thrust_max_n is None else float(thrust_max_n)
-        self.missing_policy = missing_policy
+        kp, tau0_s = check_gain_and_target(kp, tau0_s, c2)
+        self.params = law_params(kp, tau0_s, c2, g_mps2, thrust_min_n, thrust_max_n, missing_policy)
         self.z0_m, self.v0_mps, self.m0_kg = z0_m, v0_mps, m0_kg
-        self._mem = HoldLast(thrust_min_n, thrust_max_n)
+        self._template = self.init_state()
+        self.state = self.init_state()
 
     @classmethod
     def from_params(cls, p, **options) -> "TauPController":
@@ -58,9 +81,14 @@ class TauPController(Controller):
         return cls(p.kp, p.tau0_s, p.c2, p.g_mps2, p.thrust_min_n, p.thrust_max_n, p.missing_policy,
                    z0_m=p.z0_m, v0_mps=p.v0_mps, m0_kg=p.m0_kg)
 
-    def reset(self, mask: Optional[Tensor] = None) -> None:
-        """Forget the last command (hover is used until a command exists)."""
-        self._mem.reset(mask)
+    def init_state(self) -> HoldLastState:
+        return hold_last_init(self.params)
+
+    def step_state(self, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
+                   active: Optional[Tensor] = None, altitude_m: Optional[Tensor] = None):
+        """Pure step (:func:`tau_p_step`); ``altitude_m`` is not used."""
+        self._check(state)
+        return tau_p_step(self.params, state, t_s, d_filtered, mass_kg, active)
 
     def loop_gain_fields(self, m_kg: Tensor, z_m: Tensor) -> dict:
         """tau-space lambda = Kp z0 / (m0 v0^2) (the initial mass: the paper's figure)."""
@@ -68,19 +96,3 @@ class TauPController(Controller):
             return {}
         m0 = self.m0_kg if self.m0_kg is not None else m_kg
         return {"loop_gain": tau_loop_gain(self.kp, self.z0_m, self.v0_mps, m0), "loop_gain_kind": "tau"}
-
-    def __call__(self, t_s, d_filtered: Tensor, mass_kg: Tensor, active: Optional[Tensor] = None) -> ControlOutput:
-        """Thrust for filtered divergence ``d_filtered`` (B,) at flight time ``t_s`` (float or (B,)).
-
-        Finite by construction: a usable D < 0 gives tau_hat = -1/D in (0, inf], so
-        Kp (tau* - tau_hat) is finite or -inf, and the clamp maps -inf to ``thrust_min_n``.
-        """
-        d = d_filtered.to(torch.float64)
-        mg = mass_kg.to(torch.float64) * self.g_mps2
-        tau_star = self.tau0_s - self.c2 * t_s
-        usable = d < 0  # False for NaN and for D >= 0 (not approaching)
-        tau_hat = torch.where(usable, -1.0 / d, float("nan"))
-        u = self._mem.clamp(self.kp * (tau_star - tau_hat) + mg)
-        self._mem.before(mg)
-        thrust = self._mem.finish(usable, u, mg, self.missing_policy, active)
-        return ControlOutput(thrust_n=thrust, tau_hat_s=tau_hat, tau_target_s=tau_star, held=~usable)
