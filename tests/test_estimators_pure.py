@@ -210,13 +210,18 @@ def test_estimates_equal_those_before_the_stage_contract(name):
 # ------------------------------------------------------------------ the contract, per stage
 STAGES = {
     "dpr": lambda: get_estimator("dpr", B, (64, 64), n_min=10, radius_px=3.0, baseline_steps=2),
+    "learned": lambda: get_estimator("learned", B, (128, 128), min_events=5),
+    "learned_spiking": lambda: get_estimator("learned", B, (96, 80), checkpoint="spiking", min_events=5),
 }
-SENSORS = {"dpr": (64, 64), "learned": (128, 128), "snn": (128, 128)}
+#: fields a restart keeps (clocks and positions shared by every descent)
+KEPT = {"dpr": ("last_t_us",), "learned": ("newest", "t_prev_us"), "learned_spiking": ("newest", "t_prev_us"),
+        "snn": ("t_prev_us",)}
+SENSORS = {"dpr": (64, 64), "learned": (128, 128), "learned_spiking": (96, 80), "snn": (128, 128)}
 
 
 def _stage_and_steps(stage, n=6):
     est = STAGES[stage]()
-    n_blobs, epb = (12, 40) if stage == "dpr" else (20, 60)
+    n_blobs, epb = (12, 40) if stage == "dpr" else (16, 50) if SENSORS[stage] == (96, 80) else (20, 60)
     return est, _scenario(SENSORS[stage], n_blobs, epb, n_steps=n)
 
 
@@ -272,10 +277,8 @@ def test_reset_where_leaves_the_others_bit_identical(stage):
     fresh = est.init_state()
     for i in range(B):
         want = _row(fresh, i) if mask[i] else _row(state, i)
-        if stage == "dpr" and mask[i]:
-            want["last_t_us"] = state.last_t_us[i]  # the clock is kept
-        if stage == "learned" and mask[i]:
-            want["newest"] = state.newest[i]  # the ring position is shared by every descent
+        if mask[i]:
+            want.update({k: getattr(state, k)[i] for k in KEPT[stage]})
         assert tree_equal(_row(new, i), want), i
     assert tree_equal(est.reset_where(state, torch.zeros(B, dtype=torch.bool)), state)
     # after the reset, the unmasked descents go on as if nothing happened
@@ -294,13 +297,13 @@ def test_bad_state_names_stage_and_field(stage):
     bad = state._replace(**{name: leaf.to(torch.float16 if leaf.dtype != torch.float16 else torch.float32)}) \
         if "." not in name else None
     if bad is not None:
-        with pytest.raises(ValueError, match=rf"{stage}.*{name}.*dtype"):
+        with pytest.raises(ValueError, match=rf"{stage.split('_')[0]}.*{name}.*dtype"):
             est.step_state(bad, *steps[0])
     short = state._replace(**{name: leaf[:-1]}) if "." not in name else None
     if short is not None:
-        with pytest.raises(ValueError, match=rf"{stage}.*{name}.*shape"):
+        with pytest.raises(ValueError, match=rf"{stage.split('_')[0]}.*{name}.*shape"):
             est.step_state(short, *steps[0])
-    with pytest.raises(ValueError, match=stage):
+    with pytest.raises(ValueError, match=stage.split("_")[0]):
         est.step_state(tuple(state), *steps[0])
 
 
@@ -334,3 +337,29 @@ def test_dpr_dt_is_the_time_since_the_last_step():
     _, b = est.step_state(late, ev, t)
     ok = torch.isfinite(a.d_hat)
     assert ok.any() and not _same(a.d_hat[ok], b.d_hat[ok])
+
+
+# ------------------------------------------------------------------ learned specifics
+def test_learned_donate_writes_the_ring_in_place_with_the_same_estimates():
+    est, steps = _stage_and_steps("learned")
+    state, _ = _run(est, est.init_state(), steps[:-1])
+    keep = tree_clone(state)
+    ev, t = steps[-1]
+    pure, a = est.step_state(state, ev, t)
+    assert tree_equal(state, keep)
+    donated, b = est.step_state(state, ev, t, donate=True)
+    assert donated.ring is state.ring and not torch.equal(state.ring, keep.ring)  # written in place
+    assert tree_equal(pure, donated) and tree_equal(a, b)
+    obj = get_estimator("learned", B, (128, 128), min_events=5, donate=True)
+    for ev, t in steps:
+        d = obj.update(ev, t)
+    assert _same(d, a.d_hat) and tree_equal(obj.state, pure)
+
+
+def test_learned_ring_position_is_shared_and_kept_by_a_restart():
+    est, steps = _stage_and_steps("learned", n=3)
+    state, _ = _run(est, est.init_state(), steps)
+    K = est.spec.n_windows
+    assert (state.newest == (K - 1 + 3) % K).all()
+    new = est.reset_where(state, torch.tensor([True, False, True, False]))
+    assert torch.equal(new.newest, state.newest) and (new.ring[0] == 0).all() and (new.ring_counts[2] == 0).all()

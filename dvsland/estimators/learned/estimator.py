@@ -4,8 +4,14 @@ Each control step the events since the previous update become a voxel grid (:mod
 the model sees the grids of the last ``n_windows`` steps of its checkpoint (a ring per row,
 zeros after a reset) and predicts mu and log_var of log|D| (:mod:`.models`); the estimate is
 D_hat = -exp(mu) (1/s, descending). Rows with fewer than ``min_events`` events in the latest
-window return NaN. The per-row state (:class:`LearnedState`) is the ring, its event counts, the
-last estimate and its predicted spread.
+window return NaN.
+
+The stage contract (:mod:`dvsland.pytree`): params are :class:`~dvsland.config.schema.LearnedConfig`
+(``LearnedEstimator.params``) with the constants :class:`LearnedConsts` (the network and its input
+mapping: weights are constants in flight); the state is :class:`LearnedState` (the ring, its event
+counts, the last estimate and its predicted spread, the clock); the step is the pure
+:func:`learned_step`. Each step builds a new ring (the input state is never written); ``donate=True``
+(opt-in) writes the new window into the input state's ring instead, which then must not be used again.
 
 ``confidence()``: 1 / (1 + (sigma_rel / 0.1)^2) with sigma_rel = exp(log_var / 2), the predicted
 standard deviation of log|D| (about the relative error of D_hat); 0 where the estimate is NaN.
@@ -14,13 +20,15 @@ standard deviation of log|D| (about the relative error of D_hat); 0 where the es
 from __future__ import annotations
 
 from pathlib import Path
-from typing import NamedTuple, Optional
+from typing import Any, Dict, NamedTuple, Optional
 
 import torch
 
 from dvsland.checks import check_range
+from dvsland.config.schema import LearnedConfig
+from dvsland.pytree import check_state_like, tree_where
 
-from ..base import DivergenceEstimator, Truth, confidence_from_rel_std
+from ..base import DivergenceEstimator, EstimateOut, Truth, confidence_from_rel_std
 from ..registry import register_estimator
 from .checkpoint import load_checkpoint
 from .models import VoxelCNN
@@ -32,15 +40,22 @@ SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"), "spiking": Path(__
 
 
 class LearnedState(NamedTuple):
-    """Per-row state: ``d`` (B,) float32 last D_hat (1/s, NaN = none), ``sigma_rel`` (B,) float32
-    predicted relative std. dev., ``n_events`` (B,) int64 events of the last window, ``ring``
-    (B, n_bins, h, w) float32 the voxel grids of the last n_windows steps in a circular buffer
-    (slot q = bins q bpw .. (q + 1) bpw - 1; slot ``newest`` the latest, newest + 1 mod K the
-    oldest: :func:`ordered_ring` gives them oldest first), ``ring_counts`` (B, n_windows) int64
-    their events on the reference canvas, ``ring_abs`` (B, n_windows) float32 their sums of
-    |value|, ``newest`` the slot of the latest window (an int, the same for every row). ``update``
-    writes the new window into ``ring`` in place (a state kept from before sees it too); the other
-    tensors are new each update."""
+    """State of the ``learned`` estimator for B rows (K = n_windows, nb = n_bins, (h, w) the grid).
+
+    Attributes:
+        d: (B,) float32 last D_hat, 1/s (NaN = none).
+        sigma_rel: (B,) float32 predicted relative std. dev. of the last estimate (NaN = none).
+        n_events: (B,) int64 events of the last window.
+        ring: (B, nb, h, w) float32 the voxel grids of the last K steps in a circular buffer
+            (slot q = bins q bpw .. (q + 1) bpw - 1; slot ``newest`` the latest, newest + 1 mod K
+            the oldest: :func:`ordered_ring` gives them oldest first).
+        ring_counts: (B, K) int64 the slots' events on the reference canvas.
+        ring_abs: (B, K) float32 the slots' sums of |value|.
+        newest: (B,) int64 the slot of the latest window; the same in every row (every row steps
+            at once; a restart empties a row's ring but keeps the position).
+        t_prev_us: (B,) int64 time of the last step, µs (-1 = none yet): the next window starts
+            there (else ``dt_s`` before the step).
+    """
 
     d: torch.Tensor
     sigma_rel: torch.Tensor
@@ -48,37 +63,114 @@ class LearnedState(NamedTuple):
     ring: torch.Tensor
     ring_counts: torch.Tensor
     ring_abs: torch.Tensor
-    newest: int
+    newest: torch.Tensor
+    t_prev_us: torch.Tensor
+
+
+class LearnedConsts(NamedTuple):
+    """What a ``learned`` step needs besides :class:`LearnedConfig` (made once, never written).
+
+    Attributes:
+        batch_size: B. dt_s: the nominal step, s (the first window's length).
+        spec: the checkpoint's :class:`InputSpec`. cmap, cells: the camera's mapping onto the
+            reference canvas (:func:`~.inputs.camera_map`, :func:`~.inputs.pixel_cells`; None for
+            the identity). coords: (1, 2, h, w) float32 coordinate channels.
+        model: the network (eval mode). ring_net: the CNN on its circular ring
+            (:class:`~.fast.RingCNN`), or None (the model then gets the ordered ring).
+    """
+
+    batch_size: int
+    dt_s: float
+    spec: InputSpec
+    cmap: Any
+    cells: Any
+    coords: torch.Tensor
+    model: torch.nn.Module
+    ring_net: Optional[torch.nn.Module]
 
 
 def initial_state(batch_size: int, spec: InputSpec, device) -> LearnedState:
-    """Every row without an estimate and an empty ring."""
+    """Every row without an estimate, an empty ring and no step yet."""
     nan = torch.full((batch_size,), float("nan"), dtype=torch.float32, device=device)
-    return LearnedState(nan, nan.clone(), torch.zeros(batch_size, dtype=torch.int64, device=device),
+    i64 = dict(dtype=torch.int64, device=device)
+    return LearnedState(nan, nan.clone(), torch.zeros(batch_size, **i64),
                         torch.zeros(batch_size, spec.n_bins, *spec.grid_hw, device=device),
-                        torch.zeros(batch_size, spec.n_windows, dtype=torch.int64, device=device),
+                        torch.zeros(batch_size, spec.n_windows, **i64),
                         torch.zeros(batch_size, spec.n_windows, dtype=torch.float32, device=device),
-                        spec.n_windows - 1)
+                        torch.full((batch_size,), spec.n_windows - 1, **i64), torch.full((batch_size,), -1, **i64))
 
 
 def reset_rows(state: LearnedState, mask: torch.Tensor) -> LearnedState:
-    """``state`` with the rows where ``mask`` (B,) bool is True back to no estimate, ring empty."""
-    nan = torch.tensor(float("nan"), device=state.d.device)
-    keep = (~mask).view(-1, 1, 1, 1)
-    return LearnedState(torch.where(mask, nan, state.d), torch.where(mask, nan, state.sigma_rel),
-                        torch.where(mask, torch.zeros_like(state.n_events), state.n_events),
-                        state.ring * keep, state.ring_counts * (~mask)[:, None],
-                        state.ring_abs * (~mask)[:, None], state.newest)
+    """``state`` with the rows where ``mask`` (B,) bool is True back to no estimate, ring empty;
+    the ring position ``newest`` and the clock ``t_prev_us`` are kept (shared by every row)."""
+    B, dev = state.d.shape[0], state.d.device
+    fresh = LearnedState(*(torch.zeros((), dtype=t.dtype, device=dev).expand_as(t) for t in state))
+    nan = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
+    fresh = fresh._replace(d=nan, sigma_rel=nan, newest=state.newest, t_prev_us=state.t_prev_us)
+    return tree_where(mask, fresh, state)
 
 
 def ordered_ring(state: LearnedState, spec: InputSpec) -> torch.Tensor:
     """(B, n_bins, h, w) float32: the ring's windows oldest first (the model's input order)."""
     B, nb, h, w = state.ring.shape
     K = spec.n_windows
-    shift = (K - 1 - state.newest) % K
-    if shift == 0:
+    if K == 1:
         return state.ring
-    return state.ring.view(B, K, nb // K, h, w).roll(shift, dims=1).reshape(B, nb, h, w)
+    newest = torch.as_tensor(state.newest, device=state.ring.device).reshape(-1).expand(B)
+    idx = (newest.unsqueeze(1) + 1 + torch.arange(K, device=newest.device)) % K  # (B, K) oldest first
+    rows = torch.arange(B, device=newest.device).unsqueeze(1)
+    return state.ring.view(B, K, nb // K, h, w)[rows, idx].reshape(B, nb, h, w)
+
+
+def _write_window(state: LearnedState, grid: torch.Tensor, on_canvas: torch.Tensor, K: int, donate: bool):
+    """(ring, ring_counts, ring_abs, newest) with the window ``grid`` (B, bpw, h, w) in the oldest
+    slot: a new ring (``donate``: written into ``state.ring`` in place, no copy)."""
+    B, nb, h, w = state.ring.shape
+    q = (state.newest + 1) % K  # (B,) the oldest slot takes the new window
+    slot = torch.arange(K, device=q.device) == q.unsqueeze(1)  # (B, K)
+    ring = state.ring if donate else state.ring.clone()  # a clone and a slot write: the fastest new ring
+    ring.view(B, K, nb // K, h, w)[torch.arange(B, device=q.device), q] = grid
+    counts = torch.where(slot, on_canvas.unsqueeze(1), state.ring_counts)
+    sums = torch.where(slot, grid.abs().sum(dim=(1, 2, 3)).unsqueeze(1), state.ring_abs)
+    return ring, counts, sums, q
+
+
+@torch.no_grad()  # not inference_mode: D_hat and the state are ordinary tensors the loop may edit
+def learned_step(p: LearnedConfig, c: LearnedConsts, state: LearnedState, events, t_us: int,
+                 donate: bool = False):
+    """Pure step of ``learned``: (next :class:`LearnedState`, :class:`EstimateOut`).
+
+    Args:
+        p, c: the params and constants. state: :class:`LearnedState` of B rows.
+        events: :class:`dvsland.events.Events` of the interval (sorted by (b, t), b in [0, B)).
+        t_us: end of the window, int µs; it starts at the last step (``dt_s`` before at first).
+        donate: write the new window into ``state.ring`` (no copy of the ring; ``state`` must not
+            be used again). Off by default: ``state`` is left unchanged.
+    """
+    t_us = int(t_us)
+    B, spec = c.batch_size, c.spec
+    last = state.t_prev_us
+    t0 = torch.where((last >= 0) & (last < t_us), last, torch.full_like(last, t_us - int(round(c.dt_s * 1e6))))
+    grid, on_canvas = events_voxel_grid(events, t0, t_us, B, spec, c.cmap, c.cells)
+    n = row_counts(events.b, B) if not c.cmap.identity else on_canvas
+    ring, counts, sums, q = _write_window(state, grid, on_canvas, spec.n_windows, donate)
+    total = counts.sum(1).to(torch.float32)
+    if not c.cmap.identity:
+        total = total * c.cmap.count_scale
+    st = state._replace(ring=ring, ring_counts=counts, ring_abs=sums, newest=q)
+    activity: Dict[str, torch.Tensor] = {}
+    if c.ring_net is not None:
+        mu, log_var = c.ring_net(ring, sums, q, torch.log1p(total))
+    else:
+        mu, log_var = c.model(ordered_ring(st, spec), c.coords, torch.log1p(total))
+        activity = {k: v.clone() for k, v in getattr(c.model, "last_activity", {}).items()}
+    ok = n >= p.min_events
+    nan = torch.full((), float("nan"), device=ring.device)
+    d = torch.where(ok, -torch.exp(mu), nan).to(torch.float32)
+    sig = torch.where(ok, torch.exp(0.5 * log_var), nan).to(torch.float32)
+    st = st._replace(d=d, sigma_rel=sig, n_events=n.to(torch.int64), t_prev_us=torch.full_like(last, t_us))
+    conf = confidence_from_rel_std(sig, d)
+    return st, EstimateOut(d, conf, {"sigma_rel": sig, "n_events": st.n_events, "confidence": conf, **activity})
 
 
 def default_focal_px(sensor_size) -> float:
@@ -117,15 +209,20 @@ class LearnedEstimator(DivergenceEstimator):
             with the folded first layer (:mod:`.fast`), ``"bf16"`` the same with the convolutions
             in bfloat16 (faster on a CPU with AVX512-BF16; D_hat moves by up to about 1 %), ``""``
             the model as trained (the reference "ring" agrees with to float32 rounding).
+        donate: the object API's steps write each new window into the held ring in place (no
+            copy of the ring per step; a state kept from before then changes too). Off by default.
+
+    Params: ``params`` (:class:`LearnedConfig`) and ``consts`` (:class:`LearnedConsts`); state:
+    :class:`LearnedState`.
     """
 
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, checkpoint: str = "",
                  min_events: int = 20, principal_point_px=None, focal_px: Optional[float] = None,
-                 fast: str = "ring"):
+                 fast: str = "ring", donate: bool = False):
         super().__init__(batch_size, sensor_size, device, dt_s, principal_point_px=principal_point_px)
         check_range("estimator.learned.min_events", min_events, 1, 1e9)
-        self.min_events = int(min_events)
         self.checkpoint = resolve_checkpoint(checkpoint)
+        self.params = LearnedConfig(checkpoint=str(checkpoint), min_events=int(min_events))
         net, self.spec, ck = load_checkpoint(self.checkpoint)
         self.model = net.to(self.device)
         self.meta = {k: ck.get(k) for k in ("model", "input", "data", "train")}
@@ -143,55 +240,50 @@ class LearnedEstimator(DivergenceEstimator):
         if fast and type(self.model) is VoxelCNN:
             self.ring_net = RingCNN(self.model, self.coords, self.spec.n_windows,
                                     dtype=torch.bfloat16 if fast == "bf16" else torch.float32)
-        self.state = initial_state(self.batch_size, self.spec, self.device)
-        self._t_prev: Optional[int] = None
+        self.donate = bool(donate)
+        self.consts = LearnedConsts(self.batch_size, self.dt_s, self.spec, self.cmap, self.cells, self.coords,
+                                    self.model, self.ring_net)
+        self._template = self.init_state()
+        self.state = self.init_state()
 
-    def reset(self, mask: Optional[torch.Tensor] = None) -> None:
-        self.state = reset_rows(self.state, self._mask(mask))
+    @property
+    def min_events(self) -> int:
+        return self.params.min_events
 
-    @torch.no_grad()  # not inference_mode: D_hat and the state are ordinary tensors the loop may edit
+    # ------------------------------------------------------------------ the stage contract
+    def init_state(self) -> LearnedState:
+        """B rows without an estimate, ring empty (:class:`LearnedState`)."""
+        return initial_state(self.batch_size, self.spec, self.device)
+
+    def reset_where(self, state: LearnedState, mask: torch.Tensor) -> LearnedState:
+        """``state`` with the rows where ``mask`` (B,) bool is True restarted (:func:`reset_rows`)."""
+        return reset_rows(state, self._mask(mask))
+
+    def step_state(self, state: LearnedState, events, t_us: int, truth: Optional[Truth] = None,
+                   donate: bool = False):
+        """Pure step (:func:`learned_step`): (next :class:`LearnedState`, :class:`EstimateOut`)."""
+        check_state_like("learned", state, self._template)
+        return learned_step(self.params, self.consts, state, events, t_us, donate=donate)
+
+    # ------------------------------------------------------------------ object API
     def update(self, events, t_us: int, truth: Optional[Truth] = None) -> torch.Tensor:
-        t_us = int(t_us)
-        t0 = self._t_prev if self._t_prev is not None and self._t_prev < t_us else t_us - int(round(self.dt_s * 1e6))
-        self._t_prev = t_us
-        B = self.batch_size
-        grid, on_canvas = events_voxel_grid(events, t0, t_us, B, self.spec, self.cmap, self.cells)
-        n = row_counts(events.b, B) if not self.cmap.identity else on_canvas
-        st = self.state
-        K, bpw = self.spec.n_windows, self.spec.bins_per_window
-        q = (st.newest + 1) % K  # the oldest slot takes the new window (in place: no copy of the ring)
-        st.ring[:, q * bpw:(q + 1) * bpw] = grid
-        counts, sums = st.ring_counts.clone(), st.ring_abs.clone()
-        counts[:, q] = on_canvas
-        sums[:, q] = grid.abs().sum(dim=(1, 2, 3))
-        total = counts.sum(1).to(torch.float32)
-        if not self.cmap.identity:
-            total = total * self.cmap.count_scale
-        st = st._replace(ring_counts=counts, ring_abs=sums, newest=q)
-        if self.ring_net is not None:
-            mu, log_var = self.ring_net(st.ring, sums, q, torch.log1p(total))
-        else:
-            mu, log_var = self.model(ordered_ring(st, self.spec), self.coords, torch.log1p(total))
-        ok = n >= self.min_events
-        nan = torch.tensor(float("nan"), device=self.device)
-        d = torch.where(ok, -torch.exp(mu), nan).to(torch.float32)
-        sig = torch.where(ok, torch.exp(0.5 * log_var), nan).to(torch.float32)
-        self.state = st._replace(d=d, sigma_rel=sig, n_events=n.to(torch.int64))
-        return d.clone()
+        """The base class's update (one step of the held state; events checked once, by the
+        gate of ``update``), the ring written in place with ``donate``."""
+        check_state_like("learned", self.state, self._template)
+        self.state, self._last = learned_step(self.params, self.consts, self.state, events, t_us, donate=self.donate)
+        return self._last.d_hat.clone()
 
     @property
     def _d(self) -> torch.Tensor:
         return self.state.d
-
-    def confidence(self) -> torch.Tensor:
-        """(B,) float32 in [0, 1] from the predicted relative spread; 0 where NaN."""
-        return confidence_from_rel_std(self.state.sigma_rel, self.state.d)
 
     def diagnostics(self):
         """sigma_rel (B,) predicted relative std. dev.; n_events (B,); confidence (B,); for a
         spiking model also spikes and synops (B,) of the last update."""
         out = {"sigma_rel": self.state.sigma_rel.clone(), "n_events": self.state.n_events.clone(),
                "confidence": self.confidence()}
-        for k, v in getattr(self.model, "last_activity", {}).items():
-            out[k] = v.clone()
+        last = getattr(self, "_last", None)
+        for k, v in (last.diagnostics.items() if last is not None else ()):
+            if k not in out:
+                out[k] = v.clone()
         return out

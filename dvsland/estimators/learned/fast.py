@@ -57,19 +57,27 @@ class RingCNN(nn.Module):
         self.head = net.head
         # the first layer's vox weights for each position of the newest slot (K small tensors)
         self.w_by_newest = [self.w_vox[:, (torch.arange(K) - q - 1) % K].flatten(1, 2).contiguous() for q in range(K)]
+        #: the same, stacked (K, C, K * bpw, kh, kw): picked on the device by a tensor ``newest``
+        self.w_stack = torch.stack(self.w_by_newest)
 
-    def forward(self, ring: torch.Tensor, abs_sums: torch.Tensor, newest: int,
+    def forward(self, ring: torch.Tensor, abs_sums: torch.Tensor, newest,
                 log_count: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
         """(mu, log_var) (B,) float32.
 
         Args:
             ring: (B, K * bpw, h, w) float32, slot q = channels q bpw .. (q + 1) bpw - 1.
             abs_sums: (B, K) float32 sum of |values| of each slot.
-            newest: the slot of the latest window (slot newest + 1 mod K is the oldest).
+            newest: the slot of the latest window (slot newest + 1 mod K is the oldest): an int,
+                or a (B,) int64 tensor whose rows all hold the same slot (row 0's is used, picked
+                on the device: no host read).
             log_count: (B,) float32.
         """
         B, nb, h, w = ring.shape
-        wq = self.w_by_newest[int(newest)]  # [:, slot q] = the weights of the window's age (q - newest - 1) mod K
+        # [:, slot q] = the weights of the window's age (q - newest - 1) mod K
+        if isinstance(newest, torch.Tensor):
+            wq = self.w_stack.index_select(0, newest.reshape(-1)[:1].to(self.w_stack.device)).squeeze(0)
+        else:
+            wq = self.w_by_newest[int(newest)]
         s = (abs_sums.sum(1) / float(nb * h * w)).clamp_min(1e-3)
         if self.dtype != torch.float32:
             ring = ring.to(self.dtype).contiguous(memory_format=torch.channels_last)

@@ -214,10 +214,22 @@ def _grid_by_table(events, frac, batch_size: int, spec: InputSpec, cells: PixelC
     return grid, c.sum(dim=(1, 2, 3))
 
 
-def events_voxel_grid(events, t0_us: int, t_us: int, batch_size: int, spec: InputSpec,
+def _window_fraction(events, t0_us, t_us: int) -> torch.Tensor:
+    """(N,) float32 (t - t0) / (t_us - t0) of each event (span at least 1 µs); ``t0_us`` an int
+    or a (B,) int64 tensor per row (the same float64 arithmetic either way)."""
+    if isinstance(t0_us, torch.Tensor):
+        t0 = t0_us.to(events.t.device).index_select(0, events.b)
+        span = (int(t_us) - t0).clamp_min(1)
+        return (events.t - t0).to(torch.float64).div_(span).to(torch.float32)
+    span = max(int(t_us) - int(t0_us), 1)
+    return (events.t - int(t0_us)).to(torch.float64).div_(span).to(torch.float32)
+
+
+def events_voxel_grid(events, t0_us, t_us: int, batch_size: int, spec: InputSpec,
                       cmap: Optional[CameraMap] = None, cells: Optional[PixelCells] = None):
     """:func:`voxel_grid` of one :class:`dvsland.events.Events` window (t0_us, t_us], µs int, on
     the reference canvas (``cmap``: the camera's :class:`CameraMap`; None = the identity).
+    ``t0_us``: an int, or a (B,) int64 tensor, the window's start per row (no host read).
 
     ``cells``: the camera's :func:`pixel_cells` (a faster path for another camera with inputs of
     K > 1 windows, the same grid as ``cmap``'s).
@@ -228,8 +240,7 @@ def events_voxel_grid(events, t0_us: int, t_us: int, batch_size: int, spec: Inpu
     if spec.n_windows > 1 and spec.bins_per_window == 1:
         frac = events.t  # one bin per window: every event goes to it, its time is not needed
     else:
-        span = max(int(t_us) - int(t0_us), 1)
-        frac = (events.t - int(t0_us)).to(torch.float64).div_(span).to(torch.float32)
+        frac = _window_fraction(events, t0_us, t_us)
     if cells is not None and spec.n_windows > 1:
         return _grid_by_table(events, frac, batch_size, spec, cells)
     b, p = events.b, events.p
