@@ -25,64 +25,10 @@ import numpy as np
 import torch
 
 from dvsland.envs import LandingVectorEnv
+from dvsland.envs.sb3 import sb3_vec_env
 
 SITES = "D,E,F,G"
 QUIET = ["render.threads=1", "logging.tensorboard=false", "logging.figures=false"]
-
-
-def sb3_vec_env(env: LandingVectorEnv, reseed: bool = True):
-    """A stable-baselines3 ``VecEnv`` over a :class:`LandingVectorEnv` (same-step autoreset as SB3
-    expects: the end's observation goes to ``info["terminal_observation"]``, the element's reset
-    observation is returned). With ``reseed`` each batch restart draws a new master seed."""
-    from stable_baselines3.common.vec_env import VecEnv
-
-    class LandingSB3(VecEnv):
-        def __init__(self):
-            super().__init__(env.num_envs, env.single_observation_space, env.single_action_space)
-            self.env, self._seed, self._actions = env, 0, None
-            self._ret, self._len = np.zeros(env.num_envs), np.zeros(env.num_envs, int)
-
-        def reset(self):
-            obs, _ = self.env.reset(seed=self._seed)
-            self._ret[:], self._len[:] = 0, 0
-            return obs
-
-        def step_async(self, actions):
-            self._actions = np.clip(actions, -1.0, 1.0)
-
-        def step_wait(self):
-            obs, rew, term, trunc, info = self.env.step(self._actions)
-            if reseed and info["waiting"].all():  # the batch restarts: with a new seed
-                self._seed += 1
-                obs, _ = self.env.reset(seed=self._seed)
-            self._ret += rew
-            self._len += 1
-            infos = [{} for _ in range(self.num_envs)]
-            done = term | trunc
-            for i in np.flatnonzero(done):
-                infos[i] = {"terminal_observation": obs[i].copy(), "TimeLimit.truncated": bool(trunc[i]),
-                            "episode": {"r": float(self._ret[i]), "l": int(self._len[i])},
-                            "outcome": info["outcome"][i]}
-                obs[i] = self.env.reset_observation[i]
-                self._ret[i], self._len[i] = 0.0, 0
-            return obs, rew.astype(np.float32), done, infos
-
-        def close(self):
-            self.env.close()
-
-        def get_attr(self, name, indices=None):
-            return [getattr(self.env, name)] * self.num_envs
-
-        def set_attr(self, name, value, indices=None):
-            setattr(self.env, name, value)
-
-        def env_method(self, name, *args, indices=None, **kwargs):
-            return [getattr(self.env, name)(*args, **kwargs)]
-
-        def env_is_wrapped(self, wrapper_class, indices=None):
-            return [False] * self.num_envs
-
-    return LandingSB3()
 
 
 def evaluate(model, vecnorm, env: LandingVectorEnv) -> dict:
@@ -95,7 +41,9 @@ def evaluate(model, vecnorm, env: LandingVectorEnv) -> dict:
         act, _ = model.predict(vecnorm.normalize_obs(obs), deterministic=True)
         obs, rew, term, trunc, info = env.step(np.clip(act, -1.0, 1.0))
         res["return"] += rew
-        for i in np.flatnonzero(term | trunc):
+        first = (term | trunc) & np.array([o is None for o in res["outcome"]])
+        res["return"] -= np.where(np.array([o is not None for o in res["outcome"]]), rew, 0.0)
+        for i in np.flatnonzero(first):  # the first episode of each env
             res["outcome"][i] = str(info["outcome"][i])
             res["t_end_s"][i], res["v_end_mps"][i] = float(info["t_s"][i]), float(info["v_mps"][i])
     res["success_rate"] = float(np.mean([o == "success" for o in res["outcome"]]))
@@ -119,10 +67,10 @@ def main(argv=None) -> dict:
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
     train = LandingVectorEnv(num_envs=args.num_envs, config="paper_montecarlo", sites=SITES, estimator="oracle",
-                             observation="oracle", action="thrust", overrides=QUIET)
+                             observation="oracle", action="thrust", overrides=QUIET, autoreset_mode="same_step")
     venv = VecNormalize(sb3_vec_env(train), norm_obs=True, norm_reward=True, gamma=0.995)
     test = LandingVectorEnv(config="paper", sites=SITES, estimator="oracle", observation="oracle",
-                            action="thrust", overrides=QUIET)
+                            action="thrust", overrides=QUIET, start_dispersion=0.0)
     model = PPO("MlpPolicy", venv, n_steps=256, batch_size=2048, n_epochs=5, gamma=0.995, gae_lambda=0.95,
                 learning_rate=3e-4, ent_coef=0.0, clip_range=0.2, seed=args.seed, device="cpu", verbose=0,
                 policy_kwargs=dict(log_std_init=-1.0, net_arch=dict(pi=[64, 64], vf=[64, 64])))

@@ -31,9 +31,10 @@ def fly_episode(env, policy=None, max_steps=100_000):
     for n in range(max_steps):
         act = info["controller_thrust_n"] if policy is None else policy(obs, info)
         obs, rew, term, trunc, info = env.step(np.nan_to_num(act))
-        ret += rew
-        for b in np.flatnonzero(term | trunc):
-            outcome[b], t_end[b], z_end[b] = info["outcome"][b], info["t_s"][b], info["z_m"][b]
+        ret += np.where([o is None for o in outcome], rew, 0.0)  # the first episode of each env only
+        for b in np.flatnonzero(term | trunc):  # (an env restarts after its end)
+            if outcome[b] is None:
+                outcome[b], t_end[b], z_end[b] = info["outcome"][b], info["t_s"][b], info["z_m"][b]
         if all(o is not None for o in outcome):
             return (outcome, t_end, z_end, ret), n + 1
     raise AssertionError("episode did not end")
@@ -44,7 +45,7 @@ def test_controller_commands_reproduce_simulate(tmp_path, preset, overrides):
     """Raw thrust actions = info['controller_thrust_n']: same outcome, t_end and final altitude (bit
     for bit) as dvsland.simulate, oracle estimator, sites D and H."""
     env = LandingVectorEnv(config=preset, overrides=overrides + QUIET, sites="D,H", estimator="oracle",
-                           observation="oracle", action="thrust_n")
+                           observation="oracle", action="thrust_n", start_dispersion=0.0)
     (outcome, t_end, z_end, _), _ = fly_episode(env)
     res = dvsland.simulate(preset, estimator="oracle", sites="D,H", quiet=True, out=tmp_path / "run",
                            overrides=overrides + QUIET)
@@ -58,7 +59,7 @@ def test_controller_commands_reproduce_simulate(tmp_path, preset, overrides):
 def test_agent_thrust_flies_like_loop_step_with_that_thrust():
     """An action other than the controller's command flies exactly loop_step(thrust=u)."""
     env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D,E", estimator="oracle",
-                           observation="oracle", action="thrust_n")
+                           observation="oracle", action="thrust_n", start_dispersion=0.0)
     stages = build_stages(env.stages.cfg, env.layout)  # a second, independent loop of the same batch
     state = init_state(stages)
     mg = stages.settings.mass_kg * stages.settings.g_mps2
@@ -130,8 +131,16 @@ def test_bad_names_and_actions_raise():
         env.step(np.full(env.num_envs, 1.5))
     with pytest.raises(ValueError, match=r"action must have shape \(2,\)"):
         env.step(np.zeros(3))
-    with pytest.raises(ValueError, match="options are not supported"):
-        env.reset(options={"reset_mask": np.ones(2, bool)})
+    with pytest.raises(ValueError, match=r"options: unknown keys \['mask'\]"):
+        env.reset(options={"mask": np.ones(2, bool)})
+    with pytest.raises(ValueError, match=r"options\['reset_mask'\] must be a \(2,\) bool array"):
+        env.reset(options={"reset_mask": np.ones(3, bool)})
+    with pytest.raises(ValueError, match=r"seed must be None, an int or 2 ints"):
+        env.reset(seed=[1, 2, 3])
+    with pytest.raises(ValueError, match="autoreset_mode must be one of"):
+        LandingVectorEnv(observation="oracle", autoreset_mode="sometimes", **kw)
+    with pytest.raises(ValueError, match="start_dispersion"):
+        LandingVectorEnv(observation="oracle", start_dispersion=2.0, **kw)
     clip = LandingVectorEnv(observation="oracle", clip_actions=True, **kw)
     clip.reset()
     _, _, _, _, info = clip.step(np.full(clip.num_envs, 7.0))
@@ -159,35 +168,80 @@ def test_seeding_is_deterministic_and_reseeds_the_dispersions():
     np.testing.assert_array_equal(obs_c, obs_d)
 
 
-def test_next_step_autoreset_waits_for_the_batch_and_replays_it():
-    """D (Kp4e6-n10) ends at 97.3 s, D (Kp5e6-n5) at 99.3 s: the first element's next step is its
-    reset observation, it then waits (reward 0, action ignored) until the batch restarts."""
+def _ends(env, n_max=5000):
+    """Fly with the law's commands until some env ends; (step outputs of that step, next step's)."""
+    obs, info = env.reset()
+    for _ in range(n_max):
+        res = env.step(np.nan_to_num(info["controller_thrust_n"]))
+        obs, rew, term, trunc, info = res
+        if (term | trunc).any():
+            return res, env.step(np.nan_to_num(info["controller_thrust_n"]))
+    raise AssertionError("no episode ended")
+
+
+def test_next_step_autoreset_restarts_one_descent_while_the_other_flies():
+    """D (Kp4e6-n10) ends before D (Kp5e6-n5): the step after its end returns its next episode's
+    first observation (reward 0, flags False) while the other descent flies on; nobody waits."""
     env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle",
                            action="thrust_n")
-    first, n_steps = fly_episode(env)
-    assert first[0] == ["success", "success"] and first[1].tolist() == pytest.approx([99.3, 97.3])
-    obs0, info = env.reset()
-    seen_end = np.zeros(2, bool)
-    for k in range(n_steps):
-        obs, rew, term, trunc, info = env.step(np.nan_to_num(info["controller_thrust_n"]))
-        waiting = info["waiting"]
-        assert not (waiting & (term | trunc)).any()
-        np.testing.assert_array_equal(obs[waiting], obs0[waiting])
-        assert (rew[waiting] == 0).all() and (info["thrust_n"][waiting] == 0).all()
-        assert (waiting == seen_end).all()  # waiting from the step after its end
-        seen_end |= term | trunc
-    assert seen_end.all()
-    obs, rew, term, trunc, info = env.step(np.zeros(2))  # the restart step: everyone waits
-    assert info["waiting"].all() and (rew == 0).all() and not (term | trunc).any()
-    np.testing.assert_array_equal(obs, obs0)
-    again, _ = fly_episode(env)
-    assert again[0] == first[0] and again[1].tolist() == first[1].tolist() and again[2].tolist() == first[2].tolist()
+    assert env.metadata["autoreset_mode"] == gym.vector.AutoresetMode.NEXT_STEP
+    (obs, rew, term, trunc, info), (obs2, rew2, term2, trunc2, info2) = _ends(env)
+    i = int(np.flatnonzero(term | trunc)[0])
+    j = 1 - i
+    assert info["outcome"][i] == "success" and info["outcome"][j] == "running"
+    assert info2["outcome"][i] == "reset" and rew2[i] == 0 and not (term2[i] or trunc2[i])
+    assert info2["t_s"][i] == 0.0 and info2["episode"].tolist()[i] == 1 and info2["z_m"][i] > 3000
+    assert info2["outcome"][j] == "running" and info2["t_s"][j] > info["t_s"][j]  # the other flies on
+    obs3, rew3, *_, info3 = env.step(np.nan_to_num(info2["controller_thrust_n"]))
+    assert info3["t_s"][i] == pytest.approx(0.1) and info3["z_m"][i] < info2["z_m"][i]  # its new episode flies
+
+
+def test_same_step_autoreset_returns_the_next_episode_and_the_final_observation():
+    env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle",
+                           action="thrust_n", autoreset_mode="same_step")
+    (obs, rew, term, trunc, info), _ = _ends(env)
+    i = int(np.flatnonzero(term | trunc)[0])
+    assert info["_final_obs"][i] and not info["_final_obs"][1 - i]
+    final = info["final_obs"][i]
+    assert final.shape == (4,) and not np.array_equal(final, obs[i])
+    assert info["final_info"][i]["outcome"] == "success" and info["final_info"][i]["z_m"] <= 50.0
+    assert info["episode"][i] == 1 and info["t_s"][i] == 0.0 and env.observation_space.contains(obs)
+
+
+def test_disabled_autoreset_and_reset_mask():
+    env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle",
+                           action="thrust_n", autoreset_mode="disabled")
+    (obs, rew, term, trunc, info), (obs2, rew2, term2, trunc2, info2) = _ends(env)
+    i = int(np.flatnonzero(term | trunc)[0])
+    j = 1 - i
+    assert info2["outcome"][i] == "ended" and rew2[i] == 0 and info2["ignored"][i]
+    np.testing.assert_array_equal(obs2[i], obs[i])  # frozen until reset
+    z_j = info2["z_m"][j]
+    mask = np.zeros(2, bool)
+    mask[i] = True
+    obs3, info3 = env.reset(options={"reset_mask": mask})
+    assert info3["z_m"][i] > 3000 and info3["z_m"][j] == z_j  # only the masked env restarted
+    np.testing.assert_array_equal(obs3[j], obs2[j])
+    obs4, rew4, term4, trunc4, info4 = env.step(np.nan_to_num(info3["controller_thrust_n"]))
+    assert not info4["ignored"].any() and info4["t_s"][i] == pytest.approx(0.1)
+
+
+def test_seeds_change_the_descents_and_replay_them():
+    env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle")
+    _, a = env.reset(seed=0)
+    _, b = env.reset(seed=1)
+    _, c = env.reset(seed=[0, 1])
+    _, d = env.reset()
+    assert not np.array_equal(a["z_m"], b["z_m"])
+    np.testing.assert_array_equal(a["z_m"], c["z_m"])
+    np.testing.assert_array_equal(c["z_m"], d["z_m"])
 
 
 def test_reward_terminal_terms():
     env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle",
                            action="thrust_n", reward={"tracking_weight": 0.0, "success_bonus": 5.0,
-                                                      "speed_penalty": 1.0, "failure_penalty": 3.0})
+                                                      "speed_penalty": 1.0, "failure_penalty": 3.0},
+                           start_dispersion=0.0)
     (outcome, _, _, ret), _ = fly_episode(env)
     assert outcome == ["success", "success"]
     obs, _ = env.reset()
@@ -198,7 +252,8 @@ def test_reward_terminal_terms():
             break
     assert info["outcome"].tolist() == ["crash", "crash"] and rew.tolist() == [-3.0, -3.0]
     assert ((ret > 5.0 - 1.0 * 10) & (ret < 5.0)).all()  # bonus minus a few m/s at 50 m
-    dense = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle")
+    dense = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle",
+                             start_dispersion=0.0)
     dense.reset()
     for _ in range(40):  # per step: dt max(0, 1 - |D - D*| / 0.02) at the step's end (the next observation's
         obs, rew, *_ = dense.step(np.full(2, -0.6))  # first two fields): falls from 0.1 as D leaves D*
@@ -230,8 +285,8 @@ def test_events_and_divergence_observations():
 
 
 def test_sb3_adapter_of_the_training_example(repo_root):
-    """scripts/train_policy_oracle.py's stable-baselines3 VecEnv: same-step autoreset (the end's
-    observation in terminal_observation, the element's reset observation returned)."""
+    """dvsland.envs.sb3's stable-baselines3 VecEnv (used by scripts/train_policy_oracle.py): same-step
+    autoreset (the end's observation in terminal_observation, the element's next episode returned)."""
     pytest.importorskip("stable_baselines3")
     import importlib.util
 
@@ -239,8 +294,11 @@ def test_sb3_adapter_of_the_training_example(repo_root):
     spec = importlib.util.spec_from_file_location("train_policy_oracle", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle")
-    venv = mod.sb3_vec_env(env, reseed=False)
+    env = LandingVectorEnv(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation="oracle",
+                           autoreset_mode="same_step")
+    from dvsland.envs.sb3 import sb3_vec_env
+
+    venv = sb3_vec_env(env)
     obs0 = venv.reset()
     for _ in range(2000):
         venv.step_async(np.full((2, 1), -0.33))  # about hover: ends by the 200 s timeout at the latest

@@ -63,9 +63,11 @@ class RewardConfig:
             raise ValueError(f"reward.tau_min_s must be > 0, got {self.tau_min_s}")
 
 
-def divergence_target(t_s: float, tau0_s: torch.Tensor, c2: float, tau_min_s: float) -> torch.Tensor:
-    """D*(t) = -1 / max(tau0 - c2 t, tau_min), (B,) float64 1/s, for ``tau0_s`` (B,) float64 s."""
-    return -1.0 / (tau0_s - c2 * float(t_s)).clamp_min(tau_min_s)
+def divergence_target(t_s, tau0_s: torch.Tensor, c2: float, tau_min_s: float) -> torch.Tensor:
+    """D*(t) = -1 / max(tau0 - c2 t, tau_min), (B,) float64 1/s, for ``tau0_s`` (B,) float64 s and
+    the flight time ``t_s`` (a float or (B,) float64 s)."""
+    t = t_s if isinstance(t_s, torch.Tensor) else float(t_s)
+    return -1.0 / (tau0_s - c2 * t).clamp_min(tau_min_s)
 
 
 def step_reward(rc: RewardConfig, dt_s: float, d_true: torch.Tensor, d_target: torch.Tensor, v_mps: torch.Tensor,

@@ -1,26 +1,32 @@
 """``LandingVectorEnv``: B closed-loop descents as one gymnasium ``VectorEnv``.
 
-The env flies the batched loop of :mod:`dvsland.sim` (:func:`~dvsland.sim.init_state` and
-:func:`~dvsland.sim.loop_step` in its two halves, :func:`~dvsland.sim.sense_step` and
-:func:`~dvsland.sim.act_step`) with the agent's thrust instead of the controller's. Each env step:
+The env flies the batched loop of :mod:`dvsland.sim` in its two halves,
+:func:`~dvsland.sim.sense_step` and :func:`~dvsland.sim.act_step`, with the agent's thrust instead
+of the controller's. Each env step:
 
 1. the action (checked, :mod:`dvsland.envs.actions`) becomes a thrust u (B,) N;
 2. the descents fly [t_k, t_k + dt) with u (the step whose sensing the agent saw);
 3. reward and episode ends are judged at t_{k+1} (:mod:`dvsland.envs.reward`);
-4. the loop senses at t_{k+1} (render, emulate, estimate, filter, and the shipped law's command,
+4. descents whose episode is over restart (:func:`~dvsland.sim.reset_where`), as the autoreset
+   mode says, while the others fly on;
+5. the loop senses at t_{k+1} (render, emulate, estimate, filter, and the shipped law's command,
    reported as ``info["controller_thrust_n"]``): the next observation.
 
-The loop senses before the agent acts (``sense_step``) and flies the agent's thrust after it
-(``act_step(thrust=u)``); ``loop_step`` is the same two halves with the law's thrust, so an agent
-that sends the controller's commands flies exactly the descents of :func:`dvsland.simulate`.
+Autoreset (``autoreset_mode=``, gymnasium's :class:`~gymnasium.vector.AutoresetMode`; the default is
+``metadata["autoreset_mode"]``, NEXT_STEP):
 
-Episodes: all B descents start together. A descent that ends reports ``terminated`` or
-``truncated`` once; the loop keeps it frozen. Autoreset is gymnasium's NEXT_STEP mode: the step
-after an end returns that element's initial observation (reward 0, both flags False), and the
-element then *waits*, its actions ignored and its observation its initial one, with reward 0,
-until every descent of the batch has ended; the step after the last end restarts the whole batch
-(the stages' state included, from a clone of the initial state: every episode of a seed is the
-same batch of descents). ``info["waiting"]`` marks the steps whose action was ignored.
+- ``NEXT_STEP``: the step after an end returns that descent's first observation of its next episode
+  (reward 0, both flags False; its action is ignored), and it flies on from there;
+- ``SAME_STEP``: the step of an end returns the next episode's first observation, the end's own in
+  ``info["final_obs"]`` (and its info in ``info["final_info"]``), masked by ``info["_final_obs"]``;
+- ``DISABLED``: an ended descent stays frozen (reward 0, action ignored) until
+  ``reset(options={"reset_mask": mask})`` restarts it.
+
+No descent ever waits for its batch-mates. Episodes are seeded per env: ``reset(seed=s)`` gives env
+i the seed s + i (or ``seed=[s_0, ..., s_{B-1}]``), and each episode of an env draws its start
+(altitude and velocity dispersed by ``start_dispersion``, relative) and its sensor-noise seed from
+(env seed, episode index) by counter-based draws: ``reset(seed=1)`` flies other descents than
+``reset(seed=0)``, and ``reset()`` without a seed replays the current seeds' episodes.
 """
 
 from __future__ import annotations
@@ -36,7 +42,9 @@ from gymnasium.vector.utils import batch_space
 
 from dvsland.config import Config, load_config, validate_config
 from dvsland.layout import build_layout
-from dvsland.sim import OUTCOMES, act_step, clone_state, init_state, sense_step
+from dvsland.checks import check_range
+from dvsland.pytree import hash_bits, hash_normal
+from dvsland.sim import OUTCOMES, act_step, init_state, reset_where, sense_step
 from dvsland.stages import build_stages, check_names
 
 from . import observations as obs_mod
@@ -46,7 +54,7 @@ from .reward import RewardConfig, divergence_target, episode_ends, step_reward
 
 
 class LandingVectorEnv(VectorEnv):
-    """B = ``num_envs`` descents of one config, as a gymnasium (>= 1.0) vector env.
+    """B = ``num_envs`` descents of one config, as a gymnasium (>= 1.1) vector env.
 
     Args:
         num_envs: B; None = every element of the config's layout (sites x settings x seeds). Other
@@ -65,10 +73,16 @@ class LandingVectorEnv(VectorEnv):
         reward: a :class:`RewardConfig` or a dict of its fields.
         clip_actions: clip out-of-range actions instead of raising ValueError.
         setpoint_gain_ns: K of the ``divergence_setpoint`` law, N s.
+        autoreset_mode: an :class:`~gymnasium.vector.AutoresetMode` or its name (``"next_step"``,
+            ``"same_step"``, ``"disabled"``); default ``metadata["autoreset_mode"]``.
+        start_dispersion: relative 1-sigma dispersion of each episode's initial altitude and
+            velocity around the layout's, in [0, 0.3]; 0 flies the layout's starts (the descents of
+            :func:`dvsland.simulate`) with the layout's sensor-noise seeds.
 
     Raises:
-        ValueError: an unknown ``observation`` or ``action`` (naming the allowed ones), bad
-            ``num_envs`` or ``sites``; ConfigError: an invalid config or unknown stage name.
+        ValueError: an unknown ``observation``, ``action`` or ``autoreset_mode`` (naming the allowed
+            ones), bad ``num_envs``, ``sites`` or ``start_dispersion``; ConfigError: an invalid
+            config or unknown stage name.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
@@ -77,8 +91,12 @@ class LandingVectorEnv(VectorEnv):
                  sites: Union[str, Sequence[str], None] = None, estimator: Optional[str] = None,
                  observation: Union[str, Sequence[str]] = "divergence", action: str = "thrust",
                  device: Any = "cpu", overrides: Sequence[str] = (), reward: Any = None,
-                 clip_actions: bool = False, setpoint_gain_ns: float = SETPOINT_GAIN_NS):
+                 clip_actions: bool = False, setpoint_gain_ns: float = SETPOINT_GAIN_NS,
+                 autoreset_mode: Union[AutoresetMode, str, None] = None, start_dispersion: float = 0.05):
         self._names = obs_mod.parse_observation(observation)
+        self.autoreset_mode = _autoreset_mode(autoreset_mode)
+        self.metadata = {**type(self).metadata, "autoreset_mode": self.autoreset_mode}
+        self._dispersion = check_range("start_dispersion", start_dispersion, 0.0, 0.3)
         self.cfg = _resolve_config(config, overrides, estimator, device)
         self._spec = action_spec(action, self.cfg, clip_actions, setpoint_gain_ns)
         self._reward = reward if isinstance(reward, RewardConfig) else RewardConfig(**(reward or {}))
@@ -96,12 +114,15 @@ class LandingVectorEnv(VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.single_action_space = self._spec.space()
         self.action_space = batch_space(self.single_action_space, self.num_envs)
-        self._state = None
-        self._all_done = False
+        B, dev = self.num_envs, self._device
+        self._env_seed = torch.arange(B, dtype=torch.int64, device=dev) + self._seed
+        self._episode = torch.zeros(B, dtype=torch.int64, device=dev)
+        self._autoreset = torch.zeros(B, dtype=torch.bool, device=dev)
+        self._state = self._sensed = self._obs = None
 
     # ------------------------------------------------------------------ building
     def _build(self, seed: int) -> None:
-        """(Re)build the stages for master seed ``seed`` and clone their initial state."""
+        """(Re)build the stages for master seed ``seed`` (the layout's dispersions depend on it)."""
         cfg = copy.deepcopy(self.cfg)
         cfg.simulation.seed = int(seed)
         layout = fit_layout(cfg, self._sites, self._num_envs_arg)
@@ -114,8 +135,6 @@ class LandingVectorEnv(VectorEnv):
         self._c2 = float(p.c2)
         rc = self._reward
         self._tau_min = float(rc.tau_min_s) if rc.tau_min_s is not None else 2.0 / cfg.simulation.crash_divergence
-        self._init = clone_state(self.stages, init_state(self.stages))
-        self._obs0 = None
 
     @property
     def layout(self):
@@ -128,44 +147,93 @@ class LandingVectorEnv(VectorEnv):
         return self._spec
 
     @property
-    def reset_observation(self):
-        """The initial observation batch of the current seed (what an element shows from the step
-        after its end until the batch restarts); None before the first :meth:`reset`. A copy."""
-        return None if self._obs0 is None else obs_mod.pack(self._names, copy.deepcopy(self._obs0))
+    def state(self):
+        """The loop's current :class:`~dvsland.sim.LoopState` (None before :meth:`reset`)."""
+        return self._state
 
     # ------------------------------------------------------------------ reset
-    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
-        """Restart every descent.
+    def reset(self, *, seed: Union[int, Sequence[int], None] = None, options: Optional[dict] = None):
+        """Restart every descent, or those of ``options["reset_mask"]``.
 
         Args:
-            seed: None (the descents of the current seed again, bit for bit) or a master seed:
-                ``simulation.seed`` of the layout's element seeds, dispersions and sensor noise
-                (the stages are rebuilt when it changes).
-            options: not supported (only None or an empty dict).
+            seed: None (the current seeds' episodes again, from episode 0), an int s (env i gets
+                s + i; a new s also rebuilds the layout's dispersions for master seed s) or one int
+                per env.
+            options: None, or ``{"reset_mask": (B,) bool}``: restart only those envs (the others'
+                state and observation are unchanged; ``seed`` then seeds only those).
 
         Returns:
             (observation batch, info dict of (B,) arrays).
         """
-        if options:
-            raise ValueError(f"options are not supported (all descents restart together), got {options!r}")
-        super().reset(seed=seed)
-        if seed is not None and int(seed) != self._seed:
-            self._build(int(seed))
-        return self._begin()
+        mask = _reset_mask(options, self.num_envs)
+        if mask is not None and self._state is None:
+            raise RuntimeError("reset(options={'reset_mask': ...}) needs a first reset() of every env")
+        if isinstance(seed, (int, np.integer)) and mask is None:
+            super().reset(seed=int(seed))
+            if int(seed) != self._seed:
+                self._build(int(seed))
+        seeds = self._seeds(seed)
+        if mask is None:
+            self._env_seed, self._episode = seeds, torch.zeros_like(self._episode)
+            z0, v0, noise = self._starts(torch.ones_like(self._autoreset))
+            self._state = init_state(self.stages, z_m=z0, v_mps=v0)._replace(noise_seed=noise)
+            self._autoreset = torch.zeros_like(self._autoreset)
+            return self._sense_all(None)
+        m = mask.to(self._device)
+        self._env_seed = torch.where(m, seeds, self._env_seed)
+        self._episode = torch.where(m, torch.zeros_like(self._episode), self._episode)
+        self._state = self._restart(self._state, m)
+        self._autoreset = self._autoreset & ~m
+        return self._sense_all(m)
 
-    def _begin(self):
-        """Start the batch from a clone of the initial state and sense its first step."""
-        self._state = clone_state(self.stages, self._init)
+    def _seeds(self, seed) -> torch.Tensor:
+        """(B,) int64 env seeds for ``seed`` (None: the current ones)."""
+        B = self.num_envs
+        if seed is None:
+            return self._env_seed
+        if isinstance(seed, (int, np.integer)):
+            s = torch.arange(B, dtype=torch.int64) + int(seed)
+        else:
+            a = np.asarray(seed)
+            if a.shape != (B,) or a.dtype.kind not in "iu":
+                raise ValueError(f"seed must be None, an int or {B} ints (one per env), got {seed!r}")
+            s = torch.as_tensor(a.astype(np.int64))
+        if bool((s < 0).any()) or bool((s >= 2 ** 62).any()):
+            raise ValueError(f"seed must lie in [0, 2**62), got {s.tolist()}")
+        return s.to(self._device)
+
+    def _starts(self, mask: torch.Tensor):
+        """(z0_m, v0_mps, noise_seed) (B,) of the episodes starting where ``mask``: the layout's
+        start dispersed by counter-based draws of (env seed, episode)."""
+        L, dev, f64 = self.stages.layout, self._device, torch.float64
+        z0, v0 = L.tensor("z0_m", dev, f64), L.tensor("v0_mps", dev, f64)
+        noise = L.tensor("seed", dev, torch.int64)
+        sig = self._dispersion
+        if sig > 0:
+            keys = (self._env_seed, self._episode)
+            z0 = z0 * (1.0 + sig * hash_normal(*keys, 1)).clamp(0.5, 1.5)
+            v0 = v0 * (1.0 + sig * hash_normal(*keys, 2)).clamp(0.5, 1.5)
+            noise = (hash_bits(*keys, 3) << 31) ^ hash_bits(*keys, 4)
+        return z0, v0, noise
+
+    def _restart(self, state, mask: torch.Tensor):
+        """``state`` with the envs of ``mask`` at the start of their next episode."""
+        z0, v0, noise = self._starts(mask)
+        return reset_where(self.stages, state, mask, z_m=z0, v_mps=v0, seed=noise)
+
+    def _sense_all(self, mask: Optional[torch.Tensor]):
+        """Sense the current state; the observation (of ``mask``'s envs; all when None) and info."""
         self._sensed = sense_step(self.stages, self._state)
-        self._out = self._sensed.out
-        self._all_done = False
-        obs = self._observe(self._out, self._out.t_s, self._out.m_kg)
-        if self._obs0 is None:
-            self._obs0 = copy.deepcopy(obs)
+        out = self._sensed.out
+        obs = self._observe(out, out.t_flight_s, out.m_kg)
+        if mask is not None and self._obs is not None:
+            keep = (~mask).cpu().numpy()
+            obs = obs_mod.take_rows(obs, self._obs, keep)
         self._obs = obs
         B = self.num_envs
-        info = self._info(self._state, ["running"] * B, self._out.thrust_n, np.zeros(B, bool), self._out.t_s)
-        return obs_mod.pack(self._names, obs), info
+        info = self._info(self._state, np.array(["running"] * B, dtype=object), out.thrust_n, np.zeros(B, bool),
+                          out.t_flight_s)
+        return obs_mod.pack(self._names, copy.deepcopy(obs)), info
 
     # ------------------------------------------------------------------ step
     def step(self, actions):
@@ -177,10 +245,12 @@ class LandingVectorEnv(VectorEnv):
         Returns:
             (observations, rewards (B,) float64, terminated (B,) bool, truncated (B,) bool, info):
             info holds (B,) arrays ``outcome`` (str: ``running``, the outcome name on the step a
-            descent ends, ``waiting`` while it waits for the batch to restart), ``z_m``, ``v_mps``,
-            ``m_kg``, ``t_s`` (after the step), ``thrust_n`` (what flew; 0 where waiting),
-            ``controller_thrust_n`` (the shipped law's command for the returned observation; NaN
-            where none), ``d_target`` (1/s) and ``waiting`` (bool: this step ignored the action).
+            descent ends, ``reset`` on a NEXT_STEP restart, ``ended`` while a DISABLED env waits for
+            its reset), ``z_m``, ``v_mps``, ``m_kg``, ``t_s`` (flight time after the step),
+            ``thrust_n`` (what flew; 0 where the action was ignored), ``controller_thrust_n`` (the
+            shipped law's command for the returned observation; NaN where none), ``d_target`` (1/s),
+            ``ignored`` (bool: this step ignored the action), ``episode`` (int) and, in SAME_STEP
+            mode, ``final_obs`` / ``final_info`` / ``_final_obs``.
 
         Raises:
             RuntimeError: before :meth:`reset`. ValueError: an invalid action (see
@@ -189,73 +259,139 @@ class LandingVectorEnv(VectorEnv):
         if self._state is None:
             raise RuntimeError("LandingVectorEnv.step called before reset()")
         B = self.num_envs
-        if self._all_done:  # the step after the last descent ended: restart the batch
-            obs, info = self._begin()
-            info["waiting"][:] = True
-            info["outcome"][:] = "waiting"
-            return obs, np.zeros(B), np.zeros(B, bool), np.zeros(B, bool), info
         a = check_action(self._spec, actions, B)
-        state, out = self._state, self._out
+        state, out = self._state, self._sensed.out
         g = self.stages.settings.g_mps2
         u = to_thrust(self._spec, a.to(self._device), state.m_kg, g, out.d_filtered)
-        u = torch.where(state.active, u, torch.zeros_like(u))
-        nxt = self._fly(state, out, u)
-        return self._finish(state, nxt, u)
-
-    def _fly(self, state, out, u):
-        """The state after this step flown with thrust ``u`` (B,) N (0 where not flying)."""
+        flying = state.active
+        u = torch.where(flying, u, torch.zeros_like(u))
         nxt, _ = act_step(self.stages, self._sensed, thrust=u)
-        return nxt
+        return self._finish(state, nxt, u, flying)
 
-    def _finish(self, state, nxt, u):
-        """Reward, ends, the next sensing and observation after flying ``state`` -> ``nxt``."""
-        flying, t1 = state.active, nxt.step * self.stages.settings.dt_s
+    def _finish(self, state, nxt, u, flying):
+        """Reward, ends, restarts, the next sensing and observation after ``state`` -> ``nxt``."""
         ended = flying & ~nxt.active
+        t1 = nxt.flight_step.to(torch.float64) * self.stages.settings.dt_s
         d_true = nxt.v_mps / nxt.z_m
         d_tgt = divergence_target(t1, self._tau0, self._c2, self._tau_min)
         reward = step_reward(self._reward, self.stages.settings.dt_s, d_true, d_tgt, nxt.v_mps, flying, ended,
                              nxt.outcome)
         term, trunc = episode_ends(ended, nxt.outcome)
+        names = _outcome_names(nxt.outcome, ended)
+        mode = self.autoreset_mode
+        restart = self._autoreset if mode == AutoresetMode.NEXT_STEP else (
+            ended if mode == AutoresetMode.SAME_STEP else torch.zeros_like(ended))
+        final = None
+        if mode == AutoresetMode.SAME_STEP and bool(ended.any()):
+            final = self._final(nxt, ended, d_true, t1, u, d_tgt, names)
+        if bool(restart.any()):
+            self._episode = self._episode + restart.to(torch.int64)
+            nxt = self._restart(nxt, restart)
+        self._autoreset = ended if mode == AutoresetMode.NEXT_STEP else torch.zeros_like(ended)
         self._state = nxt
+        obs, ctl = self._next_obs(nxt, ended, restart, d_true, t1)
+        ignored = (~flying).cpu().numpy()
+        restart_np = restart.cpu().numpy()
+        names[ignored] = "ended"
+        names[restart_np & ignored] = "reset"
+        t_info = torch.where(restart, torch.zeros_like(t1), t1)
+        info = self._info(nxt, names, ctl, ignored, t_info, thrust=u, d_target=d_tgt)
+        if final is not None:
+            info.update(final)
+        return (obs_mod.pack(self._names, copy.deepcopy(obs)), reward.cpu().numpy(), term.cpu().numpy(),
+                trunc.cpu().numpy(), info)
+
+    def _next_obs(self, nxt, ended, restart, d_true, t1):
+        """Sense ``nxt`` (when anything flies) and build the observation batch; (obs, law's thrust)."""
         if bool(nxt.active.any()):
             self._sensed = sense_step(self.stages, nxt)
-            self._out = self._sensed.out
-            sensed, ctl = self._out, self._out.thrust_n
+            out = self._sensed.out
+            obs = self._observe(out, out.t_flight_s, nxt.m_kg)
+            ctl = torch.where(nxt.active, out.thrust_n, torch.full_like(out.thrust_n, math.nan))
         else:  # nothing flies on: no sensing; the final observation needs only the true state
-            self._all_done = True
-            sensed = self._out._replace(t_s=t1, d_true=d_true, m_kg=nxt.m_kg)
-            ctl = torch.full_like(u, math.nan)
-        obs = self._observe(sensed, t1, nxt.m_kg)
-        ended_np, waiting = ended.cpu().numpy(), (~flying).cpu().numpy()
-        obs = obs_mod.hold_sensing(obs, self._obs, ended_np)
-        obs = obs_mod.take_rows(obs, self._obs0, waiting)
+            out = self._sensed.out._replace(t_s=float(t1.max()), d_true=d_true, m_kg=nxt.m_kg)
+            self._sensed = self._sensed._replace(state=nxt, out=out)
+            obs = self._observe(out, t1, nxt.m_kg)
+            ctl = torch.full_like(d_true, math.nan)
+        frozen = (~nxt.active).cpu().numpy()  # a finished camera keeps its last sensing
+        obs = obs_mod.hold_sensing(obs, self._obs, frozen & ~restart.cpu().numpy())
         self._obs = obs
-        names = np.array([OUTCOMES[int(c)] if e else "running" for c, e in zip(nxt.outcome.tolist(), ended_np)],
-                         dtype=object)
-        names[waiting] = "waiting"
-        info = self._info(nxt, names, ctl, waiting, t1, thrust=u, d_target=d_tgt)
-        return (obs_mod.pack(self._names, obs), reward.cpu().numpy(), term.cpu().numpy(), trunc.cpu().numpy(),
-                info)
+        return obs, ctl
+
+    def _final(self, nxt, ended, d_true, t1, u, d_tgt, names) -> dict:
+        """SAME_STEP: the ended envs' own last observation and info, before their restart."""
+        out = self._sensed.out._replace(d_true=d_true, m_kg=nxt.m_kg)
+        obs = obs_mod.hold_sensing(self._observe(out, t1, nxt.m_kg), self._obs, np.ones(self.num_envs, bool))
+        e = ended.cpu().numpy()
+        info = self._info(nxt, names.copy(), torch.full_like(d_true, math.nan), np.zeros(self.num_envs, bool), t1,
+                          thrust=u, d_target=d_tgt)
+        final_obs = np.empty(self.num_envs, dtype=object)
+        final_info = np.empty(self.num_envs, dtype=object)
+        packed = obs_mod.pack(self._names, obs)
+        for i in np.flatnonzero(e):
+            final_obs[i] = _row(packed, i)
+            final_info[i] = {k: v[i] for k, v in info.items()}
+        return {"final_obs": final_obs, "final_info": final_info, "_final_obs": e.copy(), "_final_info": e.copy()}
 
     # ------------------------------------------------------------------ helpers
-    def _observe(self, out, t_s: float, m_kg: torch.Tensor):
+    def _observe(self, out, t_s: torch.Tensor, m_kg: torch.Tensor):
         d_tgt = divergence_target(t_s, self._tau0, self._c2, self._tau_min)
         hover = hover_fraction(self._spec, m_kg, self.stages.settings.g_mps2)
-        ctx = torch.stack((d_tgt, hover, torch.full_like(d_tgt, t_s / self.stages.settings.t_max_s)), dim=1)
+        t_frac = torch.as_tensor(t_s, dtype=torch.float64, device=d_tgt.device).expand_as(d_tgt)
+        ctx = torch.stack((d_tgt, hover, t_frac / self.stages.settings.t_max_s), dim=1)
         return obs_mod.observe(self._names, out, ctx, self._hw)
 
-    def _info(self, state, outcome, ctl, waiting, t_s: float, thrust=None, d_target=None) -> dict:
+    def _info(self, state, outcome, ctl, ignored, t_s, thrust=None, d_target=None) -> dict:
         B = self.num_envs
         f = (lambda t: t.detach().to(torch.float64).cpu().numpy())
         if d_target is None:
             d_target = divergence_target(t_s, self._tau0, self._c2, self._tau_min)
         return {"outcome": np.asarray(outcome, dtype=object), "z_m": f(state.z_m), "v_mps": f(state.v_mps),
-                "m_kg": f(state.m_kg), "t_s": np.full(B, float(t_s)),
+                "m_kg": f(state.m_kg), "t_s": f(torch.as_tensor(t_s, dtype=torch.float64).expand(B)),
                 "thrust_n": np.zeros(B) if thrust is None else f(thrust), "controller_thrust_n": f(ctl),
-                "d_target": f(d_target), "waiting": np.asarray(waiting, dtype=bool)}
+                "d_target": f(d_target), "ignored": np.asarray(ignored, dtype=bool),
+                "episode": self._episode.cpu().numpy().copy()}
 
     def close_extras(self, **kwargs) -> None:
-        self._state = self._sensed = self._out = None
+        self._state = self._sensed = self._obs = None
+
+
+def _autoreset_mode(mode) -> AutoresetMode:
+    if mode is None:
+        return LandingVectorEnv.metadata["autoreset_mode"]
+    if isinstance(mode, AutoresetMode):
+        return mode
+    known = {k: m for m in AutoresetMode for k in (m.name.lower(), m.value.lower())}
+    if isinstance(mode, str) and mode.lower() in known:
+        return known[mode.lower()]
+    names = [m.name.lower() for m in AutoresetMode]
+    raise ValueError(f"autoreset_mode must be one of {names} (or a gymnasium AutoresetMode), got {mode!r}")
+
+
+def _reset_mask(options, B: int) -> Optional[torch.Tensor]:
+    """``options["reset_mask"]`` as a (B,) bool tensor, or None (every env)."""
+    if not options:
+        return None
+    unknown = sorted(set(options) - {"reset_mask"})
+    if unknown:
+        raise ValueError(f"options: unknown keys {unknown}; supported: ['reset_mask']")
+    m = np.asarray(options["reset_mask"])
+    if m.shape != (B,) or m.dtype != np.bool_:
+        raise ValueError(f"options['reset_mask'] must be a ({B},) bool array (one entry per env), got shape "
+                         f"{m.shape} dtype {m.dtype}")
+    return torch.as_tensor(m)
+
+
+def _outcome_names(outcome: torch.Tensor, ended: torch.Tensor) -> np.ndarray:
+    codes, e = outcome.cpu().numpy(), ended.cpu().numpy()
+    names = np.array(["running"] * len(codes), dtype=object)
+    for i in np.flatnonzero(e):
+        names[i] = OUTCOMES[int(codes[i])]
+    return names
+
+
+def _row(obs, i: int):
+    return {k: v[i].copy() for k, v in obs.items()} if isinstance(obs, dict) else obs[i].copy()
 
 
 def _resolve_config(config, overrides, estimator, device) -> Config:

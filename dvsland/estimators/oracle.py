@@ -87,7 +87,7 @@ class OracleEstimator(DivergenceEstimator):
 
     def init_state(self) -> OracleState:
         B, dev = self.batch_size, self.device
-        seeds = (self.seed * 1_000_003 + torch.arange(B, dtype=torch.int64)) % (2 ** 62)
+        seeds = ((self.seed * 1_000_003) % (2 ** 62) + torch.arange(B, dtype=torch.int64)) % (2 ** 62)
         return OracleState(torch.full((B, self.delay_steps + 1), float("nan"), dtype=torch.float64, device=dev),
                            torch.zeros(B, dtype=torch.int64, device=dev), seeds.to(dev))
 

@@ -276,7 +276,7 @@ def advance(stages, state: LoopState, thrust: torch.Tensor, held: torch.Tensor, 
     ended = act_ & (code != RUNNING)
     i64, d_hat = torch.int64, est.d_hat
     nxt = state._replace(
-        step=state.step + 1, flight_step=state.flight_step + 1, z_m=z, v_mps=v, m_kg=m, active=act_ & ~ended,
+        step=state.step + 1, flight_step=state.flight_step + act_.to(torch.int64), z_m=z, v_mps=v, m_kg=m, active=act_ & ~ended,
         outcome=torch.where(ended, code, state.outcome), t_end_s=torch.where(act_, t_next, state.t_end_s),
         lowest_m=torch.where(act_, torch.minimum(state.lowest_m, z), state.lowest_m),
         max_thrust_n=torch.where(act_, torch.maximum(state.max_thrust_n, thrust), state.max_thrust_n),
