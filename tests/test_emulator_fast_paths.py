@@ -1,7 +1,6 @@
-"""The CPU fast paths of the emulator (numpy candidate scan and sort, shot-noise keys drawn in
-order and merged instead of sorted, blocking, dense-frame kernels) give exactly the events and
-state of the device-generic reference path (the one CUDA runs), on sparse and dense frames and
-with every pixel-model part on."""
+"""The CPU fast paths of the emulator (numpy candidate scan and sort, blocking, dense-frame
+kernels) give exactly the events and state of the device-generic reference path (the one CUDA
+runs), on sparse and dense frames and with every pixel-model part on."""
 
 import pytest
 import torch
@@ -50,40 +49,42 @@ def test_fast_paths_equal_reference(kw, monkeypatch):
         assert torch.equal(emu_f._t_last, emu_r._t_last)
 
 
-def test_shot_noise_slots_come_sorted():
-    """The shot-noise draws are in (element, time, pixel) order, so merging them is exact; pixels
-    outside the sensor (the slot's padding to powers of two) never appear."""
+def test_noise_candidates_uniform_and_poisson():
+    """The counter-based noise candidates (pixel_model.uniform_events): Poisson counts per descent,
+    uniform over pixels and integer times, descents independent of each other."""
     from dvsland.events import pixel_model as pm
 
-    rngs = pm.element_rngs(3, 4, pm.TAG_SHOT)
-    H, W, xb, yb = 21, 37, 6, 5
-    slot, elem, u = pm.sorted_candidates(rngs, 200.0, H, W, 100_000, xb, yb)
-    key = elem * (1 << 40) + slot
-    assert slot.numel() > 1000 and bool((key[1:] > key[:-1]).all())  # strictly: one per slot
-    x, y, t = slot & 63, (slot >> xb) & 31, slot >> (xb + yb)
-    assert int(x.max()) < W and int(y.max()) < H and int(t.min()) >= 0 and int(t.max()) < 100_000
-    # Poisson counts: mean 200 Hz x 777 px x 0.1 s per element
-    counts = torch.bincount(elem, minlength=4).double()
-    assert abs(float(counts.mean()) / (200 * H * W * 0.1) - 1) < 0.05
-    # uniform over pixels: every row and column gets its share
-    assert torch.bincount(x, minlength=W).min() > 0.7 * slot.numel() / W
-    assert torch.bincount(y, minlength=H).min() > 0.7 * slot.numel() / H
+    B, H, W, dt = 4, 21, 37, 100_000
+    seed = torch.arange(B, dtype=torch.int64) + 3
+    step = torch.ones(B, dtype=torch.int64)
+    lam = torch.full((B,), 200.0 * dt * 1e-6 * H * W, dtype=torch.float64)
+    flat, t_rel, u = pm.uniform_events(seed, step, lam, H * W, dt, pm.TAG_SHOT)
+    b, pix = flat // (H * W), flat % (H * W)
+    x, y = pix % W, pix // W
+    assert flat.numel() > 1000 and int(t_rel.min()) >= 1 and int(t_rel.max()) <= dt
+    counts = torch.bincount(b, minlength=B).double()
+    assert abs(float(counts.mean()) / float(lam[0]) - 1) < 0.05
+    assert torch.bincount(x, minlength=W).min() > 0.7 * flat.numel() / W
+    assert torch.bincount(y, minlength=H).min() > 0.7 * flat.numel() / H
+    assert abs(float(u.mean()) - 0.5) < 0.01
 
 
 @pytest.mark.parametrize("rate_hz", [1e-15, 1e-3, 1e7])
-def test_shot_noise_slots_at_extreme_rates(rate_hz):
-    """A vanishing rate gives (almost surely) no event and no overflow; a rate of one event per
-    slot and more (1e7 Hz = 10 per µs) saturates at one event per pixel and µs."""
+def test_noise_candidates_at_extreme_rates(rate_hz):
+    """A vanishing rate gives (almost surely) no event; a huge one a count near its mean (the normal
+    approximation of the inverse CDF), every event on the sensor and in the interval."""
     from dvsland.events import pixel_model as pm
 
-    slot, elem, u = pm.sorted_candidates(pm.element_rngs(0, 2, pm.TAG_SHOT), rate_hz, 4, 4, 1000, 2, 2)
-    n = slot.numel()
+    seed, step = torch.tensor([0, 1]), torch.tensor([5, 5])
+    lam = torch.full((2,), rate_hz * 1000 * 1e-6 * 16, dtype=torch.float64)
+    flat, t_rel, u = pm.uniform_events(seed, step, lam, 16, 1000, pm.TAG_SHOT)
+    n = flat.numel()
     if rate_hz < 1:
         assert n == 0
     else:
-        assert 0.8 * 2 * 16 * 1000 < n <= 2 * 16 * 1000
-        key = elem * (1 << 40) + slot
-        assert bool((key[1:] > key[:-1]).all()) and int(slot.min()) >= 0 and int(slot.max()) < 16 * 1000
+        mu = 2 * float(lam[0])
+        assert abs(n - mu) < 5 * mu ** 0.5
+        assert int(flat.min()) >= 0 and int(flat.max()) < 32 and int(t_rel.min()) >= 1 and int(t_rel.max()) <= 1000
 
 
 @pytest.mark.parametrize("threads", [1, 2])

@@ -64,13 +64,13 @@ class DenoiseState(NamedTuple):
         baf_t_us: int64 µs, last event seen by ``baf`` per pixel (:data:`NEVER_US` = none).
         refractory_t_us: int64 µs, last event seen by ``refractory`` per pixel.
         hot_count: int64, events seen by ``hot_pixel`` per pixel since the reset.
-        t_reset_us: int µs, time of the reset (the hot-pixel rate's time origin).
+        t_reset_us: (B,) int64 µs, time of each descent's reset (the hot-pixel rate's time origin).
     """
 
     baf_t_us: torch.Tensor
     refractory_t_us: torch.Tensor
     hot_count: torch.Tensor
-    t_reset_us: int
+    t_reset_us: torch.Tensor
 
 
 def parse_filters(spec: str) -> Tuple[str, ...]:
@@ -93,7 +93,8 @@ def init_state(batch_size: int, height: int, width: int, t_us: int, device=None)
     """Empty memories for (B, H, W) pixels at time ``t_us`` (µs)."""
     shape = (int(batch_size), int(height), int(width))
     never = torch.full(shape, NEVER_US, dtype=torch.int64, device=device)
-    return DenoiseState(never, never.clone(), torch.zeros(shape, dtype=torch.int64, device=device), int(t_us))
+    t0 = torch.full(shape[:1], int(t_us), dtype=torch.int64, device=device)
+    return DenoiseState(never, never.clone(), torch.zeros(shape, dtype=torch.int64, device=device), t0)
 
 
 def _flat_pixel(ev: Events, shape) -> torch.Tensor:
@@ -228,15 +229,21 @@ def refractory_keep(ev: Events, memory_t_us: torch.Tensor, refractory_us: float
     return keep, new.view(B, H, W)
 
 
-def hot_pixel_keep(ev: Events, count: torch.Tensor, elapsed_us: int, rate_hz: float
+def hot_pixel_keep(ev: Events, count: torch.Tensor, elapsed_us, rate_hz: float
                    ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Hot-pixel mask: drop the events of pixels whose count (these events included) exceeds
-    ``rate_hz * elapsed_us * 1e-6``. ``count`` (B, H, W) int64 before these events; returns
-    keep (N,) bool and the new count."""
+    ``rate_hz * elapsed_us * 1e-6``. ``count`` (B, H, W) int64 before these events; ``elapsed_us``
+    an int (µs, every descent) or a (B,) int64 tensor (each descent's time since its reset);
+    returns keep (N,) bool and the new count."""
     B, H, W = count.shape
     pix = _flat_pixel(ev, (B, H, W))
     new = count.reshape(-1) + torch.bincount(pix, minlength=B * H * W)
-    hot = new > math.floor(rate_hz * elapsed_us * 1e-6)  # exact: integer count > x  <=>  count > floor(x)
+    # exact: integer count > x  <=>  count > floor(x)
+    if isinstance(elapsed_us, torch.Tensor):
+        limit = torch.floor(elapsed_us.to(torch.float64).mul(rate_hz).mul_(1e-6)).view(B, 1)
+        hot = (new.view(B, H * W) > limit).view(-1)
+    else:
+        hot = new > math.floor(rate_hz * elapsed_us * 1e-6)
     return ~hot.index_select(0, pix), new.view(B, H, W)
 
 
@@ -295,7 +302,8 @@ def denoise(ev: Events, state: DenoiseState, t_us: int, params: EventDenoiser) -
             keep, mem = refractory_keep(ev, state.refractory_t_us, params.refractory_us)
             state = state._replace(refractory_t_us=mem)
         else:
-            keep, cnt = hot_pixel_keep(ev, state.hot_count, int(t_us) - state.t_reset_us, params.hot_pixel_rate_hz)
+            elapsed = int(t_us) - state.t_reset_us  # (B,) µs since each descent's reset
+            keep, cnt = hot_pixel_keep(ev, state.hot_count, elapsed, params.hot_pixel_rate_hz)
             state = state._replace(hot_count=cnt)
         if len(ev) and not bool(keep.all()):
             ev = ev[keep]

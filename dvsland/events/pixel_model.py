@@ -31,23 +31,29 @@ names). They follow v2e (Hu, Liu, Delbruck 2021) where it is stated, and say so 
 - **Hot pixels** (``hot_pixel_fraction`` > 0): that fraction of pixels (Bernoulli per pixel at
   reset) leak ``hot_pixel_rate_hz`` faster: regular ON events at that rate on a static scene.
 
-Randomness: every batch element has its own CPU generators (one per part: numpy PCG64 for the
-per-step draws, torch for the draws at reset), seeded from the emulator seed and the element
-index (:func:`element_seed`); draws are made on CPU and moved, so element b's noise does not
-depend on the batch size or the device.
+Randomness as data: every draw is a counter-based hash (:func:`dvsland.pytree.hash_bits`) of the
+descent's seed, its step counter, the part's stream tag, a sub-stream and the pixel (or the event's
+rank within its descent), computed with torch ops on the tensors' device: the same draws on CPU and
+CUDA, and a descent's noise does not depend on its batch-mates or the batch size. Draws at a
+descent's start (mismatch, leak rates, hot pixels, phases) use step 0; a step's draws (background
+and shot noise) the step's counter. Poisson counts are inverse-CDF draws of one hashed uniform per
+descent and step (:func:`poisson_inverse_cdf`), then each event's pixel, time and uniform are
+hashed: the cost is proportional to the events, not the pixels.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import List, Optional, Tuple
+from typing import Tuple
 
 import numpy as np
 import torch
 
-#: stream tags of :func:`element_seed` (one independent stream per part)
-TAG_SHOT, TAG_LEAK, TAG_BACKGROUND = 0x5807, 0x1EA4, 0xBAC6
+from dvsland.pytree import hash_bits, hash_normal, hash_uniform
+
+#: stream tags of the draws (one independent stream per part, :func:`stream_keys`)
+TAG_SHOT, TAG_LEAK, TAG_BACKGROUND, TAG_MISMATCH = 0x5807, 0x1EA4, 0xBAC6, 0x3A7C
 
 
 @dataclass(frozen=True)
@@ -118,11 +124,6 @@ def element_seed(seed: int, b: int, tag: int) -> int:
     return x & ((1 << 63) - 1)
 
 
-def element_generators(seed: int, batch_size: int, tag: int) -> List[torch.Generator]:
-    """One CPU generator per batch element (see :func:`element_seed`)."""
-    return [torch.Generator(device="cpu").manual_seed(element_seed(seed, b, tag)) for b in range(batch_size)]
-
-
 # ----------------------------------------------------------------- photoreceptor bandwidth
 def photoreceptor_alpha(irradiance: torch.Tensor, dt_s: float, cutoff_hz: float,
                         full_irradiance: float = 1.0) -> torch.Tensor:
@@ -153,144 +154,140 @@ def shot_noise_rate_hz(irradiance: torch.Tensor, rate_dark_hz: float, bright_fac
     return x.mul_(bright_factor - 1.0).add_(1.0).mul_(rate_dark_hz)
 
 
-# ------------------------------------------------------------------------- Poisson events
-def element_rngs(seed: int, batch_size: int, tag: int) -> List[np.random.Generator]:
-    """One numpy PCG64 generator per batch element (CPU; several times faster than torch's CPU
-    generator for the per-step draws)."""
-    return [np.random.Generator(np.random.PCG64(element_seed(seed, b, tag))) for b in range(batch_size)]
+# ------------------------------------------------------------------------- random draws
+#: inverse-CDF Poisson draws are exact (a table of the CDF) for means up to this; above it, the
+#: normal approximation ``floor(lam + sqrt(lam) z + 1/2)`` (continuity-corrected; its error in the
+#: distribution is O(1 / sqrt(lam)), under 1 % of a standard deviation here)
+POISSON_EXACT_MAX = 64.0
 
 
-def uniform_candidates(rngs: List[np.random.Generator], rate_hz: float, n_pix: int,
-                       dt_us: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Poisson events at ``rate_hz`` per pixel over ``n_pix`` pixels of each element, uniform in
-    pixel and integer time, drawn per element from its generator (a loop of three small draws per
-    element, none over pixels or events).
-
-    Returns (N,) each, on CPU: flat index ``b * n_pix + pixel`` int64, time offset int64 µs in
-    [1, dt_us], and a uniform float64 in [0, 1) (for thinning and polarity).
-    """
-    lam = float(rate_hz) * dt_us * 1e-6 * n_pix
-    span = n_pix * int(dt_us)
-    pts, us = [], []
-    for b, rng in enumerate(rngs):
-        n = int(rng.poisson(lam))
-        if n == 0:
-            continue
-        pt = rng.integers(0, span, size=n, dtype=np.int64)
-        if b:
-            pt += b * span
-        pts.append(pt)
-        us.append(rng.random(n))
-    if not pts:
-        e = torch.empty(0, dtype=torch.int64)
-        return e, e.clone(), torch.empty(0, dtype=torch.float64)
-    pt = np.concatenate(pts) if len(pts) > 1 else pts[0]
-    flat = pt // int(dt_us)  # pt >= 0: the same as np.divmod, about 2x faster (floor_divide by a
-    t_rel = pt - flat * int(dt_us)  # scalar is vectorised, divmod is not)
-    u = np.concatenate(us) if len(us) > 1 else us[0]
-    return torch.from_numpy(flat), torch.from_numpy(t_rel + 1), torch.from_numpy(u)
-
-
-def _slot_gaps(rng: np.random.Generator, n: int, per_slot: float, span: int) -> np.ndarray:
-    """Positions (int64, strictly increasing from 0) of ``n`` events of a Bernoulli process with
-    probability ``1 - exp(-per_slot)`` per slot: geometric gaps ``floor(E / per_slot) + 1`` from
-    exponentials E, each capped at ``span + 1`` (a gap that long leaves the step anyway; the cap
-    keeps the sum of the gaps from overflowing at vanishing rates)."""
-    g = rng.standard_exponential(n)
-    g *= 1.0 / per_slot
-    np.minimum(g, float(span + 1), out=g)
-    gi = g.astype(np.int64)  # positive: truncation = floor
-    gi += 1
-    pos = np.cumsum(gi)
-    pos -= 1
-    return pos
-
-
-def sorted_candidates(rngs: List[np.random.Generator], rate_hz: float, height: int, width: int, dt_us: int,
-                      x_bits: int, y_bits: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Poisson events at ``rate_hz`` per pixel of each element's (height, width) pixels, drawn in
-    order: per element a process over the time-major slots
-    ``slot = t << (x_bits + y_bits) | y << x_bits | x`` (t in whole µs from 0, x < 2^x_bits, y <
-    2^y_bits) from geometric gaps (:func:`_slot_gaps`), slots with x >= width or y >= height
-    dropped. So the events come out sorted by (element, time, row-major pixel) with no sort and no
-    division, at most one per pixel and µs: a Bernoulli process per slot, which is Poisson to
-    within the slot probability (about 1e-5 at the rates of real sensors). A loop of a few draws
-    per element, none over pixels or events.
-
-    Returns (N,) each, on CPU, in that order: slot int64, element index int64, and a uniform
-    float64 in [0, 1) (for thinning and polarity).
-    """
-    per_slot = float(rate_hz) * 1e-6  # events per (padded pixel, µs) slot
-    pix_bits = x_bits + y_bits
-    span = int(dt_us) << pix_bits
-    lam = per_slot * span
-    pad = width < (1 << x_bits) or height < (1 << y_bits)
-    slots, counts, us = [], [], []
-    for rng in rngs:
-        if per_slot <= 0:
-            counts.append(0)
-            continue
-        slot = _slot_gaps(rng, int(lam + 6.0 * math.sqrt(lam) + 16.0), per_slot, span)
-        while slot[-1] < span:  # rare: more gaps than drawn
-            slot = np.concatenate((slot, slot[-1] + 1 + _slot_gaps(rng, int(lam // 4) + 16, per_slot, span)))
-        slot = slot[:np.searchsorted(slot, span)]
-        if pad and slot.size:
-            slot = slot[((slot & ((1 << x_bits) - 1)) < width) & (((slot >> x_bits) & ((1 << y_bits) - 1)) < height)]
-        slots.append(slot)
-        counts.append(slot.size)
-        us.append(rng.random(slot.size))
-    n = sum(counts)
-    if n == 0:
-        e = torch.empty(0, dtype=torch.int64)
-        return e, e.clone(), torch.empty(0, dtype=torch.float64)
-    slot = np.concatenate(slots) if len(slots) > 1 else slots[0]
-    elem = np.repeat(np.arange(len(counts), dtype=np.int64), counts)
-    u = np.concatenate(us) if len(us) > 1 else us[0]
-    return torch.from_numpy(slot), torch.from_numpy(elem), torch.from_numpy(u)
-
-
-def draw_background(rngs: List[np.random.Generator], rate_hz: float, n_pix: int, dt_us: int, device):
-    """Uniform background events: flat pixel index, time offset (µs, in [1, dt_us]), OFF flag
-    (probability 1/2), on ``device``."""
-    flat, t_rel, u = uniform_candidates(rngs, rate_hz, n_pix, dt_us)
-    return flat.to(device), t_rel.to(device), (u < 0.5).to(device)
-
-
-def _nonzero_idx(mask: torch.Tensor) -> torch.Tensor:
-    if mask.device.type == "cpu":
-        return torch.from_numpy(np.flatnonzero(mask.numpy()))
-    return torch.nonzero(mask).squeeze(1)
-
-
-def draw_shot_noise(rngs: List[np.random.Generator], irradiance: torch.Tensor, dt_us: int,
-                    params: PixelModelParams, x_bits: int, y_bits: int):
-    """Shot-noise events of one interval by thinning, in (element, time, pixel) order.
-
-    Candidates come at ``r_max = r_dark * max(1, k)`` per pixel (:func:`sorted_candidates`); one
-    uniform u per candidate keeps it when ``u < q = r(I) / r_max`` and makes it OFF when
-    ``u < q / 2`` (given kept, u is uniform on [0, q): OFF with probability 1/2, independent of the
-    rate).
+def stream_keys(seed: torch.Tensor, step, tag: int, stream: int = 0) -> torch.Tensor:
+    """Per-descent keys of one random stream: (B,) int64, ``hash_bits(seed, step, tag, stream) << 32``.
 
     Args:
-        rngs: one generator per batch element.
-        irradiance: (B, H, W) linear irradiance of the new frame (any device).
-        dt_us: interval length, µs.
-        params: the rate parameters.
-        x_bits, y_bits: bit widths of x and y in the slot (2^x_bits >= W, 2^y_bits >= H).
+        seed: (B,) int64, each descent's noise seed.
+        step: (B,) int64 (or an int), the descent's step counter (0 for the draws at its start).
+        tag: the part (:data:`TAG_SHOT`, ...); stream: a sub-stream of the part.
+
+    A draw's key is then ``stream_keys(...) | index`` with ``index`` (< 2^32) the pixel or the
+    event's rank within its descent, hashed once more (:func:`keyed_uniform`): the draws of a
+    descent depend on its own (seed, step, tag, stream, index) only, on every device.
+    """
+    step = torch.as_tensor(step, dtype=torch.int64, device=seed.device)
+    return hash_bits(seed, step, tag, stream) << 32
+
+
+def keyed_uniform(keys: torch.Tensor) -> torch.Tensor:
+    """Uniform float64 draws in (0, 1), one per int64 key (see :func:`stream_keys`)."""
+    return hash_uniform(keys)
+
+
+def keyed_normal(keys: torch.Tensor) -> torch.Tensor:
+    """Standard normal float64 draws, one per int64 key (see :func:`stream_keys`)."""
+    return hash_normal(keys)
+
+
+def pixel_draws(seed: torch.Tensor, shape: Tuple[int, int, int], tag: int, stream: int,
+                normal: bool = False) -> torch.Tensor:
+    """One draw per pixel of each descent, (B, H, W) float64 on ``seed``'s device: uniform in (0, 1)
+    or standard normal; descent b's draws depend on ``seed[b]`` only (made at a descent's start)."""
+    B, H, W = shape
+    base = stream_keys(seed, 0, tag, stream).view(B, 1, 1)
+    keys = base | torch.arange(H * W, dtype=torch.int64, device=seed.device).view(1, H, W)
+    return keyed_normal(keys) if normal else keyed_uniform(keys)
+
+
+def poisson_inverse_cdf(lam: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """Poisson counts (int64) of means ``lam`` (float64, >= 0) from uniforms ``u`` in (0, 1), same shape
+    (1-D): the smallest k with CDF(k) >= u, exact (a CDF table) for ``lam <= POISSON_EXACT_MAX``,
+    the continuity-corrected normal approximation above it. Vectorised: no loop over elements."""
+    lam = lam.to(torch.float64)
+    small = lam <= POISSON_EXACT_MAX
+    k_max = int(POISSON_EXACT_MAX + 12.0 * math.sqrt(POISSON_EXACT_MAX) + 16.0)
+    k = torch.arange(k_max, dtype=torch.float64, device=lam.device)
+    ls = torch.where(small, lam, torch.zeros_like(lam)).unsqueeze(1)
+    logp = torch.xlogy(k, ls) - ls - torch.lgamma(k + 1.0)  # xlogy: 0 log 0 = 0
+    cdf = torch.cumsum(torch.exp(logp), dim=1)
+    n_small = (cdf < u.unsqueeze(1)).sum(dim=1)
+    z = torch.erfinv(u.mul(2.0).sub_(1.0)).mul_(math.sqrt(2.0))
+    n_big = torch.floor(lam + lam.sqrt() * z + 0.5).clamp_(min=0.0).to(torch.int64)
+    return torch.where(small, n_small, n_big)
+
+
+#: index of a descent's count draw within its step's stream (event k uses 2k and 2k + 1)
+_COUNT_INDEX = 0xFFFFFFFF
+
+
+def uniform_events(seed: torch.Tensor, step: torch.Tensor, lam: torch.Tensor, n_pix: int, dt_us: int,
+                   tag: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Poisson events uniform in pixel and integer time, each descent its own mean count.
+
+    Args:
+        seed, step: (B,) int64, the descents' seeds and step counters (keys of the draws).
+        lam: (B,) float64, mean number of events of each descent over its ``n_pix`` pixels and the
+            interval (rate per pixel x interval x pixels): a Poisson process uniform over pixels
+            and time, i.e. independent Poisson counts per pixel of mean ``lam / n_pix``.
+        n_pix: pixels per descent (< 2^31); dt_us: interval, µs.
+        tag: the part's stream tag.
 
     Returns:
-        flat pixel index ``(b * H + y) * W + x`` (N,) int64, slot (N,) int64 (time offset from 0 and
-        pixel, see :func:`sorted_candidates`), element (N,) int64, OFF flag (N,) bool, all on
-        ``irradiance.device``, sorted by (element, time, pixel).
+        (N,) each, on ``seed``'s device: flat index ``b * n_pix + pixel`` int64, time offset int64 µs
+        in [1, dt_us], and a uniform float64 in [0, 1) (for thinning and polarity).
+
+    Draws: the count of each descent is an inverse-CDF draw (:func:`poisson_inverse_cdf`) of the
+    uniform of key (seed, step, tag, 2^32 - 1); its k-th event's pixel is ``(h * n_pix) >> 32`` of
+    the 32 hashed bits h of key (seed, step, tag, 2k), and its time and uniform the integer and
+    fractional parts of ``v dt_us``, v the uniform of key (seed, step, tag, 2k + 1) (so the uniform
+    has a resolution of dt_us / 2^32: 2.3e-5 at 100 ms). Independent of the batch-mates.
+    """
+    B, dev = seed.shape[0], seed.device
+    base = stream_keys(seed, step, tag)
+    n = poisson_inverse_cdf(lam, keyed_uniform(base | _COUNT_INDEX))
+    total = int(n.sum())  # sync: the events' count
+    if total == 0:
+        e = torch.empty(0, dtype=torch.int64, device=dev)
+        return e, e.clone(), torch.empty(0, dtype=torch.float64, device=dev)
+    b = torch.repeat_interleave(torch.arange(B, device=dev), n, output_size=total)
+    k2 = torch.arange(total, device=dev).sub_((torch.cumsum(n, 0) - n).index_select(0, b)).mul_(2)
+    key = base.index_select(0, b).bitwise_or_(k2)
+    flat = hash_bits(key).mul_(int(n_pix)).bitwise_right_shift_(32).add_(b * n_pix)
+    v = keyed_uniform(key.add_(1)).mul_(int(dt_us))
+    t = torch.floor(v)
+    u = v.sub_(t)
+    return flat, t.clamp_(max=int(dt_us) - 1).to(torch.int64).add_(1), u
+
+
+def draw_background(seed: torch.Tensor, step: torch.Tensor, rate_hz, n_pix: int, dt_us: int):
+    """Uniform background events (:func:`uniform_events` at ``rate_hz`` per pixel, a float or (B,)
+    float64): flat pixel index, time offset (µs, in [1, dt_us]), OFF flag (probability 1/2)."""
+    rate = torch.as_tensor(rate_hz, dtype=torch.float64, device=seed.device).expand(seed.shape[0])
+    flat, t_rel, u = uniform_events(seed, step, rate * (int(dt_us) * 1e-6 * n_pix), n_pix, dt_us, TAG_BACKGROUND)
+    return flat, t_rel, u < 0.5
+
+
+def draw_shot_noise(seed: torch.Tensor, step: torch.Tensor, irradiance: torch.Tensor, dt_us: int,
+                    params: PixelModelParams):
+    """Shot-noise events of one interval by thinning.
+
+    Candidates come at ``r_max = r_dark * max(1, k)`` per pixel (:func:`uniform_events`); the
+    candidate's uniform u keeps it when ``u < q = r(I) / r_max`` and makes it OFF when ``u < q / 2``
+    (given kept, u is uniform on [0, q): OFF with probability 1/2, independent of the rate).
+
+    Args:
+        seed, step: (B,) int64, the descents' seeds and step counters.
+        irradiance: (B, H, W) linear irradiance of the new frame.
+        dt_us: interval length, µs.
+        params: the rate parameters.
+
+    Returns:
+        flat pixel index ``(b * H + y) * W + x`` (N,) int64, time offset (N,) int64 µs in [1, dt_us],
+        OFF flag (N,) bool, on ``irradiance``'s device (not sorted).
     """
     B, H, W = irradiance.shape
     k = params.shot_noise_bright_factor
     r_max = params.shot_noise_rate_hz * max(1.0, k)
-    slot, elem, u = sorted_candidates(rngs, r_max, H, W, dt_us, x_bits, y_bits)
-    dev = irradiance.device
-    slot, elem, u = slot.to(dev), elem.to(dev), u.to(dev)
-    x = slot.bitwise_and((1 << x_bits) - 1)
-    flat = slot.bitwise_right_shift(x_bits).bitwise_and_((1 << y_bits) - 1).add_(elem * H).mul_(W).add_(x)
+    lam = torch.full((B,), r_max * int(dt_us) * 1e-6 * H * W, dtype=torch.float64, device=seed.device)
+    flat, t_rel, u = uniform_events(seed, step, lam, H * W, dt_us, TAG_SHOT)
     if flat.numel():
         # q = r(I) / r_max = a + c min(1, I / I_full), a = r_dark / r_max, c = a (k - 1)
         a = params.shot_noise_rate_hz / r_max
@@ -299,36 +296,53 @@ def draw_shot_noise(rngs: List[np.random.Generator], irradiance: torch.Tensor, d
         off = u < q.mul(0.5)
         if a * min(1.0, k) < 1.0:  # some candidates may be dropped
             keep = _nonzero_idx(u < q)
-            flat, slot, elem, off = (t.index_select(0, keep) for t in (flat, slot, elem, off))
-        return flat, slot, elem, off
-    return flat, slot, elem, torch.empty(0, dtype=torch.bool, device=dev)
+            flat, t_rel, off = (t.index_select(0, keep) for t in (flat, t_rel, off))
+        return flat, t_rel, off
+    return flat, t_rel, torch.empty(0, dtype=torch.bool, device=flat.device)
+
+
+def _nonzero_idx(mask: torch.Tensor) -> torch.Tensor:
+    if mask.device.type == "cpu":
+        return torch.from_numpy(np.flatnonzero(mask.numpy()))
+    return torch.nonzero(mask).squeeze(1)
 
 
 # --------------------------------------------------------------------- leak and hot pixels
-def draw_leak_state(gens: List[torch.Generator], shape: Tuple[int, int, int], params: PixelModelParams
+def draw_leak_state(seed: torch.Tensor, shape: Tuple[int, int, int], params: PixelModelParams
                     ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-pixel leak rate, hot-pixel mask and initial phase, drawn per element (at reset).
+    """Per-pixel leak rate, hot-pixel mask and initial phase of each descent (at its start).
 
-    Returns (B, H, W) on CPU: rate_hz float64 (leak rate, plus ``hot_pixel_rate_hz`` on hot
-    pixels), hot bool, phase float64 in [0, 1) (fraction of a threshold the reference starts
-    below the level).
+    Args:
+        seed: (B,) int64, the descents' seeds (draws of key (seed, 0, :data:`TAG_LEAK`, stream, pixel)).
+        shape: (B, H, W).
+
+    Returns (B, H, W) on ``seed``'s device: rate_hz float64 (leak rate, plus ``hot_pixel_rate_hz``
+    on hot pixels), hot bool, phase float64 in (0, 1) (fraction of a threshold the reference
+    starts below the level).
     """
-    B, H, W = shape
-    rate = torch.empty(B, H, W, dtype=torch.float64)
-    hot = torch.zeros(B, H, W, dtype=torch.bool)
-    phase = torch.empty(B, H, W, dtype=torch.float64)
-    for b, g in enumerate(gens):
-        n = torch.randn(H, W, generator=g, dtype=torch.float64)
-        h = torch.rand(H, W, generator=g, dtype=torch.float64)
-        phase[b] = torch.rand(H, W, generator=g, dtype=torch.float64)
-        rate[b] = n.mul_(params.leak_rate_sigma).add_(1.0).clamp_(min=0.0).mul_(params.leak_rate_hz)
-        if params.hot_pixel_fraction > 0:
-            hot[b] = h < params.hot_pixel_fraction
+    n = pixel_draws(seed, shape, TAG_LEAK, 0, normal=True)
+    phase = pixel_draws(seed, shape, TAG_LEAK, 2)
+    rate = n.mul_(params.leak_rate_sigma).add_(1.0).clamp_(min=0.0).mul_(params.leak_rate_hz)
+    if params.hot_pixel_fraction > 0:
+        hot = pixel_draws(seed, shape, TAG_LEAK, 1) < params.hot_pixel_fraction
+    else:
+        hot = torch.zeros(shape, dtype=torch.bool, device=seed.device)
     rate += hot.to(torch.float64) * params.hot_pixel_rate_hz
     return rate, hot, phase
 
 
-__all__ = ["PixelModelParams", "element_seed", "element_generators", "photoreceptor_alpha",
-           "photoreceptor_lowpass_", "shot_noise_rate_hz", "uniform_candidates", "sorted_candidates", "draw_shot_noise",
-           "draw_background", "element_rngs",
-           "draw_leak_state", "TAG_SHOT", "TAG_LEAK", "TAG_BACKGROUND"]
+# ------------------------------------------------------------------- threshold mismatch
+def draw_mismatch(seed: torch.Tensor, sigma: torch.Tensor, shape: Tuple[int, int, int]) -> torch.Tensor:
+    """Relative ON/OFF threshold maps (B, 2, H, W) float64: ``1 + sigma[b] N(0, 1)`` clamped at 0.01,
+    all ones where ``sigma[b]`` (B,) float64 is 0; descent b's maps depend on ``seed[b]`` only."""
+    on = pixel_draws(seed, shape, TAG_MISMATCH, 0, normal=True)
+    off = pixel_draws(seed, shape, TAG_MISMATCH, 1, normal=True)
+    sig = sigma.to(torch.float64).view(-1, 1, 1, 1)
+    rel = torch.stack((on, off), dim=1).mul_(sig).add_(1.0).clamp_(min=0.01)
+    return torch.where(sig > 0, rel, torch.ones_like(rel))
+
+
+__all__ = ["PixelModelParams", "element_seed", "photoreceptor_alpha", "photoreceptor_lowpass_",
+           "shot_noise_rate_hz", "stream_keys", "keyed_uniform", "keyed_normal", "pixel_draws",
+           "poisson_inverse_cdf", "uniform_events", "draw_shot_noise", "draw_background", "draw_leak_state",
+           "draw_mismatch", "POISSON_EXACT_MAX", "TAG_SHOT", "TAG_LEAK", "TAG_BACKGROUND", "TAG_MISMATCH"]
