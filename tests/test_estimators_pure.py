@@ -212,6 +212,7 @@ STAGES = {
     "dpr": lambda: get_estimator("dpr", B, (64, 64), n_min=10, radius_px=3.0, baseline_steps=2),
     "learned": lambda: get_estimator("learned", B, (128, 128), min_events=5),
     "learned_spiking": lambda: get_estimator("learned", B, (96, 80), checkpoint="spiking", min_events=5),
+    "snn": lambda: get_estimator("snn", B, (128, 128), warmup_steps=1, max_silent_steps=2),
 }
 #: fields a restart keeps (clocks and positions shared by every descent)
 KEPT = {"dpr": ("last_t_us",), "learned": ("newest", "t_prev_us"), "learned_spiking": ("newest", "t_prev_us"),
@@ -363,3 +364,19 @@ def test_learned_ring_position_is_shared_and_kept_by_a_restart():
     assert (state.newest == (K - 1 + 3) % K).all()
     new = est.reset_where(state, torch.tensor([True, False, True, False]))
     assert torch.equal(new.newest, state.newest) and (new.ring[0] == 0).all() and (new.ring_counts[2] == 0).all()
+
+
+# ------------------------------------------------------------------ snn specifics
+def test_snn_state_holds_the_lif_states_and_counters():
+    est, steps = _stage_and_steps("snn", n=3)
+    state, outs = _run(est, est.init_state(), steps)
+    assert set(state.net._fields) == {"l1", "l2", "out"} and state.net.l1.v.shape[0] == B
+    assert state.steps.tolist() == [3] * B and (state.t_prev_us == steps[-1][1]).all()
+    for k in ("spikes", "synops", "events_in_annulus", "dropped_events", "spike_rate1"):
+        assert k in outs[-1].diagnostics
+    new = est.reset_where(state, torch.tensor([False, True, False, False]))
+    assert (new.net.l1.v[1] == 0).all() and new.steps.tolist() == [3, 0, 3, 3]
+    # the encoder keeps nothing: the pure step does not touch its attributes
+    before = (est.encoder.dropped, est.encoder.events_in_annulus)
+    est.step_state(state, *steps[0])
+    assert (est.encoder.dropped, est.encoder.events_in_annulus) == before

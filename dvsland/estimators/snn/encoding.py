@@ -89,24 +89,36 @@ class LogPolarEncoder:
 
     def encode(self, events, t0_us: int, t1_us: int, batch_size: int) -> torch.Tensor:
         """(B, n_sub, 2, n_rho, n_phi) events per pixel of the events in (t0_us, t1_us]; channel 0
-        ON, 1 OFF. Events outside the interval count in the nearest slice."""
+        ON, 1 OFF. Events outside the interval count in the nearest slice. Sets ``dropped`` and
+        ``events_in_annulus`` (:meth:`encode_counts` returns them instead)."""
+        x, n_ann, dropped = self.encode_counts(events, t0_us, t1_us, batch_size)
+        self.dropped, self.events_in_annulus = int(dropped), n_ann
+        return x
+
+    def encode_counts(self, events, t0_us, t1_us: int, batch_size: int):
+        """:meth:`encode` without side effects and without a host read: (x (B, n_sub, 2, n_rho,
+        n_phi) float32 events per pixel, events_in_annulus (B,) int64, dropped () int64 events off
+        the sensor or the batch). ``t0_us``: an int, or a (B,) int64 tensor per row."""
         b_n, s_n, k = int(batch_size), self.n_sub, self.n_bins
         out = torch.zeros(b_n * s_n * 2 * k, dtype=torch.float32, device=self.device)
-        self.dropped = 0
-        self.events_in_annulus = torch.zeros(b_n, dtype=torch.int64, device=self.device)
-        if events is not None and len(events):
-            w, h = self.sensor_size
-            ev_b, ev_x, ev_y = (getattr(events, f).to(self.device, torch.int64) for f in ("b", "x", "y"))
-            ok = (ev_x >= 0) & (ev_x < w) & (ev_y >= 0) & (ev_y < h) & (ev_b >= 0) & (ev_b < b_n)
-            self.dropped = int((~ok).sum())
-            pix = torch.where(ok, ev_y * w + ev_x, torch.zeros_like(ev_x))
-            bins = torch.where(ok, self.bin_of_pixel[pix], torch.full_like(pix, -1))
-            span = max(int(t1_us) - int(t0_us), 1)
-            ev_t = events.t.to(self.device)
-            sl = ((ev_t - int(t0_us) - 1) * s_n).div(span, rounding_mode="floor").clamp(0, s_n - 1)
-            pol = (events.p.to(self.device) < 0).to(torch.int64)
-            keep = bins >= 0
-            idx = ((ev_b * s_n + sl) * 2 + pol) * k + bins
-            out += torch.bincount(idx[keep], minlength=out.numel()).to(torch.float32)
-            self.events_in_annulus = torch.bincount(ev_b[keep], minlength=b_n)[:b_n]
-        return out.view(b_n, s_n, 2, self.n_rho, self.n_phi) * self._inv_pixels
+        if events is None or not len(events):
+            zero = torch.zeros(b_n, dtype=torch.int64, device=self.device)
+            return out.view(b_n, s_n, 2, self.n_rho, self.n_phi) * self._inv_pixels, zero, zero.sum()
+        w, h = self.sensor_size
+        ev_b, ev_x, ev_y = (getattr(events, f).to(self.device, torch.int64) for f in ("b", "x", "y"))
+        ok = (ev_x >= 0) & (ev_x < w) & (ev_y >= 0) & (ev_y < h) & (ev_b >= 0) & (ev_b < b_n)
+        pix = torch.where(ok, ev_y * w + ev_x, torch.zeros_like(ev_x))
+        bins = torch.where(ok, self.bin_of_pixel[pix], torch.full_like(pix, -1))
+        ev_t = events.t.to(self.device)
+        if isinstance(t0_us, torch.Tensor):  # per row (rows outside the batch: row 0's, they are dropped)
+            t0 = t0_us.to(self.device).index_select(0, ev_b.clamp(0, b_n - 1))
+            span = (int(t1_us) - t0).clamp_min(1)
+        else:
+            t0, span = int(t0_us), max(int(t1_us) - int(t0_us), 1)
+        sl = ((ev_t - t0 - 1) * s_n).div(span, rounding_mode="floor").clamp(0, s_n - 1)
+        pol = (events.p.to(self.device) < 0).to(torch.int64)
+        keep = bins >= 0
+        idx = ((ev_b * s_n + sl) * 2 + pol) * k + bins
+        out += torch.bincount(idx[keep], minlength=out.numel()).to(torch.float32)
+        n_ann = torch.bincount(ev_b[keep], minlength=b_n)[:b_n]
+        return out.view(b_n, s_n, 2, self.n_rho, self.n_phi) * self._inv_pixels, n_ann, (~ok).sum()

@@ -15,24 +15,30 @@ network gives no uncertainty of its own, so the evidence it saw stands in for it
 (spikes of both LIF layers over the step's slices) and ``synops`` (synaptic operations: every
 input bin with events and every spike times its fan-out, c_out * kernel / stride, the read-out
 counting one per layer-2 spike).
+
+The stage contract (:mod:`dvsland.pytree`): params are :class:`~dvsland.config.schema.SNNConfig`
+(``SpikingEstimator.params``) with the constants :class:`SNNConsts` (the network, the encoder);
+the state is :class:`SpikingState` (the LIF states of the network, :class:`~.model.SNNState`, and
+the counters); the step is the pure :func:`snn_step`.
 """
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Optional
+from typing import Dict, NamedTuple, Optional
 
 import torch
 
 from dvsland.checks import check_fields
 from dvsland.config.schema import SNNConfig
+from dvsland.pytree import check_state_like, tree_where
 
-from ..base import DivergenceEstimator, Truth
+from ..base import DivergenceEstimator, EstimateOut, Truth
 from ..registry import register_estimator
 from ..state_dict_check import check_state_dict as check_weights
 from .encoding import LogPolarEncoder
-from .model import SpikingDivergenceNet
+from .model import SNNState, SpikingDivergenceNet
 
 #: the checkpoint shipped with dvsland (trained by scripts/train_snn.py)
 DEFAULT_CHECKPOINT = Path(__file__).with_name("snn_default.pt")
@@ -126,6 +132,109 @@ def load_checkpoint(path=None, sensor_size=(128, 128), dt_s: float = 0.1, device
     return model.to(device).eval(), enc, ck.get("meta", {})
 
 
+class SpikingState(NamedTuple):
+    """State of the ``snn`` estimator for B descents.
+
+    Attributes:
+        net: the network's :class:`~.model.SNNState` (LIF membranes ``v`` and currents ``i`` of
+            both layers, (B, c, n_rho, n_phi) and (B, c2, n_rho2, n_phi) float32, and of the
+            read-out, (B, 1) float32).
+        steps: (B,) int64 updates since the descent's (re)start.
+        silent: (B,) int64 consecutive updates without an event in the annulus.
+        ev_avg: (B,) float32 annulus events per update, exponential average over 1 s.
+        t_prev_us: (B,) int64 time of the last update, µs (-1 = none yet): the next step's events
+            are split in slices from there (else from ``dt_s`` before the step).
+    """
+
+    net: SNNState
+    steps: torch.Tensor
+    silent: torch.Tensor
+    ev_avg: torch.Tensor
+    t_prev_us: torch.Tensor
+
+
+class SNNConsts(NamedTuple):
+    """What an ``snn`` step needs besides :class:`SNNConfig` (made once, never written).
+
+    Attributes:
+        batch_size: B. dt_s: the control interval, s. model: the network (eval mode; weights are
+        constants). encoder: the :class:`~.encoding.LogPolarEncoder`. avg: the 1 s average's
+        weight per update, 1 - exp(-dt_s / 1 s). fan_in, fan1: synaptic fan-out of an input bin
+        and of a layer-1 spike. n1, n2: neurons x slices of the two layers.
+    """
+
+    batch_size: int
+    dt_s: float
+    model: SpikingDivergenceNet
+    encoder: LogPolarEncoder
+    avg: float
+    fan_in: float
+    fan1: float
+    n1: float
+    n2: float
+
+
+def snn_consts(model: SpikingDivergenceNet, encoder: LogPolarEncoder, batch_size: int, dt_s: float) -> SNNConsts:
+    """The :class:`SNNConsts` of a network and its encoder."""
+    c1, c2 = model.channels
+    n_sub = encoder.n_sub
+    kh, kw = model.conv1.kernel_size
+    kh2, kw2 = model.conv2.kernel_size
+    return SNNConsts(int(batch_size), float(dt_s), model, encoder, 1.0 - math.exp(-float(dt_s) / 1.0),
+                     float(c1 * kh * kw), float(c2 * kh2 * kw2) / float(model.conv2.stride[0] * model.conv2.stride[1]),
+                     float(c1 * model.n_rho * model.n_phi) * n_sub, float(c2 * model.n_rho2 * model.n_phi) * n_sub)
+
+
+def snn_init_state(c: SNNConsts, device) -> SpikingState:
+    """B descents at rest, no update yet."""
+    B = c.batch_size
+    i64 = dict(dtype=torch.int64, device=device)
+    return SpikingState(c.model.initial_state(B, device), torch.zeros(B, **i64), torch.zeros(B, **i64),
+                        torch.zeros(B, dtype=torch.float32, device=device), torch.full((B,), -1, **i64))
+
+
+def snn_reset_where(c: SNNConsts, state: SpikingState, mask: torch.Tensor) -> SpikingState:
+    """``state`` with the descents where ``mask`` (B,) bool is True restarted (membranes zeroed as
+    :meth:`~.model.SpikingDivergenceNet.reset` does); the clock ``t_prev_us`` is kept."""
+    fresh = snn_init_state(c, state.steps.device)._replace(net=c.model.reset(state.net, mask),
+                                                            t_prev_us=state.t_prev_us)
+    return tree_where(mask, fresh, state)
+
+
+@torch.no_grad()
+def snn_step(p: SNNConfig, c: SNNConsts, state: SpikingState, events, t_us: int):
+    """Pure step of ``snn``: (next :class:`SpikingState`, :class:`EstimateOut`); ``state`` unchanged.
+
+    Args:
+        p, c: the params and constants. state: :class:`SpikingState` of B descents.
+        events: :class:`dvsland.events.Events` of the interval (or None / empty).
+        t_us: end of the interval, int µs; its slices start at the last update (``dt_s`` before
+            at first).
+    """
+    t_us = int(t_us)
+    last = state.t_prev_us
+    t0 = torch.where((last >= 0) & (last < t_us), last, torch.full_like(last, t_us - int(round(c.dt_s * 1e6))))
+    x, n_ev, dropped = c.encoder.encode_counts(events, t0, t_us, c.batch_size)
+    d, net, rates = c.model.run_step(x, state.net)
+    steps = state.steps + 1
+    silent = torch.where(n_ev > 0, torch.zeros_like(state.silent), state.silent + 1)
+    ev_avg = state.ev_avg + c.avg * (n_ev.to(torch.float32) - state.ev_avg)
+    # activity: spikes of the step (rates are means over neurons and slices) and synaptic ops
+    s1, s2 = rates["rate1"] * c.n1, rates["rate2"] * c.n2
+    nnz = (x > 0).flatten(1).sum(1).to(torch.float32)
+    ok = steps > p.warmup_steps
+    if p.max_silent_steps > 0:
+        ok &= silent < p.max_silent_steps
+    d = torch.where(ok, d, torch.full_like(d, float("nan"))).to(torch.float32)
+    conf = ev_avg / (ev_avg + p.confidence_events)
+    conf = torch.where(torch.isfinite(d), conf, torch.zeros_like(conf))
+    new = SpikingState(net, steps, silent, ev_avg, torch.full_like(last, t_us))
+    diag = {"steps_since_reset": steps, "silent_steps": silent, **{f"spike_{k}": v for k, v in rates.items()},
+            "spikes": s1 + s2, "synops": nnz * c.fan_in + s1 * c.fan1 + s2, "events_in_annulus": n_ev,
+            "dropped_events": dropped, "confidence": conf}
+    return new, EstimateOut(d, conf, diag)
+
+
 @register_estimator("snn")
 class SpikingEstimator(DivergenceEstimator):
     """Trained spiking estimator (see module doc).
@@ -137,6 +246,9 @@ class SpikingEstimator(DivergenceEstimator):
             until events come back (0 = never).
         confidence_events: annulus events per update at which confidence() is 0.5.
         principal_point_px: focus of expansion (centre of the log-polar annulus).
+
+    Params: ``params`` (:class:`SNNConfig`) and ``consts`` (:class:`SNNConsts`); state:
+    :class:`SpikingState`.
     """
 
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, checkpoint: str = "",
@@ -146,76 +258,56 @@ class SpikingEstimator(DivergenceEstimator):
         # the schema's ranges (estimator.snn)
         check_fields(SNNConfig, warmup_steps=warmup_steps, max_silent_steps=max_silent_steps,
                      confidence_events=confidence_events)
-        self.warmup_steps = int(warmup_steps)
-        self.max_silent_steps = int(max_silent_steps)
-        self.confidence_events = float(confidence_events)
+        self.params = SNNConfig(checkpoint=str(checkpoint or ""), warmup_steps=int(warmup_steps),
+                                max_silent_steps=int(max_silent_steps), confidence_events=float(confidence_events))
         self.model, self.encoder, self.meta = load_checkpoint(checkpoint or None, self.sensor_size, self.dt_s,
                                                               self.device, self.principal_point_px)
-        B, dev = self.batch_size, self.device
-        self._state = self.model.initial_state(B, dev)
-        self._steps = torch.zeros(B, dtype=torch.int64, device=dev)
-        self._silent = torch.zeros(B, dtype=torch.int64, device=dev)
-        self._ev_avg = torch.zeros(B, dtype=torch.float32, device=dev)
-        self._d = torch.full((B,), float("nan"), dtype=torch.float32, device=dev)
-        self._t_prev: Optional[int] = None
-        self._rates = {}
-        self._spikes = torch.zeros(B, dtype=torch.float32, device=dev)
-        self._synops = torch.zeros(B, dtype=torch.float32, device=dev)
-        c1, c2 = self.model.channels
-        n_sub = self.encoder.n_sub
-        kh, kw = self.model.conv1.kernel_size
-        # fan-out of one input bin / one spike (output channels x kernel taps / stride)
-        self._fan_in = float(c1 * kh * kw)
-        kh2, kw2 = self.model.conv2.kernel_size
-        self._fan1 = float(c2 * kh2 * kw2) / float(self.model.conv2.stride[0] * self.model.conv2.stride[1])
-        self._n1 = float(c1 * self.model.n_rho * self.model.n_phi) * n_sub
-        self._n2 = float(c2 * self.model.n_rho2 * self.model.n_phi) * n_sub
+        self.consts = snn_consts(self.model, self.encoder, self.batch_size, self.dt_s)
+        self._template = self.init_state()
+        self.state = self.init_state()
 
-    def reset(self, mask: Optional[torch.Tensor] = None) -> None:
-        mask = self._mask(mask)
-        self._state = self.model.reset(self._state, mask)
-        self._steps[mask] = 0
-        self._silent[mask] = 0
-        self._ev_avg[mask] = 0.0
-        self._d[mask] = float("nan")
+    @property
+    def warmup_steps(self) -> int:
+        return self.params.warmup_steps
 
-    @torch.no_grad()
-    def update(self, events, t_us: int, truth: Optional[Truth] = None) -> torch.Tensor:
-        t_us = int(t_us)
-        t0 = self._t_prev if self._t_prev is not None and self._t_prev < t_us else t_us - int(round(self.dt_s * 1e6))
-        self._t_prev = t_us
-        x = self.encoder.encode(events, t0, t_us, self.batch_size)
-        d, self._state, self._rates = self.model.run_step(x, self._state)
-        self._steps += 1
-        n_ev = self.encoder.events_in_annulus
-        self._silent = torch.where(n_ev > 0, torch.zeros_like(self._silent), self._silent + 1)
-        a = 1.0 - math.exp(-self.dt_s / 1.0)  # 1 s exponential average
-        self._ev_avg = self._ev_avg + a * (n_ev.to(torch.float32) - self._ev_avg)
-        # activity: spikes of the step (rates are means over neurons and slices) and synaptic ops
-        s1 = self._rates["rate1"] * self._n1
-        s2 = self._rates["rate2"] * self._n2
-        nnz = (x > 0).flatten(1).sum(1).to(torch.float32)
-        self._spikes = s1 + s2
-        self._synops = nnz * self._fan_in + s1 * self._fan1 + s2
-        ok = self._steps > self.warmup_steps
-        if self.max_silent_steps > 0:
-            ok &= self._silent < self.max_silent_steps
-        self._d = torch.where(ok, d, torch.full_like(d, float("nan"))).to(torch.float32)
-        return self._d.clone()
+    @property
+    def max_silent_steps(self) -> int:
+        return self.params.max_silent_steps
 
-    def confidence(self) -> torch.Tensor:
-        """(B,) float32: n / (n + confidence_events) of the averaged annulus events, 0 where NaN."""
-        c = self._ev_avg / (self._ev_avg + self.confidence_events)
-        return torch.where(torch.isfinite(self._d), c, torch.zeros_like(c))
+    @property
+    def confidence_events(self) -> float:
+        return self.params.confidence_events
 
-    def diagnostics(self):
+    # ------------------------------------------------------------------ the stage contract
+    def init_state(self) -> SpikingState:
+        """B descents at rest (:class:`SpikingState`)."""
+        return snn_init_state(self.consts, self.device)
+
+    def reset_where(self, state: SpikingState, mask: torch.Tensor) -> SpikingState:
+        """``state`` with the descents where ``mask`` (B,) bool is True restarted."""
+        return snn_reset_where(self.consts, state, self._mask(mask))
+
+    def step_state(self, state: SpikingState, events, t_us: int, truth: Optional[Truth] = None):
+        """Pure step (:func:`snn_step`): (next :class:`SpikingState`, :class:`EstimateOut`)."""
+        check_state_like("snn", state, self._template)
+        return snn_step(self.params, self.consts, state, events, t_us)
+
+    # ------------------------------------------------------------------ object API
+    def diagnostics(self) -> Dict[str, torch.Tensor]:
         """steps_since_reset, silent_steps (B,) int64; spike_rate1 / spike_rate2 (B,) mean spike
         rates; spikes (B,) spikes per step; synops (B,) synaptic operations per step;
         events_in_annulus (B,); dropped_events (events off the sensor ignored this step);
-        confidence (B,)."""
-        out = {"steps_since_reset": self._steps.clone(), "silent_steps": self._silent.clone()}
-        out.update({f"spike_{k}": v.clone() for k, v in self._rates.items()})
-        out.update({"spikes": self._spikes.clone(), "synops": self._synops.clone(),
-                    "events_in_annulus": self.encoder.events_in_annulus.clone(),
-                    "dropped_events": torch.tensor(self.encoder.dropped), "confidence": self.confidence()})
+        confidence (B,). The counters are the held state's (also right after a reset), the
+        activity the last update's."""
+        out = {"steps_since_reset": self.state.steps.clone(), "silent_steps": self.state.silent.clone()}
+        last = getattr(self, "_last", None)
+        if last is None:
+            B, dev = self.batch_size, self.device
+            zeros = torch.zeros(B, dtype=torch.float32, device=dev)
+            out.update({"spikes": zeros, "synops": zeros.clone(),
+                        "events_in_annulus": torch.zeros(B, dtype=torch.int64, device=dev),
+                        "dropped_events": torch.tensor(0)})
+        else:
+            out.update({k: v.clone() for k, v in last.diagnostics.items() if k not in out})
+        out["confidence"] = self.confidence()
         return out
