@@ -37,7 +37,10 @@ Params :class:`EfferenceFitParams`, state :class:`EfferenceFitState`, pure step
 :func:`efference_fit_step`. The history is kept per step since :meth:`EfferenceFitFilter.init_state`
 (one row per step for every descent, NaN where a descent had no estimate or was not active), so
 the step needs no host sync: the rows to fit are known from the history's shape. A restart of some
-descents blanks their rows; rows no descent uses any more are dropped then.
+descents blanks their rows; leading rows blank for every descent are dropped then. A descent frozen
+(not active) for some steps has blank rows there, and the ``forget_s`` window counts steps, frozen
+ones included; in the loop every descent flies from the first step until it ends, so its rows are
+its consecutive estimates.
 """
 
 from __future__ import annotations
@@ -243,13 +246,16 @@ def efference_fit_step(p: EfferenceFitParams, state: EfferenceFitState, d_hat: T
 
 def fit_reset_where(p: EfferenceFitParams, state: EfferenceFitState, mask: Tensor) -> EfferenceFitState:
     """``state`` with the descents of ``mask`` (B,) bool back at the planned start, their history
-    rows blanked (NaN); the other descents bit-identical. Leading rows that hold no estimate of any
-    descent any more are dropped (one host sync: not on the step path)."""
+    rows blanked (NaN); the other descents bit-identical, but for the leading history rows that are
+    blank for every descent: they are dropped (one host sync, not on the step path), so restarts
+    one at a time (an environment's autoreset) keep the history as long as the oldest descent in
+    flight, not the whole session. (The fit's sums then run over fewer blank rows: the other
+    descents' next outputs may move in the last bits.)"""
     fresh = fit_prior(p)
     m1 = mask.unsqueeze(1)
     rows = torch.where(mask.view(-1, 1, 1), float("nan"), state.rows_packed)
-    used = torch.isfinite(rows[:, :, 3]).any(0).nonzero()
-    first = int(used[0, 0]) if used.numel() else rows.shape[1]
+    written = torch.isfinite(rows[:, :, 0]).any(0).nonzero()  # z_dr is finite in every row a descent wrote
+    first = int(written[0, 0]) if written.numel() else rows.shape[1]
     return EfferenceFitState(torch.where(mask, fresh.zdr, state.zdr), torch.where(mask, fresh.vdr, state.vdr),
                              torch.where(mask, fresh.t_s, state.t_s), torch.where(m1, fresh.theta, state.theta),
                              torch.where(m1, fresh.info, state.info), torch.where(mask, fresh.n, state.n),
