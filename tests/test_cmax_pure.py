@@ -1,0 +1,273 @@
+"""cmax as a stage: params (CMaxConfig) + CMaxState + the pure cmax_step.
+
+The step is pure (the input state is untouched, the same state stepped twice gives the same outputs and
+states), reset_where restarts only the masked descents, a bad state is a clear error, the object API is
+the contract's, and the estimates and diagnostics are those recorded before cmax moved onto the contract
+(digests of the outputs of the estimator as it was, on fixed synthetic descents).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+
+import pytest
+import torch
+
+from dvsland.config.schema import CMaxConfig
+from dvsland.estimators import get_estimator, native_cmax
+from dvsland.estimators.base import EstimateOut
+from dvsland.estimators.cmax import CMaxEstimator, CMaxState, cmax_step
+from dvsland.evaluate.synthetic import blob_layout
+from dvsland.events import Events
+from dvsland.pytree import tree_clone, tree_equal
+
+pytestmark = pytest.mark.usefixtures("one_thread")  # the shared fixture of conftest.py
+
+
+def descent(B, S, steps, seed, per_blob=20, n_blobs=150):
+    """Events (one Events per 0.1 s step) of B descents at z = 100 - 10 t m over textured blobs on an
+    S x S sensor (centred FoE)."""
+    def zfun(t):
+        return 100.0 - 10.0 * t
+
+    offsets = blob_layout(B, n_blobs, (S, S), extent=0.6, seed=seed)
+    out = []
+    for k in range(steps):
+        g = torch.Generator().manual_seed(k + 1000 * seed)
+        n = n_blobs * per_blob
+        t_us = torch.randint(k * 100_000 + 1, (k + 1) * 100_000 + 1, (B, n), generator=g)
+        scale = zfun(torch.zeros(())) / zfun(t_us.to(torch.float64) * 1e-6)
+        pos = offsets[:, torch.arange(n) % n_blobs] * scale.unsqueeze(-1) + (S - 1) / 2.0
+        xy = torch.round(pos + 0.4 * torch.randn(B, n, 2, generator=g, dtype=torch.float64)).to(torch.int64)
+        ok = ((xy >= 0) & (xy < S)).all(-1)
+        b = torch.arange(B).view(B, 1).expand(B, n)
+        p = torch.ones(B, n, dtype=torch.int8)
+        out.append(Events(b[ok], xy[..., 0][ok], xy[..., 1][ok], t_us[ok], p[ok], sort=True))
+    return out
+
+
+# name: (params, B, S, steps, [(step, reset mask)], [steps fed no events], recorded digest, last D_hat)
+RECORDED = {
+    "default": (dict(), 5, 128, 30, [(12, [False, True, False, False, True])], [7],
+                "f8cf7e7ab0499f4184bbea9450a7572e60effcfe6de05a4a661bff9b9672074d",
+                [-0.13507799804210663, -0.1382252424955368, -0.13290467858314514, -0.13574491441249847,
+                 -0.137700617313385]),
+    "fixed": (dict(window_motion=0.0, extrapolate=False, newton_iters=3, radial_bin_px=0.0, hot_pixel_factor=0.0,
+                   max_events=0, dither=False, window_ms=400.0), 3, 64, 14, [(6, [True, False, False])], [],
+              "d1fc8d700d3886be314b6c3f309a3e404ceb4b43bddf5d7b2eada8446c25eb29",
+              [-0.0014169286005198956, -0.0013476695166900754, -0.0013751169899478555]),
+    "smooth": (dict(smooth_by_std=True, smooth_steps=5, trend_steps=10, window_ms=500.0, min_events=20, d_min=-2.0,
+                    d_max=0.5, window_min_ms=200.0, window_max_ms=1000.0, seed=2 ** 62 + 5), 4, 128, 30,
+               [(20, [False, False, True, False])], [15],
+               "eddf06acbcfe16f624d8cca6433c0efd8a8211296f6cf0790650e0861b4e047d",
+               [-0.14343079924583435, -0.14390669763088226, -0.13925275206565857, -0.14384259283542633]),
+    "offc": (dict(max_events=1500, newton_iters=2, window_ms=300.0), 2, 96, 16, [], [3],
+             "60f11e5988760b69416344793388e12c2bd0d3f8964df16647b6bf0d87139ea9",
+             [-0.03839506581425667, -0.03606944531202316]),
+}
+
+
+def _fly_recorded(name):
+    kw, B, S, steps, resets, empties = RECORDED[name][:6]
+    est = get_estimator("cmax", B, (S, S) if name != "offc" else (S, 60), "cpu", dt_s=0.1,
+                        principal_point_px=(40.5, 25.5) if name == "offc" else None, **kw)
+    evs = descent(B, S, steps, seed=len(name))
+    if name == "offc":
+        evs = [e[e.y < 60] for e in evs]
+    rec = []
+    for k, ev in enumerate(evs):
+        for ks, m in resets:
+            if ks == k:
+                est.reset(torch.tensor(m))
+        d = est.update(Events.empty() if k in empties else ev, (k + 1) * 100_000)
+        rec.append((d, est.confidence(), est.diagnostics()))
+    return rec
+
+
+def _digest(rec) -> str:
+    """SHA-256 of every step's D_hat, confidence and diagnostics (NaN written as -7)."""
+    h = hashlib.sha256()
+    for d, c, g in rec:
+        for name, v in [("d", d), ("c", c)] + sorted(g.items()):
+            v = v.detach().cpu()
+            if v.is_floating_point():
+                v = v.nan_to_num(-7.0, 7e30, -7e30)
+            h.update(name.encode())
+            h.update(v.contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+@pytest.mark.parametrize("native", [False, True])
+@pytest.mark.parametrize("name", list(RECORDED))
+def test_estimates_and_diagnostics_as_recorded(name, native):
+    """Bit for bit the estimates, confidences and diagnostics of cmax as it was before the stage contract
+    (recorded with its torch path), on the torch path and the compiled kernel (where built)."""
+    if native and not native_cmax.cached():
+        pytest.skip("the compiled cmax kernel is not built")
+    native_cmax.use_native_cmax(native)
+    try:
+        rec = _fly_recorded(name)
+    finally:
+        native_cmax.use_native_cmax(None)
+    assert [float(x) for x in rec[-1][0]] == RECORDED[name][7]
+    assert _digest(rec) == RECORDED[name][6]
+
+
+# ------------------------------------------------------------------ the contract
+W = H = 64
+
+
+def _warm(B=3, steps=6, **kw):
+    """An estimator and its state after ``steps`` updates (estimates on), and the events of the next step."""
+    params = dict(window_ms=300.0, min_events=20, trend_steps=10, smooth_steps=5)
+    params.update(kw)
+    est = get_estimator("cmax", B, (W, H), "cpu", dt_s=0.1, **params)
+    evs = descent(B, W, steps + 1, seed=2, n_blobs=60)
+    state = est.init_state()
+    for k in range(steps):
+        state, out = est.step_state(state, evs[k], (k + 1) * 100_000)
+    assert torch.isfinite(out.d_hat).all()
+    return est, state, evs[steps], (steps + 1) * 100_000
+
+
+def _same_out(a: EstimateOut, b: EstimateOut) -> bool:
+    return tree_equal(tuple(a), tuple(b))
+
+
+def test_step_is_pure():
+    est, state, ev, t_us = _warm()
+    before = tree_clone(state)
+    s1, o1 = est.step_state(state, ev, t_us)
+    assert tree_equal(state, before)  # the input state is untouched
+    s2, o2 = est.step_state(state, ev, t_us)
+    assert tree_equal(s1, s2) and _same_out(o1, o2)
+    # also through a global search (the warm starts dropped) and with no events
+    cold = state._replace(d_mid=torch.full_like(state.d_mid, float("nan")))
+    c1, p1 = est.step_state(cold, None, t_us)
+    c2, p2 = est.step_state(cold, None, t_us)
+    assert tree_equal(c1, c2) and _same_out(p1, p2) and bool(p1.diagnostics["global_search"].all())
+
+
+def test_module_step_is_the_method():
+    est, state, ev, t_us = _warm()
+    s1, o1 = est.step_state(state, ev, t_us)
+    s2, o2 = cmax_step(est.params, state, ev, t_us, est.setup)
+    assert tree_equal(s1, s2) and _same_out(o1, o2)
+
+
+def test_object_api_follows_the_contract():
+    """update / confidence / diagnostics (the base class over the state) give the step's outputs."""
+    B = 3
+    est = get_estimator("cmax", B, (W, H), "cpu", dt_s=0.1, window_ms=300.0, min_events=20)
+    evs = descent(B, W, 8, seed=4, n_blobs=60)
+    state = est.init_state()
+    for k, ev in enumerate(evs):
+        state, out = est.step_state(state, ev, (k + 1) * 100_000)
+        d = est.update(ev, (k + 1) * 100_000)
+        assert torch.equal(d.nan_to_num(9.0), out.d_hat.nan_to_num(9.0))
+        assert torch.equal(est.confidence(), out.confidence)
+        assert tree_equal(est.diagnostics(), out.diagnostics)
+    assert tree_equal(est.state, state)
+
+
+def test_reset_where_restarts_only_the_masked_descents():
+    est, state, ev, t_us = _warm(B=4)
+    mask = torch.tensor([False, True, False, True])
+    r = est.reset_where(state, mask)
+    fresh = est.init_state()
+    for f in ("d_mid", "window_s", "t_start_us", "hist_t", "hist_d", "hist_s", "k", "seed_thin", "seed_dither"):
+        a, b = getattr(r, f), getattr(state, f)
+        assert tree_equal(a[~mask], b[~mask]), f
+        if f not in ("hist_t", "k"):  # the ring position is kept
+            assert tree_equal(a[mask], getattr(fresh, f)[mask]), f
+    assert not bool(mask[r.ev_b_packed].any())  # the restarted descents' events are dropped
+    keep = ~mask[state.ev_b_packed]
+    for f in ("ev_b_packed", "ev_x_packed", "ev_y_packed", "ev_t_packed", "ev_key_packed"):
+        assert torch.equal(getattr(r, f), getattr(state, f)[keep]), f
+    # the next step gives the unmasked descents exactly what they get without the reset
+    _, o_reset = est.step_state(r, ev, t_us)
+    _, o_plain = est.step_state(state, ev, t_us)
+    keep_d = ~mask
+    assert torch.equal(o_reset.d_hat[keep_d], o_plain.d_hat[keep_d])
+    assert torch.equal(o_reset.diagnostics["d_std"][keep_d], o_plain.diagnostics["d_std"][keep_d])
+    assert torch.isnan(o_reset.d_hat[mask]).all()
+    # nothing masked: the state itself
+    assert tree_equal(est.reset_where(state, torch.zeros(4, dtype=torch.bool)), state)
+
+
+def test_reset_where_of_every_descent_is_a_fresh_state_but_the_ring_position():
+    est, state, _, _ = _warm()
+    r = est.reset_where(state, torch.ones(3, dtype=torch.bool))
+    fresh = est.init_state()
+    assert tree_equal(r._replace(hist_t=fresh.hist_t, k=fresh.k), fresh)
+
+
+def test_bad_state_names_the_stage_and_the_field():
+    est, state, ev, t_us = _warm()
+    with pytest.raises(ValueError, match=r"cmax: state field 'd_mid' must have dtype"):
+        est.step_state(state._replace(d_mid=state.d_mid.float()), ev, t_us)
+    with pytest.raises(ValueError, match=r"cmax: state field 'hist_d' must have shape"):
+        est.step_state(state._replace(hist_d=state.hist_d[:, :5]), ev, t_us)
+    with pytest.raises(ValueError, match=r"cmax: state field 'ev_t_packed' must have shape"):
+        est.step_state(state._replace(ev_t_packed=state.ev_t_packed.view(1, -1)), ev, t_us)
+    with pytest.raises(ValueError, match=r"cmax: state must be a CMaxState"):
+        est.step_state(tuple(state), ev, t_us)
+
+
+def test_state_is_tensors_batch_first():
+    est, state, _, _ = _warm(B=3)
+    assert isinstance(state, CMaxState)
+    for f, v in zip(state._fields, state):
+        assert isinstance(v, torch.Tensor), f
+        if not f.endswith("_packed"):
+            assert v.shape[0] == 3, f
+
+
+def test_a_descents_seed_moves_only_that_descent():
+    """The hash seeds are per descent in the state: another seed for descent 1 changes its thinning
+    and dither (its estimate), and nothing of its batch-mates."""
+    B = 3
+    est = get_estimator("cmax", B, (W, H), "cpu", dt_s=0.1, window_ms=300.0, min_events=20, max_events=300)
+    evs = descent(B, W, 6, seed=6, n_blobs=60)
+    a = est.init_state()
+    b = a._replace(seed_thin=a.seed_thin + torch.tensor([0, 11, 0]),
+                   seed_dither=a.seed_dither + torch.tensor([0, 11, 0]))
+    for k, ev in enumerate(evs):
+        a, oa = est.step_state(a, ev, (k + 1) * 100_000)
+        b, ob = est.step_state(b, ev, (k + 1) * 100_000)
+    other = torch.tensor([True, False, True])
+    assert torch.equal(oa.d_hat[other], ob.d_hat[other]) and torch.isfinite(oa.d_hat).all()
+    assert oa.d_hat[1] != ob.d_hat[1]
+
+
+def test_params_are_the_config_section():
+    kw = dict(window_ms=500, n_grid=11, dither=False, smooth_steps=3)
+    est = get_estimator("cmax", 2, (W, H), **kw)
+    assert isinstance(est.params, CMaxConfig)
+    assert est.params == dataclasses.replace(CMaxConfig(), window_ms=500.0, n_grid=11, dither=False, smooth_steps=3)
+    assert isinstance(est.params.window_ms, float)
+    again = CMaxEstimator.from_config(est.params, 2, (W, H))
+    assert again.params == est.params and tree_equal(again.init_state(), est.init_state())
+    with pytest.raises(ValueError, match=r"estimator 'cmax': unknown key \['windw_ms'\]"):
+        CMaxEstimator(2, (W, H), windw_ms=3.0)
+    with pytest.raises(ValueError, match="smooth_steps"):
+        CMaxEstimator.from_config(dataclasses.replace(CMaxConfig(), smooth_steps=200), 2, (W, H))
+
+
+def test_reset_diagnostics_say_no_estimate():
+    """After reset(mask) the restarted descents report no estimate (confidence 0, d_std NaN, no
+    events, the first window); the others keep theirs."""
+    B = 3
+    est = get_estimator("cmax", B, (W, H), "cpu", dt_s=0.1, window_ms=300.0, min_events=20, window_motion=0.1)
+    for k, ev in enumerate(descent(B, W, 6, seed=2, n_blobs=60)):
+        est.update(ev, (k + 1) * 100_000)
+    before = est.diagnostics()
+    est.reset(torch.tensor([False, True, False]))
+    g = est.diagnostics()
+    assert est.confidence()[1] == 0 and torch.isnan(g["d_std"][1]) and g["n_events"][1] == 0
+    assert g["window_s"][1] == pytest.approx(0.3) and g["contrast"][1] == 0
+    for k in ("d_std", "n_events", "contrast", "window_s", "confidence"):
+        assert torch.equal(g[k][[0, 2]], before[k][[0, 2]]), k
+    est.reset()
+    assert torch.isnan(est.diagnostics()["d_std"]).all() and (est.confidence() == 0).all()
