@@ -118,7 +118,9 @@ class LogPolarEncoder:
         sl = ((ev_t - t0 - 1) * s_n).div(span, rounding_mode="floor").clamp(0, s_n - 1)
         pol = (events.p.to(self.device) < 0).to(torch.int64)
         keep = bins >= 0
-        idx = ((ev_b * s_n + sl) * 2 + pol) * k + bins
-        out += torch.bincount(idx[keep], minlength=out.numel()).to(torch.float32)
-        n_ann = torch.bincount(ev_b[keep], minlength=b_n)[:b_n]
+        # events outside the annulus go to one extra bin, dropped after counting (no host read)
+        n_out = out.numel()
+        idx = torch.where(keep, ((ev_b * s_n + sl) * 2 + pol) * k + bins, torch.full_like(bins, n_out))
+        out += torch.bincount(idx, minlength=n_out + 1)[:n_out].to(torch.float32)
+        n_ann = torch.bincount(torch.where(keep, ev_b, torch.full_like(ev_b, b_n)), minlength=b_n + 1)[:b_n]
         return out.view(b_n, s_n, 2, self.n_rho, self.n_phi) * self._inv_pixels, n_ann, (~ok).sum()
