@@ -1,5 +1,5 @@
-"""The emulator's speed measures (work buffers kept across steps, the level buffer of two steps
-ago reused for the next frames' copy) change no event, and never touch a tensor the caller holds."""
+"""Holding the emulator's tensors changes no event, and a step never touches a tensor the caller
+holds (the step is pure: no buffer is recycled across steps; tests/test_emulator_pure.py)."""
 
 import pytest
 import torch
@@ -39,7 +39,7 @@ def _run(frames, kw, hold: bool):
 
 @pytest.mark.parametrize("fast", [True, False])
 @pytest.mark.parametrize("kw", CONFIGS, ids=lambda kw: ",".join(f"{k}={v}" for k, v in kw.items()) or "ideal")
-def test_buffer_reuse_changes_no_event(kw, fast, monkeypatch):
+def test_holding_levels_changes_no_event(kw, fast, monkeypatch):
     monkeypatch.setattr(emu_mod, "CPU_FAST_PATHS", fast)
     for frames in _frames():
         (ev_a, emu_a), (ev_b, emu_b) = _run(frames, kw, False), _run(frames, kw, True)

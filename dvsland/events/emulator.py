@@ -29,7 +29,7 @@ crossings. Events are generated with ``repeat_interleave`` and sorted once by a 
 permutation gathers are needed.
 
 Options off by default (the ideal model): per-pixel threshold mismatch ``mismatch_sigma`` (relative
-Gaussian, drawn per batch element from ``seed`` at :meth:`reset`, clamped to >= 1 % of the nominal
+Gaussian, drawn per descent from its seed at its start, clamped to >= 1 % of the nominal
 threshold), background activity ``background_rate_hz`` (Poisson events per pixel, uniform
 time and polarity, independent of the pixel state: they neither move ``L_ref`` nor start a
 refractory period), and the non-ideal pixel parts of :mod:`dvsland.events.pixel_model`
@@ -37,11 +37,24 @@ refractory period), and the non-ideal pixel parts of :mod:`dvsland.events.pixel_
 shot noise). The low-pass replaces L by its filtered level and leak/hot pixels add a per-pixel
 linear drift to it, so the crossing machinery above is unchanged; shot-noise events are drawn by
 thinning and reset the reference of their pixel at the end of the step.
+
+The stage contract (:mod:`dvsland.pytree`): the settings are an :class:`EmulatorParams` (frozen),
+everything carried between steps an :class:`EmulatorState` (tensors, batch first: the reference,
+the last level and event times, threshold maps, the low-pass and leak state, the denoiser's state,
+and per descent its noise seed, step counter, time and irradiance range), and the step the pure
+function :func:`emulator_step` (it writes into copies of the state's buffers, or into the state's
+own with ``donate=True``). Random numbers are data: every draw is a counter-based hash of (descent
+seed, descent step, pixel or event rank, stream tag) computed with torch ops on the state's device
+(:mod:`dvsland.events.pixel_model`), so CPU and CUDA draw the same and a descent's noise does not
+depend on its batch-mates. :func:`emulator_reset_where` restarts some descents and leaves the
+others bit-identical. :class:`EventEmulator` offers the contract as methods (``init_state``,
+``step_state``, ``reset_where``) and the object API (``reset``, ``step``) holding one state.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import NamedTuple, Optional, Tuple
 
@@ -359,9 +372,10 @@ def _checked_seed(seed, B: int, device) -> torch.Tensor:
     return seed.to(device)
 
 
+@functools.lru_cache(maxsize=16)
 def _state_reference(params: EmulatorParams, shape, device) -> EmulatorState:
     """A state of the expected structure, shapes, dtypes and device (expanded scalars: no memory),
-    for :func:`dvsland.pytree.check_state_like`."""
+    for :func:`dvsland.pytree.check_state_like` (cached: params are frozen, compared by identity)."""
     B, H, W = shape
 
     def t(dtype, *s):
@@ -846,6 +860,12 @@ class EventEmulator:
         if name not in ("params", "_next_params", "state") and name in _PARAM_NAMES:
             return getattr(self.params, name)
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def __setattr__(self, name, value):
+        if name in _PARAM_NAMES:
+            raise AttributeError(f"EventEmulator.{name} is a setting, frozen in EventEmulator.params "
+                                 f"(EmulatorParams): build a new emulator with it")
+        object.__setattr__(self, name, value)
 
     @property
     def device(self) -> Optional[torch.device]:

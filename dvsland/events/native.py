@@ -18,6 +18,14 @@ The environment variable ``DVSLAND_NATIVE_SORT`` (or :func:`use_native_sort`) pi
 
 Build once with ``python -m dvsland.events.build_native`` (prints the time and the folder). Without a
 compiler (or on any build or load error) the torch path runs, with one warning.
+
+Purity: the kernels that update per-pixel memories (``pixel_events``: the reference and last-event
+times; ``baf_keep`` / ``refractory_keep``: the filters' memories) write into the buffers they are
+given, and their callers give them fresh or cloned buffers, never a state's own tensors (unless the
+caller donated that state, :func:`dvsland.events.emulator.emulator_step`). ``shot_keys`` (the keys of
+the former generator-drawn, pre-sorted shot noise) is no longer called: the shot noise is a
+counter-based draw now (:mod:`dvsland.events.pixel_model`); it stays in the source so that an
+existing build keeps its name (dropping it means one rebuild).
 """
 
 from __future__ import annotations
