@@ -226,7 +226,8 @@ class Stages:
 
 
 def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None, device: Any = "cpu", *,
-                 estimator: Any = None, renderer: Any = None, controller: Any = None) -> Stages:
+                 estimator: Any = None, renderer: Any = None, controller: Any = None,
+                 record_events: bool = False) -> Stages:
     """Build the closed loop's stages for ``cfg``: the one place that wires them.
 
     Args:
@@ -238,6 +239,8 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
         renderer: None (``render.renderer``), a renderer name, or a renderer object; built only
             when the estimator needs events.
         controller: None (the configured one) or a ready controller for B elements.
+        record_events: build the renderer and the emulator even when the estimator needs no events
+            (a dataset records the camera while the truth flies); the estimator then receives them.
 
     Raises:
         ConfigError: a stage name is not registered (see :func:`check_names`).
@@ -263,7 +266,7 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
         if getattr(est, "batch_size", B) != B:
             raise ValueError(f"estimator instance is for batch_size={est.batch_size}, the batch has B={B}")
     events = None
-    if getattr(est, "needs_events", True):
+    if record_events or getattr(est, "needs_events", True):
         kw = _dispersed_scene_kwargs(cfg, layout, renderer)
         names = kw.pop("site_names", layout.site_names)  # dispersed scenes: their sites (variants)
         events = build_event_source(cfg, names, device, renderer, seed=layout.noise_seed, **kw)

@@ -84,3 +84,17 @@ def test_reset_does_not_change_its_input():
     before = tree_clone(s)
     reset_where(st, s, torch.tensor([True, False]))
     assert tree_equal(s, before)
+
+
+def test_a_state_that_does_not_fit_the_stages_is_named():
+    st = _stages("oracle", "D")
+    s = init_state(st)
+    with pytest.raises(ValueError, match=r"LoopState: field 'z_m' must be a \(2,\) torch.float64 tensor"):
+        loop_step(st, s._replace(z_m=s.z_m.float()))
+    est = s.stage_state.estimator
+    bad = s._replace(stage_state=s.stage_state._replace(estimator=est._replace(ring=est.ring[:, :0])))
+    with pytest.raises(ValueError, match=r"estimator: state field 'ring' must have shape \(2, 1\), got \(2, 0\)"):
+        loop_step(st, bad)
+    other = _stages("oracle", "A,D")
+    with pytest.raises(ValueError, match=r"LoopState: field 'flight_step' must be a \(4,\)"):
+        loop_step(other, s)

@@ -44,9 +44,8 @@ def build_loop_stages(cfg: Config, device="cpu"):
     check_names(cfg)
     layout = build_layout(cfg)
     est = build_estimator(cfg, layout.batch_size, device, seed=layout.noise_seed)
-    if not getattr(est, "needs_events", True):
-        est.needs_events = True  # the truth still flies; the camera records for the data set
-    return build_stages(cfg, layout, device, estimator=est)
+    # the camera records for the data set even when the estimator (oracle) needs no events
+    return build_stages(cfg, layout, device, estimator=est, record_events=True)
 
 
 def recording_stages(cfg: Config, device="cpu"):

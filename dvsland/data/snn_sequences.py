@@ -60,22 +60,6 @@ def _draw_dispersions(dispersion, n_seq: int, rng: np.random.Generator, sun_step
     return out
 
 
-class _NoEstimate:
-    """The loop's estimator while recording training data: it asks for events and estimates nothing."""
-
-    needs_events = True
-
-    def __init__(self, batch_size: int, device):
-        self.batch_size = int(batch_size)
-        self.device = torch.device(device)
-
-    def reset(self, mask=None) -> None:
-        pass
-
-    def update(self, events, t_us: int, truth=None) -> torch.Tensor:
-        return torch.full((self.batch_size,), float("nan"), dtype=torch.float32, device=self.device)
-
-
 def _profiles(rng: np.random.Generator, n_seq: int, n_t: int, dt: float, d_min: float, d_max: float,
               ascent_fraction: float, c2_max: float, z_min_m: float, z_max_m: float):
     """(d (N, n_t), z (N, n_t), d_abs (N,)) of the sequences at t = k dt, k = 0 .. n_t - 1; draws in
@@ -104,14 +88,16 @@ def _profiles(rng: np.random.Generator, n_seq: int, n_t: int, dt: float, d_min: 
 
 
 def sequence_config(cfg: Config, n_steps: int) -> Config:
-    """A copy of ``cfg`` whose loop never ends a training sequence early: no success altitude, no
-    crash divergence (|D| reaches 1 1/s), no timeout within the sequence. (A climb still reads as
-    an ascent to the loop; :func:`make_sequences` keeps such sequences flying.)"""
+    """A copy of ``cfg`` for recording training sequences: no timeout within the sequence, one
+    controller setting, and the ``oracle`` as the loop's estimator (what the loop estimates is not
+    recorded; :func:`make_sequences` records the camera with ``build_stages(record_events=True)``
+    and flies the profile with ``terminate=False``, so no sequence ends early)."""
     fc = copy.deepcopy(cfg)
     fc.simulation.success_altitude_m = 0.0
     fc.simulation.crash_divergence = 1e3
     fc.simulation.t_max_s = max(float(fc.simulation.t_max_s), (int(n_steps) + 3) * float(fc.dt_s))
     fc.controller.settings = list(fc.controller.settings)[:1]
+    fc.estimator.name = "oracle"  # what the loop estimates is not recorded: the cheapest estimator
     return fc
 
 
@@ -195,7 +181,7 @@ def make_sequences(cfg: Config, encoder, sites: Sequence[str], n_seq: int, n_ste
         # per-sequence sensor of this chunk, each with its own mismatch map (set by build_stages)
         seeds = seed * 1_000_003 + np.arange(sl.start, sl.stop)
         layout = _layout(names, scene[sl], z[sl, 0], d_abs[sl], seeds, sensor, seed, first.kp, first.n_bin)
-        stages = build_stages(fcfg, layout, device, estimator=_NoEstimate(b, device), renderer=renderer)
+        stages = build_stages(fcfg, layout, device, renderer=renderer, record_events=True)
         m0 = torch.full((b,), 1e3 * float(fcfg.dynamics.dry_mass_kg) + 1.0, **f64)  # fuel never runs out
         flight = fly_profile(stages, z[sl], d[sl, 0] * z[sl, 0], m0, keep_flying=True)  # climbs too
         for k, out in enumerate(flight):

@@ -123,14 +123,13 @@ def fly_profile(stages, z_ref, v0, m_kg=None, timer: Optional[Callable] = None,
         v0: (B,) the profile's velocity at its start, m/s (replaced by :func:`start_velocity`'s).
         m_kg: start mass (default the configured one).
         timer: ``loop_step``'s per-stage timer.
-        keep_flying: keep every element flying whatever the loop's termination says (a profile
-            that climbs reads as an "ascent", one below the success altitude as a "success").
+        keep_flying: end no descent (``loop_step(..., terminate=False)``): a profile that climbs
+            or goes below the success altitude keeps flying.
 
     Yields:
         the :class:`dvsland.sim.StepOutput` of each step.
     """
     from dvsland.sim import init_state, loop_step
-    from dvsland.sim.termination import RUNNING
 
     dev = torch.device(stages.device)
     z_ref = torch.as_tensor(z_ref, dtype=torch.float64).to(dev)
@@ -143,10 +142,7 @@ def fly_profile(stages, z_ref, v0, m_kg=None, timer: Optional[Callable] = None,
     state = init_state(stages, z_m=z_ref[:, 0], v_mps=v, m_kg=m)
     for k in range(n):
         u = tracking_thrust(stages, state, z_ref[:, k + 1], z_ref[:, k + 2])
-        state, out = loop_step(stages, state, thrust=u, timer=timer)
-        if keep_flying and not bool(state.active.all()):
-            state = state._replace(active=torch.ones_like(state.active),
-                                   outcome=torch.full_like(state.outcome, RUNNING))
+        state, out = loop_step(stages, state, thrust=u, timer=timer, terminate=not keep_flying)
         yield out
 
 

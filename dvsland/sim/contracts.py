@@ -77,9 +77,12 @@ def _build(stages) -> StageFns:
 
 def _object_api_only(est) -> bool:
     """An estimator subclass that inherits the base's contract methods but only implements the
-    object API (``update``/``reset``)."""
+    object API (``update``/``reset``), or an instance whose ``update``/``reset`` was replaced (a
+    wrapped or patched estimator: its object API is what the user asked for)."""
     from dvsland.estimators.base import DivergenceEstimator
 
+    if any(k in vars(est) for k in ("update", "reset", "confidence")):
+        return True
     return isinstance(est, DivergenceEstimator) and not est._has_contract()
 
 
@@ -141,4 +144,63 @@ def check_no_nan_thrust(thrust: torch.Tensor, name: str) -> None:
                                             "its input is missing)")
 
 
-__all__ = ["StageFns", "stage_fns", "controller_name", "checked_thrust_out", "check_no_nan_thrust"]
+
+
+# ------------------------------------------------------------------ a state against its stages
+#: the LoopState's per-descent fields and their dtypes
+LOOP_FIELDS = {"flight_step": torch.int64, "z_m": torch.float64, "v_mps": torch.float64, "m_kg": torch.float64,
+               "active": torch.bool, "outcome": torch.int8, "t_end_s": torch.float64, "lowest_m": torch.float64,
+               "max_thrust_n": torch.float64, "n_held": torch.int64, "n_missing": torch.int64,
+               "n_sanitised": torch.int64, "n_positive": torch.int64, "scene_idx": torch.int64,
+               "noise_seed": torch.int64}
+
+
+def reference_states(stages) -> dict:
+    """Fresh states of the estimator, filter and law (built once per stages): what a state's stage
+    parts are checked against. Object stages (plug-ins without the contract) are not checked."""
+    ref = getattr(stages, "_reference_states", None)
+    if ref is None:
+        from dvsland.pytree import ObjectStage
+
+        fns = stage_fns(stages)
+        ref = {k: getattr(fns, k).init_state() for k in ("estimator", "filter", "controller")
+               if not isinstance(getattr(fns, k), ObjectStage)}
+        stages._reference_states = ref
+    return ref
+
+
+def check_loop_state(stages, state) -> None:
+    """Check that ``state`` fits ``stages``: every per-descent field (B,) with its dtype on the loop's
+    device, each stage's state of the structure, shapes, dtypes and devices that stage makes. No
+    host synchronisation.
+
+    Raises:
+        ValueError: one message naming the stage (or ``LoopState``), the field, what was expected
+            and what came.
+    """
+    from dvsland.pytree import check_state_like, tree_leaves
+
+    B, dev = stages.batch_size, torch.device(stages.device)
+    for name, dtype in LOOP_FIELDS.items():
+        t = getattr(state, name)
+        got = (tuple(t.shape), t.dtype, t.device.type) if isinstance(t, torch.Tensor) else type(t).__name__
+        if got != ((B,), dtype, dev.type):
+            raise ValueError(f"LoopState: field {name!r} must be a ({B},) {dtype} tensor on {dev}, got {got}")
+    for name, ref in reference_states(stages).items():
+        check_state_like(name, getattr(state.stage_state, name), ref)
+    emu = state.stage_state.emulator
+    if emu is not None and not isinstance(emu, tuple(_object_state_types())):
+        for k, t in tree_leaves(emu).items():
+            if t.device.type != dev.type or (t.dim() >= 1 and t.shape[0] != B and not k.endswith("_packed")):
+                raise ValueError(f"emulator: state field {k!r} must be batch first ({B}, ...) on {dev}, got shape "
+                                 f"{tuple(t.shape)} on {t.device}")
+
+
+def _object_state_types():
+    from dvsland.pytree import ObjectState
+
+    return (ObjectState,)
+
+
+__all__ = ["StageFns", "stage_fns", "controller_name", "checked_thrust_out", "check_no_nan_thrust", "check_loop_state",
+           "reference_states", "LOOP_FIELDS"]

@@ -32,10 +32,10 @@ from typing import Any, Callable, NamedTuple, Optional, Tuple
 import torch
 
 from dvsland.estimators import Truth
-from dvsland.plugins import check_batch_tensor
+from dvsland.plugins import call_plugin, check_batch_tensor
 from dvsland.pytree import ObjectState, tree_where
 
-from .contracts import check_no_nan_thrust, checked_thrust_out, stage_fns
+from .contracts import check_loop_state, check_no_nan_thrust, checked_thrust_out, stage_fns
 from .reset import init_state, reset_where
 from .state import LoopState, StageStates
 from .termination import RUNNING, termination_code
@@ -230,7 +230,7 @@ def estimate(stages, state: LoopState, events, t_us: int) -> Tuple[Any, Estimate
         d = torch.full((B,), float("nan"), dtype=torch.float64, device=dev)
         return st, Estimate(d, torch.zeros_like(d), torch.zeros(B, dtype=torch.bool, device=dev), {})
     truth = Truth(altitude_m=state.z_m, velocity_mps=state.v_mps)
-    st, out = fns.estimator.step_state(st, events, t_us, truth)
+    st, out = call_plugin(name, "update", fns.estimator.step_state, st, events, t_us, truth)
     d_hat = check_batch_tensor(out.d_hat, B, dev, name, "update").to(dtype=torch.float64)
     if stages.events is not None and state.restarted is not None:
         d_hat = torch.where(state.restarted, torch.full_like(d_hat, float("nan")), d_hat)
@@ -255,17 +255,19 @@ def act(stages, state: LoopState, est: Estimate) -> Tuple[Any, Any, Command]:
         f_st = tree_where(state.restarted, f0, f_st)
         f_out = tuple(None if a is None else torch.where(state.restarted, b, a) for a, b in zip(f_out, out0))
     d_f, n_used, z_hat = f_out[0], f_out[1], f_out[2]
-    c_st, ctl = fns.controller.step_state(state.stage_state.controller, flight_time_s(stages, state), d_f,
-                                          state.m_kg, state.active, z_hat)
+    c_st, ctl = call_plugin(fns.controller_name, "__call__", fns.controller.step_state, state.stage_state.controller,
+                            flight_time_s(stages, state), d_f, state.m_kg, state.active, z_hat)
     checked_thrust_out(ctl, state.batch_size, state.z_m.device, fns.controller_name)
     check_no_nan_thrust(ctl.thrust_n, fns.controller_name)
     return f_st, c_st, Command(ctl, d_f, n_used, z_hat)
 
 
 def advance(stages, state: LoopState, thrust: torch.Tensor, held: torch.Tensor, est: Estimate,
-            frames: Optional[torch.Tensor], stage_state: StageStates) -> Tuple[LoopState, torch.Tensor]:
+            frames: Optional[torch.Tensor], stage_state: StageStates,
+            terminate: bool = True) -> Tuple[LoopState, torch.Tensor]:
     """Dynamics over dt with ``thrust`` (B,) N held, bookkeeping and termination: (next state with
-    ``stage_state``, ended (B,) bool)."""
+    ``stage_state``, ended (B,) bool). ``terminate=False`` ends no descent (a prescribed profile
+    that climbs or goes below the success altitude keeps flying)."""
     s, act_ = stages.settings, state.active
     z, v, m, _ = stages.dynamics.step(state.z_m, state.v_mps, state.m_kg, thrust, s.dt_s)
     z = torch.where(act_, z, state.z_m)
@@ -273,7 +275,7 @@ def advance(stages, state: LoopState, thrust: torch.Tensor, held: torch.Tensor, 
     m = torch.where(act_, m, state.m_kg)
     t_next = (state.flight_step + 1).to(torch.float64) * s.dt_s
     code = termination_code(z, v, t_next, s.success_altitude_m, s.crash_divergence, s.t_max_s)
-    ended = act_ & (code != RUNNING)
+    ended = act_ & (code != RUNNING) if terminate else torch.zeros_like(act_)
     i64, d_hat = torch.int64, est.d_hat
     nxt = state._replace(
         step=state.step + 1, flight_step=state.flight_step + act_.to(torch.int64), z_m=z, v_mps=v, m_kg=m, active=act_ & ~ended,
@@ -290,7 +292,7 @@ def advance(stages, state: LoopState, thrust: torch.Tensor, held: torch.Tensor, 
 
 # ------------------------------------------------------------------ the step
 def loop_step(stages, state: LoopState, thrust: Optional[torch.Tensor] = None,
-              timer: Optional[Callable[[str], Any]] = None) -> Tuple[LoopState, StepOutput]:
+              timer: Optional[Callable[[str], Any]] = None, terminate: bool = True) -> Tuple[LoopState, StepOutput]:
     """Fly one control step of every active descent: :func:`sense_step` then :func:`act_step`.
 
     Pure: ``state`` is not changed and can be stepped from again (the same outputs).
@@ -302,22 +304,26 @@ def loop_step(stages, state: LoopState, thrust: Optional[torch.Tensor] = None,
             a learned controller, an environment's action); must be finite and >= 0. The filter and
             controller still run (their outputs are reported), the given thrust is what flies.
         timer: optional ``timer(stage_name)`` context manager factory (per-stage timing).
+        terminate: end descents that meet a termination condition (False: none ends, see
+            :func:`advance`).
 
     Returns:
         (the next :class:`LoopState`, the :class:`StepOutput` of this step).
 
     Raises:
-        ValueError: ``thrust`` of the wrong shape, NaN or negative.
+        ValueError: ``thrust`` of the wrong shape, NaN or negative; a ``state`` that does not fit the
+            stages (:func:`dvsland.sim.contracts.check_loop_state`: names the stage and the field).
         PluginError: the estimator or the law broke its contract (:mod:`dvsland.plugins`).
     """
     thrust = _checked_thrust(thrust, state.z_m)  # before sensing: a bad thrust costs nothing
-    return act_step(stages, sense_step(stages, state, timer), thrust, timer)
+    return act_step(stages, sense_step(stages, state, timer), thrust, timer, terminate)
 
 
 def sense_step(stages, state: LoopState, timer: Optional[Callable[[str], Any]] = None) -> Sensed:
     """The first half of a step: render, emulate, estimate, filter and run the law at ``t_k``;
     finish the step with :func:`act_step`. ``state`` is not changed."""
     tm = timer or (lambda name: nullcontext())
+    check_loop_state(stages, state)
     k = state.step
     t_s = k * stages.settings.dt_s
     t_us = int(round(t_s * 1e6))
@@ -342,9 +348,10 @@ def sense_step(stages, state: LoopState, timer: Optional[Callable[[str], Any]] =
 
 
 def act_step(stages, sensed: Sensed, thrust: Optional[torch.Tensor] = None,
-             timer: Optional[Callable[[str], Any]] = None) -> Tuple[LoopState, StepOutput]:
+             timer: Optional[Callable[[str], Any]] = None, terminate: bool = True) -> Tuple[LoopState, StepOutput]:
     """The second half of a step: fly ``dt`` with the law's command (``thrust=None``) or ``thrust``
-    (B,) N held, then bookkeeping and termination; returns (next state, the step's StepOutput).
+    (B,) N held, then bookkeeping and termination (unless ``terminate=False``); returns (next
+    state, the step's StepOutput).
 
     Raises:
         ValueError: ``thrust`` of the wrong shape, NaN or negative.
@@ -354,7 +361,7 @@ def act_step(stages, sensed: Sensed, thrust: Optional[torch.Tensor] = None,
     u = _applied_thrust(out.thrust_n, _checked_thrust(thrust, state.z_m), state.active)
     est = Estimate(out.d_est, out.d_conf, sensed.bad, {})
     with tm("dynamics"):
-        nxt, ended = advance(stages, state, u, out.held, est, out.frames, sensed.stage_state)
+        nxt, ended = advance(stages, state, u, out.held, est, out.frames, sensed.stage_state, terminate)
     return nxt, out._replace(thrust_n=u, ended=ended)
 
 
