@@ -324,6 +324,9 @@ def test_object_api_only_subclasses_run_as_object_stages():
     """A law (or filter) subclass with only the object API has no contract methods: the loop runs it
     through :class:`dvsland.pytree.ObjectStage`; the built-ins have the contract."""
     class Const(C.Controller):
+        def __init__(self):
+            self.batch_size, self.device, self.params = 2, "cpu", {"thrust_n": 1.0}  # its own attributes
+
         def reset(self, mask=None):
             pass
 

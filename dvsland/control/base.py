@@ -13,7 +13,7 @@ from typing import Any, NamedTuple, Optional, Tuple
 
 import torch
 
-from dvsland.pytree import check_state_like, tree_where
+from dvsland.pytree import check_state_like, tree_leaves, tree_where
 
 Tensor = torch.Tensor
 
@@ -87,6 +87,12 @@ def mark_object_api_only(cls: type, base: type, call_name: str) -> None:
         cls.init_state = cls.step_state = cls.reset_where = None
 
 
+def batch_of(state) -> Tuple[int, torch.device]:
+    """(B, device) of a state: the first dim and device of its first tensor leaf."""
+    leaf = next(iter(tree_leaves(state).values()))
+    return int(leaf.shape[0]), leaf.device
+
+
 def as_mask(mask, batch_size: int, device, stage: str) -> Tensor:
     """``mask`` as a (B,) bool tensor on ``device`` (None = every descent); ValueError naming ``stage``."""
     if mask is None:
@@ -140,20 +146,10 @@ class Controller:
 
     def reset_where(self, state, mask: Tensor):
         """``state`` with the descents where ``mask`` (B,) bool is True restarted, the others bit-identical."""
-        return tree_where(self._mask(mask), self.init_state(), state)
+        fresh = self.init_state()
+        return tree_where(as_mask(mask, *batch_of(fresh), f"controller {type(self).__name__}"), fresh, state)
 
     # ------------------------------------------------------------------ the object API over it
-    @property
-    def batch_size(self) -> int:
-        return int(self.params.tau0_s.numel())
-
-    @property
-    def device(self) -> torch.device:
-        return self.params.tau0_s.device
-
-    def _mask(self, mask) -> Tensor:
-        return as_mask(mask, self.batch_size, self.device, f"controller {type(self).__name__}")
-
     def _check(self, state) -> None:
         """ValueError naming the law and the field when ``state`` is not one of this law's states."""
         check_state_like(f"controller {type(self).__name__}", state, self._template)
@@ -178,11 +174,11 @@ class Controller:
         d = self.__dict__
         if not name.startswith("__") and "params" in d:
             p = d["params"]
-            if name in p._fields:
+            if name in getattr(p, "_fields", ()):
                 return getattr(p, name)
-            if p.options is not None and hasattr(type(p.options), "__dataclass_fields__") \
-                    and name in type(p.options).__dataclass_fields__:
-                return getattr(p.options, name)
+            options = getattr(p, "options", None)
+            if name in getattr(type(options), "__dataclass_fields__", {}):
+                return getattr(options, name)
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
 

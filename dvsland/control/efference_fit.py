@@ -344,7 +344,7 @@ class EfferenceFitFilter(DivergenceFilter):
 
     def reset_where(self, state: EfferenceFitState, mask: Tensor) -> EfferenceFitState:
         """:func:`fit_reset_where` (the history is packed: written by hand)."""
-        return fit_reset_where(self.params, state, self._mask(mask))
+        return fit_reset_where(self.params, state, self._mask(mask, state))
 
     # ------------------------------------------------------------------ the object API
     @property

@@ -19,7 +19,7 @@ import torch
 
 from dvsland.pytree import check_state_like, tree_where
 
-from .base import as_mask, mark_object_api_only
+from .base import as_mask, batch_of, mark_object_api_only
 
 Tensor = torch.Tensor
 
@@ -76,17 +76,19 @@ class DivergenceFilter:
 
     def reset_where(self, state, mask: Tensor):
         """``state`` with the descents where ``mask`` (B,) bool is True restarted, the others bit-identical."""
-        return tree_where(self._mask(mask), self.init_state(), state)
+        fresh = self.init_state()
+        return tree_where(self._mask(mask, fresh), fresh, state)
 
     # ------------------------------------------------------------------ helpers of the steps
-    def _mask(self, mask) -> Tensor:
-        return as_mask(mask, self.batch_size, self.device, f"filter {type(self).__name__}")
+    def _mask(self, mask, like) -> Tensor:
+        """``mask`` as a (B,) bool tensor for the descents of state ``like`` (None = all)."""
+        return as_mask(mask, *batch_of(like), f"filter {type(self).__name__}")
 
     def _check_inputs(self, state, d_hat: Tensor, confidence: Optional[Tensor] = None) -> None:
         """ValueError naming the filter and the field: a state unlike this filter's, a d_hat or a
         confidence of the wrong shape (host-side metadata only, no sync)."""
         check_state_like(f"filter {type(self).__name__}", state, self._template)
-        B = self.batch_size
+        B = batch_of(self._template)[0]
         if d_hat.shape != (B,):
             raise ValueError(f"d_hat must have shape ({B},), got {tuple(d_hat.shape)}")
         if confidence is not None and confidence.shape != (B,):
@@ -118,15 +120,14 @@ class DivergenceFilter:
         d = self.__dict__
         if not name.startswith("__"):
             st = d.get("state")
-            if st is not None and name in st._fields:
+            if name in getattr(st, "_fields", ()):
                 return getattr(st, name)
             p = d.get("params")
-            if p is not None:
-                if name in p._fields:
-                    return getattr(p, name)
-                cfg = getattr(p, "cfg", None)
-                if cfg is not None and name in getattr(type(cfg), "__dataclass_fields__", {}):
-                    return getattr(cfg, name)
+            if name in getattr(p, "_fields", ()):
+                return getattr(p, name)
+            cfg = getattr(p, "cfg", None)
+            if name in getattr(type(cfg), "__dataclass_fields__", {}):
+                return getattr(cfg, name)
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
 
@@ -185,7 +186,7 @@ def moving_average_step(p: MovingAverageParams, state: MovingAverageState, d_hat
     new = torch.cat([d_hat.to(h.dtype).unsqueeze(1), h[:, :-1]], 1)
     if active is not None:
         new = torch.where(active.unsqueeze(1), new, h)
-    mean, n_used = _masked_mean(new.t().contiguous(), p.in_window)  # (N, B): the reduction order of the paper's path
+    mean, n_used = _masked_mean(new.t().contiguous(), p.in_window)  # summed over a newest-first (N, B) history
     return MovingAverageState(new), FilterOut(mean, n_used, None)
 
 
