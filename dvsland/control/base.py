@@ -120,7 +120,7 @@ class Controller:
     attribute ``needs_altitude = True`` is also given ``altitude_m=`` (B,) float64, the filter's
     altitude estimate in m (see :mod:`dvsland.control.efference`).
 
-    A third-party law may implement the object API alone (``__call__`` and ``reset``, as before);
+    A third-party law may implement the object API alone (``__call__`` and ``reset``);
     it then has no contract methods (they are None) and the loop runs it as an object stage.
     Subclass a built-in law by overriding ``step_state``, not ``__call__``.
 
