@@ -433,7 +433,8 @@ def emulator_reset_where(params: EmulatorParams, state: EmulatorState, mask: tor
     B = state.lref.shape[0]
     mask = torch.as_tensor(mask, device=state.lref.device)
     if mask.shape != (B,) or mask.dtype != torch.bool:
-        raise ValueError(f"{_STAGE}: mask must be a (B,) = ({B},) bool tensor, got shape {tuple(mask.shape)} {mask.dtype}")
+        raise ValueError(f"{_STAGE}: mask must be a (B,) = ({B},) bool tensor, got shape {tuple(mask.shape)} "
+                         f"{mask.dtype}")
     seeds = state.seed if seed is None else torch.where(mask, _checked_seed(seed, B, state.seed.device), state.seed)
     fresh = emulator_init(dataclasses.replace(params, device=state.lref.device), frames, t_us, seeds)
     check_state(params, fresh, tuple(state.lref.shape))
