@@ -359,3 +359,20 @@ def test_settings_read_as_attributes_and_the_object_api_holds_one_state():
         ekf.nope
     with pytest.raises(ValueError, match="mask"):
         law.reset(torch.tensor([1, 0]))
+
+
+@pytest.mark.parametrize("name", ["ekf", "ekf_robust", "fit", "fit_forget"])
+def test_nan_acceleration_is_no_efference_copy_for_that_descent(name):
+    """A NaN acceleration (a descent's first step after a restart) steps that descent as ``accel_mps2=None``
+    does, and the others as if it were not there: one step serves a batch with restarted descents."""
+    _, f, st = fly_filter_contract(name, K // 2)
+    x = _inputs()
+    d, conf = x["d"][K // 2], x["conf"][K // 2]
+    a = x["accel"][K // 2 - 1]
+    nan_first = torch.where(torch.tensor([True, False, False, True]), NAN, a)
+    s_mix, o_mix = f.step_state(st, d, None, nan_first, nan_first + 1.62, conf)
+    s_none, o_none = f.step_state(st, d, None, None, None, conf)
+    s_all, o_all = f.step_state(st, d, None, a, a + 1.62, conf)
+    for b, ref in ((0, o_none), (1, o_all), (2, o_all), (3, o_none)):
+        assert all(tree_equal(u[b], v[b]) for u, v in zip(o_mix, ref)), b
+        assert all(tree_equal(u[b], v[b]) for u, v in zip(s_mix, s_none if ref is o_none else s_all)), b

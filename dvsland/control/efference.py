@@ -132,9 +132,12 @@ def efference_predict(p: EfferenceParams, s: EfferenceState, accel_mps2: Tensor,
                       thrust_accel_mps2: Optional[Tensor] = None, active: Optional[Tensor] = None) -> EfferenceState:
     """Advance by dt with the known acceleration ``accel_mps2`` (B,) (u/m - g), m/s^2;
     ``thrust_accel_mps2`` (B,) = u/m scales the process noise (default: |accel + 0|). Descents not
-    ``active`` (B,) bool keep their state."""
+    ``active`` (B,) bool, and those whose acceleration is NaN (no efference copy: the first step
+    after a restart), keep their state."""
     c, dt = p.cfg, p.dt_s
     a = accel_mps2.to(torch.float64)
+    known = torch.isfinite(a)
+    active = known if active is None else active & known
     ua = a.abs() if thrust_accel_mps2 is None else thrust_accel_mps2.to(torch.float64).abs()
     sa2 = (c.accel_sigma_mps2 + c.accel_sigma_rel * ua) ** 2
     z = s.z + s.v * dt + 0.5 * a * dt * dt
@@ -146,10 +149,8 @@ def efference_predict(p: EfferenceParams, s: EfferenceState, accel_mps2: Tensor,
     z = z.clamp_min(c.min_altitude_m)
     if c.cov_cap_rel > 0:
         pzz, pzv, pvv = cap_covariance(pzz, pzv, pvv, c.cov_cap_rel * z, c.cov_cap_rel * v.abs())
-    if active is not None:
-        z, v = torch.where(active, z, s.z), torch.where(active, v, s.v)
-        pzz, pzv, pvv = (torch.where(active, pzz, s.pzz), torch.where(active, pzv, s.pzv),
-                         torch.where(active, pvv, s.pvv))
+    z, v = torch.where(active, z, s.z), torch.where(active, v, s.v)
+    pzz, pzv, pvv = torch.where(active, pzz, s.pzz), torch.where(active, pzv, s.pzv), torch.where(active, pvv, s.pvv)
     return EfferenceState(z, v, pzz, pzv, pvv, s.n_rejected)
 
 
@@ -219,7 +220,8 @@ def efference_step(p: EfferenceParams, state: EfferenceState, d_hat: Tensor, act
                    accel_mps2: Optional[Tensor] = None, thrust_accel_mps2: Optional[Tensor] = None,
                    confidence: Optional[Tensor] = None) -> Tuple[EfferenceState, FilterOut]:
     """Pure step of the ``efference`` EKF: predict with the acceleration applied since the last step
-    (skipped when ``accel_mps2`` is None: the first step), then fuse ``d_hat``.
+    (skipped when ``accel_mps2`` is None: the first step; for the descents where it is NaN: their
+    first step after a restart), then fuse ``d_hat``.
 
     Returns:
         (next state, FilterOut(v/z (B,) float64, 1 where D_hat was fused (B,) int64, z (B,) float64 m)).

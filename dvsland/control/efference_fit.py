@@ -214,7 +214,8 @@ def efference_fit_step(p: EfferenceFitParams, state: EfferenceFitState, d_hat: T
                        active: Optional[Tensor] = None, accel_mps2: Optional[Tensor] = None,
                        confidence: Optional[Tensor] = None) -> Tuple[EfferenceFitState, FilterOut]:
     """Pure step of ``efference_fit``: dead-reckon with the acceleration applied since the last step
-    (skipped when ``accel_mps2`` is None: the first step), append this step's row, re-fit.
+    (skipped when ``accel_mps2`` is None: the first step; for the descents where it is NaN: their first
+    step after a restart), append this step's row, re-fit.
 
     Returns:
         (next state, FilterOut(v_hat / z_hat (B,) float64, 1 where this step's estimate got weight
@@ -225,9 +226,10 @@ def efference_fit_step(p: EfferenceFitParams, state: EfferenceFitState, d_hat: T
     zdr, vdr, t_s = state.zdr, state.vdr, state.t_s
     if accel_mps2 is not None:
         a = accel_mps2.to(device=dev, dtype=torch.float64)
-        zdr = torch.where(m, zdr + vdr * dt + 0.5 * a * dt * dt, zdr)
-        vdr = torch.where(m, vdr + a * dt, vdr)
-        t_s = torch.where(m, t_s + dt, t_s)
+        go = m & torch.isfinite(a)
+        zdr = torch.where(go, zdr + vdr * dt + 0.5 * a * dt * dt, zdr)
+        vdr = torch.where(go, vdr + a * dt, vdr)
+        t_s = torch.where(go, t_s + dt, t_s)
     d, sig = _estimates(c, d_hat, confidence, dev)
     row = torch.where(m.unsqueeze(1), torch.stack([zdr, vdr, t_s, d, sig], 1), float("nan"))  # (B, 5)
     # the history in the fit's layout (5, L + 1, B), kept batch first as a (B, L + 1, 5) view of it

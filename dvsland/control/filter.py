@@ -52,7 +52,8 @@ class DivergenceFilter:
 
     Inputs of a step: ``d_hat`` (B,) float estimates, 1/s (NaN = missing); ``active`` (B,) bool or
     None (all): only these descents advance, the others keep their state; ``accel_mps2`` (B,)
-    float64 the known acceleration u/m - g over the last step, m/s^2, or None (the first step);
+    float64 the known acceleration u/m - g over the last step, m/s^2, or None (the first step; NaN
+    for the descents without one: their first step after a restart);
     ``thrust_accel_mps2`` (B,) float64 u/m over the last step; ``confidence`` (B,) float in [0, 1],
     the estimator's confidence.
     """
