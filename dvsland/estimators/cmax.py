@@ -249,8 +249,9 @@ def _store(p: CMaxConfig, setup: CMaxSetup, state: CMaxState, events) -> CMaxSta
     keep = store_keep(p, setup, state, b, x, y, t)
     if keep.numel() == 0:
         return state
-    b, x, y, t = b[keep].to(_I64), x[keep], y[keep], t[keep].to(_I64)
-    h2 = event_hash(b, x, y, t, state.seed_dither[b])
+    b, x, y, t = (v.index_select(0, keep) for v in (b, x, y, t))
+    b, t = b.to(_I64), t.to(_I64)
+    h2 = event_hash(b, x, y, t, state.seed_dither.index_select(0, b))
     xf, yf = x.to(_F32), y.to(_F32)
     if p.dither:  # uniform within the pixel: 8 and 7 fresh hash bits
         xf = xf + (((h2 >> 16) & 0xFF).to(_F32) / 256.0 - 0.5)
@@ -292,14 +293,14 @@ def _window_events(setup: CMaxSetup, state: CMaxState, t_us: int):
     b, x, y, t, key = (getattr(state, f) for f in _EVENT_FIELDS)
     if b.numel() == 0:
         return b, x, y, t, key, torch.zeros(B, dtype=_I64, device=b.device)
-    w_us = (state.window_s * 1e6).round().to(_I64)
-    inw = (t > t_us - w_us[b]) & (t <= t_us)
+    since_us = t_us - (state.window_s * 1e6).round().to(_I64)  # (B,) each window's start (excluded)
+    inw = (t > since_us.index_select(0, b)) & (t <= t_us)
     n_per = torch.bincount(b, weights=inw.to(_F32), minlength=B)[:B]
     if setup.max_events > 0:
         frac = (setup.max_events / n_per.clamp_min(1)).clamp(max=1.0)
-        inw &= (key & 0x7FFF).to(_F32) < frac[b] * 32768.0
+        inw &= (key & 0x7FFF).to(_F32) < (frac * 32768.0).index_select(0, b)
     sel = inw.nonzero().squeeze(1)
-    return b[sel], x[sel], y[sel], t[sel], key[sel], n_per.round().to(_I64)
+    return tuple(v.index_select(0, sel) for v in (b, x, y, t, key)) + (n_per.round().to(_I64),)
 
 
 # ------------------------------------------------------------------ event weights
@@ -342,7 +343,7 @@ def radial_weights(p: CMaxConfig, setup: CMaxSetup, pix: torch.Tensor, b: torch.
     dens = cnt.view(B, nb).to(_F64) / setup.px_per_rbin.clamp_min(1)
     mean = dens.sum(1) / (dens > 0).sum(1).clamp_min(1)
     w = (mean.unsqueeze(1) / dens.clamp_min(1e-12)).pow(p.radial_power).clamp(0.1, 10.0)
-    return w.view(-1)[b * nb + rb].to(_F32)
+    return w.view(-1).index_select(0, b * nb + rb).to(_F32)
 
 
 def _event_weights(p: CMaxConfig, setup: CMaxSetup, pix: torch.Tensor, b: torch.Tensor) -> Optional[torch.Tensor]:
@@ -380,11 +381,12 @@ def _global_search(p: CMaxConfig, setup: CMaxSetup, xs, ys, b, half, tau, sel_el
     idx = sel_el.nonzero().squeeze(1)
     n = idx.numel()
     remap = torch.full((B,), -1, dtype=_I64, device=dev).index_put((idx,), torch.arange(n, device=dev))
-    e = sel_el[b]
-    bs = remap[b[e]]
+    e = sel_el.index_select(0, b).nonzero().squeeze(1)  # the events of those elements
+    bs = remap.index_select(0, b.index_select(0, e))
     pad = setup.pad_px
-    xe, ye, he, te = xs[e] + pad, ys[e] + pad, half[e], tau[e]
-    we = torch.ones_like(te) if wt is None else wt[e]
+    xe, ye, he, te = (v.index_select(0, e) for v in (xs, ys, half, tau))
+    xe, ye = xe + pad, ye + pad
+    we = torch.ones_like(te) if wt is None else wt.index_select(0, e)
     win, half_w = win_s[idx], 0.5 * win_s[idx]
     grid = torch.linspace(p.d_min, p.d_max, p.n_grid, device=dev, dtype=_F64)
     cand = grid.unsqueeze(0).expand(n, -1)
@@ -393,8 +395,8 @@ def _global_search(p: CMaxConfig, setup: CMaxSetup, xs, ys, b, half, tau, sel_el
     def score(cand, step):
         # the newest span of each window, s, re-centred on its own middle
         span = (2.0 / (step * max(setup.r_max_px, 1.0)) / win).clamp(max=1.0) * win
-        shift = (half_w - 0.5 * span)[bs].to(te.dtype)
-        recent = (te >= 2 * shift - half_w[bs].to(te.dtype)).to(we.dtype)
+        shift = (half_w - 0.5 * span).index_select(0, bs).to(te.dtype)
+        recent = (te >= 2 * shift - half_w.index_select(0, bs).to(te.dtype)).to(we.dtype)
         return _score(setup, xe, ye, bs, he, te - shift, cand, 0.5 * span, we * recent)[..., 0]
 
     sc = score(cand, step)
@@ -423,12 +425,12 @@ def _newton(p: CMaxConfig, setup: CMaxSetup, xs, ys, b, half, tau, d0, win_s, wt
     three = torch.tensor([-1.0, 0.0, 1.0], dtype=_F64, device=setup.device)
     for _ in range(p.newton_iters):
         cand = d0.unsqueeze(1) + hstep.unsqueeze(1) * three
-        sc = _score(setup, xc, yc, b, half, tau, cand, 0.5 * win_s, wt)  # (B, 3, 3)
-        off = _parabola_offset(sc[:, 0, 0], sc[:, 1, 0], sc[:, 2, 0], 2.0)
+        sc = _score(setup, xc, yc, b, half, tau, cand, 0.5 * win_s, wt)  # (B, 3 candidates, 3: all, halves)
+        off = _parabola_offset(sc[:, 0], sc[:, 1], sc[:, 2], 2.0)  # (B, 3): all events, each half
         d_last, h_last = d0, hstep
-        d0, hstep = d0 + off * hstep, hstep * 0.5
-    d_halves = [d_last + _parabola_offset(sc[:, 0, k], sc[:, 1, k], sc[:, 2, k], 2.0) * h_last for k in (1, 2)]
-    sigma = (d_halves[0] - d_halves[1]).abs() * 0.5
+        d0, hstep = d0 + off[:, 0] * hstep, hstep * 0.5
+    d_halves = d_last.unsqueeze(1) + off[:, 1:] * h_last.unsqueeze(1)  # (B, 2)
+    sigma = (d_halves[:, 0] - d_halves[:, 1]).abs() * 0.5
     # the maximum is bracketed when the scores of all events and of both halves are concave with
     # their vertex within the three candidates; where it is not, the estimate has not converged
     # and is uncertain by at least the bracket, 2 h
@@ -564,7 +566,7 @@ def _search(p: CMaxConfig, setup: CMaxSetup, state: CMaxState, ev, ok, t_us: int
     half = (key >> 15) & 1
     win_s = state.window_s
     t_ref_us = t_us - win_s * 0.5e6  # (B,) float64
-    tau = ((t - t_ref_us.round().to(_I64)[b]).to(_F32) * 1e-6)
+    tau = ((t - t_ref_us.round().to(_I64).index_select(0, b)).to(_F32) * 1e-6)
     wt = _event_weights(p, setup, key >> 16, b)
     # start: last estimate (warm), else the global search
     d0 = state.d_mid
@@ -597,8 +599,8 @@ def cmax_step(p: CMaxConfig, state: CMaxState, events, t_us: int, setup: CMaxSet
     if not bool(ok.any()):
         return state, blank_out(state, n_per)
     if not bool(ok.all()):
-        sel = ok[b].nonzero().squeeze(1)
-        b, xs, ys, t, key = b[sel], xs[sel], ys[sel], t[sel], key[sel]
+        sel = ok.index_select(0, b).nonzero().squeeze(1)
+        b, xs, ys, t, key = (v.index_select(0, sel) for v in (b, xs, ys, t, key))
     d0, need, edge, sigma, sigma_step, contrast, bracketed = _search(p, setup, state, (b, xs, ys, t, key), ok, t_us)
     win_s = state.window_s
     good = ok & (d0 >= p.d_min) & (d0 <= p.d_max) & ~(need & edge)
