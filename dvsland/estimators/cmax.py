@@ -40,6 +40,14 @@ Per update and batch element, all elements at once:
 After a reset an element gives NaN until its window is at least half full, whenever it has
 fewer than ``min_events`` events in its window, and when its global search peaked at either end
 of [``d_min``, ``d_max``] (no bracketed maximum: events that show no measurable motion).
+
+As a stage (:mod:`dvsland.pytree`): the params are the config section
+:class:`dvsland.config.schema.CMaxConfig`, the constants derived once from it, the sensor and the
+batch a :class:`CMaxSetup`, the state between updates a :class:`CMaxState` (the stored events of all
+descents packed, and per descent the warm start, the window, the trend history, the ring position
+and the hash seeds), and the step the pure :func:`cmax_step`. :class:`CMaxEstimator` offers
+``init_state`` / ``step_state`` / ``reset_where`` over them; its object API (``update``, ``reset``,
+``confidence``, ``diagnostics``) is the base class's, holding one state.
 """
 
 from __future__ import annotations
@@ -541,7 +549,7 @@ def _estimate_out(d: torch.Tensor, rel_std: torch.Tensor, n_events, contrast, wi
     """The step's :class:`EstimateOut` (d (B,) float32 D_hat; diagnostics documented at
     :meth:`CMaxEstimator.step_state`)."""
     conf = confidence_from_rel_std(rel_std, d)
-    diag = {"n_events": n_events, "contrast": contrast, "window_s": window_s,
+    diag = {"n_events": n_events, "contrast": contrast, "window_s": window_s.clone(),
             "d_std": rel_std * d.to(_F64).abs(), "global_search": global_search, "bracketed": bracketed,
             "confidence": conf}
     return EstimateOut(d, conf, diag)
@@ -725,7 +733,7 @@ class CMaxEstimator(DivergenceEstimator):
         m = self._mask(mask)
         diag = {k: torch.where(m, fresh.diagnostics[k], v) if k in ("n_events", "contrast", "d_std") else v
                 for k, v in self._last.diagnostics.items()}
-        diag.update(window_s=self.state.window_s, confidence=self._last.confidence)
+        diag.update(window_s=self.state.window_s.clone(), confidence=self._last.confidence)
         self._last = self._last._replace(diagnostics=diag)
 
 
