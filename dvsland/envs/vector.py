@@ -289,8 +289,8 @@ class LandingVectorEnv(VectorEnv):
             nxt = self._restart(nxt, restart)
         self._autoreset = ended if mode == AutoresetMode.NEXT_STEP else torch.zeros_like(ended)
         self._state = nxt
-        obs, ctl = self._next_obs(nxt, ended, restart, d_true, t1)
         ignored = (~flying).cpu().numpy()
+        obs, ctl = self._next_obs(nxt, ended, restart, d_true, t1, ignored)
         restart_np = restart.cpu().numpy()
         names[ignored] = "ended"
         names[restart_np & ignored] = "reset"
@@ -301,8 +301,10 @@ class LandingVectorEnv(VectorEnv):
         return (obs_mod.pack(self._names, copy.deepcopy(obs)), reward.cpu().numpy(), term.cpu().numpy(),
                 trunc.cpu().numpy(), info)
 
-    def _next_obs(self, nxt, ended, restart, d_true, t1):
-        """Sense ``nxt`` (when anything flies) and build the observation batch; (obs, law's thrust)."""
+    def _next_obs(self, nxt, ended, restart, d_true, t1, ignored: np.ndarray):
+        """Sense ``nxt`` (when anything flies) and build the observation batch; (obs, law's thrust).
+        A descent that ended at this step keeps the last sensing it had while flying; one that had
+        ended before (DISABLED mode, waiting for its reset) keeps its whole last observation."""
         if bool(nxt.active.any()):
             self._sensed = sense_step(self.stages, nxt)
             out = self._sensed.out
@@ -313,8 +315,9 @@ class LandingVectorEnv(VectorEnv):
             self._sensed = self._sensed._replace(state=nxt, out=out)
             obs = self._observe(out, t1, nxt.m_kg)
             ctl = torch.full_like(d_true, math.nan)
-        frozen = (~nxt.active).cpu().numpy()  # a finished camera keeps its last sensing
-        obs = obs_mod.hold_sensing(obs, self._obs, frozen & ~restart.cpu().numpy())
+        fresh = restart.cpu().numpy()
+        obs = obs_mod.hold_sensing(obs, self._obs, ended.cpu().numpy() & ~fresh)  # a finished camera is frozen
+        obs = obs_mod.take_rows(obs, self._obs, ignored & ~fresh)
         self._obs = obs
         return obs, ctl
 

@@ -44,8 +44,8 @@ class LoopState(NamedTuple):
     Attributes:
         step: control steps since :func:`dvsland.sim.init_state` (int); the clock shared by the
             batch (events are stamped ``step * dt_s`` in µs).
-        flight_step: int64 control steps flown since each descent's (re)start (frozen once it
-            ends); its flight time is ``flight_step * dt_s``.
+        flight_step: int64 control steps since each descent's (re)start; its flight time is
+            ``flight_step * dt_s`` (a finished descent's end time is ``t_end_s``).
         z_m: altitude, float64 m (z = 0 the surface).
         v_mps: vertical velocity, float64 m/s (< 0 descending).
         m_kg: mass, float64 kg.

@@ -33,7 +33,6 @@ import torch
 
 from dvsland.estimators import Truth
 from dvsland.plugins import call_plugin, check_batch_tensor
-from dvsland.pytree import ObjectState, tree_where
 
 from .contracts import check_loop_state, check_no_nan_thrust, checked_thrust_out, stage_fns
 from .reset import init_state, reset_where
@@ -247,13 +246,11 @@ def act(stages, state: LoopState, est: Estimate) -> Tuple[Any, Any, Command]:
     if state.last_thrust_n is not None:  # the craft knows the acceleration it applied
         thrust_accel = state.last_thrust_n / state.last_mass_kg
         accel = thrust_accel - stages.settings.g_mps2
+    if state.restarted is not None and accel is not None:  # a restarted descent has no efference copy yet
+        nan = torch.full_like(accel, float("nan"))
+        accel, thrust_accel = torch.where(state.restarted, nan, accel), torch.where(state.restarted, nan, thrust_accel)
     f_st, f_out = fns.filter.step_state(state.stage_state.filter, est.d_hat, state.active, accel, thrust_accel,
                                         est.confidence)
-    if state.restarted is not None and accel is not None and not isinstance(f_st, ObjectState):
-        # a restarted descent's first update has no efference copy to predict with (as step 0)
-        f0, out0 = fns.filter.step_state(state.stage_state.filter, est.d_hat, state.active, None, None, est.confidence)
-        f_st = tree_where(state.restarted, f0, f_st)
-        f_out = tuple(None if a is None else torch.where(state.restarted, b, a) for a, b in zip(f_out, out0))
     d_f, n_used, z_hat = f_out[0], f_out[1], f_out[2]
     c_st, ctl = call_plugin(fns.controller_name, "__call__", fns.controller.step_state, state.stage_state.controller,
                             flight_time_s(stages, state), d_f, state.m_kg, state.active, z_hat)
@@ -278,7 +275,7 @@ def advance(stages, state: LoopState, thrust: torch.Tensor, held: torch.Tensor, 
     ended = act_ & (code != RUNNING) if terminate else torch.zeros_like(act_)
     i64, d_hat = torch.int64, est.d_hat
     nxt = state._replace(
-        step=state.step + 1, flight_step=state.flight_step + act_.to(torch.int64), z_m=z, v_mps=v, m_kg=m, active=act_ & ~ended,
+        step=state.step + 1, flight_step=state.flight_step + 1, z_m=z, v_mps=v, m_kg=m, active=act_ & ~ended,
         outcome=torch.where(ended, code, state.outcome), t_end_s=torch.where(act_, t_next, state.t_end_s),
         lowest_m=torch.where(act_, torch.minimum(state.lowest_m, z), state.lowest_m),
         max_thrust_n=torch.where(act_, torch.maximum(state.max_thrust_n, thrust), state.max_thrust_n),
