@@ -16,12 +16,13 @@ about 0.7 g_moon of extra acceleration (the flight is a lander's, on the Moon): 
 
 from __future__ import annotations
 
-from typing import Dict, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, Dict, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
 from dvsland.events import Events
+from dvsland.pytree import has_stage_contract
 
 
 class Scenario(NamedTuple):
@@ -147,16 +148,31 @@ class DustyFrames:
         return torch.where(poor.view(-1, 1, 1), flat, frames)
 
 
+class NoisyState(NamedTuple):
+    """State of a :class:`NoisyEmulator` under the stage contract: the inner emulator's state and
+    the time of the last frame, (B,) int64 µs."""
+
+    inner: Any
+    t_prev_us: torch.Tensor
+
+
 class NoisyEmulator:
     """An emulator whose events gain a burst of uniform noise: in each element's ``window_us``,
     ``rate_hz`` events per pixel and second at uniformly random pixels, times and polarities,
-    drawn from a generator seeded by ``seed`` and the step's end time (the same on every run)."""
+    drawn from a generator seeded by ``seed`` and the step's end time (the same on every run).
+
+    It offers the inner emulator's object API (``reset``/``step``) and, when the inner one has it,
+    the stage contract (``init_state``/``step_state``/``reset_where``, state :class:`NoisyState`).
+    """
 
     def __init__(self, inner, window_us: torch.Tensor, rate_hz: torch.Tensor, sensor_size, seed: int = 0):
         self.inner, self.window_us, self.rate_hz = inner, window_us, rate_hz
         self.W, self.H = int(sensor_size[0]), int(sensor_size[1])
         self.seed, self._t_prev = int(seed), None
+        if not has_stage_contract(inner):  # the contract only over an inner emulator that has it
+            self.init_state = self.step_state = self.reset_where = None
 
+    # ------------------------------------------------------------------ the object API
     def reset(self, frames, t_us: int):
         self._t_prev = int(t_us)
         return self.inner.reset(frames, t_us)
@@ -166,8 +182,25 @@ class NoisyEmulator:
 
     def step(self, frames, t_us: int) -> Events:
         ev = self.inner.step(frames, t_us)
-        t0, t1 = self._t_prev, int(t_us)
-        self._t_prev = t1
+        t0, self._t_prev = self._t_prev, int(t_us)
+        return self._burst(ev, t0, int(t_us))
+
+    # ------------------------------------------------------------------ the stage contract
+    def init_state(self, frames, t_us: int, seed=None) -> NoisyState:
+        inner = self.inner.init_state(frames, t_us, seed)
+        return NoisyState(inner, torch.full((frames.shape[0],), int(t_us), dtype=torch.int64, device=frames.device))
+
+    def step_state(self, state: NoisyState, frames, t_us: int):
+        inner, ev = self.inner.step_state(state.inner, frames, t_us)
+        t0 = int(state.t_prev_us.max())  # one host read: the batch shares its clock
+        return NoisyState(inner, torch.full_like(state.t_prev_us, int(t_us))), self._burst(ev, t0, int(t_us))
+
+    def reset_where(self, state: NoisyState, mask, frames, t_us: int, seed=None) -> NoisyState:
+        inner = self.inner.reset_where(state.inner, mask, frames, t_us, seed)
+        return NoisyState(inner, torch.where(mask, torch.full_like(state.t_prev_us, int(t_us)), state.t_prev_us))
+
+    def _burst(self, ev: Events, t0: int, t1: int) -> Events:
+        """``ev`` with the burst's events of ``(t0, t1]`` merged in (sorted by (b, t))."""
         lo = self.window_us[:, 0].clamp(min=t0)
         hi = self.window_us[:, 1].clamp(max=t1)
         span_s = ((hi - lo).clamp_min(0)).to(torch.float64) * 1e-6
