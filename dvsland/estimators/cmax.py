@@ -199,7 +199,8 @@ def cmax_init_state(p: CMaxConfig, setup: CMaxSetup, seed: int = 0) -> CMaxState
         d_mid=torch.full((B,), nan, **f64), window_s=torch.full((B,), setup.window_us * 1e-6, **f64),
         t_start_us=torch.full((B,), -1, **i64), hist_t=torch.zeros(B, T, **f64), hist_d=torch.full((B, T), nan, **f64),
         hist_s=torch.full((B, T), nan, **f64), k=torch.zeros(B, **i64),
-        seed_thin=torch.full((B,), fold_seed(seed), **i64), seed_dither=torch.full((B,), fold_seed(int(seed) + 1), **i64))
+        seed_thin=torch.full((B,), fold_seed(seed), **i64),
+        seed_dither=torch.full((B,), fold_seed(int(seed) + 1), **i64))
 
 
 def cmax_reset_where(state: CMaxState, mask: torch.Tensor, fresh: CMaxState) -> CMaxState:
