@@ -105,7 +105,8 @@ def _write(got: dict, names, add_variant: bool) -> None:
     vals = dict(np.load(VALUES)) if VALUES.exists() else {}
     for name, g in got.items():
         vals = {k: v for k, v in vals.items() if not k.startswith(name + "/")}
-        vals.update({f"{name}/{k}": v for k, v in g["values"].items()})
+        if "oracle" not in name:  # the oracle's float64 elementwise maths rounds alike on every CPU
+            vals.update({f"{name}/{k}": v for k, v in g["values"].items()})
     np.savez_compressed(VALUES, **vals)
     print(f"wrote {REF} ({len(got)} cases recorded, {len(stored)} in all) and {VALUES.name}")
 

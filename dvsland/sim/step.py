@@ -320,15 +320,18 @@ def sense_step(stages, state: LoopState, timer: Optional[Callable[[str], Any]] =
     """The first half of a step: render, emulate, estimate, filter and run the law at ``t_k``;
     finish the step with :func:`act_step`. ``state`` is not changed."""
     tm = timer or (lambda name: nullcontext())
-    check_loop_state(stages, state)
+    if state.stage_state is not getattr(stages, "_last_stage_state", None):  # a state the loop did not just make
+        check_loop_state(stages, state)
     k = state.step
     t_s = k * stages.settings.dt_s
     t_us = int(round(t_s * 1e6))
     compact = compacted(stages, state)
-    with tm("render"):
-        frames = render(stages, state)
-    with tm("emulate"):
-        emu_st, events = sense(stages, state, frames, t_us, compact)
+    frames = events = emu_st = None
+    if stages.events is not None:  # an estimator without events: no frame, no emulation, no timer
+        with tm("render"):
+            frames = render(stages, state)
+        with tm("emulate"):
+            emu_st, events = sense(stages, state, frames, t_us, compact)
     with tm("estimate"):
         est_st, est = estimate(stages, state, events, t_us)
     with tm("control"):
@@ -359,6 +362,7 @@ def act_step(stages, sensed: Sensed, thrust: Optional[torch.Tensor] = None,
     est = Estimate(out.d_est, out.d_conf, sensed.bad, {})
     with tm("dynamics"):
         nxt, ended = advance(stages, state, u, out.held, est, out.frames, sensed.stage_state, terminate)
+    stages._last_stage_state = nxt.stage_state  # a check cache only: the next step trusts what it made
     return nxt, out._replace(thrust_n=u, ended=ended)
 
 
