@@ -784,7 +784,6 @@ class EventEmulator:
             shot_noise_bright_factor=shot_noise_bright_factor, leak_rate_hz=leak_rate_hz,
             leak_rate_sigma=leak_rate_sigma, hot_pixel_fraction=hot_pixel_fraction,
             hot_pixel_rate_hz=hot_pixel_rate_hz)
-        self._next_params = self.params
         #: the state the object API holds (None before :meth:`reset`)
         self.state: Optional[EmulatorState] = None
 
@@ -793,10 +792,12 @@ class EventEmulator:
         """Per-element sensor values (a Monte Carlo batch's dispersions), each (B,) or None (the
         scalar of the constructor). ``threshold_scale`` multiplies both thresholds;
         ``element_seeds`` (B,) int: each descent's noise seed (mismatch map, background, pixel
-        noise; default: derived from ``seed`` and the index). Takes effect at the next
-        :meth:`reset` / :meth:`init_state`; per-element refractory periods need ``interpolation="log"``."""
-        self._next_params = with_element_params(self.params, threshold_scale, mismatch_sigma, background_rate_hz,
-                                                refractory_us, element_seeds)
+        noise; default: derived from ``seed`` and the index). They become part of ``params`` now:
+        per-pixel maps (mismatch, thresholds) are drawn by the next :meth:`reset` /
+        :meth:`init_state`, per-step values (refractory period, background rate) apply from the next
+        step; per-element refractory periods need ``interpolation="log"``."""
+        self.params = with_element_params(self.params, threshold_scale, mismatch_sigma, background_rate_hz,
+                                          refractory_us, element_seeds)
 
     @classmethod
     def from_config(cls, cfg, device=None, seed: int = 0) -> "EventEmulator":
@@ -812,9 +813,8 @@ class EventEmulator:
 
     # ------------------------------------------------------------------ the stage contract
     def init_state(self, frames: torch.Tensor, t_us: int, seed: Optional[torch.Tensor] = None) -> EmulatorState:
-        """A fresh state on ``frames`` (B, H, W) at ``t_us`` (:func:`emulator_init`); the per-element
-        values of :meth:`set_element_params` take effect here."""
-        self.params = self._next_params
+        """A fresh state on ``frames`` (B, H, W) at ``t_us`` (:func:`emulator_init`), drawing the
+        per-element maps of :meth:`set_element_params`."""
         return emulator_init(self.params, frames, t_us, seed)
 
     def step_state(self, state: EmulatorState, frames: torch.Tensor, t_us: int,
@@ -858,7 +858,7 @@ class EventEmulator:
     # ------------------------------------------------------------------ settings and state, read
     def __getattr__(self, name):
         # the settings read as attributes (threshold, refractory_us, pixel_model, ...)
-        if name not in ("params", "_next_params", "state") and name in _PARAM_NAMES:
+        if name not in ("params", "state") and name in _PARAM_NAMES:
             return getattr(self.params, name)
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
