@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Iterable, Optional, Type
+from typing import Any, Iterable, List, Optional, Type
 
 
 def range_text(lo: Optional[float], hi: Optional[float], open_lo: bool = False, open_hi: bool = False) -> str:
@@ -90,4 +90,59 @@ def check_fields(cls, prefix: str = "", error: Type[Exception] = ValueError, **v
             check_range(label, value, b["lo"], b["hi"], open_lo=b["open_lo"], open_hi=b["open_hi"], error=error)
 
 
-__all__ = ["check_range", "check_choice", "check_keys", "check_fields", "field_bounds", "in_range", "range_text"]
+
+
+# ------------------------------------------------------------------ devices (torch imported when called)
+def available_devices() -> List[str]:
+    """The torch devices this machine can run on: ``cpu``, then ``cuda:0``... and ``mps`` when present."""
+    import torch
+
+    devs = ["cpu"]
+    if torch.cuda.is_available():
+        devs += [f"cuda:{i}" for i in range(torch.cuda.device_count())]
+    mps = getattr(torch.backends, "mps", None)
+    if mps is not None and mps.is_available():
+        devs.append("mps")
+    return devs
+
+
+def check_device(name, param: str = "simulation.device"):
+    """Validate a torch device name against this machine before any work (or run folder) starts.
+
+    Args:
+        name: ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"mps"``, ...
+        param: how the user set it (``--device`` or ``simulation.device``), named in the error.
+
+    Returns:
+        The :class:`torch.device`.
+
+    Raises:
+        ValueError: naming ``param``, the value, and the devices available here.
+    """
+    import torch
+
+    avail = available_devices()
+    try:
+        dev = torch.device(str(name))
+    except (RuntimeError, ValueError, TypeError):
+        raise ValueError(f"{param}={name!r} is not a torch device; available on this machine: "
+                         f"{', '.join(avail)}") from None
+    if dev.type == "cpu":
+        return dev
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            why = "torch was built without CUDA" if torch.version.cuda is None else "no CUDA device is visible"
+            raise ValueError(f"{param}={name!r}: CUDA is not available ({why}, torch {torch.__version__}); "
+                             f"available on this machine: {', '.join(avail)}")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"{param}={name!r}: only {torch.cuda.device_count()} CUDA device(s) here; "
+                             f"available on this machine: {', '.join(avail)}")
+        return dev
+    if dev.type == "mps" and "mps" in avail:
+        return dev
+    raise ValueError(f"{param}={name!r}: device type {dev.type!r} is not available or not supported by dvsland; "
+                     f"available on this machine: {', '.join(avail)}")
+
+
+__all__ = ["check_range", "check_choice", "check_keys", "check_fields", "field_bounds", "in_range", "range_text",
+           "available_devices", "check_device"]

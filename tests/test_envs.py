@@ -309,3 +309,26 @@ def test_sb3_adapter_of_the_training_example(repo_root):
     assert "terminal_observation" in infos[i] and infos[i]["outcome"] in ("success", "crash", "ascent", "timeout")
     np.testing.assert_array_equal(obs[i], obs0[i])
     assert not np.array_equal(infos[i]["terminal_observation"], obs0[i])
+
+
+def test_bad_constructor_arguments_and_actions_are_named():
+    """Each bad input is one ValueError naming it, before anything is built (issue: faults in the env)."""
+    kw = dict(config="paper", sites="D", estimator="oracle", observation="oracle", overrides=QUIET)
+    for bad, msg in ((dict(device="gpu0"), "device='gpu0' is not a torch device"),
+                     (dict(num_envs=10 ** 9), r"num_envs must be an integer in \[1, 1000000\]"),
+                     (dict(num_envs=True), "num_envs must be an integer"),
+                     (dict(num_envs=400_000, estimator="cmax"), "num_envs=400000: simulation.max_memory_gb"),
+                     (dict(overrides=[3]), "overrides must be 'section.key=value' strings")):
+        with pytest.raises(ValueError, match=msg):
+            LandingVectorEnv(**{**kw, **bad})
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="device='cuda': CUDA is not available"):
+            LandingVectorEnv(**{**kw, "device": "cuda"})
+    env = LandingVectorEnv(**{**kw, "overrides": "simulation.t_max_s=2"})  # one override as a string
+    assert env.cfg.simulation.t_max_s == 2.0
+    env.reset()
+    for a in (np.array(["0.5", "0.5"]), np.array([1j, 1j]), np.array([None, None]), np.array([True, False])):
+        with pytest.raises(ValueError, match="action must be real numbers"):
+            env.step(a)
+    with pytest.raises(ValueError, match="seed must be an int in"):
+        env.reset(seed=2 ** 70)

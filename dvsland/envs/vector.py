@@ -40,9 +40,10 @@ import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from dvsland.config import Config, load_config, validate_config
+from dvsland.config import Config, ConfigError, load_config, validate_config
+from dvsland.config.validate import check_memory
 from dvsland.layout import build_layout
-from dvsland.checks import check_range
+from dvsland.checks import check_device, check_range
 from dvsland.pytree import hash_bits, hash_normal
 from dvsland.sim import OUTCOMES, act_step, init_state, reset_where, sense_step
 from dvsland.stages import build_stages, check_names
@@ -51,6 +52,10 @@ from . import observations as obs_mod
 from .actions import SETPOINT_GAIN_NS, action_spec, check_action, hover_fraction, to_thrust
 from .layout import fit_layout
 from .reward import RewardConfig, divergence_target, episode_ends, step_reward
+
+
+#: the largest batch an env takes (its layout holds a few Python values per descent)
+MAX_NUM_ENVS = 1_000_000
 
 
 class LandingVectorEnv(VectorEnv):
@@ -95,13 +100,20 @@ class LandingVectorEnv(VectorEnv):
                  autoreset_mode: Union[AutoresetMode, str, None] = None, start_dispersion: float = 0.05):
         self._names = obs_mod.parse_observation(observation)
         self.autoreset_mode = _autoreset_mode(autoreset_mode)
+        check_device(device, "device")
+        if num_envs is not None and not (isinstance(num_envs, (int, np.integer)) and not isinstance(num_envs, bool)
+                                         and 1 <= num_envs <= MAX_NUM_ENVS):
+            raise ValueError(f"num_envs must be an integer in [1, {MAX_NUM_ENVS}] or None, got {num_envs!r}")
         self.metadata = {**type(self).metadata, "autoreset_mode": self.autoreset_mode}
         self._dispersion = check_range("start_dispersion", start_dispersion, 0.0, 0.3)
         self.cfg = _resolve_config(config, overrides, estimator, device)
+        if num_envs is not None:  # the memory estimate of the batch, before anything is built
+            try:
+                check_memory(self.cfg, batch_size=int(num_envs))
+            except ConfigError as exc:
+                raise ValueError(f"num_envs={num_envs}: {exc}") from None
         self._spec = action_spec(action, self.cfg, clip_actions, setpoint_gain_ns)
         self._reward = reward if isinstance(reward, RewardConfig) else RewardConfig(**(reward or {}))
-        if num_envs is not None and not (isinstance(num_envs, (int, np.integer)) and num_envs >= 1):
-            raise ValueError(f"num_envs must be an integer >= 1 or None, got {num_envs!r}")
         self._sites = sites.split(",") if isinstance(sites, str) else sites
         self._num_envs_arg = None if num_envs is None else int(num_envs)
         self._device = torch.device(device)
@@ -168,11 +180,11 @@ class LandingVectorEnv(VectorEnv):
         mask = _reset_mask(options, self.num_envs)
         if mask is not None and self._state is None:
             raise RuntimeError("reset(options={'reset_mask': ...}) needs a first reset() of every env")
+        seeds = self._seeds(seed)  # checked before anything changes
         if isinstance(seed, (int, np.integer)) and mask is None:
             super().reset(seed=int(seed))
             if int(seed) != self._seed:
                 self._build(int(seed))
-        seeds = self._seeds(seed)
         if mask is None:
             self._env_seed, self._episode = seeds, torch.zeros_like(self._episode)
             z0, v0, noise = self._starts(torch.ones_like(self._autoreset))
@@ -191,16 +203,20 @@ class LandingVectorEnv(VectorEnv):
         B = self.num_envs
         if seed is None:
             return self._env_seed
-        if isinstance(seed, (int, np.integer)):
-            s = torch.arange(B, dtype=torch.int64) + int(seed)
-        else:
-            a = np.asarray(seed)
-            if a.shape != (B,) or a.dtype.kind not in "iu":
-                raise ValueError(f"seed must be None, an int or {B} ints (one per env), got {seed!r}")
-            s = torch.as_tensor(a.astype(np.int64))
-        if bool((s < 0).any()) or bool((s >= 2 ** 62).any()):
-            raise ValueError(f"seed must lie in [0, 2**62), got {s.tolist()}")
-        return s.to(self._device)
+        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            if not 0 <= int(seed) < 2 ** 62 - B:
+                raise ValueError(f"seed must be an int in [0, 2**62 - num_envs), got {seed!r}")
+            return (torch.arange(B, dtype=torch.int64) + int(seed)).to(self._device)
+        try:
+            vals = [int(v) for v in seed] if len(seed) == B and all(
+                isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in seed) else None
+        except TypeError:
+            vals = None
+        if vals is None:
+            raise ValueError(f"seed must be None, an int or {B} ints (one per env), got {seed!r}")
+        if not all(0 <= v < 2 ** 62 for v in vals):
+            raise ValueError(f"seed must lie in [0, 2**62) per env, got {vals}")
+        return torch.as_tensor(vals, dtype=torch.int64).to(self._device)
 
     def _starts(self, mask: torch.Tensor):
         """(z0_m, v0_mps, noise_seed) (B,) of the episodes starting where ``mask``: the layout's
@@ -398,7 +414,12 @@ def _row(obs, i: int):
 
 
 def _resolve_config(config, overrides, estimator, device) -> Config:
-    """A checked private copy of the config, with ``estimator`` and ``device`` applied."""
+    """A checked private copy of the config, with ``estimator`` and ``device`` applied
+    (``overrides``: a ``section.key=value`` string or a sequence of them)."""
+    if isinstance(overrides, str):
+        overrides = [overrides]
+    elif not all(isinstance(o, str) for o in overrides):
+        raise ValueError(f"overrides must be 'section.key=value' strings, got {overrides!r}")
     if isinstance(config, Config):
         if overrides:
             raise ValueError("overrides apply to a config name or path; edit the Config object instead")
