@@ -151,12 +151,13 @@ _MASK32 = 0xFFFFFFFF
 
 
 def _mix32(x: torch.Tensor) -> torch.Tensor:
-    """A 32-bit integer finaliser (lowbias32) on int64 tensors holding values in [0, 2^32)."""
+    """A 32-bit integer finaliser (lowbias32) on int64 tensors holding values in [0, 2^32); a new
+    tensor (the input is not written), worked in place on one temporary."""
     x = x ^ (x >> 16)
-    x = (x * _M1) & _MASK32
-    x = x ^ (x >> 15)
-    x = (x * _M2) & _MASK32
-    return x ^ (x >> 16)
+    x.mul_(_M1).bitwise_and_(_MASK32)
+    x.bitwise_xor_(x >> 15)
+    x.mul_(_M2).bitwise_and_(_MASK32)
+    return x.bitwise_xor_(x >> 16)
 
 
 def hash_bits(*keys: torch.Tensor) -> torch.Tensor:
