@@ -33,6 +33,7 @@ import torch
 
 from dvsland.estimators import Truth
 from dvsland.plugins import call_plugin, check_batch_tensor
+from dvsland.pytree import ObjectStage
 
 from .contracts import check_loop_state, check_no_nan_thrust, checked_thrust_out, stage_fns
 from .reset import init_state, reset_where
@@ -180,14 +181,17 @@ def flight_time_s(stages, state: LoopState) -> torch.Tensor:
     return state.flight_step.to(torch.float64) * stages.settings.dt_s
 
 
-def render(stages, state: LoopState) -> Optional[torch.Tensor]:
+def render(stages, state: LoopState, all_active: Optional[bool] = None) -> Optional[torch.Tensor]:
     """Frames (B, H, W) float32 at the current altitudes of the active descents (finished ones keep
-    their last frame); None when the estimator needs no events."""
+    their last frame); None when the estimator needs no events. ``all_active``: whether every
+    descent flies (read from ``state.active`` when None: one host sync)."""
     if stages.events is None:
         return None
     s = stages.settings
     alt = state.z_m.clamp(s.render_min_altitude_m, s.render_max_altitude_m)
-    if state.last_frames is None or bool(state.active.all()):
+    if all_active is None:
+        all_active = bool(state.active.all())
+    if state.last_frames is None or all_active:
         return stages.events.render(alt, state.scene_idx)
     idx = state.active.nonzero().squeeze(1)
     frames = state.last_frames.clone()
@@ -255,7 +259,8 @@ def act(stages, state: LoopState, est: Estimate) -> Tuple[Any, Any, Command]:
     c_st, ctl = call_plugin(fns.controller_name, "__call__", fns.controller.step_state, state.stage_state.controller,
                             flight_time_s(stages, state), d_f, state.m_kg, state.active, z_hat)
     checked_thrust_out(ctl, state.batch_size, state.z_m.device, fns.controller_name)
-    check_no_nan_thrust(ctl.thrust_n, fns.controller_name)
+    if isinstance(fns.controller, ObjectStage):  # a plug-in law: its command is checked (one host sync)
+        check_no_nan_thrust(ctl.thrust_n, fns.controller_name)
     return f_st, c_st, Command(ctl, d_f, n_used, z_hat)
 
 
@@ -325,11 +330,12 @@ def sense_step(stages, state: LoopState, timer: Optional[Callable[[str], Any]] =
     k = state.step
     t_s = k * stages.settings.dt_s
     t_us = int(round(t_s * 1e6))
-    compact = compacted(stages, state)
+    all_active = bool(state.active.all())  # the loop body's one host sync: which path the batch takes
+    compact = bool(getattr(stages.settings, "compact", True)) and not all_active
     frames = events = emu_st = None
     if stages.events is not None:  # an estimator without events: no frame, no emulation, no timer
         with tm("render"):
-            frames = render(stages, state)
+            frames = render(stages, state, all_active)
         with tm("emulate"):
             emu_st, events = sense(stages, state, frames, t_us, compact)
     with tm("estimate"):

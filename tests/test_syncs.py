@@ -1,0 +1,36 @@
+"""Host synchronisations per loop step, counted on the CPU (dvsland.bench.syncs): the loop body's
+own is one per step (whether every descent flies), and no stage's count grows with the batch."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dvsland.bench.syncs import SyncCounter, loop_syncs
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def test_counter_sees_the_host_reads():
+    x = torch.arange(4.0)
+    with SyncCounter() as c:
+        bool(x.any())
+        x.sum().item()
+        x.tolist()
+        x.nonzero()
+        _ = x[x > 1]
+        _ = x * 2 + 1  # no sync
+    assert c.calls == {"__bool__": 1, "item": 1, "tolist": 1, "nonzero": 1, "bool_index": 1}
+
+
+def test_the_loop_body_syncs_once_per_step():
+    r = loop_syncs("oracle", steps=4, sites="A,D")
+    assert r["syncs_per_step"] == 1.0 and r["by_call"] == {"__bool__": 1.0}
+
+
+@pytest.mark.parametrize("est", ["dpr", "learned"])
+def test_syncs_per_step_do_not_grow_with_the_batch(est):
+    small = loop_syncs(est, steps=3, sites="D")
+    large = loop_syncs(est, steps=3, sites="D", overrides=["simulation.n_seeds=8"])  # the same descents, 8 times
+    assert large["B"] == 8 * small["B"]
+    assert large["syncs_per_step"] == small["syncs_per_step"]
