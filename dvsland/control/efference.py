@@ -253,7 +253,20 @@ def check_positive(checks: dict, min_confidence: float) -> None:
             raise ValueError(f"{name} must be {'>=' if inclusive else '>'} {lo}, got {val}")
 
 
-class EfferenceFilter(DivergenceFilter):
+class PlannedStartFilter(DivergenceFilter):
+    """A filter whose params hold each descent's planned start (``params.z0_m`` (B,)): its batch
+    size and device are those of the plan."""
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.params.z0_m.numel())
+
+    @property
+    def device(self) -> torch.device:
+        return self.params.z0_m.device
+
+
+class EfferenceFilter(PlannedStartFilter):
     """Batched EKF on (altitude, velocity) fed by D_hat and the known acceleration.
 
     Args:
@@ -318,14 +331,6 @@ class EfferenceFilter(DivergenceFilter):
         (``prior_state`` is the loop's: it decides which (z0, v0) ``p`` holds)."""
         options = {k: v for k, v in options.items() if k not in _NOT_MINE}
         return cls(p.z0_m, p.v0_mps, p.dt_s, **options)
-
-    @property
-    def batch_size(self) -> int:
-        return int(self.params.z0_m.numel())
-
-    @property
-    def device(self) -> torch.device:
-        return self.params.z0_m.device
 
     # ------------------------------------------------------------------ the contract
     def init_state(self) -> EfferenceState:

@@ -53,8 +53,8 @@ import torch
 
 from dvsland.config.schema import EfferenceConfig
 
-from .efference import check_filter_plan, check_positive, confidence_rel_sigma
-from .filter import DivergenceFilter, FilterOut
+from .efference import PlannedStartFilter, check_filter_plan, check_positive, confidence_rel_sigma
+from .filter import FilterOut
 
 Tensor = torch.Tensor
 
@@ -264,7 +264,7 @@ def fit_reset_where(p: EfferenceFitParams, state: EfferenceFitState, mask: Tenso
                              torch.where(mask, fresh.n_rejected, state.n_rejected), rows[:, first:])
 
 
-class EfferenceFitFilter(DivergenceFilter):
+class EfferenceFitFilter(PlannedStartFilter):
     """Batched robust MAP fit of the initial-state offset (dz, dv) to all D_hat so far.
 
     Args:
@@ -323,14 +323,6 @@ class EfferenceFitFilter(DivergenceFilter):
         """From the loop's :class:`~dvsland.control.DescentParams` and the ``controller.efference`` options."""
         options = {k: v for k, v in options.items() if k not in _NOT_MINE}
         return cls(p.z0_m, p.v0_mps, p.dt_s, **options)
-
-    @property
-    def batch_size(self) -> int:
-        return int(self.params.z0_m.numel())
-
-    @property
-    def device(self) -> torch.device:
-        return self.params.z0_m.device
 
     # ------------------------------------------------------------------ the contract
     def init_state(self) -> EfferenceFitState:
