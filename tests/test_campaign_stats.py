@@ -116,3 +116,14 @@ def test_wilson_ends_are_exact_and_contain_the_rate():
             lo, hi = wilson_interval(k, n)
             assert lo <= k / n <= hi
         assert wilson_interval(0, n)[0] == 0.0 and wilson_interval(n, n)[1] == 1.0
+
+
+def test_difference_interval_newcombe():
+    from dvsland.report.stats import difference_interval
+
+    lo, hi = difference_interval(48, 80, 56, 70)  # Newcombe (1998), 56/70 against 48/80, method 10: 0.0524 .. 0.3339
+    assert (round(lo, 4), round(hi, 4)) == (0.0524, 0.3339)
+    assert difference_interval(5, 10, 5, 10)[0] < 0 < difference_interval(5, 10, 5, 10)[1]
+    lo, hi = difference_interval(0, 20, 20, 20)
+    assert 0.6 < lo < hi <= 1.0
+    assert all(v != v for v in difference_interval(0, 0, 3, 4))  # nan without trials

@@ -54,6 +54,25 @@ def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple:
     return (lo, hi)
 
 
+def difference_interval(k1: int, n1: int, k2: int, n2: int, confidence: float = 0.95) -> tuple:
+    """Interval of the difference of two binomial proportions p2 - p1 (Newcombe's hybrid score
+    interval, method 10 of Newcombe 1998, from the two :func:`wilson_interval` s): whether two
+    campaigns' success rates differ. (nan, nan) when either n is 0.
+
+    Returns:
+        (low, high) floats in [-1, 1]; an interval that holds 0 means no difference at that level.
+    """
+    l1, u1 = wilson_interval(k1, n1, confidence)
+    l2, u2 = wilson_interval(k2, n2, confidence)
+    if math.isnan(l1) or math.isnan(l2):
+        return (math.nan, math.nan)
+    p1, p2 = k1 / n1, k2 / n2
+    d = p2 - p1
+    lo = d - math.sqrt((p2 - l2) ** 2 + (u1 - p1) ** 2)
+    hi = d + math.sqrt((u2 - p2) ** 2 + (p1 - l1) ** 2)
+    return (max(-1.0, lo), min(1.0, hi))
+
+
 def _spread(values: Sequence[float]) -> Dict[str, Optional[float]]:
     a = np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=np.float64)
     if a.size == 0:

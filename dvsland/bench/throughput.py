@@ -1,0 +1,120 @@
+"""Throughput of the batched loop: descent-steps per second and per stage against the batch size.
+
+    python -m dvsland.bench.throughput --device cuda --batches 576,2304,4608 --estimators learned,cmax
+    python -m dvsland.bench.throughput --batches 18,63 --steps 20          # this CPU
+
+For each (estimator, B): the ``montecarlo_efference`` preset as shipped (every dispersion on), the
+first B elements of its layout in seed-major order; set-up (terrain, stages, first state) is timed
+apart; then ``--warmup`` steps and ``--steps`` timed steps of ``loop_step`` from t = 0, each stage
+timed (synchronised on CUDA), and the host syncs of one more step counted
+(:mod:`dvsland.bench.syncs`). One JSON line per case on stdout, and a markdown table with the
+machine and load in ``--out`` (``throughput.md``, ``throughput.json``). Meant to finish within a
+few minutes on a lent GPU machine with the default batches.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Dict, List
+
+import torch
+
+STAGE_KEYS = ("render", "emulate", "estimate", "control", "dynamics")
+
+
+def run_case(estimator: str, batch_size: int, device: str, steps: int, warmup: int, preset: str,
+             overrides=()) -> Dict:
+    """One (estimator, B) case: set-up seconds, descent-steps/s, ms per step by stage, syncs/step."""
+    from dvsland.bench.syncs import SyncCounter
+    from dvsland.config import load_config
+    from dvsland.envs.layout import fit_layout
+    from dvsland.sim import init_state, loop_step
+    from dvsland.sim.loop import StageTimer
+    from dvsland.stages import build_stages
+
+    t0 = time.perf_counter()
+    cfg = load_config(preset, [f"estimator.name={estimator}", "render.threads=1", f"simulation.device={device}",
+                               *overrides])
+    layout = fit_layout(cfg, None, batch_size)
+    stages = build_stages(cfg, layout, device)
+    state = init_state(stages)
+    for _ in range(warmup):
+        state, _ = loop_step(stages, state)
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+    setup_s = time.perf_counter() - t0
+    timer = StageTimer(device, sync=True)
+    w0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(steps):
+        state, _ = loop_step(stages, state, timer=timer)
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    with SyncCounter() as sc:
+        state, _ = loop_step(stages, state)
+    B = stages.batch_size
+    return {"estimator": estimator, "B": B, "device": str(device), "setup_s": round(setup_s, 2), "steps": steps,
+            "descent_steps_per_s": round(B * steps / wall), "wall_ms_per_step": round(1e3 * wall / steps, 2),
+            "cpu_ms_per_step": round(1e3 * cpu / steps, 2),
+            "us_per_descent_step": round(1e6 * wall / (steps * B), 3),
+            "stage_ms": {k: round(1e3 * timer.seconds.get(k, 0.0) / steps, 2) for k in STAGE_KEYS},
+            "syncs_per_step": sc.total, "active": int(state.active.sum())}
+
+
+def machine() -> Dict:
+    """What ran it: CPU, cores, load, torch, device name."""
+    m = {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+         "load_1min": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
+         "torch": torch.__version__, "threads": torch.get_num_threads()}
+    if torch.cuda.is_available():
+        m["gpu"] = torch.cuda.get_device_name(0)
+    return m
+
+
+def table(rows: List[Dict], info: Dict) -> str:
+    """The markdown table of ``rows`` with the machine line."""
+    head = ("| estimator | B | device | set-up s | descent-steps/s | µs per descent-step | render | emulate | "
+            "estimate | control | dynamics | syncs/step |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+    body = "".join(f"| {r['estimator']} | {r['B']} | {r['device']} | {r['setup_s']} | {r['descent_steps_per_s']:,} | "
+                   f"{r['us_per_descent_step']} | " + " | ".join(f"{r['stage_ms'][k]}" for k in STAGE_KEYS)
+                   + f" | {r['syncs_per_step']} |\n" for r in rows)
+    return f"Machine: {json.dumps(info)}; stage columns in ms per step.\n\n" + head + body
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--batches", default="18,63", help="comma-separated batch sizes")
+    ap.add_argument("--estimators", default="learned,cmax,oracle")
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--preset", default="montecarlo_efference")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], help="config override (repeatable)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--out", default=None, help="folder for throughput.json and throughput.md")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    rows = []
+    for est in a.estimators.split(","):
+        for b in (int(x) for x in a.batches.split(",")):
+            r = run_case(est, b, a.device, a.steps, a.warmup, a.preset, a.overrides)
+            print(json.dumps(r), flush=True)
+            rows.append(r)
+    info = machine()
+    if a.out:
+        out = Path(a.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "throughput.json").write_text(json.dumps({"machine": info, "rows": rows}, indent=1) + "\n")
+        (out / "throughput.md").write_text(table(rows, info))
+    print(table(rows, info))
+    return 0 if all(math.isfinite(r["descent_steps_per_s"]) for r in rows) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
