@@ -26,7 +26,8 @@ def add_config_args(parser: argparse.ArgumentParser, out: bool = True) -> None:
 
 
 #: sub-command flags that are shortcuts for a config value (applied before ``--set``)
-FLAG_KEYS = {"estimator": "estimator.name", "renderer": "render.renderer", "device": "simulation.device"}
+FLAG_KEYS = {"estimator": "estimator.name", "renderer": "render.renderer", "device": "simulation.device",
+             "controller": "controller.name"}
 
 
 # ------------------------------------------------------------------ threads

@@ -38,12 +38,25 @@ def configs_dir() -> Path:
     return Path(str(resources.files("dvsland") / "configs"))
 
 
+def _is_file(path: Path, what: str = "config file") -> bool:
+    """``path.is_file()``, but a path the OS refuses to look up (a name longer than NAME_MAX, a
+    path longer than PATH_MAX) is a ConfigError naming it and ``what``, not an OSError."""
+    try:
+        return path.is_file()
+    except OSError as exc:
+        text = str(path)
+        raise ConfigError(f"{what}: {text[:60]!r}{'...' if len(text) > 60 else ''} ({len(text)} characters) "
+                          f"cannot be looked up: {exc.strerror or exc}; a file name may have up to 255 bytes, "
+                          f"a path up to 4096") from None
+
+
 def resolve_config_path(path: PathLike) -> Path:
     """``path`` if it is a file; otherwise a shipped config of that name: ``paper``,
     ``paper.yaml`` and ``configs/paper.yaml`` all name ``dvsland/configs/paper.yaml``. A name
-    found nowhere is a ConfigError listing the shipped configs."""
+    found nowhere, or one too long to look up, is a ConfigError (the former listing the shipped
+    configs)."""
     p = Path(path)
-    if p.is_file():
+    if _is_file(p):
         return p
     name = p.name if p.suffix in (".yaml", ".yml") else p.name + ".yaml"
     shipped = configs_dir() / name
@@ -56,10 +69,17 @@ def resolve_config_path(path: PathLike) -> Path:
 def read_yaml(path: PathLike) -> dict:
     """Read a YAML mapping; a missing file or a non-mapping is a ConfigError naming the file."""
     path = Path(path)
-    if not path.is_file():
+    if not _is_file(path):
         raise ConfigError(f"config file not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text())
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a UTF-8 text file (byte {exc.object[exc.start]:#04x} at offset "
+                          f"{exc.start} is not UTF-8); save the config as UTF-8 YAML") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot be read: {exc.strerror or exc}") from None
+    try:
+        data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from None
     if data is None:
@@ -81,11 +101,12 @@ def _find_base(name, where: Path) -> Path:
     if not isinstance(name, str) or not name.strip():
         raise ConfigError(f"{where}: '{EXTENDS_KEY}' must name a preset or a YAML file, got {name!r}")
     p = Path(name.strip()).expanduser()
+    what = f"{where}: {EXTENDS_KEY}"
     if not p.is_absolute():
         for cand in (where.parent / p, where.parent / (str(p) + ".yaml")):
-            if cand.is_file():
+            if _is_file(cand, what):
                 return cand
-    elif p.is_file():
+    elif _is_file(p, what):
         return p
     try:
         return resolve_config_path(name.strip())

@@ -1,0 +1,62 @@
+"""Regression tests of issue 37 (the old edges that remained): ``--controller ""``, config files
+that are not UTF-8 or name a base the file system refuses, emulator rates that imply more events
+than a step may emit, ``evaluate --recording`` with a missing or oversized recording, Ctrl-C
+during the CLI's imports and a stale lock of the native build. Each test names the case it guards."""
+
+from __future__ import annotations
+
+import pytest
+
+from dvsland.cli.main import main
+from dvsland.config import ConfigError, load_config
+
+
+# ------------------------------------------------------------------ 15. --controller ""
+def test_empty_controller_flag_is_refused_not_dropped(tmp_path, capsys, monkeypatch):
+    """``--controller ""`` silently flew the default law."""
+    import dvsland.sim
+    from dvsland.stages import check_names
+
+    def fake_simulate(cfg, **kw):
+        check_names(cfg)
+        raise AssertionError(f"would fly controller {cfg.controller.name!r}")
+
+    monkeypatch.setattr(dvsland.sim, "simulate", fake_simulate)
+    assert main(["simulate", "--controller", "", "--quiet", "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert "controller.name" in err and "unknown controller ''" in err and "Traceback" not in err, err
+
+
+# ------------------------------------------------------------------ 13. config files not UTF-8
+@pytest.mark.parametrize("where", ["file", "base"])
+@pytest.mark.parametrize("content", ["latin1", "binary"])
+def test_config_not_utf8_names_the_file(tmp_path, where, content):
+    """A Latin-1 or binary file (itself or its ``extends:`` base): "'utf-8' codec can't decode ..."
+    without the file's name."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_bytes("name: caf\xe9\n".encode("latin-1") if content == "latin1" else bytes(range(256)) * 4)
+    path = bad
+    if where == "base":
+        path = tmp_path / "top.yaml"
+        path.write_text("extends: bad.yaml\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    msg = str(info.value)
+    assert str(bad) in msg and "UTF-8" in msg and len(msg) < 400, msg
+
+
+def test_extends_too_long_a_name_is_a_config_error(tmp_path):
+    """``extends:`` naming a 300-character file: OSError 'File name too long' from the loader."""
+    top = tmp_path / "top.yaml"
+    top.write_text(f"extends: {'x' * 300}.yaml\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(top)
+    msg = str(info.value)
+    assert str(top) in msg and "extends" in msg and "too long" in msg and len(msg) < 600, msg
+
+
+def test_config_path_too_long_is_a_config_error(tmp_path):
+    """The config path itself too long: a ConfigError, not an OSError."""
+    with pytest.raises(ConfigError) as info:
+        load_config(tmp_path / ("y" * 300 + ".yaml"))
+    assert "too long" in str(info.value)
