@@ -60,3 +60,35 @@ def test_config_path_too_long_is_a_config_error(tmp_path):
     with pytest.raises(ConfigError) as info:
         load_config(tmp_path / ("y" * 300 + ".yaml"))
     assert "too long" in str(info.value)
+
+
+# ------------------------------------------------------------------ 14. rates that imply too many events
+@pytest.mark.parametrize("override, name", [("emulator.background_rate_hz=10000", "emulator.background_rate_hz = 10000"),
+                                            ("emulator.leak_rate_hz=10000", "emulator.leak_rate_hz = 10000"),
+                                            ("emulator.threshold_off=1e-9", "emulator.threshold_off = 1e-09")])
+def test_event_rates_over_the_cap_name_the_value(override, name):
+    """Values inside the schema's ranges were refused mid-flight by a message naming only
+    emulator.max_events_per_step."""
+    from dvsland.config.validate import check_memory
+
+    cfg = load_config(None, [override])
+    with pytest.raises(ConfigError) as info:
+        check_memory(cfg, n_sites=1, batch_size=2)
+    msg = str(info.value)
+    assert name in msg and "emulator.max_events_per_step = 20000000" in msg and len(msg) < 700, msg
+
+
+@pytest.mark.parametrize("override", ["emulator.background_rate_hz=100", "emulator.threshold_off=0.01",
+                                      "emulator.leak_rate_hz=1"])
+def test_event_rates_under_the_cap_pass(override):
+    from dvsland.config.validate import check_memory
+
+    check_memory(load_config(None, [override]), n_sites=9, batch_size=18)
+
+
+def test_event_rates_over_the_cap_leave_no_run_folder(tmp_path, capsys):
+    out = tmp_path / "r"
+    assert main(["simulate", "--sites", "D", "--quiet", "--out", str(out), "--set",
+                 "emulator.background_rate_hz=10000"]) == 2
+    err = capsys.readouterr().err
+    assert "emulator.background_rate_hz = 10000" in err and "Traceback" not in err and not out.exists(), err

@@ -389,10 +389,11 @@ def check_memory(cfg: Config, n_sites: Optional[int] = None, batch_size: Optiona
     """ConfigError when :func:`estimate_run_bytes` exceeds :func:`memory_limit_bytes`, naming the
     parts. The simulator runs it on the batch it is about to build (after ``--sites``), before the
     run folder is made, a campaign on each grid point's largest shard before its plan is saved;
-    it depends on the machine, so loading a config does not."""
+    it depends on the machine, so loading a config does not. A run that fits then goes through :func:`check_event_rates`."""
     parts, limit = memory_parts(cfg, n_sites, batch_size), memory_limit_bytes(cfg)
     need = sum(parts.values())
     if need <= limit:
+        check_event_rates(cfg, batch_size, source)
         return
     gib = {k: f"{v / 2 ** 30:.1f} GiB" for k, v in parts.items()}
     cm = cfg.estimator.cmax
@@ -405,3 +406,60 @@ def check_memory(cfg: Config, n_sites: Optional[int] = None, batch_size: Optiona
         + (f", {gib['cmax']} for the cmax search (estimator.cmax.n_grid = {cm.n_grid})" if parts["cmax"] else "")
         + "; use fewer sites, settings or seeds, a smaller camera, a lower emulator.max_events_per_step or "
           "estimator.cmax.n_grid, or raise simulation.max_memory_gb")
+
+
+#: the smallest change of log intensity per pixel and control step assumed by
+#: :func:`event_rate_parts` (a descent over textured terrain changes far more)
+MIN_CONTRAST_PER_STEP = 1e-3
+
+
+def event_rate_parts(cfg: Config) -> dict:
+    """Lower estimate of the events one pixel emits per control step, by the setting that drives
+    them: {"emulator.<name> = <value>": events per pixel per step}. Noise rates (background, leak,
+    shot noise, hot pixels) times the step ``1 / camera.frame_rate_hz``; the contrast threshold's
+    share as :data:`MIN_CONTRAST_PER_STEP` over the lowest threshold. A dispersed rate or threshold
+    is left out (the estimate stays a lower one)."""
+    em, dt, disp = cfg.emulator, cfg.dt_s, cfg.dispersion
+
+    def dispersed(name: str) -> bool:
+        return bool(disp.enabled) and getattr(disp, name).kind != "off"
+
+    parts = {}
+    if not dispersed("background_rate_hz"):
+        parts[f"emulator.background_rate_hz = {em.background_rate_hz:g}"] = em.background_rate_hz * dt
+    parts[f"emulator.leak_rate_hz = {em.leak_rate_hz:g}"] = em.leak_rate_hz * dt
+    parts[f"emulator.shot_noise_rate_hz = {em.shot_noise_rate_hz:g}"] = (
+        em.shot_noise_rate_hz * min(1.0, em.shot_noise_bright_factor) * dt)
+    parts[f"emulator.hot_pixel_fraction = {em.hot_pixel_fraction:g} x emulator.hot_pixel_rate_hz = "
+          f"{em.hot_pixel_rate_hz:g}"] = em.hot_pixel_fraction * em.hot_pixel_rate_hz * dt
+    if not dispersed("threshold_scale"):
+        off = em.threshold if em.threshold_off is None else em.threshold_off
+        name, th = ("threshold_off", off) if off < em.threshold else ("threshold", em.threshold)
+        parts[f"emulator.{name} = {th:g}"] = MIN_CONTRAST_PER_STEP / th
+    return {k: v for k, v in parts.items() if v > 0}
+
+
+def check_event_rates(cfg: Config, batch_size: Optional[int] = None, source: Optional[str] = None) -> None:
+    """ConfigError, before anything is flown, when the settings of :func:`event_rate_parts` imply
+    more events in one step of ``batch_size`` descents (default: the whole experiment) than
+    ``emulator.max_events_per_step``; the message names the setting with the largest share and its
+    value (values inside the schema's ranges can do this: ``background_rate_hz = 1e4`` on a DVS128
+    at 10 Hz is 1000 events per pixel per step). A refractory period bounds a pixel's count."""
+    parts, cap = event_rate_parts(cfg), int(cfg.emulator.max_events_per_step)
+    per_px = sum(parts.values())
+    r_us = float(cfg.emulator.refractory_us)
+    if r_us > 0:
+        per_px = min(per_px, cfg.dt_s * 1e6 / r_us)
+    B, W, H = _batch(cfg, batch_size), cfg.camera.width_px, cfg.camera.height_px
+    n = per_px * B * W * H
+    if n <= cap:
+        return
+    top = max(parts, key=parts.get)
+    others = [k for k in parts if k != top]
+    raise ConfigError(
+        f"{top}{_where(source)}: one control step would emit at least about {n:.3g} events "
+        f"(B = {B} descents x {W}x{H} px x {per_px:.3g} per pixel per step"
+        + (f", with {', '.join(others)}" if others else "")
+        + f"), above emulator.max_events_per_step = {cap} (about {n * BYTES_PER_EVENT / 2 ** 30:.3g} GiB at "
+          f"{BYTES_PER_EVENT} B per event); {'raise' if 'threshold' in top else 'lower'} {top.split(' = ')[0]}, fly fewer "
+          f"descents or raise emulator.max_events_per_step if the memory is there")
