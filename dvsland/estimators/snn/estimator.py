@@ -36,6 +36,7 @@ from dvsland.pytree import check_state_like, tree_where
 
 from ..base import DivergenceEstimator, EstimateOut, Truth
 from ..registry import register_estimator
+from ..state_dict_check import check_finite_numbers, read_checkpoint_file, short_path
 from ..state_dict_check import check_state_dict as check_weights
 from .encoding import LogPolarEncoder
 from .model import SNNState, SpikingDivergenceNet
@@ -56,63 +57,64 @@ def save_checkpoint(path, model: SpikingDivergenceNet, encoder: LogPolarEncoder,
                 "meta": meta}, path)
 
 
-def _short(path) -> str:
-    text = str(path)
-    return text if len(text) <= 120 else f"{text[:60]}...{text[-40:]} ({len(text)} characters)"
+#: what the snn messages add: how to get a good checkpoint
+_HINT = "train one with `dvsland train`, or leave estimator.snn.checkpoint empty for the shipped one"
 
 
-def _check_path(path: Path) -> None:
-    """ValueError naming estimator.snn.checkpoint for a path the OS refuses (too long) or a missing file."""
-    try:
-        found = path.is_file()
-    except (OSError, ValueError) as exc:  # ENAMETOOLONG, a NUL byte, ...
-        raise ValueError(f"estimator.snn.checkpoint: {_short(path)}: {getattr(exc, 'strerror', None) or exc}; expected "
-                         f"the path of a checkpoint file (at most 4096 characters, each folder or file name at "
-                         f"most 255 bytes)") from None
-    if not found:
-        raise ValueError(f"estimator.snn.checkpoint: file not found: {_short(path)} (train one with "
-                         f"scripts/train_snn.py)")
-
-
-def check_state_dict(path, state: dict, model: torch.nn.Module) -> None:
+def check_state_dict(path, state: dict, model: torch.nn.Module, param: str = "estimator.snn.checkpoint") -> None:
     """Every tensor of a checkpoint's ``state`` against ``model`` (names, shapes, floating dtypes,
     finite values): :func:`dvsland.estimators.state_dict_check.check_state_dict`, the messages
-    naming ``estimator.snn.checkpoint`` and the file."""
-    check_weights(state, model, f"estimator.snn.checkpoint: {_short(path)}")
+    naming ``param`` and the file."""
+    check_weights(state, model, f"{param}: {short_path(path)}")
 
 
-def load_checkpoint(path=None, sensor_size=(128, 128), dt_s: float = 0.1, device="cpu", principal_point_px=None):
-    """(model, encoder, meta) from ``path`` (default: the shipped checkpoint). Raises ValueError with
-    the path for a missing, corrupt or foreign file, a path the OS refuses, and tensors of the wrong
-    name, shape or dtype or with NaN / inf values (:func:`check_state_dict`, naming the tensor)."""
-    path = Path(path) if path else DEFAULT_CHECKPOINT
-    _check_path(path)
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception:  # any failure to read untrusted bytes (the unpickler raises KeyError, IndexError, ...)
-        raise ValueError(f"estimator.snn.checkpoint: {path} is not a readable dvsland snn checkpoint (corrupt, "
-                         f"truncated or another kind of file). Re-train it with scripts/train_snn.py or leave "
-                         f"estimator.snn.checkpoint empty for the shipped one") from None
-    missing = [k for k in ("state_dict", "encoder", "model") if not isinstance(ck, dict) or k not in ck]
+def read_snn_checkpoint(path, param: str = "estimator.snn.checkpoint") -> dict:
+    """The dict of an snn checkpoint file, its description checked: the fields ``state_dict``,
+    ``encoder`` (``n_rho``, ``n_phi``, ``r_min_px``, ``r_max_px``, ``n_sub``) and ``model``
+    (``channels``, ``d_scale``: a finite number > 0, 1/s per read-out unit), every number finite.
+
+    Raises:
+        ValueError: ``"<param>: <path> ..."`` (:mod:`~dvsland.estimators.state_dict_check`).
+    """
+    ck = read_checkpoint_file(path, param, "dvsland snn checkpoint", _HINT)
+    where = f"{param}: {short_path(path)}"
+    missing = [k for k in ("state_dict", "encoder", "model") if k not in ck]
     if missing:
-        raise ValueError(f"estimator.snn.checkpoint: {path} is not a readable dvsland snn checkpoint (it has no "
-                         f"{missing}). Re-train it with scripts/train_snn.py or leave estimator.snn.checkpoint "
-                         f"empty for the shipped one")
-    e = ck["encoder"]
+        raise ValueError(f"{param}: {short_path(path)} is not a readable dvsland snn checkpoint (it has no "
+                         f"{missing}); {_HINT}")
+    e, m = ck["encoder"], ck["model"]
     try:
-        _ = (e["n_rho"], e["n_phi"], e["r_min_px"], e["r_max_px"], e["n_sub"], ck["model"]["channels"])
-    except (KeyError, TypeError):
-        raise ValueError(f"estimator.snn.checkpoint: {path} is not a readable dvsland snn checkpoint (its encoder "
-                         f"or model description is incomplete)") from None
-    m = ck["model"]
+        _ = (e["n_rho"], e["n_phi"], e["r_min_px"], e["r_max_px"], e["n_sub"], m["channels"], m["d_scale"])
+    except (KeyError, TypeError, AttributeError):
+        raise ValueError(f"{where} is not a readable dvsland snn checkpoint (its encoder or model description is "
+                         f"incomplete); {_HINT}") from None
+    check_finite_numbers(e, where, "encoder")
+    check_finite_numbers(m, where, "model")
+    d_scale = m["d_scale"]
+    if isinstance(d_scale, bool) or not isinstance(d_scale, (int, float)) or not d_scale > 0:
+        raise ValueError(f"{where}: model.d_scale is {d_scale!r}; expected a finite number > 0 (the read-out's "
+                         f"scale to D, 1/s; a damaged checkpoint)")
+    return ck
+
+
+def load_checkpoint(path=None, sensor_size=(128, 128), dt_s: float = 0.1, device="cpu", principal_point_px=None,
+                    param: str = "estimator.snn.checkpoint"):
+    """(model, encoder, meta) from ``path`` (default: the shipped checkpoint). Raises ValueError
+    starting with ``param`` and the path for a missing, corrupt or foreign file, a path the OS
+    refuses, a description with a non-finite number or d_scale <= 0 (:func:`read_snn_checkpoint`),
+    and tensors of the wrong name, shape or dtype or with NaN / inf values (:func:`check_state_dict`,
+    naming the tensor)."""
+    path = Path(path) if path else DEFAULT_CHECKPOINT
+    ck = read_snn_checkpoint(path, param)
+    e, m = ck["encoder"], ck["model"]
     try:
         trained_dt = m.get("slice_dt_s", 0.1 / e["n_sub"]) * e["n_sub"]
         learn_tau = m.get("learn_tau", False)
     except Exception:
         trained_dt, learn_tau = None, None
     if learn_tau and trained_dt is not None and abs(trained_dt - dt_s) > 1e-9:
-        raise ValueError(f"the snn checkpoint was trained at a control interval of {trained_dt:g} s (its learned "
-                         f"time constants are per slice); got dt_s = {dt_s:g} s (camera.frame_rate_hz)")
+        raise ValueError(f"{param}: {short_path(path)} was trained at a control interval of {trained_dt:g} s (its "
+                         f"learned time constants are per slice); got dt_s = {dt_s:g} s (camera.frame_rate_hz)")
     try:  # a damaged description (a flipped byte in a number) must fail here, clearly, whatever breaks
         enc = LogPolarEncoder(sensor_size, e["n_rho"], e["n_phi"], e["r_min_px"], e["r_max_px"], e["n_sub"], device,
                               principal_point_px=principal_point_px)
@@ -120,14 +122,14 @@ def load_checkpoint(path=None, sensor_size=(128, 128), dt_s: float = 0.1, device
                                      d_scale=m["d_scale"], learn_tau=learn_tau)
     except Exception as exc:
         first = (str(exc).splitlines() or [""])[0][:200]
-        raise ValueError(f"estimator.snn.checkpoint: {path}: its encoder or model description does not make a "
+        raise ValueError(f"{param}: {short_path(path)}: its encoder or model description does not make a "
                          f"network ({type(exc).__name__}: {first})") from None
-    check_state_dict(path, ck["state_dict"], model)
+    check_state_dict(path, ck["state_dict"], model, param)
     try:
         model.load_state_dict(ck["state_dict"])
     except Exception as exc:
         first = (str(exc).splitlines() or [""])[0][:200]
-        raise ValueError(f"estimator.snn.checkpoint: {path}: its weights or description do not fit the network "
+        raise ValueError(f"{param}: {short_path(path)}: its weights or description do not fit the network "
                          f"it describes ({type(exc).__name__}: {first})") from None
     return model.to(device).eval(), enc, ck.get("meta", {})
 
