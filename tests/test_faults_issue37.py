@@ -92,3 +92,57 @@ def test_event_rates_over_the_cap_leave_no_run_folder(tmp_path, capsys):
                  "emulator.background_rate_hz=10000"]) == 2
     err = capsys.readouterr().err
     assert "emulator.background_rate_hz = 10000" in err and "Traceback" not in err and not out.exists(), err
+
+
+# ------------------------------------------------------------------ 11. evaluate --recording <missing>
+@pytest.mark.parametrize("flag", ["--recording", "--ground-truth"])
+def test_evaluate_missing_recording_is_one_line_and_no_run_folder(tmp_path, capsys, flag):
+    """A FileNotFoundError traceback, and the run folder was made before the file was read."""
+    good = tmp_path / "ok.csv"
+    good.write_text("t,x,y,p\n0,1,1,1\n100000,2,2,0\n")
+    missing = tmp_path / "missing.csv"
+    args = ["--recording", str(missing)] if flag == "--recording" else [
+        "--recording", str(good), "--ground-truth", str(missing)]
+    out = tmp_path / "r"
+    assert main(["evaluate", *args, "--estimators", "dpr", "--quiet", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert flag in err and str(missing) in err and "Traceback" not in err and len(err.splitlines()) == 1, err
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------ 12. sizes implied by a recording
+SPANS = {"31 years": "t,x,y,p\n0,1,1,1\n978285600000000,2,2,0\n",  # np.arange over 9.8e9 intervals
+         "t = 2^62 us": f"t,x,y,p\n0,1,1,1\n{2 ** 62},2,2,0\n",
+         "40001 px": "t,x,y,p\n0,1,1,1\n100000,40000,40000,0\n"}  # 6.4 GB per estimator array
+
+
+@pytest.mark.parametrize("case", sorted(SPANS))
+def test_recording_implied_sizes_are_refused_up_front(tmp_path, case):
+    from dvsland.evaluate import evaluate_recording
+
+    f = tmp_path / "rec.csv"
+    f.write_text(SPANS[case])
+    cfg = load_config(None, ["simulation.max_memory_gb=4"])
+    with pytest.raises(ValueError) as info:
+        evaluate_recording(cfg, f, ["dpr", "cmax"], progress=False)
+    msg = str(info.value)
+    words = "40001x40001 px" if case == "40001 px" else "intervals of 100 ms"
+    assert str(f) in msg and words in msg and "simulation.max_memory_gb" in msg and len(msg) < 700, msg
+
+
+def test_recording_implied_sizes_leave_no_run_folder(tmp_path, capsys):
+    f = tmp_path / "rec.csv"
+    f.write_text(SPANS["31 years"])
+    out = tmp_path / "r"
+    assert main(["evaluate", "--recording", str(f), "--estimators", "dpr", "--quiet", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(f) in err and "Traceback" not in err and not out.exists(), err
+
+
+def test_recording_of_ordinary_size_still_runs(tmp_path):
+    from dvsland.evaluate import evaluate_recording
+
+    f = tmp_path / "rec.csv"
+    f.write_text("t,x,y,p\n" + "".join(f"{k * 20000},{k % 7},{k % 5},{k % 2}\n" for k in range(100)))
+    res = evaluate_recording(load_config(None, ["simulation.max_memory_gb=4"]), f, ["dpr"], progress=False)
+    assert res.summary["n_steps"] == 20 and res.summary["sensor_size"] == [7, 5]

@@ -95,6 +95,24 @@ def estimator_specs(text: str) -> list:
     return out
 
 
+def _read_recording(cfg, args, specs):
+    """The ``--recording`` file (with ``--ground-truth``, ``--t-unit``, ``--element``), read and its
+    implied sizes checked (:func:`dvsland.evaluate.recording.check_recording_size`) before the run
+    folder is made: a missing file is a ValueError naming the flag."""
+    from dvsland.evaluate.recording import check_recording_size
+    from dvsland.events import read_recording
+
+    from .common import check_input_file
+
+    check_input_file(args.recording, "--recording")
+    if args.ground_truth is not None:
+        check_input_file(args.ground_truth, "--ground-truth")
+    recording = read_recording(args.recording, ground_truth=args.ground_truth, t_unit=args.t_unit, b=args.element)
+    if len(recording.events):
+        check_recording_size(cfg, recording, specs, args.max_steps)
+    return recording
+
+
 def run_evaluate(args) -> int:
     from dvsland.config import dump_config
     from dvsland.evaluate import evaluate, format_table, write_outputs
@@ -117,15 +135,14 @@ def run_evaluate(args) -> int:
     check_configured_sites(cfg, sites)
     apply_threads(cfg)  # --threads, else simulation.torch_threads (0 = torch's default)
     device = cfg.simulation.device
+    recording = _read_recording(cfg, args, specs) if args.recording else None  # before the run folder
     run_dir = make_run_dir(cfg, args.out, kind="evaluate")
     quiet = bool(cfg.logging.quiet)
-    if args.recording:
+    if recording is not None:
         from dvsland.evaluate import evaluate_recording
 
-        res = evaluate_recording(cfg, args.recording, specs,
-                                 warmup_steps=args.warmup_steps, max_steps=args.max_steps, device=device,
-                                 progress=not quiet, ground_truth=args.ground_truth, t_unit=args.t_unit,
-                                 b=args.element)
+        res = evaluate_recording(cfg, recording, specs, warmup_steps=args.warmup_steps, max_steps=args.max_steps,
+                                 device=device, progress=not quiet)
     else:
         scen = args.scenarios if args.scenarios is not None else (
             "none" if args.max_steps or args.segment_steps else "all")

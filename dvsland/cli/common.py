@@ -153,3 +153,21 @@ def config_from_args(args: argparse.Namespace, extra_overrides=()) -> Config:
     cfg = load_config(args.config, overrides)
     check_device(cfg.simulation.device, "simulation.device")
     return cfg
+
+
+# ------------------------------------------------------------------ input files
+def check_input_file(path, param: str) -> None:
+    """ValueError naming ``param`` unless ``path`` is an existing file (a missing file, a folder,
+    or a name the OS cannot look up); every command checks its input files with this before its
+    run folder is made."""
+    from pathlib import Path
+
+    text = str(path)
+    try:
+        ok, exists = Path(text).is_file(), Path(text).exists()
+    except OSError as exc:
+        raise ValueError(f"{param}: {text[:60]!r}{'...' if len(text) > 60 else ''} cannot be looked up "
+                         f"({exc.strerror or exc})") from None
+    if not text.strip() or not ok:
+        what = "is a folder, not a file" if exists else "no such file"
+        raise ValueError(f"{param}: {what}: {text!r}" if text.strip() else f"{param}: give a file, got ''")

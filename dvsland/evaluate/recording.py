@@ -47,6 +47,89 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+#: bytes per interval of :func:`evaluate_recording`'s arrays (int64 / float64): the interval ends,
+#: the cuts, three ground-truth columns, the event counts, the times and two masks
+STEP_BYTES = 8 * 8
+#: bytes per interval and estimator: its estimate and its timing
+STEP_BYTES_PER_ESTIMATOR = 16
+
+
+def _sized_config(cfg: Config, recording: Recording) -> Config:
+    """``cfg`` with the camera set to the recording's sensor (a custom sensor of its W x H px)."""
+    W, H = recording.sensor_size
+    cam = dataclasses.replace(cfg.camera, sensor="custom", width_px=int(W), height_px=int(H),
+                              pixel_pitch_um=cfg.camera.pixel_pitch_um if cfg.camera.sensor == "custom" else None,
+                              focal_length_mm=None)
+    return dataclasses.replace(cfg, camera=cam)
+
+
+def _intervals(cfg: Config, recording: Recording, max_steps: Optional[int]) -> tuple:
+    """``(t0, dt_us, K)``: the recording cut into K intervals of ``dt_us`` µs (the frame period)
+    from ``t0`` µs (the ground truth's start if earlier, else just before the first event)."""
+    dt_us = int(round(cfg.dt_s * 1e6))
+    t_first, t_last = recording.t_range_us
+    gt = recording.ground_truth
+    t0 = int(gt.t_us[0]) if gt is not None and int(gt.t_us[0]) < t_first else t_first - 1
+    K = int(np.ceil((t_last - t0) / dt_us))
+    if max_steps is not None:
+        K = min(K, int(max_steps))
+    return t0, dt_us, K
+
+
+def recording_memory_parts(cfg: Config, recording: Recording, estimators: Sequence[str],
+                           max_steps: Optional[int] = None) -> dict:
+    """Rough peak memory of :func:`evaluate_recording`, bytes, by part: ``intervals`` (the
+    per-interval arrays: K x (STEP_BYTES + STEP_BYTES_PER_ESTIMATOR per estimator)) and
+    ``estimators`` (each estimator's per-pixel state and cmax search on the recording's W x H
+    sensor, :func:`dvsland.config.validate.memory_parts` for one descent). Allocates nothing."""
+    from dvsland.config.validate import memory_parts
+
+    cfg = _sized_config(cfg, recording)
+    specs = [parse_estimator_spec(e) for e in estimators]
+    K = _intervals(cfg, recording, max_steps)[2]
+    per_est = 0.0
+    for lab, est_name, over in specs:
+        parts = memory_parts(variant_config(cfg, est_name, over, lab), n_sites=0, batch_size=1)
+        per_est += parts["pixels"] + parts["cmax"]
+    return {"intervals": float(K + 1) * (STEP_BYTES + STEP_BYTES_PER_ESTIMATOR * len(specs)),
+            "estimators": per_est}
+
+
+def _span_text(seconds: float) -> str:
+    """A time span in s, days or years, whichever reads best."""
+    if seconds < 86400:
+        return f"{seconds:.4g} s"
+    days = seconds / 86400
+    return f"{days:.4g} days" if days < 365.25 else f"{days / 365.25:.4g} years"
+
+
+def check_recording_size(cfg: Config, recording: Recording, estimators: Sequence[str],
+                         max_steps: Optional[int] = None) -> None:
+    """ValueError naming the file when the sizes a recording implies (its time span in intervals
+    of ``1 / camera.frame_rate_hz``, its W x H sensor) need more memory than
+    :func:`dvsland.config.validate.memory_limit_bytes` (``simulation.max_memory_gb``): events
+    31 years apart, a time of 2^62 µs or a coordinate of 40000 px are refused before anything
+    is allocated (the CLI runs it before the run folder is made)."""
+    from dvsland.config.validate import memory_limit_bytes
+
+    parts, limit = recording_memory_parts(cfg, recording, estimators, max_steps), memory_limit_bytes(cfg)
+    need = sum(parts.values())
+    if need <= limit:
+        return
+    (t_first, t_last), (W, H) = recording.t_range_us, recording.sensor_size
+    _, dt_us, K = _intervals(cfg, recording, max_steps)
+    gib = {k: f"{v / 2 ** 30:.3g} GiB" for k, v in parts.items()}
+    origin = recording.meta.get("sensor_size_from") or "given"
+    raise ValueError(
+        f"{recording.source}: the recording implies about {need / 2 ** 30:.3g} GiB, above the limit of "
+        f"{limit / 2 ** 30:.3g} GiB (simulation.max_memory_gb): {gib['intervals']} for {K} intervals of "
+        f"{dt_us / 1e3:g} ms (1 / camera.frame_rate_hz; events from t = {t_first} to {t_last} us, "
+        f"{_span_text((t_last - t_first) / 1e6)}) and {gib['estimators']} for "
+        f"{len(estimators)} estimator(s) on a {W}x{H} px sensor ({origin}); check the time unit "
+        f"(t_unit / --t-unit) and the coordinates, evaluate fewer intervals (max_steps / --max-steps) or "
+        f"raise simulation.max_memory_gb")
+
+
 def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
                        estimators: Sequence[str] = ("dpr", "cmax"), *, warmup_steps: int = 10,
                        max_steps: Optional[int] = None, device="cpu", name: Optional[str] = None,
@@ -79,22 +162,15 @@ def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
         raise ValueError("estimators must name at least one estimator")
     if int(warmup_steps) < 0:
         raise ValueError(f"warmup_steps must be >= 0, got {warmup_steps}")
+    if len(recording.events) == 0:
+        raise ValueError(f"{recording.source}: the recording has no events")
+    check_recording_size(cfg, recording, estimators, max_steps)  # before anything is allocated
     device = torch.device(device)
     ev_all = recording.events.to(device)
-    if len(ev_all) == 0:
-        raise ValueError(f"{recording.source}: the recording has no events")
     W, H = recording.sensor_size
-    cam = dataclasses.replace(cfg.camera, sensor="custom", width_px=int(W), height_px=int(H),
-                              pixel_pitch_um=cfg.camera.pixel_pitch_um if cfg.camera.sensor == "custom" else None,
-                              focal_length_mm=None)
-    cfg = dataclasses.replace(cfg, camera=cam)
-    dt_us = int(round(cfg.dt_s * 1e6))
-    t_first, t_last = recording.t_range_us
+    cfg = _sized_config(cfg, recording)
+    t0, dt_us, K = _intervals(cfg, recording, max_steps)
     gt = recording.ground_truth
-    t0 = int(gt.t_us[0]) if gt is not None and int(gt.t_us[0]) < t_first else t_first - 1
-    K = int(np.ceil((t_last - t0) / dt_us))
-    if max_steps is not None:
-        K = min(K, int(max_steps))
     edges = t0 + dt_us * np.arange(K + 1, dtype=np.int64)  # edges[k] = end of interval k
     t_np = ev_all.t.cpu().numpy()
     cut = np.searchsorted(t_np, edges, side="right")  # events in (edges[k-1], edges[k]]
@@ -156,4 +232,4 @@ def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
     return res
 
 
-__all__ = ["evaluate_recording", "RecordingDescents"]
+__all__ = ["evaluate_recording", "RecordingDescents", "check_recording_size", "recording_memory_parts"]
