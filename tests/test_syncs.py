@@ -34,3 +34,12 @@ def test_syncs_per_step_do_not_grow_with_the_batch(est):
     large = loop_syncs(est, steps=3, sites="D", overrides=["simulation.n_seeds=8"])  # the same descents, 8 times
     assert large["B"] == 8 * small["B"]
     assert large["syncs_per_step"] == small["syncs_per_step"]
+
+
+def test_throughput_case_reports_rates_stages_and_syncs():
+    from dvsland.bench.throughput import STAGE_KEYS, run_case, table
+
+    r = run_case("oracle", 4, "cpu", steps=2, warmup=1, preset="paper")
+    assert r["B"] == 4 and r["descent_steps_per_s"] > 0 and set(r["stage_ms"]) == set(STAGE_KEYS)
+    assert r["syncs_per_step"] == 1 and r["stage_ms"]["render"] == 0.0
+    assert "| oracle | 4 | cpu |" in table([r], {"cpu": "x"})

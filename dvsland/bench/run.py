@@ -44,6 +44,9 @@ STAGE_BENCHES = {
                    ["--threads", "1", "--batch", "18", "--steps", "10", "--estimators", "dpr,oracle",
                     "--json", "{json}"]),
     "renderers": ("stage_renderers", ["--out", "{json}"], ["--n-alt", "4", "--segments", "--out", "{json}"]),
+    "throughput": ("throughput", ["--device", "{device}", "--batches", "18,63,256", "--json", "{json}"],
+                   ["--device", "{device}", "--batches", "18,63", "--steps", "10", "--estimators", "oracle,learned",
+                    "--json", "{json}"]),
     "sim": ("stage_sim", ["--threads", "1", "--set", "render.threads=1", "--json", "{json}", "--out", "{dir}"],
             ["--threads", "1", "--set", "render.threads=1", "--sites", "A,D,H", "--json", "{json}", "--out", "{dir}"]),
 }
@@ -162,7 +165,7 @@ def run_bench(what: Sequence[str] = (), quick: bool = False, device="cpu", out: 
         if stage:
             report["stage_benchmarks"] = {}
             for name in stage:
-                report["stage_benchmarks"][name] = _stage_bench(name, quick, run_dir, log)
+                report["stage_benchmarks"][name] = _stage_bench(name, quick, run_dir, log, str(dev))
                 save()
     except BaseException as exc:  # Ctrl-C too: keep what was measured, then re-raise
         report["status"] = f"interrupted: {type(exc).__name__}: {exc}"
@@ -278,13 +281,14 @@ def _part_campaign(report, spec: dict, dev, quick, overrides, sites, log):
     report["campaign"]["rows"] = rows
 
 
-def _stage_bench(name: str, quick: bool, run_dir: Path, log) -> Dict:
+def _stage_bench(name: str, quick: bool, run_dir: Path, log, device: str = "cpu") -> Dict:
     import importlib
 
     mod, full, qargs = STAGE_BENCHES[name]
     path = Path(run_dir) / f"stage_{name}.json"
     sim_dir = Path(run_dir) / f"stage_{name}_run"
-    argv = [a.replace("{json}", str(path)).replace("{dir}", str(sim_dir)) for a in (qargs if quick else full)]
+    argv = [a.replace("{json}", str(path)).replace("{dir}", str(sim_dir)).replace("{device}", device)
+            for a in (qargs if quick else full)]
     log(f"== stage benchmark {name}: python -m dvsland.bench.{mod} {' '.join(argv)}")
     t0 = time.perf_counter()
     buf = io.StringIO()

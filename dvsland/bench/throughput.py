@@ -2,6 +2,7 @@
 
     python -m dvsland.bench.throughput --device cuda --batches 576,2304,4608 --estimators learned,cmax
     python -m dvsland.bench.throughput --batches 18,63 --steps 20          # this CPU
+    dvsland bench throughput [--device cuda] [--quick]                     # the same, into a bench run folder
 
 For each (estimator, B): the ``montecarlo_efference`` preset as shipped (every dispersion on), the
 first B elements of its layout in seed-major order; set-up (terrain, stages, first state) is timed
@@ -98,6 +99,7 @@ def main(argv=None) -> int:
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="config override (repeatable)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default=None, help="folder for throughput.json and throughput.md")
+    ap.add_argument("--json", default=None, help="also write the rows and the machine to this JSON file")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     rows = []
@@ -112,6 +114,8 @@ def main(argv=None) -> int:
         out.mkdir(parents=True, exist_ok=True)
         (out / "throughput.json").write_text(json.dumps({"machine": info, "rows": rows}, indent=1) + "\n")
         (out / "throughput.md").write_text(table(rows, info))
+    if a.json:
+        Path(a.json).write_text(json.dumps({"machine": info, "rows": rows}, indent=1) + "\n")
     print(table(rows, info))
     return 0 if all(math.isfinite(r["descent_steps_per_s"]) for r in rows) else 1
 
