@@ -146,3 +146,46 @@ def test_recording_of_ordinary_size_still_runs(tmp_path):
     f.write_text("t,x,y,p\n" + "".join(f"{k * 20000},{k % 7},{k % 5},{k % 2}\n" for k in range(100)))
     res = evaluate_recording(load_config(None, ["simulation.max_memory_gb=4"]), f, ["dpr"], progress=False)
     assert res.summary["n_steps"] == 20 and res.summary["sensor_size"] == [7, 5]
+
+
+# ------------------------------------------------------------------ 10. Ctrl-C during the CLI's imports
+_PRELUDE = """
+import importlib, sys
+real = importlib.import_module
+def interrupted(name, *a, **k):
+    if name.startswith("dvsland.cli.cmd_"):
+        raise KeyboardInterrupt  # Ctrl-C while build_parser imports the sub-commands
+    return real(name, *a, **k)
+importlib.import_module = interrupted
+from dvsland.cli.main import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.parametrize("args", [["config", "show"], ["--version"]])
+def test_interrupt_during_the_parsers_imports_is_one_line(args):
+    """A KeyboardInterrupt traceback from the imports in build_parser() (outside main's try)."""
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-c", _PRELUDE, *args], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 130 and "Traceback" not in p.stderr, p.stderr
+    assert p.stderr.strip().startswith("dvsland: interrupted") and len(p.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_signal_in_the_first_seconds_is_never_a_traceback(sig):
+    """A real signal at several moments of the start-up (imports, parsing, the command)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    for delay in (0.15, 0.4, 0.8, 1.2, 1.8):
+        p = subprocess.Popen([sys.executable, "-m", "dvsland.cli.main", "config", "show", "paper"],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        time.sleep(delay)
+        p.send_signal(getattr(signal, sig))
+        err = p.communicate(timeout=120)[1]
+        assert "Traceback" not in err, (delay, err)
+        assert p.returncode in (0, 130, -getattr(signal, sig)), (delay, p.returncode, err)
