@@ -172,6 +172,21 @@ def _check_numbers(args) -> None:
         raise ValueError(f"--channels must be two positive integers, e.g. 16,32; got {args.channels!r}")
 
 
+def _start_from(args, cfg):
+    """(network or None, encoder, the prior training's meta) of ``--init``: its checkpoint loaded by
+    the snn loader with the one checkpoint validation (ValueError naming ``--init`` and the file for
+    a missing, foreign, damaged or diverged one), else (None, a new encoder with ``--n-sub``, {})."""
+    from dvsland.estimators.snn import LogPolarEncoder, load_checkpoint
+
+    sensor = (cfg.camera.width_px, cfg.camera.height_px)
+    if args.init is None:
+        return None, LogPolarEncoder(sensor, n_sub=args.n_sub), {}
+    if not args.init.strip():
+        raise ValueError(f"--init {args.init!r}: empty; expected an snn checkpoint file (.pt) to start from")
+    model, enc, meta = load_checkpoint(args.init, sensor, cfg.dt_s, param="--init")
+    return model, enc, meta if isinstance(meta, dict) else {}
+
+
 def _sequences():
     """The module that makes the training sequences (``make_sequences``, ``training_sites``)."""
     from dvsland.data import snn_sequences
@@ -184,13 +199,16 @@ def run_train(args) -> int:
         from .train_recipe import run_recipe
 
         return run_recipe(args, check_out_path)
+    if args.resume:
+        raise ValueError("--resume continues a recipe training (--model NAME --data DIR --out CKPT); the snn "
+                         "starts from a checkpoint's weights with --init CKPT")
     args.epochs = 14 if args.epochs is None else args.epochs
     args.batch = 32 if args.batch is None else args.batch
     args.lr = 3e-3 if args.lr is None else args.lr
     import torch
 
     from dvsland.config import load_config
-    from dvsland.estimators.snn import LogPolarEncoder, SpikingDivergenceNet, save_checkpoint
+    from dvsland.estimators.snn import SpikingDivergenceNet, save_checkpoint
     from dvsland.estimators.snn.train import train
     from dvsland.report.results import write_json
     from dvsland.runs import make_run_dir
@@ -203,6 +221,7 @@ def run_train(args) -> int:
     dispersion = load_config(args.dispersion).dispersion if args.dispersion else None
     log = (lambda *a, **k: None) if args.quiet else print
     apply_threads(cfg)
+    init_model, enc, prior = _start_from(args, cfg)  # --init checked before any data or folder
     seqs = _sequences()
     if sites is None:
         sites = seqs.training_sites(hold_out_type=args.hold_out_type)
@@ -216,13 +235,7 @@ def run_train(args) -> int:
 
     train_seed = args.seed if args.train_seed is None else args.train_seed
     torch.manual_seed(train_seed)
-    prior, ck = {}, None
-    if args.init:
-        ck = torch.load(args.init, map_location="cpu", weights_only=True)
-        prior = ck.get("meta", {})
-    n_sub = int(ck["encoder"]["n_sub"]) if ck else args.n_sub
-    channels = tuple(ck["model"]["channels"]) if ck else tuple(int(c) for c in args.channels.split(","))
-    enc = LogPolarEncoder((cfg.camera.width_px, cfg.camera.height_px), n_sub=n_sub)
+    n_sub = enc.n_sub
     t0 = time.perf_counter()
     key = {"n_seq": args.n_seq, "steps": args.steps, "seed": args.seed, "c2_max": args.c2_max, "sites": sites,
            "dispersion": args.dispersion, "sun_step": args.sun_step, "n_sub": n_sub,
@@ -243,10 +256,12 @@ def run_train(args) -> int:
     t_data = time.perf_counter() - t0
     log(f"data: {args.n_seq} sequences x {args.steps} steps on {', '.join(sites)} in {t_data:.0f} s; "
         f"mean events/px/step {float(data['x'].float().mean()) * enc.n_sub:.3f}")
-    model = SpikingDivergenceNet(enc.n_rho, enc.n_phi, dt_s=cfg.dt_s / enc.n_sub, channels=channels)
-    if ck:
-        model.load_state_dict(ck["state_dict"])
+    if init_model is not None:
+        model = init_model
         log(f"starting from {args.init} ({prior.get('epochs_run', '?')} epochs)")
+    else:
+        channels = tuple(int(c) for c in args.channels.split(","))
+        model = SpikingDivergenceNet(enc.n_rho, enc.n_phi, dt_s=cfg.dt_s / enc.n_sub, channels=channels)
     hist = train(model, data, epochs=args.epochs, batch=args.batch, lr=args.lr, warmup_steps=args.warmup_steps,
                  seed=train_seed, max_minutes=args.max_minutes, crop_steps=args.crop_steps, log=log)
     meta = {"sites": sites, "hold_out_type": args.hold_out_type, "dispersion": args.dispersion,

@@ -29,7 +29,10 @@ def recipe_settings(args, cfg):
     """The :class:`~dvsland.learn.RecipeSettings` of the command line (ValueError naming the option)."""
     from dvsland.learn import RecipeSettings
 
-    name = args.model or "cnn"
+    name = "cnn" if args.model is None else args.model.strip()
+    if not name:
+        raise ValueError(f"--model {args.model!r}: empty; expected a model of the zoo (cnn, spiking) or "
+                         f"pkg.mod:Class (leave --model out for the cnn)")
     nb, pool = MODEL_INPUT_DEFAULTS.get(name, (4, 2))
     ms = _parse_model_set(args.model_set)
     nb = args.n_bins if args.n_bins is not None else nb
@@ -46,13 +49,28 @@ def recipe_settings(args, cfg):
 def run_recipe(args, check_out_path) -> int:
     """Check the arguments, train, write the checkpoint and print where it is and how it scored.
     ``check_out_path(out, overwrite_shipped, overwrite)``: the --out guard of ``dvsland train``."""
+    from dvsland.estimators.learned import read_checkpoint
     from dvsland.learn import train
+    from dvsland.data import load_manifest_info
+    from dvsland.learn.recipe import data_dirs
 
     if args.data is None:
         raise ValueError("--data DIR: the recipe (--model) trains on a dataset folder of `dvsland dataset build`")
+    for d in data_dirs(args.data):  # ValueError naming --data: no folder named, or one that is no dataset
+        try:
+            load_manifest_info(d)
+        except ValueError as exc:
+            raise ValueError(f"--data {d}: {exc}") from None
     cfg = config_from_args(args)
     apply_threads(cfg)
     s = recipe_settings(args, cfg)
+    if args.resume and args.init is not None:
+        raise ValueError("--init and --resume: give one (--resume goes on with the training in --out, --init starts "
+                         "a new training from another checkpoint's weights)")
+    if args.resume and args.out is None:
+        raise ValueError("--resume: continues the training stored in --out; give --out PATH")
+    if args.init is not None:
+        read_checkpoint(args.init, "--init")  # the file and its numbers checked before a run folder is made
     if args.out is None:
         from dvsland.runs import make_run_dir
 
@@ -63,7 +81,7 @@ def run_recipe(args, check_out_path) -> int:
         out = check_out_path(args.out, args.overwrite_shipped, args.overwrite)
     tb = Path(args.tensorboard) if args.tensorboard else out.with_name(out.stem + ".tb")
     log = (lambda *a, **k: None) if args.quiet else print
-    ck = train(args.data, out, s, resume=args.resume, progress=not args.quiet, tb_dir=tb, log=log)
+    ck = train(args.data, out, s, resume=args.resume, progress=not args.quiet, tb_dir=tb, log=log, init=args.init)
     if args.quiet:
         print(out)
         return 0

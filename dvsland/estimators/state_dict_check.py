@@ -35,7 +35,10 @@ def read_checkpoint_file(path, param: str, kind: str, hint: str = "") -> dict:
             file, a folder, bytes torch cannot read (corrupt, truncated, another kind of file) or a
             file that holds something other than a dict.
     """
-    path, tail = Path(path), f" ({hint})" if hint else ""
+    tail = f" ({hint})" if hint else ""
+    if not str(path).strip():
+        raise ValueError(f"{param} {str(path)!r}: empty; expected the path of a {kind} file (.pt){tail}")
+    path = Path(path)
     try:
         found, folder = path.is_file(), path.is_dir()
     except (OSError, ValueError) as exc:  # ENAMETOOLONG, a NUL byte, ...
@@ -103,7 +106,7 @@ def check_state_dict(state, model: torch.nn.Module, where: str) -> None:
         if tuple(t.shape) != tuple(ref.shape):
             raise ValueError(f"{where}: tensor '{name}' has shape {tuple(t.shape)}, expected {tuple(ref.shape)} "
                              f"(the network its settings describe)")
-        _check_finite(t, where, f"tensor '{name}'")
+        check_finite_tensor(t, where, f"tensor '{name}'")
 
 
 def check_optimizer_state(state, optimizer: torch.optim.Optimizer, where: str) -> None:
@@ -124,10 +127,19 @@ def check_optimizer_state(state, optimizer: torch.optim.Optimizer, where: str) -
     for pid, entry in per_param.items():
         for key, t in (entry.items() if isinstance(entry, dict) else ()):
             if isinstance(t, torch.Tensor):
-                _check_finite(t, where, f"optimizer tensor '{key}' of parameter {pid}")
+                check_finite_tensor(t, where, f"optimizer tensor '{key}' of parameter {pid}")
 
 
-def _check_finite(t: torch.Tensor, where: str, what: str) -> None:
+def check_finite_tensors(state, where: str) -> None:
+    """Every floating tensor of a state dict ``state`` finite (the check that needs no network, so a
+    command can make it before it makes anything; :func:`check_state_dict` makes it again)."""
+    for name, t in (state.items() if isinstance(state, dict) else ()):
+        if isinstance(t, torch.Tensor):
+            check_finite_tensor(t, where, f"tensor '{name}'")
+
+
+def check_finite_tensor(t: torch.Tensor, where: str, what: str) -> None:
+    """ValueError ``"<where>: <what> holds k NaN or infinite values of n; ..."`` when ``t`` has any."""
     bad = int((~torch.isfinite(t)).sum()) if t.is_floating_point() else 0
     if bad:
         raise ValueError(f"{where}: {what} holds {bad} NaN or infinite values of {t.numel()}; expected finite "

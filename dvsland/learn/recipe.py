@@ -24,6 +24,7 @@ import torch
 
 from dvsland.data import Windows, load_manifest_info
 from dvsland.estimators.learned.checkpoint import read_checkpoint, save_checkpoint
+from dvsland.estimators.state_dict_check import check_optimizer_state, check_state_dict, short_path
 from dvsland.estimators.learned.inputs import InputSpec, check_input_spec, coord_channels
 from dvsland.estimators.learned.models import build_model
 
@@ -54,7 +55,10 @@ class RecipeSettings:
     val_max_samples: int = 6000
 
     def check(self) -> "RecipeSettings":
-        """ValueError naming the setting for a value outside its range."""
+        """ValueError naming the setting for a value outside its range (or an empty model name)."""
+        if not isinstance(self.model, str) or not self.model.strip():
+            raise ValueError(f"model {self.model!r}: empty; expected a model of the zoo (cnn, spiking) or "
+                             f"pkg.mod:Class")
         for name, lo, hi in (("epochs", 1, 100000), ("batch_size", 1, 65536), ("patience", 1, 100000),
                              ("val_max_samples", 100, 10 ** 9)):
             if not lo <= int(getattr(self, name)) <= hi:
@@ -80,10 +84,19 @@ def _loss(mu, log_var, target, l1_weight: float):
 
 
 def data_dirs(data_dir) -> list:
-    """The dataset folders of ``data_dir``: one path, a comma-separated string or a list."""
+    """The dataset folders of ``data_dir``: one path, a comma-separated string or a list.
+
+    Raises:
+        ValueError: naming ``--data`` when it names no folder (``""``, ``" , "``, an empty list).
+    """
     if isinstance(data_dir, (list, tuple)):
-        return [Path(d) for d in data_dir]
-    return [Path(d) for d in str(data_dir).split(",") if d.strip()]
+        dirs = [Path(d) for d in data_dir if str(d).strip()]
+    else:
+        dirs = [Path(d.strip()) for d in str(data_dir).split(",") if d.strip()]
+    if not dirs:
+        raise ValueError(f"--data {data_dir!r}: empty; expected a dataset folder of `dvsland dataset build` "
+                         f"(DIR, or DIR,DIR,... of one sensor)")
+    return dirs
 
 
 def input_spec(data_dir, s: "RecipeSettings") -> InputSpec:
@@ -119,12 +132,14 @@ def _val_subset(va: Windows, n_max: int) -> torch.Tensor:
     return torch.linspace(0, va.n_samples - 1, min(n_max, va.n_samples)).round().long().unique()
 
 
-def _resume_state(out: Path, model_desc: dict, provenance: dict, s: RecipeSettings):
+def _resume_state(out: Path, model_desc: dict, provenance: dict, s: RecipeSettings, net, opt):
     """(the checkpoint at ``out`` to go on from, whether it is a fine-tune), checked against this
-    run (ValueError if the model or the settings differ). The same data: the run continues at its
-    next epoch. Other data (``--data`` with other folders): a fine-tune, which starts from the
+    run (ValueError naming ``--resume`` if the model or the settings differ, or if its weights, last
+    weights or optimizer state are damaged or diverged: the one checkpoint validation,
+    :mod:`dvsland.estimators.state_dict_check`). The same data: the run continues at its next
+    epoch. Other data (``--data`` with other folders): a fine-tune, which starts from the
     checkpoint's best weights with a fresh optimizer and epoch count (``lr`` may then differ too)."""
-    ck = read_checkpoint(out)
+    ck = read_checkpoint(out, "--resume")
     finetune = (ck.get("data") or {}).get("config_hash") != provenance.get("config_hash")
     budget = ("epochs", "max_minutes", "patience") + (("lr",) if finetune else ())
     old_s = {k: v for k, v in (ck.get("train") or {}).items() if k not in budget}
@@ -133,18 +148,41 @@ def _resume_state(out: Path, model_desc: dict, provenance: dict, s: RecipeSettin
         if old != new:
             raise ValueError(f"--resume: {out} was trained with other {what} ({old!r} vs {new!r}); train to a new "
                              f"--out or pass the same arguments")
-    if "last" not in ck and not finetune:
-        raise ValueError(f"--resume: {out} holds no resumable state (a shipped or stripped checkpoint)")
+    where = f"--resume: {short_path(out)}"
+    check_state_dict(ck["state_dict"], net, where)
+    if finetune:
+        return ck, finetune
+    last = ck.get("last")
+    if not isinstance(last, dict) or not all(isinstance(ck.get(k), int) for k in ("epoch", "bad_epochs")):
+        raise ValueError(f"{where} holds no resumable state (a shipped or stripped checkpoint)")
+    check_state_dict(last.get("state_dict"), net, f"{where} (its last weights)")
+    check_optimizer_state(last.get("optimizer"), opt, where)
     return ck, finetune
 
 
-def _start_from(ck: dict, finetune: bool, net, opt, run: dict, log: Callable, out: Path) -> None:
-    """Load the resumed (or fine-tuned) checkpoint ``ck`` into ``net``, ``opt`` and ``run``."""
+def _init_state(init, model_desc: dict, spec: InputSpec, net) -> dict:
+    """The checkpoint ``init`` (``--init``) to start from, checked: the same model and settings as
+    this run, the same bins, cells and windows of the input, finite weights that fit ``net``."""
+    ck = read_checkpoint(init, "--init")
+    where = f"--init: {short_path(init)}"
+    mine = {k: v for k, v in spec._asdict().items() if k in ("n_bins", "pool_px", "n_windows", "coord_scale_px")}
+    theirs = {k: ck["input"].get(k) for k in mine} if isinstance(ck["input"], dict) else ck["input"]
+    for what, old, new in (("model", ck["model"], model_desc), ("input", theirs, mine)):
+        if old != new:
+            raise ValueError(f"{where} holds another {what} ({old!r}; this run: {new!r}); pass the same --model, "
+                             f"--model-set, --n-bins, --pool-px and --n-windows")
+    check_state_dict(ck["state_dict"], net, where)
+    return ck
+
+
+def _start_from(ck: dict, finetune: bool, net, opt, run: dict, log: Callable, src: Path) -> None:
+    """Load the resumed (or fine-tuned, or ``--init``) checkpoint ``ck`` of file ``src`` into ``net``,
+    ``opt`` and ``run``."""
     if finetune:
         net.load_state_dict(ck["state_dict"])
         run.update(history=list(ck.get("history") or []), best_state=copy.deepcopy(net.state_dict()),
                    finetuned_from=ck.get("data"))
-        log(f"fine-tuning {out} on other data (from its best weights, epoch count and optimizer anew)")
+        log(f"fine-tuning {src} (from its best weights, epoch count and optimizer anew)")
         return
     net.load_state_dict(ck["last"]["state_dict"])
     opt.load_state_dict(ck["last"]["optimizer"])
@@ -152,17 +190,22 @@ def _start_from(ck: dict, finetune: bool, net, opt, run: dict, log: Callable, ou
                best_state=ck["state_dict"], seconds=ck["last"]["seconds"])
     if (ck.get("data") or {}).get("finetuned_from") is not None:
         run["finetuned_from"] = ck["data"]["finetuned_from"]
-    log(f"resuming {out} at epoch {run['epoch']}")
+    log(f"resuming {src} at epoch {run['epoch']}")
 
 
 def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bool = False,
-          progress: bool = True, tb_dir=None, log: Callable = print) -> dict:
+          progress: bool = True, tb_dir=None, log: Callable = print, init=None) -> dict:
     """Train ``settings.model`` on dataset folder ``data_dir`` (or several of one sensor, a list or
-    comma-separated); write the checkpoint ``out``.
+    comma-separated); write the checkpoint ``out``. ``resume``: go on with the training stored in
+    ``out``; ``init``: start from the best weights of that checkpoint file (a fine-tune; not with
+    ``resume``). Both are checked before any epoch (ValueError naming ``--resume`` / ``--init``).
 
     Returns the checkpoint dict (``history``, ``final`` scores on val and test, ...).
     """
     s = settings.check()
+    if resume and init is not None:
+        raise ValueError("--init and --resume: give one (--resume goes on with the training in --out, --init starts "
+                         "a new training from another checkpoint's weights)")
     torch.manual_seed(s.seed)
     spec = input_spec(data_dir, s)
     tr, va = load_split(data_dir, "train", spec), load_split(data_dir, "val", spec)
@@ -175,9 +218,12 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
            "seconds": 0.0}
     out = Path(out)
     if resume:
-        _start_from(*_resume_state(out, model_desc, prov, s), net, opt, run, log, out)
-        if run.get("finetuned_from") is not None:
-            prov["finetuned_from"] = run["finetuned_from"]
+        _start_from(*_resume_state(out, model_desc, prov, s, net, opt), net, opt, run, log, out)
+    elif init is not None:
+        _start_from(_init_state(init, model_desc, spec, net), True, net, opt, run, log, Path(init))
+        prov["init"] = str(init)
+    if run.get("finetuned_from") is not None:
+        prov["finetuned_from"] = run["finetuned_from"]
     writer = _writer(tb_dir)
     val_idx = _val_subset(va, s.val_max_samples)
     t_start = time.perf_counter() - run["seconds"]

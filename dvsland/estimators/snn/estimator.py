@@ -57,8 +57,11 @@ def save_checkpoint(path, model: SpikingDivergenceNet, encoder: LogPolarEncoder,
                 "meta": meta}, path)
 
 
-#: what the snn messages add: how to get a good checkpoint
-_HINT = "train one with `dvsland train`, or leave estimator.snn.checkpoint empty for the shipped one"
+def _hint(param: str) -> str:
+    """What the snn messages add: how to get a good checkpoint."""
+    shipped = ", or leave estimator.snn.checkpoint empty for the shipped one" \
+        if param == "estimator.snn.checkpoint" else ""
+    return f"train one with `dvsland train`{shipped}"
 
 
 def check_state_dict(path, state: dict, model: torch.nn.Module, param: str = "estimator.snn.checkpoint") -> None:
@@ -76,18 +79,18 @@ def read_snn_checkpoint(path, param: str = "estimator.snn.checkpoint") -> dict:
     Raises:
         ValueError: ``"<param>: <path> ..."`` (:mod:`~dvsland.estimators.state_dict_check`).
     """
-    ck = read_checkpoint_file(path, param, "dvsland snn checkpoint", _HINT)
+    ck = read_checkpoint_file(path, param, "dvsland snn checkpoint", _hint(param))
     where = f"{param}: {short_path(path)}"
     missing = [k for k in ("state_dict", "encoder", "model") if k not in ck]
     if missing:
         raise ValueError(f"{param}: {short_path(path)} is not a readable dvsland snn checkpoint (it has no "
-                         f"{missing}); {_HINT}")
+                         f"{missing}); {_hint(param)}")
     e, m = ck["encoder"], ck["model"]
     try:
         _ = (e["n_rho"], e["n_phi"], e["r_min_px"], e["r_max_px"], e["n_sub"], m["channels"], m["d_scale"])
     except (KeyError, TypeError, AttributeError):
         raise ValueError(f"{where} is not a readable dvsland snn checkpoint (its encoder or model description is "
-                         f"incomplete); {_HINT}") from None
+                         f"incomplete); {_hint(param)}") from None
     check_finite_numbers(e, where, "encoder")
     check_finite_numbers(m, where, "model")
     d_scale = m["d_scale"]
