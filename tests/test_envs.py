@@ -332,3 +332,23 @@ def test_bad_constructor_arguments_and_actions_are_named():
             env.step(a)
     with pytest.raises(ValueError, match="seed must be an int in"):
         env.reset(seed=2 ** 70)
+
+
+def test_torch_array_api_matches_numpy_and_stays_in_tensors():
+    kw = dict(config="paper", overrides=QUIET, sites="D", estimator="oracle", observation=("oracle", "divergence"),
+              action="thrust_n", autoreset_mode="same_step")
+    a, t = LandingVectorEnv(**kw), LandingVectorEnv(**kw, array_api="torch")
+    obs_a, info_a = a.reset(seed=3)
+    obs_t, info_t = t.reset(seed=3)
+    assert isinstance(obs_t["oracle"], torch.Tensor) and isinstance(info_t["z_m"], torch.Tensor)
+    for _ in range(30):
+        act = np.nan_to_num(info_a["controller_thrust_n"])
+        obs_a, r_a, term_a, trunc_a, info_a = a.step(act)
+        obs_t, r_t, term_t, trunc_t, info_t = t.step(torch.as_tensor(act))
+        assert isinstance(r_t, torch.Tensor) and r_t.dtype == torch.float64 and term_t.dtype == torch.bool
+        for n in obs_a:
+            np.testing.assert_array_equal(obs_t[n].numpy(), obs_a[n])
+        np.testing.assert_array_equal(r_t.numpy(), r_a)
+        np.testing.assert_array_equal(info_t["z_m"].numpy(), info_a["z_m"])
+    with pytest.raises(ValueError, match="array_api"):
+        LandingVectorEnv(**kw, array_api="jax")

@@ -97,10 +97,15 @@ def check_action(spec: ActionSpec, action, batch_size: int) -> torch.Tensor:
     Raises:
         ValueError: wrong shape, NaN/inf, or out of range without ``clip`` (names ``action``).
     """
-    raw = np.asarray(action)
-    if raw.dtype.kind not in "iuf":  # a string, complex, bool or object action is refused, not coerced
-        raise ValueError(f"action must be real numbers (int or float), got dtype {raw.dtype} ({action!r:.80})")
-    a = torch.as_tensor(raw.astype(np.float64))
+    if isinstance(action, torch.Tensor):  # a torch agent's actions stay on their device
+        if action.dtype == torch.bool or action.is_complex():
+            raise ValueError(f"action must be real numbers (int or float), got dtype {action.dtype}")
+        a = action.detach().to(torch.float64)
+    else:
+        raw = np.asarray(action)
+        if raw.dtype.kind not in "iuf":  # a string, complex, bool or object action is refused, not coerced
+            raise ValueError(f"action must be real numbers (int or float), got dtype {raw.dtype} ({action!r:.80})")
+        a = torch.as_tensor(raw.astype(np.float64))
     if a.numel() != batch_size or a.dim() > 2 or (a.dim() == 2 and a.shape[1] != 1):
         raise ValueError(f"action must have shape ({batch_size},) or ({batch_size}, 1), got {tuple(a.shape)}")
     a = a.reshape(batch_size)

@@ -68,7 +68,7 @@ def context(out, d_target: torch.Tensor, hover_frac: torch.Tensor, t_max_s: floa
     return torch.stack((d_target, hover_frac, t_frac), dim=1)
 
 
-def observe(names: Tuple[str, ...], out, ctx: torch.Tensor, hw: Tuple[int, int]) -> Dict[str, np.ndarray]:
+def observe(names: Tuple[str, ...], out, ctx: torch.Tensor, hw: Tuple[int, int]) -> Dict[str, torch.Tensor]:
     """Every requested observation of all B elements from one :class:`~dvsland.sim.StepOutput`.
 
     Args:
@@ -78,49 +78,60 @@ def observe(names: Tuple[str, ...], out, ctx: torch.Tensor, hw: Tuple[int, int])
         hw: (H, W) of the event images.
 
     Returns:
-        {name: (B, ...) float32 numpy array}; NaN estimates are 0 (with confidence 0).
+        {name: (B, ...) float32 tensor on ``ctx``'s device}; NaN estimates are 0 (with confidence 0).
     """
-    B = ctx.shape[0]
+    B, dev = ctx.shape[0], ctx.device
     res = {}
     for n in names:
         if n == "events":
             ev = out.events
-            img = (torch.zeros(B, 2, *hw) if ev is None or len(ev) == 0 else ev.to_count_image(B, *hw))
-            res[n] = img.to(torch.float32).cpu().numpy()
+            img = (torch.zeros(B, 2, *hw, device=dev) if ev is None or len(ev) == 0 else ev.to_count_image(B, *hw))
+            res[n] = img.to(device=dev, dtype=torch.float32)
         elif n == "divergence":
             z_est = out.z_est_m if out.z_est_m is not None else torch.zeros_like(out.d_est)
             cols = [out.d_est, out.d_conf, out.d_filtered, z_est.to(out.d_est.dtype)]
             v = torch.cat((torch.stack(cols, dim=1), ctx), dim=1)
-            res[n] = torch.nan_to_num(v, nan=0.0).to(torch.float32).cpu().numpy()
+            res[n] = torch.nan_to_num(v, nan=0.0).to(torch.float32)
         else:  # oracle
             d = torch.nan_to_num(out.d_true, nan=0.0).clamp(-D_ABS_MAX, D_ABS_MAX)  # z <= 0 at a crash
             v = torch.cat((d.unsqueeze(1), ctx), dim=1)
-            res[n] = v.to(torch.float32).cpu().numpy()
+            res[n] = v.to(torch.float32)
     return res
 
 
-def pack(names: Tuple[str, ...], obs: Dict[str, np.ndarray]):
+def pack(names: Tuple[str, ...], obs: Dict):
     """The observation in the space's layout: the array itself for one name, the dict for several."""
     return obs[names[0]] if len(names) == 1 else obs
 
 
-def hold_sensing(obs: Dict[str, np.ndarray], prev: Dict[str, np.ndarray], rows: np.ndarray) -> Dict[str, np.ndarray]:
-    """``obs`` (modified in place) with the sensed parts of ``rows`` (B,) bool taken from ``prev``:
-    the event image and the first four ``divergence`` fields (estimate, confidence, filter output,
-    altitude estimate). A finished descent's camera is frozen, so its last observation keeps the
-    last sensing it had while flying; its true divergence and context are those of its end."""
-    if prev is None or not rows.any():
+def to_numpy(obs: Dict[str, torch.Tensor]) -> Dict[str, np.ndarray]:
+    """The observation dict as numpy arrays (copies on the host)."""
+    return {n: v.detach().cpu().numpy() for n, v in obs.items()}
+
+
+def _rows(rows: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    return rows.to(like.device).view((-1,) + (1,) * (like.dim() - 1))
+
+
+def hold_sensing(obs: Dict[str, torch.Tensor], prev: Dict[str, torch.Tensor], rows: torch.Tensor) -> Dict:
+    """``obs`` with the sensed parts of ``rows`` (B,) bool taken from ``prev`` (a new dict; no host
+    sync): the event image and the first four ``divergence`` fields (estimate, confidence, filter
+    output, altitude estimate). A finished descent's camera is frozen, so its last observation keeps
+    the last sensing it had while flying; its true divergence and context are those of its end."""
+    if prev is None:
         return obs
+    res = dict(obs)
     if "events" in obs:
-        obs["events"][rows] = prev["events"][rows]
+        res["events"] = torch.where(_rows(rows, obs["events"]), prev["events"], obs["events"])
     if "divergence" in obs:
-        obs["divergence"][rows, :4] = prev["divergence"][rows, :4]
-    return obs
+        d = obs["divergence"]
+        held = torch.cat((prev["divergence"][:, :4], d[:, 4:]), dim=1)
+        res["divergence"] = torch.where(_rows(rows, d), held, d)
+    return res
 
 
-def take_rows(obs: Dict[str, np.ndarray], src: Dict[str, np.ndarray], rows: np.ndarray) -> Dict[str, np.ndarray]:
-    """``obs`` (modified in place) with every part of ``rows`` (B,) bool taken from ``src``."""
-    if rows.any():
-        for n in obs:
-            obs[n][rows] = src[n][rows]
-    return obs
+def take_rows(obs: Dict[str, torch.Tensor], src: Dict[str, torch.Tensor], rows: torch.Tensor) -> Dict:
+    """``obs`` with every part of ``rows`` (B,) bool taken from ``src`` (a new dict; no host sync)."""
+    if src is None:
+        return obs
+    return {n: torch.where(_rows(rows, v), src[n], v) for n, v in obs.items()}

@@ -43,7 +43,7 @@ from gymnasium.vector.utils import batch_space
 from dvsland.config import Config, ConfigError, load_config, validate_config
 from dvsland.config.validate import check_memory
 from dvsland.layout import build_layout
-from dvsland.checks import check_device, check_range
+from dvsland.checks import check_choice, check_device, check_range
 from dvsland.pytree import hash_bits, hash_normal
 from dvsland.sim import OUTCOMES, act_step, init_state, reset_where, sense_step
 from dvsland.stages import build_stages, check_names
@@ -83,6 +83,11 @@ class LandingVectorEnv(VectorEnv):
         start_dispersion: relative 1-sigma dispersion of each episode's initial altitude and
             velocity around the layout's, in [0, 0.3]; 0 flies the layout's starts (the descents of
             :func:`dvsland.simulate`) with the layout's sensor-noise seeds.
+        array_api: ``"numpy"`` (gymnasium's default: observations, rewards, flags and info as numpy
+            arrays on the host) or ``"torch"`` (all of them torch tensors on ``device``, nothing copied
+            to the host: for torch RL libraries and a CUDA loop; ``info["outcome_code"]`` holds the
+            outcome codes of :data:`dvsland.sim.OUTCOMES` instead of names, ``info["restarted"]``
+            marks the restarts).
 
     Raises:
         ValueError: an unknown ``observation``, ``action`` or ``autoreset_mode`` (naming the allowed
@@ -97,7 +102,8 @@ class LandingVectorEnv(VectorEnv):
                  observation: Union[str, Sequence[str]] = "divergence", action: str = "thrust",
                  device: Any = "cpu", overrides: Sequence[str] = (), reward: Any = None,
                  clip_actions: bool = False, setpoint_gain_ns: float = SETPOINT_GAIN_NS,
-                 autoreset_mode: Union[AutoresetMode, str, None] = None, start_dispersion: float = 0.05):
+                 autoreset_mode: Union[AutoresetMode, str, None] = None, start_dispersion: float = 0.05,
+                 array_api: str = "numpy"):
         self._names = obs_mod.parse_observation(observation)
         self.autoreset_mode = _autoreset_mode(autoreset_mode)
         check_device(device, "device")
@@ -106,6 +112,7 @@ class LandingVectorEnv(VectorEnv):
             raise ValueError(f"num_envs must be an integer in [1, {MAX_NUM_ENVS}] or None, got {num_envs!r}")
         self.metadata = {**type(self).metadata, "autoreset_mode": self.autoreset_mode}
         self._dispersion = check_range("start_dispersion", start_dispersion, 0.0, 0.3)
+        self.array_api = check_choice("array_api", array_api, ("numpy", "torch"))
         self.cfg = _resolve_config(config, overrides, estimator, device)
         if num_envs is not None:  # the memory estimate of the batch, before anything is built
             try:
@@ -243,13 +250,11 @@ class LandingVectorEnv(VectorEnv):
         out = self._sensed.out
         obs = self._observe(out, out.t_flight_s, out.m_kg)
         if mask is not None and self._obs is not None:
-            keep = (~mask).cpu().numpy()
-            obs = obs_mod.take_rows(obs, self._obs, keep)
+            obs = obs_mod.take_rows(obs, self._obs, ~mask)
         self._obs = obs
-        B = self.num_envs
-        info = self._info(self._state, np.array(["running"] * B, dtype=object), out.thrust_n, np.zeros(B, bool),
-                          out.t_flight_s)
-        return obs_mod.pack(self._names, copy.deepcopy(obs)), info
+        none = torch.zeros_like(self._autoreset)
+        info = self._info(self._state, out.thrust_n, none, out.t_flight_s, ended=none, restart=none)
+        return self._export_obs(obs), self._export_info(info)
 
     # ------------------------------------------------------------------ step
     def step(self, actions):
@@ -293,31 +298,29 @@ class LandingVectorEnv(VectorEnv):
         reward = step_reward(self._reward, self.stages.settings.dt_s, d_true, d_tgt, nxt.v_mps, flying, ended,
                              nxt.outcome)
         term, trunc = episode_ends(ended, nxt.outcome)
-        names = _outcome_names(nxt.outcome, ended)
         mode = self.autoreset_mode
         restart = self._autoreset if mode == AutoresetMode.NEXT_STEP else (
             ended if mode == AutoresetMode.SAME_STEP else torch.zeros_like(ended))
         final = None
-        if mode == AutoresetMode.SAME_STEP and bool(ended.any()):
-            final = self._final(nxt, ended, d_true, t1, u, d_tgt, names)
-        if bool(restart.any()):
+        if mode == AutoresetMode.SAME_STEP and bool(ended.any()):  # one host sync per step in this mode
+            final = self._final(nxt, ended, d_true, t1, u, d_tgt)
+        codes = nxt.outcome  # how the ended descents ended (before a same-step restart clears it)
+        if bool(restart.any()):  # one host sync per step: restart only when some episode is over
             self._episode = self._episode + restart.to(torch.int64)
             nxt = self._restart(nxt, restart)
         self._autoreset = ended if mode == AutoresetMode.NEXT_STEP else torch.zeros_like(ended)
         self._state = nxt
-        ignored = (~flying).cpu().numpy()
+        ignored = ~flying
         obs, ctl = self._next_obs(nxt, ended, restart, d_true, t1, ignored)
-        restart_np = restart.cpu().numpy()
-        names[ignored] = "ended"
-        names[restart_np & ignored] = "reset"
         t_info = torch.where(restart, torch.zeros_like(t1), t1)
-        info = self._info(nxt, names, ctl, ignored, t_info, thrust=u, d_target=d_tgt)
+        info = self._info(nxt, ctl, ignored, t_info, thrust=u, d_target=d_tgt, ended=ended, restart=restart,
+                          outcome=codes)
+        info = self._export_info(info)
         if final is not None:
             info.update(final)
-        return (obs_mod.pack(self._names, copy.deepcopy(obs)), reward.cpu().numpy(), term.cpu().numpy(),
-                trunc.cpu().numpy(), info)
+        return (self._export_obs(obs), self._export(reward), self._export(term), self._export(trunc), info)
 
-    def _next_obs(self, nxt, ended, restart, d_true, t1, ignored: np.ndarray):
+    def _next_obs(self, nxt, ended, restart, d_true, t1, ignored: torch.Tensor):
         """Sense ``nxt`` (when anything flies) and build the observation batch; (obs, law's thrust).
         A descent that ended at this step keeps the last sensing it had while flying; one that had
         ended before (DISABLED mode, waiting for its reset) keeps its whole last observation."""
@@ -331,22 +334,26 @@ class LandingVectorEnv(VectorEnv):
             self._sensed = self._sensed._replace(state=nxt, out=out)
             obs = self._observe(out, t1, nxt.m_kg)
             ctl = torch.full_like(d_true, math.nan)
-        fresh = restart.cpu().numpy()
-        obs = obs_mod.hold_sensing(obs, self._obs, ended.cpu().numpy() & ~fresh)  # a finished camera is frozen
-        obs = obs_mod.take_rows(obs, self._obs, ignored & ~fresh)
+        obs = obs_mod.hold_sensing(obs, self._obs, ended & ~restart)  # a finished camera is frozen
+        obs = obs_mod.take_rows(obs, self._obs, ignored & ~restart)
         self._obs = obs
         return obs, ctl
 
-    def _final(self, nxt, ended, d_true, t1, u, d_tgt, names) -> dict:
+    def _final(self, nxt, ended, d_true, t1, u, d_tgt) -> dict:
         """SAME_STEP: the ended envs' own last observation and info, before their restart."""
         out = self._sensed.out._replace(d_true=d_true, m_kg=nxt.m_kg)
-        obs = obs_mod.hold_sensing(self._observe(out, t1, nxt.m_kg), self._obs, np.ones(self.num_envs, bool))
+        obs = obs_mod.hold_sensing(self._observe(out, t1, nxt.m_kg), self._obs, torch.ones_like(ended))
+        none = torch.zeros_like(ended)
+        info = self._info(nxt, torch.full_like(d_true, math.nan), none, t1, thrust=u, d_target=d_tgt, ended=ended,
+                          restart=none)
+        if self.array_api == "torch":
+            return {"final_obs": obs_mod.pack(self._names, obs), "final_info": info, "_final_obs": ended,
+                    "_final_info": ended}
+        info = self._export_info(info)
+        packed = obs_mod.pack(self._names, obs_mod.to_numpy(obs))
         e = ended.cpu().numpy()
-        info = self._info(nxt, names.copy(), torch.full_like(d_true, math.nan), np.zeros(self.num_envs, bool), t1,
-                          thrust=u, d_target=d_tgt)
         final_obs = np.empty(self.num_envs, dtype=object)
         final_info = np.empty(self.num_envs, dtype=object)
-        packed = obs_mod.pack(self._names, obs)
         for i in np.flatnonzero(e):
             final_obs[i] = _row(packed, i)
             final_info[i] = {k: v[i] for k, v in info.items()}
@@ -360,16 +367,40 @@ class LandingVectorEnv(VectorEnv):
         ctx = torch.stack((d_tgt, hover, t_frac / self.stages.settings.t_max_s), dim=1)
         return obs_mod.observe(self._names, out, ctx, self._hw)
 
-    def _info(self, state, outcome, ctl, ignored, t_s, thrust=None, d_target=None) -> dict:
+    def _info(self, state, ctl, ignored, t_s, thrust=None, d_target=None, ended=None, restart=None,
+              outcome=None) -> dict:
+        """The info of a step as (B,) tensors on the loop's device (no host sync)."""
         B = self.num_envs
-        f = (lambda t: t.detach().to(torch.float64).cpu().numpy())
+        outcome = state.outcome if outcome is None else outcome
         if d_target is None:
             d_target = divergence_target(t_s, self._tau0, self._c2, self._tau_min)
-        return {"outcome": np.asarray(outcome, dtype=object), "z_m": f(state.z_m), "v_mps": f(state.v_mps),
-                "m_kg": f(state.m_kg), "t_s": f(torch.as_tensor(t_s, dtype=torch.float64).expand(B)),
-                "thrust_n": np.zeros(B) if thrust is None else f(thrust), "controller_thrust_n": f(ctl),
-                "d_target": f(d_target), "ignored": np.asarray(ignored, dtype=bool),
-                "episode": self._episode.cpu().numpy().copy()}
+        f64 = torch.float64
+        return {"outcome_code": torch.where(ended, outcome, torch.zeros_like(outcome)),
+                "z_m": state.z_m, "v_mps": state.v_mps, "m_kg": state.m_kg,
+                "t_s": torch.as_tensor(t_s, dtype=f64, device=state.z_m.device).expand(B),
+                "thrust_n": torch.zeros_like(state.z_m) if thrust is None else thrust.to(f64),
+                "controller_thrust_n": ctl.to(f64), "d_target": d_target.to(f64), "ignored": ignored,
+                "restarted": restart, "episode": self._episode}
+
+    def _export_info(self, info: dict) -> dict:
+        """The info as the API returns it: tensors (``array_api="torch"``) or numpy arrays with the
+        outcome's name per env (``running``, the outcome's name on its end, ``reset``, ``ended``)."""
+        if self.array_api == "torch":
+            return dict(info)
+        out = {k: v.detach().cpu().numpy().copy() for k, v in info.items() if k not in ("outcome_code", "restarted")}
+        code, restart = info["outcome_code"].cpu().numpy(), info["restarted"].cpu().numpy()
+        names = np.array([OUTCOMES[int(c)] for c in code], dtype=object)
+        names[out["ignored"]] = "ended"
+        names[restart & out["ignored"]] = "reset"
+        out["outcome"] = names
+        return out
+
+    def _export(self, t: torch.Tensor):
+        return t if self.array_api == "torch" else t.detach().cpu().numpy()
+
+    def _export_obs(self, obs: dict):
+        """The observation batch as the API returns it (tensors stay on the device in torch mode)."""
+        return obs_mod.pack(self._names, dict(obs) if self.array_api == "torch" else obs_mod.to_numpy(obs))
 
     def close_extras(self, **kwargs) -> None:
         self._state = self._sensed = self._obs = None
@@ -399,14 +430,6 @@ def _reset_mask(options, B: int) -> Optional[torch.Tensor]:
         raise ValueError(f"options['reset_mask'] must be a ({B},) bool array (one entry per env), got shape "
                          f"{m.shape} dtype {m.dtype}")
     return torch.as_tensor(m)
-
-
-def _outcome_names(outcome: torch.Tensor, ended: torch.Tensor) -> np.ndarray:
-    codes, e = outcome.cpu().numpy(), ended.cpu().numpy()
-    names = np.array(["running"] * len(codes), dtype=object)
-    for i in np.flatnonzero(e):
-        names[i] = OUTCOMES[int(codes[i])]
-    return names
 
 
 def _row(obs, i: int):
