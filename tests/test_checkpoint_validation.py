@@ -242,3 +242,31 @@ def test_resume_on_the_snn_path_is_refused(tmp_path, capsys, no_data):
     """--resume without --model was silently ignored (a new snn trained into --out)."""
     assert main(["train", *SNN_TINY, "--resume", "--out", str(tmp_path / "o.pt")]) == 2
     assert "--resume" in _one_line_error(capsys) and not (tmp_path / "o.pt").exists()
+
+
+def test_data_cache_is_read_by_the_same_reader_and_never_clobbers_a_foreign_file(tmp_path, capsys, cnn_ckpt):
+    """--data-cache: a corrupt file gave torch's RuntimeError traceback, and any other torch file
+    (a checkpoint of the user's) was overwritten by the cache without a word (and unpickled
+    with weights_only=False)."""
+    mine = tmp_path / "mine.pt"
+    mine.write_bytes(cnn_ckpt.read_bytes())
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"junk" * 100)
+    for cache, needle in ((mine, "not a dvsland training-data cache"), (junk, "not a readable")):
+        before = _digest(cache)
+        assert main(["train", *SNN_TINY, "--data-cache", str(cache), "--out", str(tmp_path / "o.pt")]) == 2
+        err = _one_line_error(capsys)
+        assert err.startswith(f"dvsland: error: --data-cache: {cache}") and needle in err, err
+        assert _digest(cache) == before and not (tmp_path / "o.pt").exists()
+    cache = tmp_path / "cache.pt"  # a real cache: written, then read back
+    assert main(["train", *SNN_TINY, "--data-cache", str(cache), "--out", str(tmp_path / "a.pt")]) == 0
+    assert main(["train", *SNN_TINY, "--data-cache", str(cache), "--out", str(tmp_path / "b.pt")]) == 0
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+@pytest.mark.parametrize("name, needle", [("", "empty"), ("nofolder/c.pt", "does not exist"), ("x" * 300, "")])
+def test_data_cache_bad_paths_are_refused_before_any_data(tmp_path, capsys, no_data, name, needle):
+    path = name if name == "" else str(tmp_path / name)
+    assert main(["train", *SNN_TINY, "--data-cache", path, "--out", str(tmp_path / "o.pt")]) == 2
+    err = _one_line_error(capsys)
+    assert err.startswith("dvsland: error: --data-cache") and needle in err, err

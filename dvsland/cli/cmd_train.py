@@ -187,6 +187,58 @@ def _start_from(args, cfg):
     return model, enc, meta if isinstance(meta, dict) else {}
 
 
+def _read_cache(path):
+    """The ``--data-cache`` file ``path`` read (``{"key": settings, "data": sequences}``), or None
+    when there is none yet (it is made and written then). Read by the one checkpoint reader
+    (tensors and plain values only), before any data are made.
+
+    Raises:
+        ValueError: naming ``--data-cache`` for a file that is unreadable or not such a cache (it is
+            never overwritten: it may be a file of yours).
+    """
+    from dvsland.estimators.state_dict_check import read_checkpoint_file, short_path
+
+    if path is None:
+        return None
+    try:
+        missing = bool(str(path).strip()) and not Path(path).exists()
+    except (OSError, ValueError):  # a name the OS refuses: read_checkpoint_file names it
+        missing = False
+    if missing:
+        if not Path(path).parent.is_dir():
+            raise ValueError(f"--data-cache: {short_path(path)}: the folder {short_path(Path(path).parent)} does "
+                             f"not exist; the cache would be written there after the data are made")
+        return None
+    cached = read_checkpoint_file(path, "--data-cache", "dvsland training-data cache",
+                                  "delete it, or name another file for the cache")
+    p = Path(path)
+    if not isinstance(cached.get("key"), dict) or not isinstance(cached.get("data"), dict):
+        raise ValueError(f"--data-cache: {short_path(p)} is not a dvsland training-data cache (no 'key' and 'data'); "
+                         f"it is left as it is: name another file for the cache")
+    return cached
+
+
+def _cached_data(cached, key: dict, path, log):
+    """The sequences of the cache ``cached`` (:func:`_read_cache`) when made with ``key``, else None."""
+    if cached is None:
+        return None
+    if cached["key"] != key:
+        log(f"data: {path} was made with other settings; regenerating")
+        return None
+    log(f"data: loaded {path}")
+    return cached["data"]
+
+
+def _write_cache(path, key: dict, data: dict) -> None:
+    """Write the ``--data-cache`` atomically (a temporary file renamed: no half-written cache)."""
+    import torch
+
+    p = Path(path)
+    tmp = p.with_name(p.name + ".tmp")
+    torch.save({"key": key, "data": data}, tmp)
+    tmp.replace(p)
+
+
 def _sequences():
     """The module that makes the training sequences (``make_sequences``, ``training_sites``)."""
     from dvsland.data import snn_sequences
@@ -210,7 +262,6 @@ def run_train(args) -> int:
     from dvsland.config import load_config
     from dvsland.estimators.snn import SpikingDivergenceNet, save_checkpoint
     from dvsland.estimators.snn.train import train
-    from dvsland.report.results import write_json
     from dvsland.runs import make_run_dir
 
     # ---- every check before any data is made or any file is written
@@ -222,11 +273,17 @@ def run_train(args) -> int:
     log = (lambda *a, **k: None) if args.quiet else print
     apply_threads(cfg)
     init_model, enc, prior = _start_from(args, cfg)  # --init checked before any data or folder
+    cached = _read_cache(args.data_cache)  # so is --data-cache
     seqs = _sequences()
     if sites is None:
         sites = seqs.training_sites(hold_out_type=args.hold_out_type)
     elif args.hold_out_type:
         raise ValueError("--hold-out-type picks from the default training terrains; leave it out with --sites")
+    t0 = time.perf_counter()
+    key = {"n_seq": args.n_seq, "steps": args.steps, "seed": args.seed, "c2_max": args.c2_max, "sites": sites,
+           "dispersion": args.dispersion, "sun_step": args.sun_step, "n_sub": enc.n_sub,
+           "camera": [cfg.camera.width_px, cfg.camera.height_px]}
+    data = _cached_data(cached, key, args.data_cache, log)
     if out is None:
         run_dir = make_run_dir(cfg, None, kind="train")
         out = run_dir / CHECKPOINT_NAME
@@ -235,24 +292,11 @@ def run_train(args) -> int:
 
     train_seed = args.seed if args.train_seed is None else args.train_seed
     torch.manual_seed(train_seed)
-    n_sub = enc.n_sub
-    t0 = time.perf_counter()
-    key = {"n_seq": args.n_seq, "steps": args.steps, "seed": args.seed, "c2_max": args.c2_max, "sites": sites,
-           "dispersion": args.dispersion, "sun_step": args.sun_step, "n_sub": n_sub,
-           "camera": [cfg.camera.width_px, cfg.camera.height_px]}
-    data = None
-    if args.data_cache and Path(args.data_cache).is_file():
-        cached = torch.load(args.data_cache, map_location="cpu", weights_only=False)
-        if cached.get("key") == key:
-            data = cached["data"]
-            log(f"data: loaded {args.data_cache}")
-        else:
-            log(f"data: {args.data_cache} was made with other settings; regenerating")
     if data is None:
         data = seqs.make_sequences(cfg, enc, sites, args.n_seq, args.steps, seed=args.seed, c2_max=args.c2_max,
                                    dispersion=dispersion, sun_step_deg=args.sun_step, progress=not args.quiet)
         if args.data_cache:
-            torch.save({"key": key, "data": data}, args.data_cache)
+            _write_cache(args.data_cache, key, data)
     t_data = time.perf_counter() - t0
     log(f"data: {args.n_seq} sequences x {args.steps} steps on {', '.join(sites)} in {t_data:.0f} s; "
         f"mean events/px/step {float(data['x'].float().mean()) * enc.n_sub:.3f}")
@@ -272,6 +316,14 @@ def run_train(args) -> int:
             "history": hist, "init": args.init, "prior": {k: v for k, v in prior.items() if k != "prior"},
             "config": cfg.name, "command": "dvsland " + " ".join(sys.argv[1:]) if sys.argv else "dvsland train"}
     save_checkpoint(out, model, enc, meta)
+    _report(args, out, run_dir, meta)
+    return 0
+
+
+def _report(args, out: Path, run_dir, meta: dict) -> None:
+    """``train.json`` in the run folder (if any) and the lines of the command's output."""
+    from dvsland.report.results import write_json
+
     if run_dir is not None:
         write_json(run_dir / "train.json", {k: v for k, v in meta.items()})
     if args.quiet:
@@ -280,4 +332,3 @@ def run_train(args) -> int:
         print(f"wrote {out}")
         print(json.dumps({k: v for k, v in meta.items() if k != "history"}))
         print(f"use it: dvsland evaluate --estimators snn --set estimator.snn.checkpoint={out}")
-    return 0
