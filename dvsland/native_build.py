@@ -10,6 +10,7 @@ called.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import os
@@ -88,14 +89,101 @@ def import_extension(name: str):
     return mod
 
 
+#: torch's lock file in a build folder (torch.utils.file_baton: it waits while the file exists)
+TORCH_LOCK = "lock"
+#: dvsland's lock beside it: flock-ed for the whole build and holding the builder's pid; the
+#: kernel releases a flock when its process dies, even by SIGKILL
+OWNER_LOCK = "dvsland-build.lock"
+
+
+def _read_owner(fd: int) -> str:
+    """The pid a builder wrote into the owner lock ("" when none)."""
+    try:
+        return os.pread(fd, 32, 0).decode(errors="replace").strip()
+    except OSError:
+        return ""
+
+
+def processes_in(d: Path) -> List[int]:
+    """Pids of the processes (other than this one) whose working folder is ``d``: torch runs ninja
+    and the compiler there, and they live on when the build's Python process is killed. Empty
+    where /proc cannot be read (not Linux)."""
+    target, out = os.path.realpath(d), []
+    try:
+        entries = os.listdir("/proc")
+    except OSError:
+        return out
+    for e in entries:
+        if e.isdigit() and int(e) != os.getpid():
+            try:
+                if os.readlink(f"/proc/{e}/cwd") == target:
+                    out.append(int(e))
+            except OSError:  # gone, or another user's
+                pass
+    return out
+
+
+def _wait_for_orphans(d: Path, poll_s: float = 0.5) -> None:
+    """Wait (interruptible by Ctrl-C) until no process works in ``d`` (:func:`processes_in`): a
+    killed build's ninja and compiler finish before the folder is built again."""
+    import time
+
+    told = False
+    while True:
+        pids = processes_in(d)
+        if not pids:
+            return
+        if not told:
+            print(f"dvsland: waiting for the compiler processes {pids} of an earlier build in {d} to end",
+                  file=sys.stderr, flush=True)
+            told = True
+        time.sleep(poll_s)
+
+
+@contextlib.contextmanager
+def build_lock(d: Path):
+    """Hold folder ``d``'s build for this process (a flock on ``d/OWNER_LOCK``, this pid written in
+    it). Another live builder is waited for (interruptible by Ctrl-C). Once held, no live dvsland
+    build is running there, so torch's ``d/lock`` left behind is stale (a build killed mid-compile:
+    torch would wait on it forever): once the compiler processes that build left in ``d`` have
+    ended, it is removed with one RuntimeWarning naming the file."""
+    import fcntl
+    import warnings
+
+    fd = os.open(d / OWNER_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            print(f"dvsland: waiting for the build of process {_read_owner(fd) or '?'} in {d} to end",
+                  file=sys.stderr, flush=True)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        previous = _read_owner(fd)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        stale = d / TORCH_LOCK
+        if stale.exists():
+            _wait_for_orphans(d)
+            by = f"process {previous}" if previous else "a build"
+            warnings.warn(f"removed the stale build lock {stale}, left by {by} that ended without releasing "
+                          f"it (killed mid-compile); building anew", RuntimeWarning, stacklevel=3)
+            stale.unlink(missing_ok=True)
+        yield
+    finally:
+        os.close(fd)  # releases the flock
+
+
 def build_extension(name: str, src: str, functions: List[str], cflags: List[str], verbose: bool = False):
-    """Compile (when not cached) and load extension ``name``; the module. Raises on any build error."""
+    """Compile (when not cached) and load extension ``name``; the module. Raises on any build error.
+    The build holds :func:`build_lock` on its folder: a concurrent build is waited for, a stale
+    lock of a killed build removed (with a warning naming it)."""
     from torch.utils.cpp_extension import load_inline
 
     d = extension_dir(name)
     d.mkdir(parents=True, exist_ok=True)
-    return load_inline(name, cpp_sources=src, functions=functions, extra_cflags=cflags,
-                       build_directory=str(d), verbose=verbose)
+    with build_lock(d):
+        return load_inline(name, cpp_sources=src, functions=functions, extra_cflags=cflags,
+                           build_directory=str(d), verbose=verbose)
 
 
 def load_or_warn(name: str, cached: bool, build, label: str):
@@ -136,4 +224,4 @@ def timed_build(label: str, kernel_module) -> int:
 
 
 __all__ = ["load_or_warn", "timed_build", "ON", "OFF", "AUTO", "mode_from_env", "extension_name", "extension_dir", "extension_library",
-           "extension_cached", "import_extension", "build_extension"]
+           "extension_cached", "import_extension", "build_extension", "build_lock"]

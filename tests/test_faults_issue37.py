@@ -189,3 +189,116 @@ def test_signal_in_the_first_seconds_is_never_a_traceback(sig):
         err = p.communicate(timeout=120)[1]
         assert "Traceback" not in err, (delay, err)
         assert p.returncode in (0, 130, -getattr(signal, sig)), (delay, p.returncode, err)
+
+
+# ------------------------------------------------------------------ 8. build-native after a SIGKILL
+_CHILD_BUILD = """
+import sys, time
+import torch.utils.cpp_extension as ce
+from torch.utils.file_baton import FileBaton
+from dvsland import native_build
+
+def compiling(name, build_directory, **kw):  # torch's lock, then a compile that takes long
+    baton = FileBaton(build_directory + "/lock")
+    assert baton.try_acquire()
+    print("compiling", flush=True)
+    time.sleep(float(sys.argv[1]))
+    baton.release()
+
+ce.load_inline = compiling
+native_build.build_extension("dvsland_test_ext", "", [], [])
+"""
+
+
+def _fake_torch_build(calls):
+    """A stand-in for torch's load_inline that takes its lock as torch does (FileBaton), but
+    fails instead of waiting forever on a lock another build left."""
+    from torch.utils.file_baton import FileBaton
+
+    def load_inline(name, build_directory, **kw):
+        baton = FileBaton(str(build_directory) + "/lock")
+        if not baton.try_acquire():
+            raise AssertionError(f"torch would wait forever on {build_directory}/lock")
+        baton.release()
+        calls.append(name)
+        return "module"
+
+    return load_inline
+
+
+def _start_child_build(tmp_path, seconds: float):
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, TORCH_EXTENSIONS_DIR=str(tmp_path))
+    child = subprocess.Popen([sys.executable, "-c", _CHILD_BUILD, str(seconds)], env=env,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert child.stdout.readline().strip() == "compiling", child.stderr.read()
+    return child
+
+
+def test_build_after_a_killed_build_removes_the_stale_lock(tmp_path, monkeypatch):
+    """A build-native killed by SIGKILL mid-compile left torch's lock; the next build waited forever."""
+    import torch.utils.cpp_extension as ce
+
+    from dvsland import native_build
+
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path))
+    child = _start_child_build(tmp_path, 600)
+    child.kill()
+    child.wait(timeout=30)
+    lock = tmp_path / "dvsland_test_ext" / "lock"
+    assert lock.exists()
+    calls = []
+    monkeypatch.setattr(ce, "load_inline", _fake_torch_build(calls))
+    with pytest.warns(RuntimeWarning, match=f"stale build lock {lock}"):
+        assert native_build.build_extension("dvsland_test_ext", "", [], []) == "module"
+    assert calls == ["dvsland_test_ext"] and not lock.exists()
+
+
+def test_build_waits_for_a_live_build_and_leaves_its_lock(tmp_path, monkeypatch):
+    """A build running in another process is waited for, its lock never removed."""
+    import time
+    import warnings
+
+    import torch.utils.cpp_extension as ce
+
+    from dvsland import native_build
+
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path))
+    child = _start_child_build(tmp_path, 2.0)
+    calls = []
+    monkeypatch.setattr(ce, "load_inline", _fake_torch_build(calls))
+    t0 = time.monotonic()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert native_build.build_extension("dvsland_test_ext", "", [], []) == "module"
+    assert time.monotonic() - t0 > 1.0 and calls == ["dvsland_test_ext"]
+    assert child.wait(timeout=30) == 0, child.stderr.read()
+
+
+def test_stale_lock_waits_for_the_killed_builds_compiler(tmp_path, monkeypatch):
+    """The compiler of a killed build lives on in the build folder: it is waited for, so two
+    compilers never write the same objects."""
+    import subprocess
+    import sys
+    import time
+
+    import torch.utils.cpp_extension as ce
+
+    from dvsland import native_build
+
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path))
+    d = tmp_path / "dvsland_test_ext"
+    d.mkdir()
+    (d / "lock").touch()
+    orphan = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(2)"], cwd=d)
+    time.sleep(0.3)
+    assert native_build.processes_in(d) == [orphan.pid]
+    calls = []
+    monkeypatch.setattr(ce, "load_inline", _fake_torch_build(calls))
+    t0 = time.monotonic()
+    with pytest.warns(RuntimeWarning, match="stale build lock"):
+        assert native_build.build_extension("dvsland_test_ext", "", [], []) == "module"
+    assert orphan.poll() == 0 and time.monotonic() - t0 > 1.0 and calls == ["dvsland_test_ext"]
