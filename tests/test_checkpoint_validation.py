@@ -270,3 +270,16 @@ def test_data_cache_bad_paths_are_refused_before_any_data(tmp_path, capsys, no_d
     assert main(["train", *SNN_TINY, "--data-cache", path, "--out", str(tmp_path / "o.pt")]) == 2
     err = _one_line_error(capsys)
     assert err.startswith("dvsland: error: --data-cache") and needle in err, err
+
+
+@pytest.mark.parametrize("field, value", [("best_val", "x"), ("best_val", float("nan")), ("epoch", -1),
+                                          ("bad_epochs", 1.5), ("seconds", float("nan")), ("history", None)])
+def test_resume_refuses_damaged_counters(cnn_ckpt, tmp_path, capsys, field, value):
+    """best_val = 'x' gave a TypeError traceback from the training loop."""
+    def damage(ck):
+        (ck["last"] if field == "seconds" else ck)[field] = value
+
+    path = _damaged(cnn_ckpt, tmp_path / "c.pt", damage)
+    assert main(["train", *RECIPE, "--data", data_of(cnn_ckpt), "--out", str(path), "--resume"]) == 2
+    err = _one_line_error(capsys)
+    assert f"--resume: {path}" in err and field in err, err

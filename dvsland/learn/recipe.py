@@ -153,11 +153,28 @@ def _resume_state(out: Path, model_desc: dict, provenance: dict, s: RecipeSettin
     if finetune:
         return ck, finetune
     last = ck.get("last")
-    if not isinstance(last, dict) or not all(isinstance(ck.get(k), int) for k in ("epoch", "bad_epochs")):
+    if not isinstance(last, dict) or "optimizer" not in last:
         raise ValueError(f"{where} holds no resumable state (a shipped or stripped checkpoint)")
+    _check_counters(ck, where)
     check_state_dict(last.get("state_dict"), net, f"{where} (its last weights)")
     check_optimizer_state(last.get("optimizer"), opt, where)
     return ck, finetune
+
+
+def _check_counters(ck: dict, where: str) -> None:
+    """The resumable run's counters: ``epoch`` and ``bad_epochs`` integers >= 0, ``best_val`` a number
+    (not NaN; inf before any validation), ``last.seconds`` a finite number >= 0, ``history`` a list."""
+    def real(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    for name, v, ok in (("epoch", ck.get("epoch"), lambda v: isinstance(v, int) and v >= 0),
+                        ("bad_epochs", ck.get("bad_epochs"), lambda v: isinstance(v, int) and v >= 0),
+                        ("best_val", ck.get("best_val"), lambda v: real(v) and not math.isnan(v)),
+                        ("last.seconds", ck["last"].get("seconds"), lambda v: real(v) and 0 <= v < math.inf),
+                        ("history", ck.get("history"), lambda v: isinstance(v, list))):
+        if isinstance(v, bool) or not ok(v):
+            raise ValueError(f"{where}: its {name} is {v!r}; expected "
+                             f"{'a list' if name == 'history' else 'a number >= 0'} (a damaged checkpoint)")
 
 
 def _init_state(init, model_desc: dict, spec: InputSpec, net) -> dict:
