@@ -108,7 +108,8 @@ def _short(exc: BaseException, limit: int = 300) -> str:
     return text if len(text) <= limit else text[:limit] + " ..."
 
 
-def check_batch_tensor(value, batch_size: int, device, plugin: str, call: str, allow_none: bool = False):
+def check_batch_tensor(value, batch_size: int, device, plugin: str, call: str, allow_none: bool = False,
+                       detach: bool = True):
     """The (B,) floating tensor a plug-in returned, detached, or a :class:`PluginError` saying what
     was expected and what came back (type, shape, dtype, device).
 
@@ -118,6 +119,8 @@ def check_batch_tensor(value, batch_size: int, device, plugin: str, call: str, a
         device: the loop's torch device (a CPU result for a CUDA loop and the reverse are errors).
         plugin, call: for the message.
         allow_none: None is accepted (returned as None), e.g. for ``confidence()``.
+        detach: return it detached from any autograd graph (the default); False keeps the graph
+            (the loop's differentiable mode).
     """
     import torch
 
@@ -134,4 +137,4 @@ def check_batch_tensor(value, batch_size: int, device, plugin: str, call: str, a
     dev = torch.device(device)
     if value.device.type != dev.type or None not in (value.device.index, dev.index) and value.device.index != dev.index:
         raise PluginError(plugin, call, f"expected {want}, got {got}")
-    return value.detach()
+    return value.detach() if detach else value

@@ -221,10 +221,11 @@ def sense(stages, state: LoopState, frames: Optional[torch.Tensor], t_us: int, c
     return st, events
 
 
-def estimate(stages, state: LoopState, events, t_us: int) -> Tuple[Any, Estimate]:
+def estimate(stages, state: LoopState, events, t_us: int, grad: bool = False) -> Tuple[Any, Estimate]:
     """The estimator's step on ``events``: (estimator state, :class:`Estimate`).
 
     Event estimators give no estimate on the first frame and for descents restarted at this step.
+    ``grad=True`` keeps the estimate's autograd graph (otherwise it is detached at this boundary).
     """
     fns = stage_fns(stages)
     B, dev, name = state.batch_size, state.z_m.device, fns.estimator_name
@@ -234,11 +235,11 @@ def estimate(stages, state: LoopState, events, t_us: int) -> Tuple[Any, Estimate
         return st, Estimate(d, torch.zeros_like(d), torch.zeros(B, dtype=torch.bool, device=dev), {})
     truth = Truth(altitude_m=state.z_m, velocity_mps=state.v_mps)
     st, out = call_plugin(name, "update", fns.estimator.step_state, st, events, t_us, truth)
-    d_hat = check_batch_tensor(out.d_hat, B, dev, name, "update").to(dtype=torch.float64)
+    d_hat = check_batch_tensor(out.d_hat, B, dev, name, "update", detach=not grad).to(dtype=torch.float64)
     if stages.events is not None and state.restarted is not None:
         d_hat = torch.where(state.restarted, torch.full_like(d_hat, float("nan")), d_hat)
     d_hat, bad = sanitise_estimates(d_hat)  # +-inf or absurd |D_hat| -> NaN, counted
-    conf = check_batch_tensor(out.confidence, B, dev, name, "confidence")
+    conf = check_batch_tensor(out.confidence, B, dev, name, "confidence", detach=not grad)
     return st, Estimate(d_hat, confidence_of(conf, d_hat), bad, out.diagnostics)
 
 
@@ -294,7 +295,8 @@ def advance(stages, state: LoopState, thrust: torch.Tensor, held: torch.Tensor, 
 
 # ------------------------------------------------------------------ the step
 def loop_step(stages, state: LoopState, thrust: Optional[torch.Tensor] = None,
-              timer: Optional[Callable[[str], Any]] = None, terminate: bool = True) -> Tuple[LoopState, StepOutput]:
+              timer: Optional[Callable[[str], Any]] = None, terminate: bool = True,
+              grad: bool = False) -> Tuple[LoopState, StepOutput]:
     """Fly one control step of every active descent: :func:`sense_step` then :func:`act_step`.
 
     Pure: ``state`` is not changed and can be stepped from again (the same outputs).
@@ -308,6 +310,10 @@ def loop_step(stages, state: LoopState, thrust: Optional[torch.Tensor] = None,
         timer: optional ``timer(stage_name)`` context manager factory (per-stage timing).
         terminate: end descents that meet a termination condition (False: none ends, see
             :func:`advance`).
+        grad: keep the autograd graph through the estimate (the dynamics, filter and law are
+            differentiable torch maths; termination masks are constants; a thrust given in ``thrust``
+            keeps its graph too). With the ``oracle`` the estimate is a function of (z, v), so the
+            gradient runs through the whole closed loop. Off by default (the estimate is detached).
 
     Returns:
         (the next :class:`LoopState`, the :class:`StepOutput` of this step).
@@ -318,10 +324,10 @@ def loop_step(stages, state: LoopState, thrust: Optional[torch.Tensor] = None,
         PluginError: the estimator or the law broke its contract (:mod:`dvsland.plugins`).
     """
     thrust = _checked_thrust(thrust, state.z_m)  # before sensing: a bad thrust costs nothing
-    return act_step(stages, sense_step(stages, state, timer), thrust, timer, terminate)
+    return act_step(stages, sense_step(stages, state, timer, grad), thrust, timer, terminate)
 
 
-def sense_step(stages, state: LoopState, timer: Optional[Callable[[str], Any]] = None) -> Sensed:
+def sense_step(stages, state: LoopState, timer: Optional[Callable[[str], Any]] = None, grad: bool = False) -> Sensed:
     """The first half of a step: render, emulate, estimate, filter and run the law at ``t_k``;
     finish the step with :func:`act_step`. ``state`` is not changed."""
     tm = timer or (lambda name: nullcontext())
@@ -339,7 +345,7 @@ def sense_step(stages, state: LoopState, timer: Optional[Callable[[str], Any]] =
         with tm("emulate"):
             emu_st, events = sense(stages, state, frames, t_us, compact)
     with tm("estimate"):
-        est_st, est = estimate(stages, state, events, t_us)
+        est_st, est = estimate(stages, state, events, t_us, grad)
     with tm("control"):
         f_st, c_st, cmd = act(stages, state, est)
         u = _applied_thrust(cmd.control.thrust_n, None, state.active)
