@@ -283,3 +283,24 @@ def test_resume_refuses_damaged_counters(cnn_ckpt, tmp_path, capsys, field, valu
     assert main(["train", *RECIPE, "--data", data_of(cnn_ckpt), "--out", str(path), "--resume"]) == 2
     err = _one_line_error(capsys)
     assert f"--resume: {path}" in err and field in err, err
+
+
+def test_snn_checkpoint_is_replaced_atomically(tmp_path, capsys, monkeypatch):
+    """An interrupted write (SIGKILL, a full disk) left a truncated checkpoint in place of the one
+    --overwrite was replacing; now the old file stays until the new one is complete."""
+    import dvsland.estimators.snn as snn
+
+    out = tmp_path / "mine.pt"
+    out.write_bytes(DEFAULT_CHECKPOINT.read_bytes())
+
+    def half_write(path, *a, **k):
+        open(path, "wb").write(b"half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(snn, "save_checkpoint", half_write)
+    try:
+        assert main(["train", *SNN_TINY, "--out", str(out), "--overwrite"]) != 0
+    except OSError:
+        pass
+    capsys.readouterr()
+    assert out.read_bytes() == DEFAULT_CHECKPOINT.read_bytes()

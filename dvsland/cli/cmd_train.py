@@ -315,7 +315,9 @@ def run_train(args) -> int:
             "data_seconds": t_data, "train_seconds": hist["seconds"][-1] if hist["seconds"] else 0.0,
             "history": hist, "init": args.init, "prior": {k: v for k, v in prior.items() if k != "prior"},
             "config": cfg.name, "command": "dvsland " + " ".join(sys.argv[1:]) if sys.argv else "dvsland train"}
-    save_checkpoint(out, model, enc, meta)
+    tmp = out.with_name(out.name + ".tmp")  # the old file stays until the new one is complete
+    save_checkpoint(tmp, model, enc, meta)
+    tmp.replace(out)
     _report(args, out, run_dir, meta)
     return 0
 
