@@ -1,5 +1,6 @@
-"""``dvsland train CONFIG --model NAME|pkg.mod:Class --data DIR [--epochs E] [--max-minutes M] [--out CKPT]``:
-the training recipe of the ``learned`` estimator (:mod:`dvsland.learn`, :mod:`.train_recipe`).
+"""``dvsland train CONFIG --model NAME|pkg.mod:Class --data DIR [--epochs E] [--max-minutes M] [--out CKPT]
+[--resume | --init CKPT]``: the training recipe of the ``learned`` estimator (:mod:`dvsland.learn`,
+:mod:`.train_recipe`).
 
 ``dvsland train [CONFIG] [--out PATH] [--overwrite-shipped] [--sites A~1,...] [--n-seq N] [--steps K]
 [--epochs E] [--init CKPT] [--threads N] [--set key=value ...] [--quiet]``: train the spiking
@@ -16,6 +17,10 @@ Where it goes: ``--out PATH`` (a ``.pt`` file), or by default a new run folder
 A path inside the installed package (the shipped ``snn_default.pt``) is refused unless
 ``--overwrite-shipped`` is given, and any other existing file unless ``--overwrite``: both are
 checked before any data is made.
+
+Every checkpoint it reads (``--init``, ``--resume``, ``--data-cache``) goes through the one checkpoint
+validation (:mod:`dvsland.estimators.state_dict_check`) before any data are made or any file is
+written: a missing, foreign, damaged or diverged file is one error naming the option and the file.
 
 The options are added by :func:`add_train_arguments` in three groups (data, model, training), the
 one place to extend them.
@@ -103,7 +108,9 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     model.add_argument("--channels", default="16,32", help="LIF channels of the two layers (new networks only)")
     model.add_argument("--n-sub", type=ranged(int, 1, 64, "--n-sub"), default=4,
                        help="network steps (time slices) per control step")
-    model.add_argument("--init", default=None, metavar="CKPT", help="start from this checkpoint's weights (fine-tuning)")
+    model.add_argument("--init", default=None, metavar="CKPT",
+                       help="start from this checkpoint's weights (fine-tuning): an snn checkpoint, or with --model a "
+                            "learned one of the same model and settings; checked like every checkpoint")
 
     tr = p.add_argument_group("training")
     tr.add_argument("--epochs", type=ranged(int, 1, 100_000, "--epochs"), default=None,
