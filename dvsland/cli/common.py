@@ -136,7 +136,8 @@ def parse_sites(text: Optional[str], param: str = "--sites") -> Optional[List[st
 
 def config_from_args(args: argparse.Namespace, extra_overrides=()) -> Config:
     """Load the config named by ``args.config`` with the shortcut flags (``--estimator``,
-    ``--renderer``, ``--device``, ``--threads``, ``--quiet``), ``extra_overrides`` and ``--set``
+    ``--controller``, ``--renderer``, ``--device``, ``--threads``, ``--quiet``; an empty value is
+    checked, not dropped), ``extra_overrides`` and ``--set``
     applied, so the run folder's config.yaml records what actually ran.
 
     The device (``--device`` or ``simulation.device``) is checked against this machine here, before
