@@ -130,6 +130,48 @@ def check_recording_size(cfg: Config, recording: Recording, estimators: Sequence
         f"raise simulation.max_memory_gb")
 
 
+def _run_intervals(ests: dict, ev_all, cut: np.ndarray, edges: np.ndarray, truth: dict, device,
+                   progress: bool, label: str) -> tuple:
+    """Feed each estimator of ``ests`` ({label: estimator}) interval k's events (``ev_all[cut[k-1]:cut[k]]``)
+    at ``edges[k]`` µs with the ground truth ``truth`` ({"divergence", "altitude_m", "velocity_mps"}:
+    (K + 1,) arrays, NaN = unknown). Returns ``(d_hat, times, n_events)``: {label: (1, K + 1)
+    estimates, 1/s}, {label: [ms per update]}, (1, K + 1) event counts (-1 at k = 0)."""
+    K = len(edges) - 1
+    d_true = truth["divergence"]
+    d_hat = {n: np.full((1, K + 1), np.nan) for n in ests}
+    times: Dict[str, List[float]] = {n: [] for n in ests}
+    n_events = np.full((1, K + 1), -1, dtype=np.int64)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=K, desc=f"evaluate {label}", unit="step")
+    for est in ests.values():
+        est.reset()
+    for k in range(1, K + 1):
+        ev = ev_all[int(cut[k - 1]):int(cut[k])]
+        n_events[0, k] = len(ev)
+        if np.isfinite(d_true[k]):
+            z = truth["altitude_m"][k] if np.isfinite(truth["altitude_m"][k]) else 1.0
+            v = truth["velocity_mps"][k] if np.isfinite(truth["velocity_mps"][k]) else d_true[k] * z
+            tr = Truth(torch.tensor([z], dtype=torch.float64, device=device),
+                       torch.tensor([v], dtype=torch.float64, device=device))
+        else:
+            tr = None
+        for n, est in ests.items():
+            _sync(device)
+            t_start = time.perf_counter()
+            d = est.update(ev, int(edges[k]), tr)
+            _sync(device)
+            times[n].append((time.perf_counter() - t_start) * 1e3)
+            d_hat[n][:, k] = d.detach().double().cpu().numpy()
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    return d_hat, times, n_events
+
+
 def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
                        estimators: Sequence[str] = ("dpr", "cmax"), *, warmup_steps: int = 10,
                        max_steps: Optional[int] = None, device="cpu", name: Optional[str] = None,
@@ -183,44 +225,14 @@ def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
     desc = RecordingDescents(sites=[label], t_s=edges / 1e6, altitude_m=truth["altitude_m"][None],
                              velocity_mps=truth["velocity_mps"][None], valid=valid[None], d_true=d_true[None])
 
-    B = 1
+    B = 1  # one recording
     ests = {}
     for lab, est_name, over in (parse_estimator_spec(e) for e in estimators):
         if lab in ests:
             raise ValueError(f"estimator label {lab!r} given twice")
         # as in evaluate(): built once from its variant config, here sized for the recording
         ests[lab] = build_estimator(variant_config(cfg, est_name, over, lab), B, device, name=est_name)
-    d_hat = {n: np.full((B, K + 1), np.nan) for n in ests}
-    times: Dict[str, List[float]] = {n: [] for n in ests}
-    n_events = np.full((B, K + 1), -1, dtype=np.int64)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=K, desc=f"evaluate {label}", unit="step")
-    for est in ests.values():
-        est.reset()
-    for k in range(1, K + 1):
-        ev = ev_all[int(cut[k - 1]):int(cut[k])]
-        n_events[0, k] = len(ev)
-        if np.isfinite(d_true[k]):
-            z = truth["altitude_m"][k] if np.isfinite(truth["altitude_m"][k]) else 1.0
-            v = truth["velocity_mps"][k] if np.isfinite(truth["velocity_mps"][k]) else d_true[k] * z
-            tr = Truth(torch.tensor([z], dtype=torch.float64, device=device),
-                       torch.tensor([v], dtype=torch.float64, device=device))
-        else:
-            tr = None
-        for n, est in ests.items():
-            _sync(device)
-            t_start = time.perf_counter()
-            d = est.update(ev, int(edges[k]), tr)
-            _sync(device)
-            times[n].append((time.perf_counter() - t_start) * 1e3)
-            d_hat[n][:, k] = d.detach().double().cpu().numpy()
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
+    d_hat, times, n_events = _run_intervals(ests, ev_all, cut, edges, truth, device, progress, label)
     scored = desc.valid & (np.arange(K + 1)[None] > warmup_steps)
     res = EvaluationResult(desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events)
     info = dict(trajectory="recording", recording=recording.source, recording_format=recording.format,
