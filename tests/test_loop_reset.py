@@ -8,21 +8,13 @@ import torch
 
 from dvsland.config import load_config
 from dvsland.pytree import tree_equal
-from dvsland.sim import init_state, loop_step, reset_where, restart_finished
+from dvsland.sim import fly_steps, init_state, loop_step, reset_where, restart_finished
 from dvsland.sim.termination import RUNNING
 from dvsland.stages import build_stages
 
 
 def _stages(est="oracle", sites="D", extra=()):
     return build_stages(load_config("paper", [f"estimator.name={est}", "render.threads=1", *extra]), sites)
-
-
-def _fly(stages, state, n):
-    outs = []
-    for _ in range(n):
-        state, out = loop_step(stages, state)
-        outs.append(out)
-    return state, outs
 
 
 def _same(a, b):
@@ -32,17 +24,17 @@ def _same(a, b):
 @pytest.mark.parametrize("est", ["oracle", "dpr"])
 def test_reset_leaves_other_descents_bit_identical(est):
     st = _stages(est, "A,D")
-    s, _ = _fly(st, init_state(st), 4)
-    ref, ref_outs = _fly(st, s, 4)
+    s, _ = fly_steps(st, init_state(st), 4)
+    ref, ref_outs = fly_steps(st, s, 4)
     mask = torch.tensor([False, True, False, False])
     r = reset_where(st, s, mask)
-    got, outs = _fly(st, r, 4)
+    got, outs = fly_steps(st, r, 4)
     keep = ~mask
     for a, b in zip(ref_outs, outs):
         assert _same(a.d_est[keep], b.d_est[keep]) and torch.equal(a.thrust_n[keep], b.thrust_n[keep])
     assert torch.equal(got.z_m[keep], ref.z_m[keep]) and torch.equal(got.v_mps[keep], ref.v_mps[keep])
     # the restarted descent flew 4 steps from its start: as a fresh batch's element 1 does
-    fresh, fresh_outs = _fly(st, init_state(st), 4)
+    fresh, fresh_outs = fly_steps(st, init_state(st), 4)
     assert torch.equal(got.z_m[1], fresh.z_m[1]) and got.flight_step[1] == 4 and got.step == 8
     if est == "oracle":  # no events: the restarted descent flies exactly as a fresh one
         assert torch.equal(outs[-1].thrust_n[1], fresh_outs[-1].thrust_n[1])
@@ -79,7 +71,7 @@ def test_bad_reset_input_is_named(kw, msg):
 
 def test_reset_does_not_change_its_input():
     st = _stages("dpr", "D")
-    s, _ = _fly(st, init_state(st), 3)
+    s, _ = fly_steps(st, init_state(st), 3)
     from dvsland.pytree import tree_clone
     before = tree_clone(s)
     reset_where(st, s, torch.tensor([True, False]))

@@ -10,7 +10,7 @@ import torch
 
 from dvsland.config import load_config
 from dvsland.pytree import tree_clone, tree_equal
-from dvsland.sim import LoopState, StepOutput, clone_state, init_state, load_state, loop_step, reset_where, save_state
+from dvsland.sim import fly_steps, LoopState, StepOutput, clone_state, init_state, load_state, loop_step, reset_where, save_state
 from dvsland.sim.termination import OUTCOMES
 from dvsland.stages import build_stages
 
@@ -22,14 +22,6 @@ def _stages(preset="paper", est="oracle", sites="D", extra=()):
     if "montecarlo" in preset:
         over.append("simulation.n_seeds=1")
     return build_stages(load_config(preset, over), sites)
-
-
-def _fly(stages, state, n):
-    outs = []
-    for _ in range(n):
-        state, out = loop_step(stages, state)
-        outs.append(out)
-    return state, outs
 
 
 def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
@@ -65,12 +57,12 @@ def test_oracle_needs_no_frames():
                                               ("montecarlo_efference", "cmax", "H"), ("paper", "snn", "F")])
 def test_resume_mid_descent_is_bit_identical(tmp_path, preset, est, sites):
     st = _stages(preset, est, sites)
-    s, _ = _fly(st, init_state(st), 8)
+    s, _ = fly_steps(st, init_state(st), 8)
     save_state(tmp_path / "k8.pt", s)
     kept = clone_state(s)
-    end, ref = _fly(st, s, 7)
+    end, ref = fly_steps(st, s, 7)
     for resumed in (load_state(tmp_path / "k8.pt"), kept, kept):  # a clone can be stepped from twice
-        e2, outs = _fly(st, resumed, 7)
+        e2, outs = fly_steps(st, resumed, 7)
         assert all(_same(a.d_est, b.d_est) and _same(a.thrust_n, b.thrust_n) for a, b in zip(ref, outs))
         assert torch.equal(e2.z_m, end.z_m) and torch.equal(e2.v_mps, end.v_mps) and torch.equal(e2.m_kg, end.m_kg)
 
@@ -78,7 +70,7 @@ def test_resume_mid_descent_is_bit_identical(tmp_path, preset, est, sites):
 def test_a_state_can_be_stepped_from_twice():
     """The step is pure: the state it starts from is unchanged and gives the same step again."""
     st = _stages("paper", "dpr", "D")
-    s0, _ = _fly(st, init_state(st), 3)
+    s0, _ = fly_steps(st, init_state(st), 3)
     copy0 = tree_clone(s0)
     s1, o1 = loop_step(st, s0)
     assert tree_equal(s0, copy0)
@@ -135,7 +127,7 @@ def test_finished_descents_stay_frozen():
     while bool(s.active[:2].any()):
         s, _ = loop_step(st, s)
     frozen = (s.z_m[:2].clone(), s.outcome[:2].clone(), s.t_end_s[:2].clone())
-    s, out = _fly(st, s, 5)[0], None
+    s, out = fly_steps(st, s, 5)[0], None
     assert torch.equal(s.z_m[:2], frozen[0]) and torch.equal(s.outcome[:2], frozen[1])
     assert torch.equal(s.t_end_s[:2], frozen[2]) and OUTCOMES[int(frozen[1][0])] != "running"
 

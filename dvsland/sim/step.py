@@ -327,6 +327,16 @@ def loop_step(stages, state: LoopState, thrust: Optional[torch.Tensor] = None,
     return act_step(stages, sense_step(stages, state, timer, grad), thrust, timer, terminate)
 
 
+def fly_steps(stages, state: LoopState, n: int, **kwargs) -> Tuple[LoopState, list]:
+    """``n`` calls of :func:`loop_step` (``kwargs`` passed on): (the state after them, their
+    :class:`StepOutput` s)."""
+    outs = []
+    for _ in range(int(n)):
+        state, out = loop_step(stages, state, **kwargs)
+        outs.append(out)
+    return state, outs
+
+
 def sense_step(stages, state: LoopState, timer: Optional[Callable[[str], Any]] = None, grad: bool = False) -> Sensed:
     """The first half of a step: render, emulate, estimate, filter and run the law at ``t_k``;
     finish the step with :func:`act_step`. ``state`` is not changed."""
@@ -419,6 +429,7 @@ def _applied_thrust(ctl_thrust: torch.Tensor, thrust: Optional[torch.Tensor], ac
     return torch.where(active, u, torch.zeros_like(u))
 
 
-__all__ = ["StepOutput", "Sensed", "Estimate", "Command", "init_state", "reset_where", "loop_step", "sense_step",
+__all__ = ["StepOutput", "Sensed", "Estimate", "Command", "init_state", "reset_where", "loop_step", "fly_steps",
+           "sense_step",
            "act_step", "render", "sense", "estimate", "act", "advance", "flight_time_s", "sanitise_estimates",
            "confidence_of", "compacted", "active_events", "D_HAT_ABS_MAX"]
