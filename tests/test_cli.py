@@ -76,3 +76,18 @@ def test_run_dir_writes_config_first(tmp_path, paper_yaml):
     assert run2 != run  # same second: a new folder, never overwritten
     out = make_run_dir(cfg, out=tmp_path / "explicit", kind="render")
     assert (out / "config.yaml").is_file()
+
+
+def test_help_and_argument_errors_answer_without_torch():
+    """`dvsland --help`, a command's --help and an unknown --model are answered before torch loads
+    (issue: a command line that answers at once)."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom dvsland.cli.main import main\n"
+            "for argv in (['--help'], ['simulate', '--help'], ['bench', '--help'], ['train', '--model', 'cnnn']):\n"
+            "    try:\n        main(argv)\n    except SystemExit:\n        pass\n"
+            "print('TORCH', 'torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert "TORCH False" in out.stdout, out.stdout[-500:] + out.stderr[-500:]
+    assert "--model 'cnnn': unknown model; choose one of ['cnn', 'spiking']" in out.stderr

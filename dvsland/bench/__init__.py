@@ -6,11 +6,18 @@ control step of each stage for B descents), :func:`wilson_interval`, :func:`pare
 (``scripts/bench_*.py`` wrap them).
 """
 
-from .machine import machine_info
-from .run import CHOICES, REPORT_PARTS, parse_what, run_bench
-from .stages import time_stages
-from .stats import wilson_interval
-from .tradeoff import pareto_front
+from .parts import CHOICES, REPORT_PARTS, parse_what
+
+_LAZY = {"run_bench": ".run", "time_stages": ".stages", "wilson_interval": ".stats", "pareto_front": ".tradeoff",
+         "machine_info": ".machine"}
+
+
+def __getattr__(name):  # the measuring modules load torch: imported on first use
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name], __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = ["run_bench", "parse_what", "CHOICES", "REPORT_PARTS", "time_stages", "wilson_interval", "pareto_front",
            "machine_info"]

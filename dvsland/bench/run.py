@@ -25,55 +25,16 @@ from dvsland.runs import make_run_dir
 
 from .machine import load_average, machine_info
 
-REPORT_PARTS = ("tradeoff", "closed_loop", "scaling", "economies")
-#: parts run only when named (not in the default four)
-EXTRA_PARTS = ("campaign",)
+from .parts import ALIASES, CHOICES, EXTRA_PARTS, REPORT_PARTS, STAGE_BENCHES, parse_what  # noqa: F401 - re-exported
+
 #: campaign part: (seeds per site and setting, t_max_s or None = the preset's) of each measured batch
 CAMPAIGN_RUNS_FULL = ((7, 60.0), (1, None))
 CAMPAIGN_RUNS_QUICK = ((1, 30.0),)
-
-#: stage benchmarks: name -> (module, full args, quick args); "{json}" becomes the output path
-STAGE_BENCHES = {
-    "render": ("stage_render", ["--threads", "1", "--json", "{json}"],
-               ["--threads", "1", "--batches", "18", "--repeat", "5", "--flicker-sites", "", "--json", "{json}"]),
-    "events": ("stage_events", ["--threads", "1", "--json", "{json}"],
-               ["--threads", "1", "--batch", "18", "--no-memory", "--no-real", "--json", "{json}"]),
-    "v2e": ("stage_v2e", ["--threads", "1", "--json", "{json}"],
-            ["--threads", "1", "--batch", "6", "--steps", "6", "--json", "{json}"]),
-    "estimators": ("stage_estimators", ["--threads", "1", "--json", "{json}"],
-                   ["--threads", "1", "--batch", "18", "--steps", "10", "--estimators", "dpr,oracle",
-                    "--json", "{json}"]),
-    "renderers": ("stage_renderers", ["--out", "{json}"], ["--n-alt", "4", "--segments", "--out", "{json}"]),
-    "throughput": ("throughput", ["--device", "{device}", "--batches", "18,63,256", "--json", "{json}"],
-                   ["--device", "{device}", "--batches", "18,63", "--steps", "10", "--estimators", "oracle,learned",
-                    "--json", "{json}"]),
-    "sim": ("stage_sim", ["--threads", "1", "--set", "render.threads=1", "--json", "{json}", "--out", "{dir}"],
-            ["--threads", "1", "--set", "render.threads=1", "--sites", "A,D,H", "--json", "{json}", "--out", "{dir}"]),
-}
-ALIASES = {"closed-loop": "closed_loop", "closedloop": "closed_loop"}
-CHOICES = REPORT_PARTS + EXTRA_PARTS + tuple(STAGE_BENCHES)
 
 #: closed-loop estimators: quick / full
 CLOSED_LOOP_QUICK = ["oracle", "oracle[noise_rel=0.3]", "dpr"]
 CLOSED_LOOP_FULL = ["oracle", "oracle[noise_rel=0.1]", "oracle[noise_rel=0.3]", "oracle[noise_rel=0.1;delay_steps=3]",
                     "dpr", "dpr[pair_weighting=length]", "snn", "cmax"]
-
-
-def parse_what(what: Sequence[str]) -> List[str]:
-    """Normalise the WHAT arguments (default: the four report parts; ``all``: everything)."""
-    names = [ALIASES.get(w.strip().replace("-", "_") if w.strip() not in ALIASES else w.strip(), w.strip())
-             for w in (what or []) if w.strip()]
-    if not names:
-        return list(REPORT_PARTS)
-    out = []
-    for n in names:
-        if n == "all":
-            out += list(CHOICES)
-        elif n in CHOICES:
-            out.append(n)
-        else:
-            raise ValueError(f"unknown benchmark {n!r}; choose from all, {', '.join(CHOICES)}")
-    return list(dict.fromkeys(out))
 
 
 def run_bench(what: Sequence[str] = (), quick: bool = False, device="cpu", out: Optional[Path] = None,

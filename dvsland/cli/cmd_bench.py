@@ -12,7 +12,7 @@ import sys
 
 
 def register(subparsers) -> None:
-    from dvsland.bench.run import CHOICES
+    from dvsland.bench.parts import CHOICES
 
     from .common import add_sites_arg, add_threads_arg, ranged
 

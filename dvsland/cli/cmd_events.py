@@ -30,9 +30,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-import torch
-
 from dvsland.report.results import write_json
 
 from .common import add_config_args, add_threads_arg, apply_threads, config_from_args, parse_sites, ranged
@@ -69,6 +66,8 @@ def frame_schedule(cfg, site: str, from_m: float, to_m: float, with_velocity: bo
     to ``to_m`` (:func:`dvsland.dynamics.closed_form_descent` at the frame interval; the altitude is
     taken at the frame time rounded to the µs event clock); with ``with_velocity`` also the
     vertical velocities (m/s, negative descending) at those times."""
+    import numpy as np
+
     from dvsland.dynamics import closed_form_descent, closed_form_state
 
     z0, v0 = cfg.initial_conditions(site)
@@ -91,6 +90,9 @@ def _site_list(args) -> list:
 
 
 def run_events(args) -> int:
+    import numpy as np
+    import torch
+
     from dvsland.events import Events, GroundTruth, save_events
     from dvsland.report.images import draw_event_frame, draw_xyt_scatter, event_frame_rgb, save_frame_png
     from dvsland.runs import make_run_dir

@@ -23,9 +23,6 @@ import time
 from pathlib import Path
 from typing import List
 
-import numpy as np
-import torch
-
 from .common import add_config_args, add_threads_arg, apply_threads, config_from_args, parse_sites, ranged
 
 
@@ -80,6 +77,9 @@ def _parse_list(text: str, what: str, cast=float) -> list:
 
 # ------------------------------------------------------------------ command
 def run_render(args) -> int:
+    import numpy as np
+    import torch
+
     from dvsland.dynamics import closed_form_descent
     from dvsland.render import get_renderer
     from dvsland.report.images import annotated_gif, montage, to_display

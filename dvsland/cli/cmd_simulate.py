@@ -7,15 +7,6 @@ from .common import (add_config_args, add_sites_arg, add_threads_arg, check_conf
                      parse_sites)
 
 
-def _estimator_names() -> str:
-    try:
-        from dvsland.estimators import available_estimators
-
-        return ", ".join(available_estimators())
-    except Exception:  # a broken plug-in must not break --help
-        return "dpr, oracle, ..."
-
-
 def register(subparsers) -> None:
     p = subparsers.add_parser("simulate", help="fly every site x controller setting as one batched closed loop",
                               description="Fly the configured experiment (default: the shipped 'paper' config, "
@@ -24,7 +15,8 @@ def register(subparsers) -> None:
                                           "the run folder.")
     add_config_args(p)
     p.add_argument("--estimator", default=None, metavar="NAME",
-                   help=f"divergence estimator: {_estimator_names()}; or a class by import path, "
+                   help="divergence estimator: dpr, cmax, oracle, snn, learned or another registered name "
+                        "('dvsland config show' lists them); or a class by import path, "
                         "'package.module:Class' or 'path/to/file.py:Class'; 'ALIAS=...' shows it as ALIAS in "
                         "tables and figures (default: estimator.name)")
     p.add_argument("--controller", default=None, metavar="NAME",

@@ -25,14 +25,24 @@ def _parse_model_set(items) -> dict:
     return out
 
 
+def check_model_name(model) -> None:
+    """A ``--model`` that is neither a zoo name (:data:`MODEL_INPUT_DEFAULTS`) nor an import path
+    ``pkg.mod:Class`` is a ValueError naming it; checked without importing torch."""
+    name = "cnn" if model is None else str(model).strip()
+    if not name:
+        raise ValueError(f"--model {model!r}: empty; expected a model of the zoo (cnn, spiking) or "
+                         f"pkg.mod:Class (leave --model out for the cnn)")
+    if name not in MODEL_INPUT_DEFAULTS and ":" not in name:
+        raise ValueError(f"--model {model!r}: unknown model; choose one of {sorted(MODEL_INPUT_DEFAULTS)} or "
+                         f"'package.module:Class'")
+
+
 def recipe_settings(args, cfg):
     """The :class:`~dvsland.learn.RecipeSettings` of the command line (ValueError naming the option)."""
     from dvsland.learn import RecipeSettings
 
+    check_model_name(args.model)
     name = "cnn" if args.model is None else args.model.strip()
-    if not name:
-        raise ValueError(f"--model {args.model!r}: empty; expected a model of the zoo (cnn, spiking) or "
-                         f"pkg.mod:Class (leave --model out for the cnn)")
     nb, pool = MODEL_INPUT_DEFAULTS.get(name, (4, 2))
     ms = _parse_model_set(args.model_set)
     nb = args.n_bins if args.n_bins is not None else nb
@@ -49,6 +59,7 @@ def recipe_settings(args, cfg):
 def run_recipe(args, check_out_path) -> int:
     """Check the arguments, train, write the checkpoint and print where it is and how it scored.
     ``check_out_path(out, overwrite_shipped, overwrite)``: the --out guard of ``dvsland train``."""
+    check_model_name(args.model)  # before torch loads: a typo is answered at once
     from dvsland.estimators.learned import read_checkpoint
     from dvsland.learn import train
     from dvsland.data import load_manifest_info
