@@ -297,3 +297,18 @@ def test_controller_by_name_and_gs_lands_softly(tmp_path):
     assert np.nanmax(np.abs(z_est[act] / r.traces["z_m"][act] - 1)) < 0.01  # oracle: the altitude is known
     with pytest.raises(ValueError, match=r"unknown controller 'nope'; known: \['div_gs', 'div_p', 'tau_p'\]"):
         _sim(tmp_path, sites="D", controller="nope", name="bad")
+
+
+def test_progress_bar_ends_full_when_every_descent_ends_early():
+    """The simulate bar counts t_max's steps; a run whose descents all end earlier ends at 100 %."""
+    from types import SimpleNamespace
+
+    from dvsland.sim.callbacks import ProgressCallback
+
+    cb = ProgressCallback(total_steps=100, batch_size=2)
+    cb.on_start(None)
+    bar = cb.bar
+    for k in range(69):
+        cb.on_step(None, SimpleNamespace(step=k, t_s=0.1 * k, active=torch.ones(2, dtype=torch.bool)))
+    cb.on_end(None, SimpleNamespace(status="complete"))
+    assert bar.n == bar.total == 69 and cb.bar is None

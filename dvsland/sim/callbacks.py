@@ -124,6 +124,9 @@ class ProgressCallback(Callback):
             self.bar.set_postfix(t=f"{out.t_s:.1f}s", active=int(out.active.sum()))
 
     def on_end(self, loop, result) -> None:
+        if self.bar is not None and getattr(result, "status", None) == "complete" and self.bar.n < self.total:
+            self.bar.total = self.bar.n  # every descent ended before t_max: the run is done, the bar full
+            self.bar.refresh()
         self.close()
 
     def close(self) -> None:
