@@ -227,7 +227,7 @@ class Stages:
 
 def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None, device: Any = "cpu", *,
                  estimator: Any = None, renderer: Any = None, controller: Any = None,
-                 record_events: bool = False) -> Stages:
+                 record_events: bool = False, progress: bool = False) -> Stages:
     """Build the closed loop's stages for ``cfg``: the one place that wires them.
 
     Args:
@@ -241,6 +241,7 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
         controller: None (the configured one) or a ready controller for B elements.
         record_events: build the renderer and the emulator even when the estimator needs no events
             (a dataset records the camera while the truth flies); the estimator then receives them.
+        progress: show the fast renderer's terrain preparation as a progress bar (per scene).
 
     Raises:
         ConfigError: a stage name is not registered (see :func:`check_names`).
@@ -268,6 +269,8 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
     events = None
     if record_events or getattr(est, "needs_events", True):
         kw = _dispersed_scene_kwargs(cfg, layout, renderer)
+        if progress and (renderer or cfg.render.renderer) == "fast":
+            kw["progress"] = True
         names = kw.pop("site_names", layout.site_names)  # dispersed scenes: their sites (variants)
         events = build_event_source(cfg, names, device, renderer, seed=layout.noise_seed, **kw)
         if layout.sensor or layout.dispersed:  # a Monte Carlo batch: per-element sensor values

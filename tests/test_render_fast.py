@@ -222,3 +222,16 @@ def test_threads_split_is_exact_and_restores_torch_threads(renderer):
 def test_threads_bad_value():
     with pytest.raises(ValueError, match="threads"):
         get_renderer("fast", ["A"], CAM, disk_cache=False, threads=-1)
+
+
+def test_terrain_preparation_shows_progress(capsys, monkeypatch):
+    """With progress on, each prepared scene advances a bar on stderr (the first run prepares terrain
+    for a minute: the user sees it move)."""
+    monkeypatch.setenv("DVSLAND_CACHE_DIR", "off")
+    from dvsland.config import CameraConfig, RenderConfig
+    from dvsland.render.fast import FastRenderer
+
+    FastRenderer(["E"], CameraConfig(width_px=32, height_px=32), RenderConfig(threads=1), disk_cache=False,
+                 progress=True)
+    err = capsys.readouterr().err
+    assert "terrain" in err and "1/1" in err and "scene=E" in err

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 from typing import Optional, Sequence
 
@@ -53,7 +54,8 @@ class FastRenderer(Renderer):
         level_size: texels per level side (default: enough for the camera, 384 for 128 px).
         parallax_iters: relief-displacement iterations (0 = none, 1 default).
         disk_cache: keep prepared levels on disk (``$DVSLAND_CACHE_DIR``).
-        progress: print per-site preparation times.
+        progress: show a progress bar over the scenes being prepared (tqdm on stderr: scene, where
+            its levels came from, ETA).
         chunk: frames per internal sub-batch (default 32 on CPU, 1024 on CUDA).
         blend_levels: trilinear blend of the two bracketing levels (default); False samples the
             nearest level only (an ablation: levels then pop during a descent).
@@ -112,6 +114,9 @@ class FastRenderer(Renderer):
         keys = list(dict.fromkeys(self._scene_keys))
         if suns is not None:  # scenes of one terrain one after another: their fields are computed once
             keys.sort(key=lambda k: (k.split("@")[0], k))
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(keys), desc="terrain", unit="scene", leave=False, disable=not progress, file=sys.stderr)
         for key in keys:
             name = key
             if suns is None:
@@ -131,9 +136,10 @@ class FastRenderer(Renderer):
             self.prep_s[name] = lv.prep_s
             self.prep_cpu_s[name] = lv.prep_cpu_s
             self.sources[name] = lv.source
-            if progress:
-                print(f"fast renderer: site {name} levels {lv.source} in {time.perf_counter() - t0:.2f} s")
+            bar.set_postfix(scene=name, levels=f"{lv.source} {time.perf_counter() - t0:.1f}s", refresh=False)
+            bar.update(1)
             tiles.append(lv)
+        bar.close()
         self._build_atlas(tiles)
 
     # ------------------------------------------------------------ preparation

@@ -123,7 +123,7 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
         est_name = type(estimator).__name__
         cfg.estimator.name = str(getattr(estimator, "name", None) or est_name)
     stages = build_stages(cfg, layout, dev, estimator=estimator if instance else None, renderer=renderer,
-                          controller=controller)
+                          controller=controller, progress=not cfg.logging.quiet)
     loop = ClosedLoop(stages, sync_timers=sync_timers)
     meta = _run_meta(cfg, est_name, dev, layout.batch_size, stages.events is not None)
     cbs = CallbackList([])
