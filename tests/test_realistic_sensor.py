@@ -32,6 +32,7 @@ def test_preset_values_and_dispersion():
     assert e.hot_pixel_fraction > 0 and e.mismatch_sigma == pytest.approx(0.21)
     assert cfg.dispersion.mismatch_sigma.kind == "off"
     assert cfg.controller.name == "div_gs"  # the montecarlo_efference experiment underneath
+    assert e.denoise == "hot_pixel+baf"  # shipped with the front end its estimators need (raw: denoise=none)
 
 
 @pytest.mark.parametrize("sensor,wh", [("dvs128", (128, 128)), ("davis346", (346, 260)), ("gen4_bin2", (640, 360))])
@@ -50,8 +51,8 @@ def test_binned_gen4_with_off_centre_principal_point():
 
 def test_preset_pixel_emits_its_noise_on_a_static_scene():
     """On a static dark scene the ideal pixel is silent; the preset's emits shot noise near its
-    dark rate (5 Hz ON+OFF) plus leak and hot-pixel events, ON and OFF."""
-    cfg = load_config("realistic_sensor")
+    dark rate (5 Hz ON+OFF) plus leak and hot-pixel events, ON and OFF (the raw pixel: no denoising)."""
+    cfg = load_config("realistic_sensor", ["emulator.denoise=none"])
     f = torch.full((2, 64, 64), 0.002)  # far below full_irradiance: the dark shot rate
     ideal, noisy = EventEmulator(), EventEmulator.from_config(cfg.emulator, seed=1)
     for e in (ideal, noisy):
