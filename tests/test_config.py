@@ -241,3 +241,22 @@ def test_realistic_preset_is_paper_eq2_with_100kN(paper_yaml):
 def test_torch_threads_range(tmp_path):
     with pytest.raises(ConfigError, match=r"simulation\.torch_threads.*out of range"):
         load_config(write(tmp_path, {"simulation": {"torch_threads": -1}}))
+
+
+def test_recommended_settings_apply_to_their_estimator_unless_set():
+    """A preset's `recommended:` section sets what it flies an estimator with; a --set of the same key wins."""
+    from dvsland.config.loader import load_config_with_origins, origin_of
+
+    assert load_config("montecarlo_efference").controller.efference.min_confidence == 0.5
+    cfg, origins = load_config_with_origins("montecarlo_efference", ["estimator.name=learned"])
+    assert cfg.controller.efference.min_confidence == 0.05
+    assert origin_of(origins, "controller.efference.min_confidence").startswith("recommended for estimator 'learned'")
+    mine = load_config("montecarlo_efference", ["estimator.name=learned", "controller.efference.min_confidence=0.3"])
+    assert mine.controller.efference.min_confidence == 0.3
+
+
+def test_recommended_section_must_be_a_mapping(tmp_path):
+    p = tmp_path / "bad.yaml"
+    p.write_text("extends: paper\nrecommended: [1, 2]\n")
+    with pytest.raises(ConfigError, match=r"recommended \(in .*bad.yaml\): expected \{estimator name"):
+        load_config(p)

@@ -15,7 +15,7 @@ import os
 import typing
 from importlib import resources
 from pathlib import Path
-from typing import Iterable, Optional, Union
+from typing import Iterable, Optional, Sequence, Union
 
 import yaml
 
@@ -293,12 +293,41 @@ def load_config_with_origins(path: Optional[PathLike] = None, overrides: Iterabl
     if overrides:
         source += " with --set overrides"
     data = apply_overrides(data, overrides)
+    set_keys = []
     for text in overrides:
         key = ".".join(k for k in text.split("=", 1)[0].strip().split(".") if k)
+        set_keys.append(key)
         for p in [p for p in origins if p == key or p.startswith(key + ".")]:
             del origins[p]
         origins[key] = f"--set {text.strip()}"
+    data = apply_recommended(data, set_keys, origins, source)
     return validate_config(data, source=source), origins
+
+
+def apply_recommended(data: dict, set_keys: Sequence[str], origins: dict, source: str = "") -> dict:
+    """Apply a preset's ``recommended:`` section: {estimator name: {dotted.key: value}}, the settings
+    the preset flies that estimator with (e.g. the filter's confidence threshold of a learned
+    model). Only the entry of the configured ``estimator.name`` (its base name before ``[``)
+    applies, and only to keys the user did not ``--set``; the section itself leaves the config.
+
+    Raises:
+        ConfigError: a ``recommended`` section that is not a mapping of mappings (names ``source``).
+    """
+    rec = data.pop("recommended", None) if isinstance(data, dict) else None
+    if not rec:
+        return data
+    if not isinstance(rec, dict) or not all(isinstance(v, dict) for v in rec.values()):
+        raise ConfigError(f"recommended (in {source}): expected {{estimator name: {{section.key: value}}}}, got {rec!r}")
+    name = str((data.get("estimator") or {}).get("name", "dpr"))
+    base = name.split("[", 1)[0].split("=", 1)[-1].strip()
+    chosen = rec.get(name, rec.get(base)) or {}
+    todo = [f"{k}={_flow(v)}" for k, v in chosen.items()
+            if not any(k == s or k.startswith(s + ".") or s.startswith(k + ".") for s in set_keys)]
+    if todo:
+        data = apply_overrides(data, todo)
+        for text in todo:
+            origins[text.split("=", 1)[0]] = f"recommended for estimator {base!r} ({source})"
+    return data
 
 
 def config_to_dict(cfg) -> dict:
