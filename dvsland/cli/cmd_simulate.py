@@ -7,6 +7,21 @@ from .common import (add_config_args, add_sites_arg, add_threads_arg, check_conf
                      parse_sites)
 
 
+def _estimator_names() -> str:
+    """The estimators to name in --help: the registry's when it is already loaded (plug-ins
+    registered in this process), else the built-ins (loading the registry would load torch)."""
+    import sys
+
+    if "dvsland.estimators.registry" in sys.modules:
+        try:
+            from dvsland.estimators import available_estimators
+
+            return ", ".join(available_estimators())
+        except Exception:  # a broken plug-in must not break --help
+            pass
+    return "dpr, cmax, oracle, snn, learned or another registered name (an unknown name's error lists them)"
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser("simulate", help="fly every site x controller setting as one batched closed loop",
                               description="Fly the configured experiment (default: the shipped 'paper' config, "
@@ -15,8 +30,7 @@ def register(subparsers) -> None:
                                           "the run folder.")
     add_config_args(p)
     p.add_argument("--estimator", default=None, metavar="NAME",
-                   help="divergence estimator: dpr, cmax, oracle, snn, learned or another registered name "
-                        "('dvsland config show' lists them); or a class by import path, "
+                   help=f"divergence estimator: {_estimator_names()}; or a class by import path, "
                         "'package.module:Class' or 'path/to/file.py:Class'; 'ALIAS=...' shows it as ALIAS in "
                         "tables and figures (default: estimator.name)")
     p.add_argument("--controller", default=None, metavar="NAME",

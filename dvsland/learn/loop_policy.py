@@ -136,7 +136,7 @@ def train_policy(stages, seconds: float = 120.0, window: int = 40, lr: float = 3
         opt.step()
         windows, succ, ends = windows + 1, succ + s, ends + e
         if log is not None and windows % 25 == 0:
-            log(f"window {windows}: loss {float(loss):.3f}, ends {ends}, successes {succ}")
+            log(f"window {windows}: loss {float(loss.detach()):.3f}, ends {ends}, successes {succ}")
     return {"net": net, "windows": windows, "steps": windows * window * state.batch_size,
             "cpu_s": time.process_time() - c0, "successes": succ, "ends": ends}
 
