@@ -281,3 +281,49 @@ def test_offcentre_build_is_the_window_of_the_centred_sensor(tmp_path):
     assert n > 0
     old = EventWindowDataset(tmp_path / "big", representation="events", split="all", valid_only=False)
     assert old.principal_point_px == ((big.width_px - 1) / 2, (big.height_px - 1) / 2)
+
+
+@pytest.mark.parametrize("kind", ["file", "other_run", "user_file", "shards_file"])
+def test_build_refuses_an_out_that_is_not_its_dataset(tmp_path, kind):
+    """--out an existing file, a folder holding another run or a user's file, or a dataset folder
+    whose shards entry is a file: one clear error naming out, nothing written or mixed."""
+    out = tmp_path / "ds"
+    if kind == "file":
+        out.write_text("not a folder")
+        msg = "exists and is not a folder"
+    elif kind in ("other_run", "user_file"):
+        out.mkdir()
+        (out / ("results.json" if kind == "other_run" else "notes.txt")).write_text("{}")
+        msg = "holds files that are not a dataset"
+    else:
+        build_dataset(CONFIG, out=out, max_shards=1, **TINY)
+        shutil.rmtree(out / "shards")
+        (out / "shards").write_text("oops")
+        msg = "entry is a file, not the shards folder"
+    before = sorted(p.name for p in out.iterdir()) if out.is_dir() else None
+    with pytest.raises(ValueError, match=msg):
+        build_dataset(CONFIG, out=out, **TINY)
+    assert (sorted(p.name for p in out.iterdir()) if out.is_dir() else None) == before
+
+
+@pytest.mark.parametrize("kind", ["other_build", "copy"])
+def test_reader_refuses_a_foreign_or_copied_shard(tmp_path, kind):
+    """A shard swapped in from another build, or a copy of another shard under this one's name, is
+    a ShardError naming the file (raised, or skipped with on_bad_shard='skip'), never read silently."""
+    out = tmp_path / "ds"
+    build_dataset(CONFIG, out=out, **TINY)
+    files = sorted((out / "shards").glob("*.h5"))
+    assert len(files) >= 2
+    if kind == "other_build":
+        other = tmp_path / "other"
+        build_dataset(CONFIG, out=other, **{**TINY, "overrides": list(TINY["overrides"]) + ["emulator.threshold=0.2"]})
+        shutil.copy(sorted((other / "shards").glob("*.h5"))[0], files[0])
+        msg = "from another build"
+    else:
+        shutil.copy(files[1], files[0])
+        msg = "a copy of shard"
+    with pytest.raises(ShardError, match=msg):
+        EventWindowDataset(out, split="all")
+    with pytest.warns(UserWarning, match=msg):
+        ds = EventWindowDataset(out, split="all", on_bad_shard="skip")
+    assert str(files[0]) in ds.skipped

@@ -160,6 +160,9 @@ def _open_folder(root: Path, fresh: dict, cfg: Config) -> dict:
     (written with config.yaml). Stale temporary files of a killed build are removed."""
     from dvsland.config import dump_config
 
+    if root.exists() and not root.is_dir():
+        raise ValueError(f"out={str(root)!r}: exists and is not a folder; a dataset build needs a new or empty "
+                         "folder (or its own dataset to resume)")
     if manifest_path(root).is_file():
         old = load_manifest(root, "out")
         diff = same_request(old, fresh)
@@ -168,9 +171,16 @@ def _open_folder(root: Path, fresh: dict, cfg: Config) -> dict:
                              "use a new --out, or the same arguments to resume it")
         fresh = old
     else:
+        others = sorted(p.name for p in root.iterdir())[:5] if root.is_dir() else []
+        if others:  # another run's files or a user's: never mixed with a dataset
+            raise ValueError(f"out={str(root)!r} holds files that are not a dataset ({', '.join(others)}); a dataset "
+                             "build needs a new or empty folder (or its own dataset to resume)")
         root.mkdir(parents=True, exist_ok=True)
         (root / "config.yaml").write_text(dump_config(cfg))
         save_manifest(root, fresh)
+    if (root / SHARDS_DIR).exists() and not (root / SHARDS_DIR).is_dir():
+        raise ValueError(f"out={str(root)!r}: its {SHARDS_DIR!r} entry is a file, not the shards folder; "
+                         "use a new --out")
     (root / SHARDS_DIR).mkdir(exist_ok=True)
     for tmp in (root / SHARDS_DIR).glob("*.h5.tmp*"):
         tmp.unlink(missing_ok=True)

@@ -91,7 +91,7 @@ class EventWindowDataset(torch.utils.data.Dataset):
         for e in done:
             path = self.root / e["file"]
             try:
-                shards.append({"path": path, **read_index(path)})
+                shards.append({"path": path, **self._own_shard(path, e, read_index(path))})
             except ShardError as exc:
                 if on_bad_shard == "raise":
                     raise ShardError(f"{exc}; rebuild it with the same `dvsland dataset build` command, or pass "
@@ -101,6 +101,18 @@ class EventWindowDataset(torch.utils.data.Dataset):
         if not shards:
             raise ValueError(f"root={str(self.root)!r}: every shard is unreadable ({len(self.skipped)} skipped)")
         return shards
+
+    def _own_shard(self, path, entry: dict, index: dict) -> dict:
+        """``index`` when the shard is this dataset's own ``entry``; ShardError naming the file when
+        it came from another build (another ``config_hash``) or is a copy of another shard."""
+        attrs = index["attrs"]
+        want, got = self.manifest.get("config_hash"), attrs.get("config_hash")
+        if want is not None and got is not None and str(got) != str(want):
+            raise ShardError(f"shard {str(path)!r}: from another build (config_hash {got}, the dataset's is {want})")
+        sid = attrs.get("shard_id")
+        if sid is not None and "id" in entry and str(sid) != str(entry["id"]):
+            raise ShardError(f"shard {str(path)!r}: a copy of shard {str(sid)!r}, not {entry['id']!r}")
+        return index
 
     def _descent_split(self, sh: dict) -> np.ndarray:
         d = sh["descents"]
