@@ -538,3 +538,25 @@ def test_simulate_on_a_full_disk_is_one_error(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "traces.npz" in err and "ENOSPC" in err, err
     assert not (out / "traces.npz").exists() and (out / "config.yaml").is_file()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_cli_dataset_build_workers_die_with_a_killed_driver(tmp_path):
+    """`dvsland dataset build --workers 2` killed with SIGKILL left its spawn workers writing shards
+    into the folder; the build now uses the campaign's pool, whose workers die with their driver."""
+    cmd = [sys.executable, "-m", "dvsland.cli.main", "dataset", "build", "paper", "--n-seeds", "40",
+           "--shard-size", "1", "--sites", "A", "--workers", "2", "--quiet", "--out", str(tmp_path / "ds"),
+           "--set", "render.threads=1", "--set", "simulation.t_max_s=60"]
+    drv = subprocess.Popen(cmd, env=_env(), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    pids = []
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and len(pids) < 2:
+        time.sleep(0.5)
+        pids = _children(drv.pid)
+    try:
+        assert len(pids) == 2, "the workers did not start"
+        time.sleep(2)
+        _sigkill_and_expect_dead(drv, pids)
+    finally:
+        drv.kill()
+        _kill_left(pids)

@@ -234,10 +234,11 @@ def _run(plan_config: dict, shards: List[dict], root: Path, compression, workers
         for s, p in zip(shards, paths):
             yield build_shard(plan_config, s, p, compression)
         return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import as_completed
 
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+    from dvsland.campaign.executors import make_pool
+
+    pool = make_pool(workers)  # the campaign's pool: its workers die with this driver (SIGKILL included)
     futs = [pool.submit(build_shard, plan_config, s, p, compression) for s, p in zip(shards, paths)]
     try:
         for f in as_completed(futs):
