@@ -267,6 +267,11 @@ def _campaign_with_two_workers(out: Path):
     """``dvsland campaign --workers 2`` started and flying: (driver process, worker pids)."""
     cmd = [sys.executable, "-m", "dvsland.cli.main", "campaign", "paper", "--n-seeds", "40", "--shard-seeds", "1",
            "--workers", "2", "--quiet", "--out", str(out)] + _cli_set(["simulation.t_max_s=60"])
+    return _start_with_two_workers(cmd)
+
+
+def _start_with_two_workers(cmd):
+    """Start the command ``cmd`` and wait until its two spawn workers run: (driver, worker pids)."""
     drv = subprocess.Popen(cmd, env=_env(), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     pids = []
     deadline = time.monotonic() + 120
@@ -547,15 +552,8 @@ def test_cli_dataset_build_workers_die_with_a_killed_driver(tmp_path):
     cmd = [sys.executable, "-m", "dvsland.cli.main", "dataset", "build", "paper", "--n-seeds", "40",
            "--shard-size", "1", "--sites", "A", "--workers", "2", "--quiet", "--out", str(tmp_path / "ds"),
            "--set", "render.threads=1", "--set", "simulation.t_max_s=60"]
-    drv = subprocess.Popen(cmd, env=_env(), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    pids = []
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and len(pids) < 2:
-        time.sleep(0.5)
-        pids = _children(drv.pid)
+    drv, pids = _start_with_two_workers(cmd)
     try:
-        assert len(pids) == 2, "the workers did not start"
-        time.sleep(2)
         _sigkill_and_expect_dead(drv, pids)
     finally:
         drv.kill()
