@@ -44,8 +44,8 @@ from dvsland.config import Config, ConfigError, load_config, validate_config
 from dvsland.config.validate import check_memory
 from dvsland.layout import build_layout
 from dvsland.checks import check_choice, check_device, check_range
-from dvsland.pytree import hash_bits, hash_normal
-from dvsland.sim import OUTCOMES, act_step, init_state, reset_where, sense_step
+from dvsland.pytree import hash_bits
+from dvsland.sim import OUTCOMES, act_step, dispersed_start, init_state, reset_where, sense_step
 from dvsland.stages import build_stages, check_names
 
 from . import observations as obs_mod
@@ -194,7 +194,7 @@ class LandingVectorEnv(VectorEnv):
                 self._build(int(seed))
         if mask is None:
             self._env_seed, self._episode = seeds, torch.zeros_like(self._episode)
-            z0, v0, noise = self._starts(torch.ones_like(self._autoreset))
+            z0, v0, noise = self._starts()
             self._state = init_state(self.stages, z_m=z0, v_mps=v0)._replace(noise_seed=noise)
             self._autoreset = torch.zeros_like(self._autoreset)
             return self._sense_all(None)
@@ -225,23 +225,20 @@ class LandingVectorEnv(VectorEnv):
             raise ValueError(f"seed must lie in [0, 2**62) per env, got {vals}")
         return torch.as_tensor(vals, dtype=torch.int64).to(self._device)
 
-    def _starts(self, mask: torch.Tensor):
-        """(z0_m, v0_mps, noise_seed) (B,) of the episodes starting where ``mask``: the layout's
-        start dispersed by counter-based draws of (env seed, episode)."""
+    def _starts(self):
+        """(z0_m, v0_mps, noise_seed) (B,) of each env's current episode: the layout's start
+        dispersed by counter-based draws of (env seed, episode) (:func:`dvsland.sim.dispersed_start`)."""
         L, dev, f64 = self.stages.layout, self._device, torch.float64
-        z0, v0 = L.tensor("z0_m", dev, f64), L.tensor("v0_mps", dev, f64)
-        noise = L.tensor("seed", dev, torch.int64)
         sig = self._dispersion
-        if sig > 0:
-            keys = (self._env_seed, self._episode)
-            z0 = z0 * (1.0 + sig * hash_normal(*keys, 1)).clamp(0.5, 1.5)
-            v0 = v0 * (1.0 + sig * hash_normal(*keys, 2)).clamp(0.5, 1.5)
-            noise = (hash_bits(*keys, 3) << 31) ^ hash_bits(*keys, 4)
-        return z0, v0, noise
+        if sig == 0:
+            return L.tensor("z0_m", dev, f64), L.tensor("v0_mps", dev, f64), L.tensor("seed", dev, torch.int64)
+        keys = (self._env_seed, self._episode)
+        z0, v0 = dispersed_start(self.stages, keys, sig, sig)
+        return z0, v0, (hash_bits(*keys, 3) << 31) ^ hash_bits(*keys, 4)
 
     def _restart(self, state, mask: torch.Tensor):
         """``state`` with the envs of ``mask`` at the start of their next episode."""
-        z0, v0, noise = self._starts(mask)
+        z0, v0, noise = self._starts()
         return reset_where(self.stages, state, mask, z_m=z0, v_mps=v0, seed=noise)
 
     def _sense_all(self, mask: Optional[torch.Tensor]):

@@ -28,8 +28,8 @@ from typing import Dict, Optional
 import torch
 from torch import nn
 
-from dvsland.pytree import hash_normal, tree_map
-from dvsland.sim import act_step, init_state, reset_where, sense_step
+from dvsland.pytree import tree_map
+from dvsland.sim import act_step, dispersed_start, init_state, reset_where, sense_step
 from dvsland.sim.termination import SUCCESS
 
 #: observation scales: divergence 1/s, tracking error 1/s
@@ -85,10 +85,8 @@ def _restart(stages, state, episode: torch.Tensor, seed: int, dispersion: float)
     if not bool(done.any()):
         return state, episode
     episode = episode + done.to(torch.int64)
-    L, dev = stages.layout, state.z_m.device
-    b = torch.arange(state.batch_size, device=dev)
-    z0 = L.tensor("z0_m", dev, torch.float64) * (1 + dispersion * hash_normal(seed, b, episode, 1)).clamp(0.7, 1.3)
-    v0 = L.tensor("v0_mps", dev, torch.float64) * (1 + 0.5 * dispersion * hash_normal(seed, b, episode, 2)).clamp(0.8, 1.2)
+    b = torch.arange(state.batch_size, device=state.z_m.device)
+    z0, v0 = dispersed_start(stages, (seed, b, episode), dispersion, 0.5 * dispersion, (0.7, 1.3), (0.8, 1.2))
     return reset_where(stages, state, done, z_m=z0, v_mps=v0), episode
 
 

@@ -19,13 +19,13 @@ from dvsland.layout import BatchLayout, build_layout, expand_seeds, setting_labe
 from .api import simulate
 from .loop import ClosedLoop, run_summaries
 from .result import TRACE_FIELDS, SimulationResult, TraceRecorder
-from .reset import init_state, reset_where, restart_finished
+from .reset import dispersed_start, init_state, reset_where, restart_finished
 from .state import LoopState, StageStates, clone_state, load_state, save_state
 from .step import Sensed, StepOutput, act, act_step, advance, estimate, fly_steps, loop_step, render, sense, sense_step
 from .termination import OUTCOMES, termination_code
 
 __all__ = ["simulate", "SimulationResult", "ClosedLoop", "LoopState", "StepOutput", "init_state", "loop_step",
            "fly_steps", "sense_step", "act_step", "Sensed", "render", "sense", "estimate", "act", "advance", "reset_where",
-           "restart_finished", "StageStates", "clone_state", "save_state", "load_state", "run_summaries", "BatchLayout",
+           "restart_finished", "dispersed_start", "StageStates", "clone_state", "save_state", "load_state", "run_summaries", "BatchLayout",
            "build_layout", "expand_seeds", "setting_label", "termination_code", "OUTCOMES", "TRACE_FIELDS",
            "TraceRecorder"]

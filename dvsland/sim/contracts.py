@@ -28,7 +28,7 @@ import torch
 
 from dvsland.estimators import EstimateOut
 from dvsland.plugins import PluginError, call_plugin, check_batch_tensor
-from dvsland.pytree import ObjectStage, has_stage_contract
+from dvsland.pytree import ObjectStage, ObjectState, check_state_like, has_stage_contract, tree_leaves
 
 
 class StageFns(NamedTuple):
@@ -160,8 +160,6 @@ def reference_states(stages) -> dict:
     parts are checked against. Object stages (plug-ins without the contract) are not checked."""
     ref = getattr(stages, "_reference_states", None)
     if ref is None:
-        from dvsland.pytree import ObjectStage
-
         fns = stage_fns(stages)
         ref = {k: getattr(fns, k).init_state() for k in ("estimator", "filter", "controller")
                if not isinstance(getattr(fns, k), ObjectStage)}
@@ -178,8 +176,6 @@ def check_loop_state(stages, state) -> None:
         ValueError: one message naming the stage (or ``LoopState``), the field, what was expected
             and what came.
     """
-    from dvsland.pytree import check_state_like, tree_leaves
-
     B, dev = stages.batch_size, torch.device(stages.device)
     for name, dtype in LOOP_FIELDS.items():
         t = getattr(state, name)
@@ -189,17 +185,11 @@ def check_loop_state(stages, state) -> None:
     for name, ref in reference_states(stages).items():
         check_state_like(name, getattr(state.stage_state, name), ref)
     emu = state.stage_state.emulator
-    if emu is not None and not isinstance(emu, tuple(_object_state_types())):
+    if emu is not None and not isinstance(emu, ObjectState):
         for k, t in tree_leaves(emu).items():
             if t.device.type != dev.type or (t.dim() >= 1 and t.shape[0] != B and not k.endswith("_packed")):
                 raise ValueError(f"emulator: state field {k!r} must be batch first ({B}, ...) on {dev}, got shape "
                                  f"{tuple(t.shape)} on {t.device}")
-
-
-def _object_state_types():
-    from dvsland.pytree import ObjectState
-
-    return (ObjectState,)
 
 
 __all__ = ["StageFns", "stage_fns", "controller_name", "checked_thrust_out", "check_no_nan_thrust", "check_loop_state",

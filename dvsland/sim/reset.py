@@ -11,7 +11,7 @@ from typing import Optional
 
 import torch
 
-from dvsland.pytree import tree_where
+from dvsland.pytree import hash_normal, tree_where
 
 from .contracts import stage_fns
 from .state import LoopState, StageStates
@@ -102,6 +102,17 @@ def reset_where(stages, state: LoopState, mask, z_m=None, v_mps=None, m_kg=None,
         restarted=restarted, stage_state=ss)
 
 
+def dispersed_start(stages, keys, z_sigma: float, v_sigma: float, z_clip=(0.5, 1.5), v_clip=(0.5, 1.5)):
+    """The layout's start of each descent dispersed by counter-based draws: (z0_m, v0_mps), (B,)
+    float64 m and m/s, each the layout's value times ``(1 + sigma N(0, 1)).clamp(*clip)``, with N
+    :func:`dvsland.pytree.hash_normal` of ``keys`` (int64 tensors or ints broadcast to (B,)) and a
+    stream tag (1 for z, 2 for v). The same keys give the same starts on every device."""
+    L, dev, f64 = stages.layout, torch.device(stages.device), torch.float64
+    z0 = L.tensor("z0_m", dev, f64) * (1.0 + z_sigma * hash_normal(*keys, 1)).clamp(*z_clip)
+    v0 = L.tensor("v0_mps", dev, f64) * (1.0 + v_sigma * hash_normal(*keys, 2)).clamp(*v_clip)
+    return z0, v0
+
+
 def restart_finished(stages, state: LoopState, **kw) -> LoopState:
     """:func:`reset_where` on every finished descent (a no-op, without a copy, when none has)."""
     done = ~state.active
@@ -145,4 +156,4 @@ def _start(name: str, value, B: int, dev, positive: bool = False, where: Optiona
     return t
 
 
-__all__ = ["init_state", "reset_where", "restart_finished"]
+__all__ = ["init_state", "reset_where", "restart_finished", "dispersed_start"]

@@ -14,7 +14,7 @@ events since the last step, estimate D, filter, command a thrust (the controller
 advance the dynamics over ``dt`` with the thrust held, and end descents that met a termination
 condition. Finished descents stay in the state, frozen by ``active``, and leave the hot path
 (``simulation.compact``): they are not rendered again and their events are dropped before the
-estimator (:func:`compacted`, :func:`active_events`).
+estimator (:func:`active_events`).
 
 The step is a composition of public pure parts over the :class:`LoopState` (none of them changes
 its inputs; each stage's state goes in and comes out, :mod:`dvsland.pytree`):
@@ -388,14 +388,6 @@ def act_step(stages, sensed: Sensed, thrust: Optional[torch.Tensor] = None,
     return nxt, out._replace(thrust_n=u, ended=ended)
 
 
-def compacted(stages, state: LoopState) -> bool:
-    """True when finished descents leave this step's hot path (``simulation.compact`` and at least
-    one descent has finished): their events are dropped before the estimator, which then has
-    nothing new to work on for them (their frames are never rendered again either way). One host
-    sync."""
-    return bool(getattr(stages.settings, "compact", True)) and not bool(state.active.all())
-
-
 def active_events(events, active: torch.Tensor):
     """``events`` without those of finished descents: ``active`` (B,) bool indexed by each event's
     ``b``; the order (sorted by (b, t)) is kept. None stays None."""
@@ -432,4 +424,4 @@ def _applied_thrust(ctl_thrust: torch.Tensor, thrust: Optional[torch.Tensor], ac
 __all__ = ["StepOutput", "Sensed", "Estimate", "Command", "init_state", "reset_where", "loop_step", "fly_steps",
            "sense_step",
            "act_step", "render", "sense", "estimate", "act", "advance", "flight_time_s", "sanitise_estimates",
-           "confidence_of", "compacted", "active_events", "D_HAT_ABS_MAX"]
+           "confidence_of", "active_events", "D_HAT_ABS_MAX"]
