@@ -96,7 +96,7 @@ def test_torch_path_scores_match_the_float_splat():
 
 def _need_kernel():
     if not native_cmax.cached():
-        pytest.skip("the compiled cmax kernel is not built (python -m dvsland.estimators.build_native)")
+        pytest.skip("the compiled cmax kernel is not built (build it with: dvsland build-native)")
 
 
 @pytest.mark.parametrize("seed,B,G", [(0, 7, 3), (1, 3, 21), (2, 1, 9)])

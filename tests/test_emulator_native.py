@@ -124,7 +124,7 @@ def test_cached_kernels_give_the_torch_paths_events(fresh):
     """Runs where the kernels are built (python -m dvsland.events.build_native); compiles nothing."""
     fresh.setattr(native, "build", _no_build)
     if not native.cached():
-        pytest.skip("compiled kernels not built here (python -m dvsland.events.build_native)")
+        pytest.skip("compiled kernels not built here (build them with: dvsland build-native)")
     from test_emulator_fast_paths import CONFIGS
 
     _compare_with_torch_path(fresh, CONFIGS[:2] + CONFIGS[-2:] + ELEMENTS[:1], _frame_sets()[:2])
