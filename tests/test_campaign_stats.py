@@ -127,3 +127,22 @@ def test_difference_interval_newcombe():
     lo, hi = difference_interval(0, 20, 20, 20)
     assert 0.6 < lo < hi <= 1.0
     assert all(v != v for v in difference_interval(0, 0, 3, 4))  # nan without trials
+
+
+def test_median_is_the_one_median_of_the_table():
+    """report.stats.median: the middle value, the mean of the middle two for an even count, None,
+    NaN and inf left out, None when nothing is finite; group_stats' medians are this function's."""
+    import math
+
+    from dvsland.report.stats import group_stats, median
+
+    assert median([3.0, 1.0, 2.0]) == 2.0
+    assert median([4.0, 1.0, 3.0, 2.0]) == 2.5
+    assert median([None, math.nan, 5.0, math.inf, 1.0]) == 3.0
+    assert median([None, math.nan]) is None and median([]) is None
+    vals = [2.12, 2.0, 2.06, 1.5]
+    runs = [{"site": "A", "label": "s", "estimator": "dpr", "outcome": "success", "v_at_50m_mps": v,
+             "lowest_altitude_m": 50.0 + v, "fuel_used_kg": 10 * v} for v in vals]
+    (g,) = group_stats(runs)
+    assert g["v50_mps_median"] == median(vals) and abs(g["v50_mps_median"] - 2.03) < 1e-12
+    assert g["fuel_kg_median"] == median([10 * v for v in vals])

@@ -86,7 +86,7 @@ def campaign_figure(path, runs: List[dict], groups: List[dict], by: Sequence[str
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from dvsland.report.stats import group_key
+    from dvsland.report.stats import group_key, median
 
     sites = list(dict.fromkeys(g["site"] for g in groups))
     series = list(dict.fromkeys(_label(g, by) for g in groups))
@@ -116,7 +116,7 @@ def campaign_figure(path, runs: List[dict], groups: List[dict], by: Sequence[str
             x = i - 0.4 + width * (j + 0.5)
             jitter = [x + width * 0.3 * (((k * 7919) % 13) / 12 - 0.5) for k in range(len(v))]
             ax2.plot(jitter, v, ".", color=c, ms=3, alpha=0.6)
-            med = sorted(v)[len(v) // 2]
+            med = median(v)  # the table's median (an even count: the mean of the middle two)
             ax2.plot([x - width * 0.4, x + width * 0.4], [med, med], "-", color=c, lw=2)
     for ax in (ax1, ax2):
         ax.set_xticks(range(len(sites)))

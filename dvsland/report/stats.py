@@ -73,12 +73,26 @@ def difference_interval(k1: int, n1: int, k2: int, n2: int, confidence: float = 
     return (max(-1.0, lo), min(1.0, hi))
 
 
+def _finite(values: Iterable[Optional[float]]) -> np.ndarray:
+    """(n,) float64 of the finite entries of ``values`` (None, NaN and inf left out)."""
+    return np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=np.float64)
+
+
+def median(values: Iterable[Optional[float]]) -> Optional[float]:
+    """The median of the finite entries of ``values`` (None, NaN, inf left out): the middle value,
+    or the mean of the two middle values for an even count; None when none is finite. The one
+    median of a campaign: the group table (:func:`group_stats`) and the campaign figure's median
+    bars both use it, so they print and draw the same number."""
+    a = _finite(values)
+    return float(np.median(a)) if a.size else None
+
+
 def _spread(values: Sequence[float]) -> Dict[str, Optional[float]]:
-    a = np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=np.float64)
+    a = _finite(values)
     if a.size == 0:
         return {"median": None, "q25": None, "q75": None, "p10": None, "p90": None}
-    q = np.percentile(a, [50, 25, 75, 10, 90])
-    return {"median": float(q[0]), "q25": float(q[1]), "q75": float(q[2]), "p10": float(q[3]), "p90": float(q[4])}
+    q = np.percentile(a, [25, 75, 10, 90])
+    return {"median": median(a), "q25": float(q[0]), "q75": float(q[1]), "p10": float(q[2]), "p90": float(q[3])}
 
 
 def group_key(run: dict, by: Sequence[str]) -> tuple:
