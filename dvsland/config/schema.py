@@ -351,6 +351,17 @@ class DivGSConfig:
 
 
 @dataclass
+class PolicyLawConfig:
+    """Options of the ``policy`` law: a small network's thrust (``dvsland train-loop --what policy``; not in paper)."""
+
+    checkpoint: str = opt("", "the trained policy's checkpoint (policy.pt of dvsland train-loop); empty = an "
+                          "untrained network that starts near hover")
+    hidden: int = opt(32, "hidden units of an untrained network (a checkpoint carries its own)", rng=(1, 4096))
+    tau_min_s: float = opt(4.0, "lowest time to contact of the observed target -1/max(tau0 - c2 t, tau_min), s",
+                           rng=(0.0, 1e4), open_lo=True)
+
+
+@dataclass
 class EfferenceConfig:
     """Options of the ``efference`` filter: EKF on (z, v) fusing D_hat with the known thrust (not in paper)."""
 
@@ -389,7 +400,8 @@ class ControllerConfig:
     """The thrust law, its per-descent settings, its filter and bounds."""
 
     name: str = opt("tau_p", "controller law: tau_p (Eq. 2 in tau-space), div_p (the paper's released code), "
-                    "div_gs (gain scheduled on the efference-copy altitude), or a registered name "
+                    "div_gs (gain scheduled on the efference-copy altitude), policy (a network trained by dvsland "
+                    "train-loop), or a registered name "
                     "(see dvsland.control.available_controllers())")
     c2: float = opt(0.5, "slope of the TTC target tau*(t) = tau0 - c2 t (the paper's text: c^2 = 0.5; "
                     "its released code: c*c = 0.25)", rng=(0.0, 1.0), open_lo=True, open_hi=True)
@@ -405,6 +417,7 @@ class ControllerConfig:
                       choices=("auto", "moving_average", "efference", "efference_fit"))
     div_p: DivPConfig = opt(None, "options of 'div_p'", factory=DivPConfig)
     div_gs: DivGSConfig = opt(None, "options of 'div_gs'", factory=DivGSConfig)
+    policy: PolicyLawConfig = opt(None, "options of 'policy'", factory=PolicyLawConfig)
     efference: EfferenceConfig = opt(None, "options of the 'efference' filter", factory=EfferenceConfig)
     params: dict = opt(None, "free-form keyword options for other (third-party) controllers", factory=dict)
 

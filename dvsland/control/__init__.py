@@ -2,7 +2,7 @@
 
 Laws (``controller.name``): ``tau_p`` (paper Eq. 2 in tau-space), ``div_p`` (the paper's released
 implementation: proportional in divergence space), ``div_gs`` (gain scheduled on the
-efference-copy altitude, soft-landing profile); more with :func:`register_controller` or the
+efference-copy altitude, soft-landing profile), ``policy`` (a small network trained through the loop); more with :func:`register_controller` or the
 ``dvsland.controllers`` entry-point group. Filters (``controller.filter``): ``moving_average``
 (the paper's), ``efference`` (EKF fusing D_hat with the known thrust) and ``efference_fit`` (robust
 batch fit of the initial-state error to every D_hat so far).
@@ -35,6 +35,7 @@ from .target import initial_ttc, tau_target
 from .tau_p import TauPController, tau_p_step
 from .div_p import DivPController, div_p_step  # noqa: E402 - registers 'div_p'
 from .div_gs import DivGSController, div_gs_step, divergence_target  # noqa: E402 - registers 'div_gs'
+from .policy import PolicyController, PolicyNet, load_policy, policy_law_step  # noqa: E402 - registers 'policy'
 from .factory import FILTER_NAMES, descent_params, filter_name, make_controller, make_filter  # noqa: E402
 
 __all__ = ["tau_target", "initial_ttc", "nan_moving_average", "FilterOut", "DivergenceFilter", "MovingAverageFilter",
@@ -42,6 +43,6 @@ __all__ = ["tau_target", "initial_ttc", "nan_moving_average", "FilterOut", "Dive
            "EfferenceState", "efference_step", "EfferenceFitFilter", "EfferenceFitParams", "EfferenceFitState",
            "efference_fit_step", "confidence_rel_sigma", "Controller", "ControlOutput", "LawParams", "HoldLastState",
            "tau_p_step", "div_p_step", "div_gs_step", "DescentParams", "TauPController", "DivPController", "DivGSController",
-           "divergence_target", "register_controller", "available_controllers", "controller_class", "get_controller",
+           "divergence_target", "PolicyController", "PolicyNet", "load_policy", "policy_law_step", "register_controller", "available_controllers", "controller_class", "get_controller",
            "refresh_entry_points", "make_controller", "make_filter", "descent_params", "filter_name",
            "FILTER_NAMES", "tau_loop_gain", "div_loop_gain", "critical_step_gain", "gain_limit_altitude_m"]

@@ -47,7 +47,7 @@ def divergence_target(t_s, tau0_s: Tensor, c2: float, d_final_per_s: float):
         t_s: flight time, s (float or (B,)).
         tau0_s: (B,) float64 initial TTC, s.
         c2: slope of tau*(t) = tau0 - c2 t.
-        d_final_per_s: divergence of the final approach, 1/s (> 0).
+        d_final_per_s: divergence of the final approach, 1/s (> 0; a float or a 0-dim float64 tensor).
 
     Returns:
         (d_star (B,) float64 < 0, 1/s; coef (B,) float64: a_ref = coef d_star^2 z, i.e. 1 - c2 on the
@@ -56,7 +56,7 @@ def divergence_target(t_s, tau0_s: Tensor, c2: float, d_final_per_s: float):
     tau_star = tau0_s - c2 * t_s
     inv = torch.where(tau_star > 0, 1.0 / tau_star.clamp_min(1e-9), float("inf"))
     final = inv >= d_final_per_s
-    d_star = -torch.where(final, torch.full_like(inv, d_final_per_s), inv)
+    d_star = -torch.where(final, d_final_per_s, inv)  # a tensor d_final keeps its graph
     coef = torch.where(final, 1.0, 1.0 - c2)
     return d_star, coef
 

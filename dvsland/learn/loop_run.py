@@ -1,0 +1,171 @@
+"""One ``dvsland train-loop`` run: build the training and validation batches, restore a checkpoint
+to resume, train (:mod:`.loop_train`) with a progress bar and TensorBoard scalars, validate, and
+write ``checkpoint.pt``, ``trained.yaml`` and ``train_loop.json`` into the run folder.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Callable, Optional
+
+import torch
+
+from dvsland.config import dump_config
+from dvsland.control.policy import POLICY_KIND
+from dvsland.estimators.state_dict_check import (check_finite_numbers, check_optimizer_state, check_state_dict,
+                                                 read_checkpoint_file)
+from dvsland.report.results import atomic_write_text
+from dvsland.stages import build_stages
+
+from .loop_loss import LossWeights
+from .loop_train import LAW_KIND, TrainLoopRun, TrainLoopSettings, save_checkpoint, train_windows, validate
+from .loop_trainables import Trainable, make_trainable
+
+#: files of a train-loop run folder
+CHECKPOINT, TRAINED_CONFIG, SUMMARY = "checkpoint.pt", "trained.yaml", "train_loop.json"
+
+
+def validation_config(cfg, val_seed: int, val_seeds: Optional[int] = None):
+    """The training config with another ``simulation.seed`` (and ``val_seeds`` seeds per site and
+    setting, None: the training's): the validation descents."""
+    n = cfg.simulation.n_seeds if val_seeds is None else int(val_seeds)
+    return replace(cfg, simulation=replace(cfg.simulation, seed=int(val_seed), n_seeds=n))
+
+
+def restore(path: Path, trainable: Trainable, opt, law: str) -> tuple:
+    """(TrainLoopRun, episode (B,) or None, settings dict) of a checkpoint, loaded into ``trainable``
+    and ``opt``; ValueError naming ``--resume`` and the file for a missing, foreign or damaged one."""
+    where = f"--resume {path}"
+    kind = POLICY_KIND if trainable.what == "policy" else LAW_KIND
+    ck = read_checkpoint_file(path, "--resume", f"dvsland train-loop checkpoint ({kind})")
+    if ck.get("kind") != kind or ck.get("controller") != law:
+        raise ValueError(f"{where}: a {ck.get('kind')!r} checkpoint of controller {ck.get('controller')!r}; this "
+                         f"training is --what {trainable.what} of {law!r}")
+    check_finite_numbers(ck.get("run", {}), where, "run")
+    if trainable.what == "policy":
+        if ck.get("hidden") != trainable.net.hidden:
+            raise ValueError(f"{where}: hidden {ck.get('hidden')!r} != controller.policy.hidden "
+                             f"{trainable.net.hidden}")
+        check_state_dict(ck.get("state_dict"), trainable.net, where)
+        trainable.net.load_state_dict(ck["state_dict"])
+    else:
+        check_state_dict(ck.get("raw"), trainable.raw, where)
+        trainable.raw.load_state_dict(ck["raw"])
+    check_optimizer_state(ck.get("optimizer"), opt, where)
+    opt.load_state_dict(ck["optimizer"])
+    run = TrainLoopRun(**{k: v for k, v in ck.get("run", {}).items() if k in TrainLoopRun.__dataclass_fields__})
+    return run, ck.get("episode"), ck.get("settings", {})
+
+
+def trained_config(cfg, trainable: Trainable, ckpt: Path):
+    """The config that flies the trained result: the training config with the law's constants (or
+    the policy's checkpoint, by absolute path) in place."""
+    c = cfg.controller
+    if trainable.what == "policy":
+        c = replace(c, policy=replace(c.policy, checkpoint=str(ckpt.resolve())))
+    else:
+        vals = trainable.describe()
+        if "kp_scale" in vals:
+            c = replace(c, settings=[replace(x, kp=x.kp * vals["kp_scale"]) for x in c.settings])
+        section = getattr(c, trainable.law, None)
+        opts = {k: v for k, v in vals.items() if k != "kp_scale"}
+        if opts:
+            c = replace(c, **{trainable.law: replace(section, **opts)})
+    return replace(cfg, controller=c)
+
+
+def _tensorboard(writer, rec: dict) -> None:
+    if writer is None:
+        return
+    step = rec["window"]
+    for k in ("loss", "track", "landing", "fail", "fuel"):
+        if k in rec:
+            writer.add_scalar(f"loss/{k}", rec[k], step)
+    writer.add_scalar("train/landed", rec["landed"], step)
+    for k, v in (rec.get("values") or {}).items():
+        writer.add_scalar(f"law/{k}", v, step)
+    val = rec.get("val")
+    if val:
+        writer.add_scalar("val/success_rate", val["success_rate"], step)
+        if val["median_landing_speed_mps"] is not None:
+            writer.add_scalar("val/median_landing_speed_mps", val["median_landing_speed_mps"], step)
+
+
+def train_loop(cfg, run_dir: Path, settings: TrainLoopSettings, sites=None, val_seed: int = 999,
+               val_seeds: Optional[int] = None, resume: bool = False, progress: bool = True, log: Callable[[str], None] = print) -> dict:
+    """Train ``settings.what`` through the loop of ``cfg`` into ``run_dir``; returns train_loop.json's dict.
+
+    Args:
+        cfg: the resolved config (its controller is the one trained).
+        run_dir: the run folder (made, with ``config.yaml``, by the caller).
+        settings: :class:`TrainLoopSettings` (checked).
+        sites: the sites flown (None: the config's).
+        val_seed: ``simulation.seed`` of the validation batch.
+        val_seeds: its seeds per site and setting (None: the config's ``simulation.n_seeds``).
+        resume: go on from ``run_dir/checkpoint.pt``.
+    """
+    s = settings.check()
+    torch.manual_seed(s.seed)
+    stages = build_stages(cfg, sites)
+    trainable = make_trainable(stages, s.what, s.params)
+    opt = torch.optim.Adam(trainable.parameters(), lr=s.lr)
+    run, episode = TrainLoopRun(), torch.zeros(stages.batch_size, dtype=torch.int64)
+    ckpt = run_dir / CHECKPOINT
+    if resume:
+        run, ep, _ = restore(ckpt, trainable, opt, cfg.controller.name)
+        if isinstance(ep, torch.Tensor) and ep.shape == episode.shape:
+            episode = ep
+        s = replace(s, cpu_minutes=s.cpu_minutes + run.cpu_s / 60.0)  # the budget is this call's
+    val_stages = build_stages(validation_config(cfg, val_seed, val_seeds), sites)
+    writer, bar = _writer(run_dir), _bar(progress, s, run)
+
+    def on_window(rec: dict) -> None:
+        if s.val_every and rec["window"] % s.val_every == 0:
+            rec["val"] = {k: v for k, v in validate(val_stages, trainable).items() if k != "outcomes"}
+        run.history.append(rec)
+        _tensorboard(writer, rec)
+        if bar is not None:
+            bar.update(max(0.0, round(min(run.cpu_s, bar.total) - bar.n, 1)))
+            bar.set_postfix(loss=f"{rec['loss']:.3g}", landed=run.landed)
+
+    try:
+        episode = train_windows(stages, trainable, opt, s, run, episode, on_window)
+    finally:  # an interrupt keeps what was trained so far
+        save_checkpoint(ckpt, trainable, opt, s, run, episode, cfg.controller.name)
+        if bar is not None:
+            bar.close()
+    final = validate(val_stages, trainable)
+    summary = {"what": s.what, "controller": cfg.controller.name, "settings": {**asdict(s), "params": list(s.params)},
+               "batch": stages.batch_size, "windows": run.windows, "simulated_steps": run.steps,
+               "cpu_s": round(run.cpu_s, 1), "train_landed": run.landed, "train_ended": run.ended,
+               "values": trainable.describe(), "val_seed": val_seed, "val_batch": val_stages.batch_size, "validation": final, "history": run.history}
+    atomic_write_text(run_dir / TRAINED_CONFIG, dump_config(trained_config(cfg, trainable, ckpt)))
+    atomic_write_text(run_dir / SUMMARY, json.dumps(summary, indent=1) + "\n")
+    if writer is not None:
+        _tensorboard(writer, {"window": run.windows, "landed": run.landed, "val": final})
+        writer.close()
+    return summary
+
+
+def _writer(run_dir: Path):
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(str(run_dir / "tb"))
+
+
+def _bar(progress: bool, s: TrainLoopSettings, run: TrainLoopRun):
+    if not progress:
+        return None
+    import sys
+
+    from tqdm.auto import tqdm
+
+    return tqdm(total=round(s.cpu_minutes * 60.0, 1), initial=round(run.cpu_s, 1), unit="cpu-s",
+                desc=f"train-loop {s.what}", file=sys.stderr, mininterval=2.0, bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} cpu-s "
+                "[{elapsed}<{remaining}{postfix}]")
+
+
+__all__ = ["train_loop", "restore", "trained_config", "validation_config", "CHECKPOINT", "TRAINED_CONFIG", "SUMMARY",
+           "LossWeights"]

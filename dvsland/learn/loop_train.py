@@ -1,0 +1,169 @@
+"""Training through the closed loop (``dvsland train-loop``): a law's constants or a policy network
+learn from the loss of the flight itself (:mod:`.loop_loss`), by truncated backpropagation in time.
+
+A batch of B descents (the config's sites x settings x seeds) flies window after window; at each
+window's start the state is detached, and descents that have ended restart from a new dispersed
+start (counter-based draws of (seed, descent, episode): the same on every device). Every
+``val_every`` windows, and at the end, the trained values fly a validation batch (another seed,
+whole descents, no gradient): landings, landing speed, fuel.
+
+What is written into the run folder: ``checkpoint.pt`` (the trained values, the optimizer, the
+counters: ``--resume`` goes on from it), ``trained.yaml`` (the config that flies the result by
+path), ``train_loop.json`` (settings, history, final validation) and TensorBoard scalars (``tb/``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import torch
+
+from dvsland.control.policy import POLICY_KIND
+from dvsland.sim import dispersed_start, init_state, loop_step, reset_where
+from dvsland.sim.termination import SUCCESS
+
+from .loop_loss import LossWeights, window_loss
+from .loop_trainables import WHATS, Trainable
+
+#: ``kind`` of a law checkpoint (a policy's is :data:`dvsland.control.policy.POLICY_KIND`)
+LAW_KIND = "dvsland-loop-law"
+
+
+@dataclass(frozen=True)
+class TrainLoopSettings:
+    """Settings of one training (each checked by :meth:`check`, naming the option).
+
+    Attributes:
+        what: ``policy`` or ``law``.
+        params: law constants to train (() = the law's default set).
+        window: steps per truncated-backpropagation window (0 = whole descents).
+        lr: Adam's learning rate.
+        seed: the training starts' seed (torch's too).
+        dispersion: relative std. dev. of the restarted descents' altitude (speed: half of it).
+        cpu_minutes: budget of process CPU time, minutes.
+        max_windows: stop after this many windows (0 = the CPU budget alone).
+        val_every: validate every this many windows (0 = only at the end).
+        loss: the loss weights.
+    """
+
+    what: str = "policy"
+    params: Sequence[str] = ()
+    window: int = 40
+    lr: float = 3e-3
+    seed: int = 0
+    dispersion: float = 0.05
+    cpu_minutes: float = 1.0
+    max_windows: int = 0
+    val_every: int = 50
+    loss: LossWeights = field(default_factory=LossWeights)
+
+    def check(self) -> "TrainLoopSettings":
+        if self.what not in WHATS:
+            raise ValueError(f"--what {self.what!r}: choose one of {list(WHATS)}")
+        for name, lo, hi in (("window", 0, 100000), ("max_windows", 0, 10**9), ("val_every", 0, 10**9)):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and lo <= v <= hi):
+                raise ValueError(f"--{name.replace('_', '-')} must be an integer in [{lo}, {hi}], got {v!r}")
+        for name, lo, hi in (("lr", 0.0, 10.0), ("dispersion", 0.0, 0.5), ("cpu_minutes", 0.0, 1e6)):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi) or (name == "lr" and v == 0):
+                raise ValueError(f"--{name.replace('_', '-')} must be a number in {'(' if name == 'lr' else '['}{lo}, "
+                                 f"{hi}], got {v!r}")
+        self.loss.check()
+        return self
+
+
+@dataclass
+class TrainLoopRun:
+    """Counters of a training (what ``--resume`` restores)."""
+
+    windows: int = 0
+    steps: int = 0
+    cpu_s: float = 0.0
+    landed: int = 0
+    ended: int = 0
+    history: list = field(default_factory=list)
+
+
+def restart_ended(stages, state, episode: torch.Tensor, seed: int, dispersion: float):
+    """Ended descents restart from a new dispersed start keyed by (seed, descent, episode):
+    (state, episode (B,) int64). No copy when none has ended."""
+    done = ~state.active
+    if not bool(done.any()):
+        return state, episode
+    episode = episode + done.to(torch.int64)
+    b = torch.arange(state.batch_size, device=state.z_m.device)
+    z0, v0 = dispersed_start(stages, (seed, b, episode), dispersion, 0.5 * dispersion, (0.7, 1.3), (0.8, 1.2))
+    return reset_where(stages, state, done, z_m=z0, v_mps=v0), episode
+
+
+@torch.no_grad()
+def validate(stages, trainable: Trainable) -> dict:
+    """Fly every descent of ``stages`` once, whole, with the trained values: landings, landing speed, fuel."""
+    trainable.apply(stages.controller)
+    state = init_state(stages)
+    while bool(state.active.any()) and state.step < stages.settings.n_steps_max:
+        state, _ = loop_step(stages, state)
+    landed = state.outcome == SUCCESS
+    v = state.v_mps[landed].abs()
+    fuel = (stages.params.m0_kg - state.m_kg)[landed]
+    return {"n": state.batch_size, "landed": int(landed.sum()), "success_rate": float(landed.double().mean()),
+            "median_landing_speed_mps": round(float(v.median()), 3) if len(v) else None,
+            "median_fuel_kg": round(float(fuel.median()), 1) if len(fuel) else None,
+            "outcomes": state.outcome.tolist()}
+
+
+def check_finite_loss(loss: torch.Tensor, trainable: Trainable, windows: int) -> None:
+    """ValueError when a window's loss or gradient is not finite (nothing is saved from it)."""
+    grads = [p.grad for p in trainable.parameters() if p.grad is not None]
+    if not math.isfinite(float(loss.detach())) or not all(bool(torch.isfinite(g).all()) for g in grads):
+        raise ValueError(f"train-loop: the loss or its gradient is not finite in window {windows + 1} "
+                         f"(try a smaller --lr or a shorter --window); the last checkpoint is kept")
+
+
+def train_windows(stages, trainable: Trainable, opt, s: TrainLoopSettings, run: TrainLoopRun,
+                  episode: torch.Tensor, on_window: Optional[Callable[[dict], None]] = None) -> torch.Tensor:
+    """Train until the CPU budget or ``max_windows`` is spent; returns the episode counters."""
+    state = init_state(stages)
+    state, episode = restart_ended(stages, state._replace(active=torch.zeros_like(state.active)), episode,
+                                   s.seed, s.dispersion)
+    c0, budget = time.process_time() - run.cpu_s, s.cpu_minutes * 60.0
+    while time.process_time() - c0 < budget and not (s.max_windows and run.windows >= s.max_windows):
+        trainable.apply(stages.controller)
+        loss, terms, state = window_loss(stages, state, s.window, s.loss)
+        opt.zero_grad()
+        loss.backward()
+        check_finite_loss(loss, trainable, run.windows)
+        torch.nn.utils.clip_grad_norm_(trainable.parameters(), 1.0)
+        opt.step()
+        state, episode = restart_ended(stages, state, episode, s.seed, s.dispersion)
+        run.windows, run.steps, run.cpu_s = run.windows + 1, run.steps + terms["steps"], time.process_time() - c0
+        run.landed, run.ended = run.landed + terms["landed"], run.ended + terms["ended"]
+        rec = {"window": run.windows, "loss": float(loss.detach()), **terms, "cpu_s": round(run.cpu_s, 2),
+               "values": trainable.describe() if trainable.what == "law" else None}
+        if on_window is not None:
+            on_window(rec)
+    return episode
+
+
+def save_checkpoint(path: Path, trainable: Trainable, opt, s: TrainLoopSettings, run: TrainLoopRun,
+                    episode: torch.Tensor, law: str) -> None:
+    """The training's checkpoint (atomic: a temporary file renamed over ``path``)."""
+    ck = {"kind": POLICY_KIND if trainable.what == "policy" else LAW_KIND, "controller": law,
+          "settings": {**asdict(s), "params": list(s.params)}, "run": asdict(run), "episode": episode.cpu(),
+          "optimizer": opt.state_dict(), "values": trainable.describe()}
+    if trainable.what == "policy":
+        ck.update(hidden=trainable.net.hidden, state_dict=trainable.net.state_dict())
+    else:
+        ck.update(raw={k: v.detach().clone() for k, v in trainable.raw.items()})
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(ck, tmp)
+    tmp.replace(path)
+
+
+__all__ = ["TrainLoopSettings", "TrainLoopRun", "restart_ended", "validate", "train_windows", "save_checkpoint",
+           "check_finite_loss", "LAW_KIND"]
