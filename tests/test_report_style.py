@@ -100,10 +100,10 @@ def test_speed_vs_error_figure(tmp_path, monkeypatch):
         "cmax[window_ms=300]": {"ms_per_step_median": 2.1, "sites_A_G": {"median_abs_rel_err": 0.05}}}}
     plot_speed_vs_error(summary, tmp_path / "s.png")
     assert len(seen["xticks"]) >= 3  # several tick labels, not one
-    assert any(t.startswith("dpr: 1.3 ms, 29.0 %") for t in seen["legend"])
+    assert any(t.startswith("dpr: 1.3 CPU ms, 29.0 %") for t in seen["legend"])  # the time base is named
     assert any("cmax[window_ms=300]" in t for t in seen["legend"])
     assert any("target: 10 %" in t for t in seen["legend"])  # the dashed line is labelled
-    assert "[ms]" in seen["xlabel"] and "[%]" in seen["ylabel"]
+    assert "[ms]" in seen["xlabel"] and "CPU time" in seen["xlabel"] and "[%]" in seen["ylabel"]
 
 
 def test_descent_gif_and_montage_are_labelled(tmp_path, monkeypatch):

@@ -22,9 +22,10 @@ import torch
 from dvsland.config import Config
 from dvsland.estimators import Truth
 from dvsland.events import Recording, read_recording
+from dvsland.report.checkpoint import estimator_checkpoint
 from dvsland.stages import build_estimator
 
-from .run import EvaluationResult, parse_estimator_spec, summarise, variant_config
+from .run import EvaluationResult, parse_estimator_spec, summarise, time_base, variant_config
 from .trajectory import Descents
 
 
@@ -134,12 +135,15 @@ def _run_intervals(ests: dict, ev_all, cut: np.ndarray, edges: np.ndarray, truth
                    progress: bool, label: str) -> tuple:
     """Feed each estimator of ``ests`` ({label: estimator}) interval k's events (``ev_all[cut[k-1]:cut[k]]``)
     at ``edges[k]`` µs with the ground truth ``truth`` ({"divergence", "altitude_m", "velocity_mps"}:
-    (K + 1,) arrays, NaN = unknown). Returns ``(d_hat, times, n_events)``: {label: (1, K + 1)
-    estimates, 1/s}, {label: [ms per update]}, (1, K + 1) event counts (-1 at k = 0)."""
+    (K + 1,) arrays, NaN = unknown). Returns ``(d_hat, times, walls, n_events)``: {label: (1, K + 1)
+    estimates, 1/s}, {label: [ms per update in the time base, :func:`.run.time_base`]},
+    {label: [wall ms per update]}, (1, K + 1) event counts (-1 at k = 0)."""
     K = len(edges) - 1
     d_true = truth["divergence"]
     d_hat = {n: np.full((1, K + 1), np.nan) for n in ests}
+    cpu_base = time_base(device) == "CPU"
     times: Dict[str, List[float]] = {n: [] for n in ests}
+    walls: Dict[str, List[float]] = {n: [] for n in ests}
     n_events = np.full((1, K + 1), -1, dtype=np.int64)
     bar = None
     if progress:
@@ -160,16 +164,18 @@ def _run_intervals(ests: dict, ev_all, cut: np.ndarray, edges: np.ndarray, truth
             tr = None
         for n, est in ests.items():
             _sync(device)
-            t_start = time.perf_counter()
+            t_start, c_start = time.perf_counter(), time.process_time()
             d = est.update(ev, int(edges[k]), tr)
             _sync(device)
-            times[n].append((time.perf_counter() - t_start) * 1e3)
+            wall_ms = (time.perf_counter() - t_start) * 1e3
+            times[n].append((time.process_time() - c_start) * 1e3 if cpu_base else wall_ms)
+            walls[n].append(wall_ms)
             d_hat[n][:, k] = d.detach().double().cpu().numpy()
         if bar is not None:
             bar.update(1)
     if bar is not None:
         bar.close()
-    return d_hat, times, n_events
+    return d_hat, times, walls, n_events
 
 
 def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
@@ -226,15 +232,21 @@ def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
                              velocity_mps=truth["velocity_mps"][None], valid=valid[None], d_true=d_true[None])
 
     B = 1  # one recording
-    ests = {}
+    ests, checkpoints = {}, {}
     for lab, est_name, over in (parse_estimator_spec(e) for e in estimators):
         if lab in ests:
             raise ValueError(f"estimator label {lab!r} given twice")
         # as in evaluate(): built once from its variant config, here sized for the recording
-        ests[lab] = build_estimator(variant_config(cfg, est_name, over, lab), B, device, name=est_name)
-    d_hat, times, n_events = _run_intervals(ests, ev_all, cut, edges, truth, device, progress, label)
+        vcfg = variant_config(cfg, est_name, over, lab)
+        ests[lab] = build_estimator(vcfg, B, device, name=est_name)
+        ck = estimator_checkpoint(vcfg, est_name, ests[lab])
+        if ck is not None:
+            checkpoints[lab] = ck
+    d_hat, times, walls, n_events = _run_intervals(ests, ev_all, cut, edges, truth, device, progress, label)
     scored = desc.valid & (np.arange(K + 1)[None] > warmup_steps)
-    res = EvaluationResult(desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events)
+    res = EvaluationResult(desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events,
+                           wall_ms_per_step={n: np.asarray(v) for n, v in walls.items()},
+                           time_base=time_base(device), checkpoints=checkpoints)
     info = dict(trajectory="recording", recording=recording.source, recording_format=recording.format,
                 sensor_size=[int(W), int(H)], sensor_size_from=recording.meta.get("sensor_size_from"),
                 has_ground_truth=gt is not None, n_steps=K, steps_run=K,

@@ -11,7 +11,7 @@ import numpy as np
 from dvsland.report.results import atomic_write_text, write_json, write_traces_npz
 
 from .metrics import BANDS
-from .run import EvaluationResult, target_label
+from .run import TARGET_SITES, EvaluationResult, target_label
 from .scenario_run import format_scenario_table, scenario_traces
 
 
@@ -21,44 +21,126 @@ def _f(x, pct=False, nd=3):
     return f"{100 * x:.1f}%" if pct else f"{x:.{nd}f}"
 
 
-def format_table(summary: dict) -> str:
-    """Plain-text tables: per estimator and site, then per altitude band (sites A-G), then speed."""
-    ests = summary["estimators"]
-    sites = summary["sites"]
+def checkpoint_note(summary: dict) -> str:
+    """``"checkpoint: learned = learned_cnn.pt sha256:1a2b3c4d5e6f"`` for the estimators of
+    ``summary`` that read a trained checkpoint (several joined by ``"; "``); "" for none."""
+    from dvsland.report.checkpoint import checkpoint_text
+
+    cks = [(n, e["checkpoint"]) for n, e in summary["estimators"].items() if e.get("checkpoint")]
+    if not cks:
+        return ""
+    return ("checkpoint" if len(cks) == 1 else "checkpoints") + ": " + \
+        "; ".join(f"{n} = {checkpoint_text(c)}" for n, c in cks)
+
+
+def is_recording(summary: dict) -> bool:
+    """True for the summary of :func:`dvsland.evaluate.evaluate_recording`."""
+    return summary.get("trajectory") == "recording"
+
+
+def _source(summary: dict) -> str:
+    """What was evaluated, for titles: the recording (file, intervals) or the oracle descents."""
+    if is_recording(summary):
+        name = Path(str(summary.get("recording", "recording"))).name
+        w, h = (summary.get("sensor_size") or ["?", "?"])[:2]
+        gt = "" if summary.get("has_ground_truth", True) else "; no ground truth: no error"
+        return f"recording {name} ({w}x{h} px, {summary.get('n_steps', '?')} intervals{gt})"
+    return "closed-form oracle descents"
+
+
+def _time_head(summary: dict) -> str:
+    base = summary.get("time_base", "CPU")
+    return ("CPU ms per update (process CPU time; wall ms beside)" if base == "CPU"
+            else "wall ms per update (CUDA, device synchronised)")
+
+
+def _time_lines(summary: dict) -> list:
+    """The time table: per estimator, ms per update in the report's time base (median / mean),
+    and the wall time beside it."""
+    ests, B = summary["estimators"], len(summary["sites"])
+    base = summary.get("time_base", "CPU")
+    lines = [f"Time per update for the batch of B = {B} on {summary.get('device', '?')} "
+             f"({summary.get('torch_threads', '?')} torch threads): {_time_head(summary)}"]
+    head = f"{'estimator':<12} {base + ' ms med':>12} {base + ' ms mean':>13}"
+    if base == "CPU":
+        head += f" {'wall ms med':>12} {'wall ms mean':>13}"
+    lines += [head, "-" * len(head)]
+    for n, e in ests.items():
+        row = f"{n:<12} {_f(e.get('ms_per_step_median'), nd=2):>12} {_f(e.get('ms_per_step_mean'), nd=2):>13}"
+        if base == "CPU":
+            row += (f" {_f(e.get('wall_ms_per_step_median'), nd=2):>12}"
+                    f" {_f(e.get('wall_ms_per_step_mean'), nd=2):>13}")
+        lines.append(row)
+    return lines
+
+
+def _metric_row(name: str, label: str, m: dict) -> str:
+    return (f"{name:<12} {label:<9} {m['n_steps']:>6d} {_f(m['coverage'], True):>7} "
+            f"{_f(m['median_abs_rel_err'], True):>9} {_f(m['rmse'], nd=4):>8} {_f(m['within_10'], True):>7} "
+            f"{_f(m['within_20'], True):>7} {_f(m['bias_rel'], True):>8}")
+
+
+def _error_lines(summary: dict) -> list:
+    """The error table: for rendered descents one row per estimator and site, then the target sites
+    (when any ran) and all sites (when more than one); for a recording one row per estimator."""
+    ests, sites = summary["estimators"], summary["sites"]
     tl = summary.get("target_label") or target_label(sites)
-    lines = []
-    head = (f"{'estimator':<10} {'site':<5} {'steps':>6} {'cover':>7} {'med|rel|':>9} {'RMSE':>8} "
+    rec = is_recording(summary)
+    what = "recording" if rec else "site"
+    lines = [f"Open-loop divergence error {'of each estimator' if rec else 'per site'} on the {_source(summary)}; "
+             "med|rel| and RMSE over steps with an estimate, <10%/<20% over all scored steps"]
+    head = (f"{'estimator':<12} {'' if rec else what:<9} {'steps':>6} {'cover':>7} {'med|rel|':>9} {'RMSE':>8} "
             f"{'<10%':>7} {'<20%':>7} {'bias':>8}")
-    lines.append("Open-loop divergence error per site (closed-form oracle descents; med|rel| and RMSE over "
-                 "steps with an estimate, <10%/<20% over all steps)")
-    lines.append(head)
-    lines.append("-" * len(head))
-
-    def row(name, label, m):
-        return (f"{name:<10} {label:<5} {m['n_steps']:>6d} {_f(m['coverage'], True):>7} "
-                f"{_f(m['median_abs_rel_err'], True):>9} {_f(m['rmse'], nd=4):>8} {_f(m['within_10'], True):>7} "
-                f"{_f(m['within_20'], True):>7} {_f(m['bias_rel'], True):>8}")
-
+    lines += [head, "-" * len(head)]
     for name, e in ests.items():
+        if rec:
+            lines.append(_metric_row(name, "", e["all_sites"]))
+            continue
         for s in sites:
-            lines.append(row(name, s, e["sites"][s]))
-        lines.append(row(name, tl, e["sites_A_G"]))
-        lines.append(row(name, "all", e["all_sites"]))
+            lines.append(_metric_row(name, s, e["sites"][s]))
+        n_target = sum(s in TARGET_SITES for s in sites)
+        if len(sites) > 1 and n_target:  # the target sites' aggregate, when any ran
+            lines.append(_metric_row(name, tl, e["sites_A_G"]))
+        if len(sites) > 1 and n_target < len(sites):  # all sites, when it differs from that
+            lines.append(_metric_row(name, "all", e["all_sites"]))
         lines.append("")
-    lines.append(f"By altitude band (sites {tl}): med|rel| / <10% / coverage")
-    lines.append(f"{'estimator':<10} " + " ".join(f"{b[0]:>26}" for b in BANDS))
+    return lines[:-1] if lines[-1] == "" else lines
+
+
+def _band_lines(summary: dict) -> list:
+    """The altitude-band table over the target sites (all sites when none ran; the recording's
+    ground-truth altitude), only the bands with scored steps; [] when no band has any."""
+    ests, sites = summary["estimators"], summary["sites"]
+    tl = summary.get("target_label") or target_label(sites)
+    key, over = ("bands_A_G", f"sites {tl}") if tl != "none" else ("bands_all_sites", f"sites {','.join(sites)}")
+    if is_recording(summary):
+        key, over = "bands_all_sites", "the recording's ground-truth altitude"
+    bands = [b[0] for b in BANDS if any(e.get(key, {}).get(b[0], {}).get("n_steps", 0) for e in ests.values())]
+    if not bands:
+        return []
+    lines = [f"By altitude band ({over}): med|rel| / <10% / coverage",
+             f"{'estimator':<12} " + " ".join(f"{b:>26}" for b in bands)]
     for name, e in ests.items():
-        cells = []
-        for b in BANDS:
-            m = e["bands_A_G"][b[0]]
-            cells.append(f"{_f(m['median_abs_rel_err'], True)} / {_f(m['within_10'], True)} / "
-                         f"{_f(m['coverage'], True)}")
-        lines.append(f"{name:<10} " + " ".join(f"{c:>26}" for c in cells))
-    lines.append("")
-    lines.append(f"Time per update for the batch of B = {len(sites)} on {summary.get('device', '?')} "
-                 f"({summary.get('torch_threads', '?')} torch threads): "
-                 + ", ".join(f"{n} {_f(e['ms_per_step_median'], nd=2)} ms (median) / "
-                             f"{_f(e['ms_per_step_mean'], nd=2)} ms (mean)" for n, e in ests.items()))
+        cells = [f"{_f(e[key][b]['median_abs_rel_err'], True)} / {_f(e[key][b]['within_10'], True)} / "
+                 f"{_f(e[key][b]['coverage'], True)}" for b in bands]
+        lines.append(f"{name:<12} " + " ".join(f"{c:>26}" for c in cells))
+    return lines
+
+
+def format_table(summary: dict) -> str:
+    """Plain-text tables: the error per estimator (and site), per altitude band (when any band has
+    scored steps; a recording without altitude has none), the time per update (CPU ms, wall ms
+    beside) and the hard scenarios; the checkpoint of a trained estimator under the first line."""
+    lines = _error_lines(summary)
+    note = checkpoint_note(summary)
+    if note:
+        lines.insert(1, note)
+    bands = _band_lines(summary)
+    if bands:
+        lines += [""] + bands
+    elif is_recording(summary) and summary.get("has_ground_truth", True):
+        lines += ["", "(no altitude band table: the recording's ground truth has no altitude)"]
+    lines += [""] + _time_lines(summary)
     scen = format_scenario_table(summary)
     if scen:
         lines += ["", scen]
@@ -74,15 +156,16 @@ def plot_speed_vs_error(summary: dict, path: Path) -> None:
 
     plt = style.pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
+    key = "all_sites" if is_recording(summary) else "sites_A_G"
     xs = []
     for k, (name, e) in enumerate(summary["estimators"].items()):
         x = e["ms_per_step_median"]
-        y = e["sites_A_G"]["median_abs_rel_err"]
+        y = e[key]["median_abs_rel_err"]
         if x is None or y is None or not math.isfinite(y):
             continue
         x = max(x, 1e-3)
         xs.append(x)
-        ax.scatter([x], [100 * y], s=50, color=f"C{k % 10}", label=f"{name}: {x:.3g} ms, {100 * y:.1f} %", zorder=3)
+        ax.scatter([x], [100 * y], s=50, color=f"C{k % 10}", label=f"{name}: {x:.3g} {summary.get('time_base', 'CPU')} ms, {100 * y:.1f} %", zorder=3)
         ax.annotate(name, (x, 100 * y), textcoords="offset points", xytext=(6, 4), fontsize=8)
     ax.axhline(10, color="grey", lw=0.8, ls="--", label="target: 10 % median error")
     ax.set_xscale("log")
@@ -94,15 +177,20 @@ def plot_speed_vs_error(summary: dict, path: Path) -> None:
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_ylim(bottom=0)
     tl = summary.get("target_label") or target_label(summary["sites"])
-    style.label(ax, f"time per update for the batch of B = {len(summary['sites'])} "
-                    f"({summary.get('device', 'cpu')}) [ms]",
-                f"median |relative error|, sites {tl} [%]", "Divergence estimators: speed vs error",
+    where = "the recording" if is_recording(summary) else f"sites {tl}"
+    note = checkpoint_note(summary)
+    style.label(ax, f"{summary.get('time_base', 'CPU')} time per update for the batch of B = "
+                    f"{len(summary['sites'])} ({summary.get('device', 'cpu')}), median [ms]",
+                f"median |relative error|, {where} [%]",
+                f"Divergence estimators on the {_source(summary)}: speed vs error" + (f"\n{note}" if note else ""),
                 legend="outside")
     style.save(fig, path, dpi=120)
 
 
 def plot_traces(res: EvaluationResult, path: Path) -> None:
-    """Per site: true D and each estimator's D_hat over time."""
+    """Per site (or the recording): true D and each estimator's D_hat over time, on limits that
+    show the truth and the bulk of the estimates (:func:`dvsland.report.style.robust_limits`);
+    estimates beyond them sit as open triangles on the edge, counted in the legend."""
     from dvsland.report import style
 
     plt = style.pyplot()
@@ -110,23 +198,25 @@ def plot_traces(res: EvaluationResult, path: Path) -> None:
     B = len(desc.sites)
     cols = min(3, B)
     rows = int(math.ceil(B / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 2.8 * rows), squeeze=False)
+    width = max(4.2 * cols, 9.0)  # room for the title and the legend
+    fig, axes = plt.subplots(rows, cols, figsize=(width, 2.8 * rows + 0.8), squeeze=False)
     d_true = desc.divergence
+    rec = is_recording(res.summary or {})
     for i, s in enumerate(desc.sites):
         ax = axes[i // cols][i % cols]
         v = desc.valid[i]
-        for name, dh in res.d_hat.items():
-            ax.plot(desc.t_s[v], dh[i][v], lw=0.7, label=name)
+        lo, hi = style.robust_limits(d_true[i][v], [dh[i][v] for dh in res.d_hat.values()])
+        for k, (name, dh) in enumerate(res.d_hat.items()):
+            style.plot_clipped(ax, desc.t_s[v], dh[i][v], lo, hi, name, "-", ms=0, lw=0.7, color=f"C{k % 10}",
+                               outside_label="{label}: {n} beyond the axes (on the edge)")
         ax.plot(desc.t_s[v], d_true[i][v], "k", lw=1.2, label="truth")
-        lo = np.nanmin(d_true[i][v]) if v.any() else -1.0
-        ax.set_ylim(1.6 * lo, 0.3 * abs(lo))
-        ax.set_title(f"site {s}")
-        ax.set_xlabel("t [s]")
-        ax.set_ylabel("D [1/s]")
+        style.label(ax, "t [s]", "D [1/s]", f"recording {s}" if rec else f"site {s}")
+        ax.legend(fontsize=6.5, loc="best")
     for j in range(B, rows * cols):
         axes[j // cols][j % cols].axis("off")
-    axes[0][0].legend(fontsize=7)
-    fig.suptitle("Open-loop divergence D along the ideal descents: truth and estimates")
+    note = checkpoint_note(res.summary) if res.summary else ""
+    fig.suptitle(f"Open-loop divergence D on the {_source(res.summary or {})}: truth and estimates"
+                 + (f"\n{note}" if note else ""))
     fig.tight_layout()
     style.save(fig, path, dpi=110)
 

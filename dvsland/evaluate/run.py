@@ -7,7 +7,9 @@ flies it in its own loop (the stages of :func:`dvsland.stages.build_stages`: the
 built once and shared, default "fast"; the configured :class:`~dvsland.events.EventEmulator`,
 seeded with ``simulation.seed``): the thrust does not depend on the estimate, so every estimator
 sees the same altitudes and the same events, and its ``D_hat`` is the loop's ``d_est``, scored
-against the loop's ``d_true``. The estimate stage is timed (with a device sync).
+against the loop's ``d_true``. The estimate stage is timed (with a device sync): process CPU time,
+as ``dvsland bench`` measures (the report's time base on the CPU; wall time on CUDA, where the
+work runs on the device), with the wall time beside it.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import numpy as np
 import torch
 
 from dvsland.config import Config
+from dvsland.report.checkpoint import estimator_checkpoint
 from dvsland.stages import FrameSource, build_estimator, build_stages
 
 from .flight import flight_config, parse_estimator_spec, variant_config  # noqa: F401 (re-exported)
@@ -39,12 +42,17 @@ class EvaluationResult:
         descents: the sampled :class:`Descents` (truth).
         d_hat: {estimator: (B, K + 1) float64 estimates, NaN = none or step not run}.
         scored: (B, K + 1) bool, steps that count in the metrics (run, descent valid, after warm-up).
-        ms_per_step: {estimator: (n_run,) float64 wall time of each ``update`` for the batch, ms}.
+        ms_per_step: {estimator: (n_run,) float64 time of each ``update`` for the batch, ms, in the
+            report's time base ``time_base``: process CPU time on the CPU, wall time on CUDA}.
         n_events: (B, K + 1) int64 events per step and site (-1 = step not run).
         summary: JSON-ready dict of all metrics (see :func:`summarise`); with hard scenarios its
             ``scenarios`` holds their descriptions and per-phase metrics.
         scenarios: what :func:`dvsland.evaluate.scenario_run.run_scenarios` returned (traces
             included), or {} without scenarios.
+        wall_ms_per_step: {estimator: (n_run,) float64 wall time of each ``update``, ms}.
+        time_base: "CPU" or "wall": what ``ms_per_step`` measures.
+        checkpoints: {estimator: :func:`dvsland.report.checkpoint.checkpoint_identity`} of the
+            estimators that read a trained checkpoint (``learned``, ``snn``).
     """
 
     descents: Descents
@@ -54,6 +62,9 @@ class EvaluationResult:
     n_events: np.ndarray
     summary: dict = field(default_factory=dict)
     scenarios: dict = field(default_factory=dict)
+    wall_ms_per_step: Dict[str, np.ndarray] = field(default_factory=dict)
+    time_base: str = "CPU"
+    checkpoints: Dict[str, dict] = field(default_factory=dict)
 
 
 def _sync(device: torch.device) -> None:
@@ -72,8 +83,35 @@ def target_label(sites: Sequence[str]) -> str:
     return ",".join(run)
 
 
+def time_base(device) -> str:
+    """The time base of a report on ``device``: "CPU" (process CPU time, as ``dvsland bench``) on
+    the CPU, "wall" on CUDA (the work runs on the device; its CPU time is only the launches)."""
+    return "wall" if torch.device(device).type == "cuda" else "CPU"
+
+
+def _stats_ms(ms) -> dict:
+    """{"median", "mean"} of per-update times, ms (None without any)."""
+    a = np.asarray(ms if ms is not None else [], dtype=np.float64)
+    return {"median": float(np.median(a)) if a.size else None, "mean": float(np.mean(a)) if a.size else None}
+
+
+def _timing_summary(res: EvaluationResult, name: str) -> dict:
+    """The per-update time fields of one estimator: ``time_base``, ``ms_per_step_median`` /
+    ``_mean`` (in that base), ``cpu_ms_per_step_*`` and ``wall_ms_per_step_*`` (ms)."""
+    base = res.time_base
+    own = _stats_ms(res.ms_per_step.get(name))
+    wall = _stats_ms(res.wall_ms_per_step.get(name)) if name in res.wall_ms_per_step else \
+        (own if base == "wall" else _stats_ms(None))
+    cpu = own if base == "CPU" else _stats_ms(None)
+    return {"time_base": base, "ms_per_step_median": own["median"], "ms_per_step_mean": own["mean"],
+            "cpu_ms_per_step_median": cpu["median"], "cpu_ms_per_step_mean": cpu["mean"],
+            "wall_ms_per_step_median": wall["median"], "wall_ms_per_step_mean": wall["mean"]}
+
+
 def summarise(res: EvaluationResult, info: Optional[dict] = None) -> dict:
-    """Metrics per estimator: per site, per altitude band, over sites A-G and over all sites."""
+    """Metrics per estimator: per site, per altitude band, over sites A-G and over all sites; the
+    time per update (:func:`_timing_summary`) and, for a trained estimator, its ``checkpoint``
+    (file, sha256, path)."""
     desc = res.descents
     d_true = desc.divergence
     alt = desc.altitude_m
@@ -85,12 +123,17 @@ def summarise(res: EvaluationResult, info: Optional[dict] = None) -> dict:
     out["steps_scored"] = int(res.scored.sum())
     out["events_per_step_mean"] = {s: float(res.n_events[i][res.n_events[i] >= 0].mean())
                                    if (res.n_events[i] >= 0).any() else 0.0 for i, s in enumerate(sites)}
+    out["time_base"] = res.time_base
+    if res.checkpoints:
+        from dvsland.report.checkpoint import checkpoint_text
+
+        out["checkpoints"] = {n: checkpoint_text(c) for n, c in res.checkpoints.items()}
     ests = {}
     for name, dh in res.d_hat.items():
         sc = res.scored
-        e = {"ms_per_step_mean": float(np.mean(res.ms_per_step[name])) if len(res.ms_per_step[name]) else None,
-             "ms_per_step_median": float(np.median(res.ms_per_step[name])) if len(res.ms_per_step[name]) else None,
-             "batch_size": len(sites)}
+        e = dict(_timing_summary(res, name), batch_size=len(sites))
+        if name in res.checkpoints:
+            e["checkpoint"] = res.checkpoints[name]
         e["sites"] = {s: divergence_metrics(dh[i][sc[i]], d_true[i][sc[i]]) for i, s in enumerate(sites)}
         m_all = sc
         m_t = sc & target[:, None]
@@ -104,11 +147,13 @@ def summarise(res: EvaluationResult, info: Optional[dict] = None) -> dict:
 
 
 class _EstimateTimer:
-    """``loop_step`` timer: wall ms of each ``estimate`` stage (device synchronised), the others untimed."""
+    """``loop_step`` timer of each ``estimate`` stage (device synchronised), the others untimed:
+    ``last_cpu_ms`` (process CPU time) and ``last_ms`` (wall time), ms."""
 
     def __init__(self, device: torch.device):
         self.device = device
         self.last_ms = 0.0
+        self.last_cpu_ms = 0.0
 
     def __call__(self, stage: str):
         return _Timed(self) if stage == "estimate" else nullcontext()
@@ -120,12 +165,13 @@ class _Timed:
 
     def __enter__(self):
         _sync(self.owner.device)
-        self.t0 = time.perf_counter()
+        self.t0, self.c0 = time.perf_counter(), time.process_time()
         return self
 
     def __exit__(self, *exc):
         _sync(self.owner.device)
         self.owner.last_ms = (time.perf_counter() - self.t0) * 1e3
+        self.owner.last_cpu_ms = (time.process_time() - self.c0) * 1e3
         return False
 
 
@@ -172,12 +218,16 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
     desc = closed_form_descents(cfg, sites, max_steps=max_steps)
     B, K = len(desc.sites), desc.n_steps
     specs = [parse_estimator_spec(e) for e in estimators]
-    ests = {}
+    ests, checkpoints = {}, {}
     for label, name, over in specs:
         if label in ests:
             raise ValueError(f"estimator label {label!r} given twice")
         # built once, from its variant config (the plain config may not even construct)
-        ests[label] = build_estimator(variant_config(cfg, name, over, label), B, device, name=name)
+        vcfg = variant_config(cfg, name, over, label)
+        ests[label] = build_estimator(vcfg, B, device, name=name)
+        ck = estimator_checkpoint(vcfg, name, ests[label])
+        if ck is not None:
+            checkpoints[label] = ck
     estimators = list(ests)
     # the profile, two steps past the end (the tracking thrust looks ahead), unclamped
     site_cfg = {s.name: s for s in cfg.simulation.sites}
@@ -194,7 +244,9 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
 
         renderer = get_renderer(cfg.render.renderer, desc.sites, cfg.camera, cfg.render, device=device)
     d_hat = {n: np.full((B, K + 1), np.nan) for n in estimators}
-    times: Dict[str, List[float]] = {n: [] for n in estimators}
+    base = time_base(device)
+    times: Dict[str, List[float]] = {n: [] for n in estimators}  # in the time base
+    walls: Dict[str, List[float]] = {n: [] for n in estimators}
     scored = np.zeros((B, K + 1), dtype=bool)
     n_events = np.full((B, K + 1), -1, dtype=np.int64)
     alt, vel, valid = desc.altitude_m.copy(), desc.velocity_mps.copy(), desc.valid.copy()
@@ -222,7 +274,8 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
             for k, out in zip(range(k0, seg.stop), fly_profile(stages, z_seg, v_seg, m0, timer=timer)):
                 if k == k0:
                     continue  # the first frame of a segment: no events yet, not scored
-                times[name].append(timer.last_ms)
+                times[name].append(timer.last_cpu_ms if base == "CPU" else timer.last_ms)
+                walls[name].append(timer.last_ms)
                 d_hat[name][:, k] = out.d_est.detach().cpu().numpy()
                 if first:
                     alt[:, k], vel[:, k] = out.z_m.cpu().numpy(), out.v_mps.cpu().numpy()
@@ -244,7 +297,9 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
     flown = valid & run[None, :]
     rel_dz = np.abs(alt - z_ref[:, :K + 1]) / z_ref[:, :K + 1]
     flown_desc = Descents(desc.sites, desc.t_s, alt, vel, valid)
-    res = EvaluationResult(flown_desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events)
+    res = EvaluationResult(flown_desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events,
+                           wall_ms_per_step={n: np.asarray(v) for n, v in walls.items()}, time_base=base,
+                           checkpoints=checkpoints)
     info = dict(trajectory="closed_form", flight="loop_step, tracking thrust",
                 integrator=str(cfg.dynamics.integrator),
                 trajectory_max_rel_dz=float(rel_dz[flown].max()) if flown.any() else 0.0,

@@ -10,6 +10,7 @@ import numpy as np
 
 from dvsland.dynamics import closed_form_state
 
+from .checkpoint import checkpoint_text
 from .style import label, save_atomic
 from .tensorboard import _estimator_label, run_folder_name
 
@@ -31,9 +32,27 @@ def _run_rows(traces: Dict[str, np.ndarray], b: int) -> np.ndarray:
 
 def _descent_axes():
     plt = _plt()
-    fig, ax = plt.subplots(4, 1, figsize=(7, 9), sharex=True)
-    fig.subplots_adjust(left=0.12, right=0.97, top=0.95, bottom=0.06, hspace=0.12)
+    fig, ax = plt.subplots(4, 1, figsize=(9, 9), sharex=True)
+    fig.subplots_adjust(left=0.1, right=0.74, top=0.95, bottom=0.06, hspace=0.12)  # legends to the right
     return fig, ax
+
+
+def _divergence_panel(ax, t, d_true, d_est, d_filtered) -> None:
+    """The D panel: the true D (black), every raw estimate (dots), the filtered D the law used
+    (a line drawn above the dots) on limits that show the truth and the bulk of both series
+    (:func:`~.style.robust_limits`); estimates beyond them sit as open triangles on the edge
+    (:func:`~.style.plot_clipped`), counted in the legend. Arrays: (N,) float, 1/s, NaN = none."""
+    from .style import plot_clipped, robust_limits
+
+    lo, hi = robust_limits(d_true, (d_est, d_filtered))
+    hi = max(hi, 0.0 + 0.05 * (hi - lo))  # D = 0 (no closing speed) always in view
+    ax.plot(t, d_true, "k", lw=1.2, label="D true", zorder=3)
+    edge = "{n} beyond the axes,\nmarked on the edge"
+    plot_clipped(ax, t, d_est, lo, hi, "D estimated (raw)", ".", ms=2.5, outside_label="raw: " + edge,
+                 color="C0", alpha=0.7, zorder=2)
+    plot_clipped(ax, t, d_filtered, lo, hi, "D filtered\n(the law's input)", "-", ms=0,
+                 outside_label="filtered: " + edge, lw=1.3, color="C3", zorder=4)
+    label(ax, ylabel="divergence D [1/s]", legend="outside")
 
 
 def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: float = 0.5, _fig=None):
@@ -46,6 +65,8 @@ def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: f
     for a in ax:
         a.cla()
     est = _estimator_label(run["estimator"])
+    if run.get("checkpoint"):
+        est += f", {checkpoint_text(run['checkpoint'])}"
     title = f"{run.get('run', b)}  ({est}): {run['outcome']} at {run['t_end_s']:.1f} s, " \
             f"lowest {run['lowest_altitude_m']:.0f} m, loop gain λ = " \
             f"{'-' if run.get('loop_gain') is None else format(run['loop_gain'], '.3g')} 1/s"
@@ -56,25 +77,16 @@ def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: f
     ax[0].plot(t, traces["z_m"][rows, b], label="altitude")
     if zc is not None:
         ax[0].plot(t, zc, "k--", lw=0.8, label="closed form")
-    label(ax[0], ylabel="altitude z [m]", legend="upper right")
+    label(ax[0], ylabel="altitude z [m]", legend="outside")
     ax[1].plot(t, traces["v_mps"][rows, b], label="velocity")
     if vc is not None:
         ax[1].plot(t, vc, "k--", lw=0.8, label="closed form")
-    label(ax[1], ylabel="velocity v [m/s]", legend="lower right")
-    ax[2].plot(t, traces["d_true"][rows, b], "k", lw=1.0, label="D true")
-    ax[2].plot(t, traces["d_est"][rows, b], ".", ms=2, label="D estimated")
-    ax[2].plot(t, traces["d_filtered"][rows, b], lw=0.8, label="D filtered")
-    d_true = traces["d_true"][rows, b]
-    d_true = d_true[np.isfinite(d_true)]
-    if d_true.size:  # outlying estimates must not flatten the true curve
-        lo, hi = float(d_true.min()), float(d_true.max())
-        pad = 0.25 * max(hi - lo, abs(lo), 0.02)
-        ax[2].set_ylim(lo - pad, max(hi, 0.0) + pad)
-    label(ax[2], ylabel="divergence D [1/s]", legend="lower left")
+    label(ax[1], ylabel="velocity v [m/s]", legend="outside")
+    _divergence_panel(ax[2], t, traces["d_true"][rows, b], traces["d_est"][rows, b], traces["d_filtered"][rows, b])
     thrust = traces["thrust_n"][rows, b]
     big = np.isfinite(thrust).any() and np.nanmax(np.abs(thrust)) >= 1e6
     ax[3].step(t, thrust / (1e6 if big else 1e3), where="post", lw=0.8, label="commanded thrust")
-    label(ax[3], "flight time t [s]", "thrust [MN]" if big else "thrust [kN]")
+    label(ax[3], "flight time t [s]", "thrust [MN]" if big else "thrust [kN]", legend="outside")
     save_atomic(fig, path, dpi=80)
     if _fig is None:
         plt.close(fig)
@@ -112,8 +124,11 @@ def lowest_altitude_chart(runs: List[dict], path, success_altitude_m: float = 50
     ax.set_xticks(np.arange(len(sites)))
     ax.set_xticklabels(sites)
     ax.set_xlabel("site")  # categorical: no unit
+    ests = ", ".join(dict.fromkeys(_estimator_label(str(r.get("estimator", "?")))
+                                   + (f" ({checkpoint_text(r['checkpoint'])})" if r.get("checkpoint") else "")
+                                   for r in runs))
     label(ax, None, "lowest altitude reached [m]", "Lowest altitude per site and controller setting "
-          "(log scale)", legend="outside", grid=False)
+          f"(log scale); estimator {ests}", legend="outside", grid=False)
     ax.grid(True, axis="y", alpha=0.3)
     from .style import save
 

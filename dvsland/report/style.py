@@ -80,6 +80,59 @@ def label(ax, xlabel: Optional[str] = None, ylabel: Optional[str] = None, title:
     return ax
 
 
+def robust_limits(truth, estimates=(), q: float = 2.0, pad: float = 0.15, floor: float = 0.02) -> Tuple[float, float]:
+    """(low, high) y limits that show all of ``truth`` and the central ``100 - 2 q`` % of every
+    series in ``estimates`` (percentiles ``q`` and ``100 - q`` of its finite values), padded by
+    ``pad`` of the span (at least ``floor``): a few wild estimates cannot flatten the truth, and
+    the estimates' bulk stays in view. Non-finite values are ignored; (-1, 1) when nothing is finite.
+
+    Args:
+        truth: (N,) values always shown. estimates: sequence of (M,) series.
+    """
+    vals = []
+    t = np.asarray(truth, dtype=np.float64).ravel()
+    t = t[np.isfinite(t)]
+    if t.size:
+        vals += [t.min(), t.max()]
+    for e in estimates:
+        e = np.asarray(e, dtype=np.float64).ravel()
+        e = e[np.isfinite(e)]
+        if e.size:
+            vals += list(np.percentile(e, [q, 100.0 - q]))
+    if not vals:
+        return (-1.0, 1.0)
+    lo, hi = float(min(vals)), float(max(vals))
+    span = max(hi - lo, floor)
+    return (lo - pad * span, hi + pad * span)
+
+
+def plot_clipped(ax, x, y, lo: float, hi: float, label: str, style: str = ".", ms: float = 2.5,
+                 outside_label: Optional[str] = "{label}: {n} outside the axes (on the edge)", **kw) -> int:
+    """Plot the points of ``y`` (against ``x``) inside [lo, hi] with ``style`` (a line breaks where
+    it leaves them), and the ones outside as open triangles on the edge they passed (up at ``hi``,
+    down at ``lo``), in the same colour, so that nothing is silently clipped. The legend reads
+    ``label`` and, when some were outside, ``outside_label`` formatted with ``label`` and ``n``
+    (None: no legend entry for them). Returns the number outside.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    ok = np.isfinite(y)
+    inside = ok & (y >= lo) & (y <= hi)
+    (line,) = ax.plot(x, np.where(inside, y, np.nan), style, ms=ms, label=label, **kw)  # a line breaks there
+    above, below = ok & (y > hi), ok & (y < lo)
+    n_out = int(above.sum() + below.sum())
+    if n_out:
+        c = line.get_color()
+        edge = dict(ls="", mfc="none", mec=c, ms=4, mew=0.8, clip_on=False)
+        text = "_nolegend_" if outside_label is None else outside_label.format(label=label, n=n_out)
+        ax.plot(x[above], np.full(int(above.sum()), hi), marker="^", **edge,
+                label=text if above.any() else "_nolegend_")
+        ax.plot(x[below], np.full(int(below.sum()), lo), marker="v", **edge,
+                label="_nolegend_" if above.any() else text)
+    ax.set_ylim(lo, hi)
+    return n_out
+
+
 def save_atomic(fig, path, **savefig_kwargs) -> Path:
     """``fig.savefig`` into memory, then one atomic write to ``path`` (format from its suffix): a
     full disk or a read-only folder leaves the previous figure or none, never half a PNG.

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import List, Optional
 
+from .checkpoint import checkpoint_text
+
 #: (header, results.json key, definition) of every column, in order
 COLUMNS = (
     ("run", "run", "site/controller setting (Kp in N/s, n = moving-average length)"),
@@ -87,6 +89,9 @@ def format_table(runs: List[dict], markdown: bool = False, success_altitude_m: f
     for r in runs:
         counts[r["outcome"]] = counts.get(r["outcome"], 0) + 1
     count_line = "outcomes: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))
+    cks = list(dict.fromkeys(checkpoint_text(r["checkpoint"]) for r in runs if r.get("checkpoint")))
+    if cks:  # a trained estimator: which weights flew
+        count_line += "; checkpoint " + ", ".join(cks)
     if markdown:
         lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         lines += ["| " + " | ".join(row) + " |" for row in rows]
