@@ -56,3 +56,12 @@ def test_campaign_figure_draws_the_tables_median(tmp_path, monkeypatch):
     assert drawn == table
     assert np.allclose(table, [1.5, 2.03])  # (1.3 + 1.7) / 2 and (2.0 + 2.06) / 2, not 1.7 and 2.06
     assert f"{median(speeds['A']):.2f}" in format_group_table(groups, by)
+
+
+def test_campaign_figure_title_names_a_checkpoint():
+    from dvsland.campaign.report import figure_title
+
+    ck = {"file": "mine.pt", "sha256": "0123456789ab", "path": "/x/mine.pt"}
+    runs = [{"site": "A", "estimator": "learned", "checkpoint": ck, "seed_index": 0}]
+    assert "learned (mine.pt sha256:0123456789ab)" in figure_title(runs, {"n_seeds": 1})
+    assert "sha256" not in figure_title([{"site": "A", "estimator": "dpr", "seed_index": 0}], {"n_seeds": 1})

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 from typing import List, Optional, Sequence
 
+from dvsland.report.checkpoint import checkpoint_text
 from dvsland.report.results import RunWriteError, atomic_write_text, write_results_json
 from dvsland.report.stats import format_group_table, write_csv
 from dvsland.report.style import save_atomic
@@ -69,6 +70,9 @@ def figure_title(runs: List[dict], meta: Optional[dict] = None) -> str:
 
     preset = f"preset {meta['preset']}" if meta.get("preset") else f"settings {names('label') or '?'}"
     ests = names("estimator") or "?"
+    cks = ", ".join(dict.fromkeys(checkpoint_text(r["checkpoint"]) for r in runs if r.get("checkpoint")))
+    if cks:  # a trained estimator: which weights flew
+        ests += f" ({cks})"
     n_seeds = meta.get("n_seeds")
     if n_seeds is None:
         n_seeds = len({r.get("seed_index", r.get("seed")) for r in runs})

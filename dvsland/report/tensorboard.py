@@ -485,8 +485,10 @@ def write_evaluation_tensorboard(log_dir, res, cfg_yaml: Optional[str] = None,
     flight time in ms, so each site's chart overlays the truth and every estimator; a histogram
     ``divergence/rel_error`` of (D̂ − D)/|D| over the scored steps of sites A–G; one HParams row per
     estimator (``estimator``) with ``eval/median_abs_rel_err``, ``eval/rmse``, ``eval/coverage``,
-    ``eval/within_10``, ``eval/ms_per_step`` (sites A–G; ms per update for the batch). The top
-    folder holds the config and the printed table as text.
+    ``eval/within_10`` (sites A–G), ``eval/ms_per_step`` (median ms per update for the batch in the
+    report's time base: process CPU time on the CPU, wall time on CUDA; hparam ``time_base``) and
+    ``eval/wall_ms_per_step``, and hparam ``checkpoint`` (file and sha256 of a trained estimator's
+    weights, ``-`` for none). The top folder holds the config and the printed table as text.
 
     Args:
         log_dir: folder (``<run_dir>/tb``).
@@ -520,6 +522,8 @@ def write_evaluation_tensorboard(log_dir, res, cfg_yaml: Optional[str] = None,
         hps, mets, ws = [], [], []
         from dvsland.estimators.metrics import TARGET_SITES  # below the evaluation, which fills ``res``
 
+        from .checkpoint import checkpoint_text
+
         target = np.array([s in TARGET_SITES for s in desc.sites])
         for name, dh in res.d_hat.items():
             m = res.scored & target[:, None]
@@ -530,10 +534,13 @@ def write_evaluation_tensorboard(log_dir, res, cfg_yaml: Optional[str] = None,
                 add_histogram_fixed(writers[name], "divergence/rel_error", rel, 0, start)
             e = res.summary.get("estimators", {}).get(name, {})
             ag = e.get("sites_A_G", {})
-            hps.append({"estimator": name, "batch_size": int(len(desc.sites))})
+            hps.append({"estimator": name, "batch_size": int(len(desc.sites)),
+                        "time_base": str(e.get("time_base", res.summary.get("time_base", "CPU"))),
+                        "checkpoint": checkpoint_text(e.get("checkpoint")) or "-"})
             mets.append({"eval/median_abs_rel_err": ag.get("median_abs_rel_err"), "eval/rmse": ag.get("rmse"),
                          "eval/coverage": ag.get("coverage"), "eval/within_10": ag.get("within_10"),
-                         "eval/ms_per_step": e.get("ms_per_step_median")})
+                         "eval/ms_per_step": e.get("ms_per_step_median"),
+                         "eval/wall_ms_per_step": e.get("wall_ms_per_step_median")})
             ws.append(writers[name])
         write_hparams(top, ws, hps, mets, walltime=start, step=0)
     finally:
