@@ -1,29 +1,33 @@
-"""``dvsland train CONFIG --model NAME|pkg.mod:Class --data DIR [--epochs E] [--max-minutes M] [--out CKPT]
-[--resume | --init CKPT]``: the training recipe of the ``learned`` estimator (:mod:`dvsland.learn`,
-:mod:`.train_recipe`).
+"""``dvsland train CONFIG --model NAME|pkg.mod:Class --data DIR [--recipe quick] [--epochs E]
+[--max-minutes M] [--max-cpu-minutes M] [--out CKPT] [--resume | --init CKPT]``: the training
+recipe of the ``learned`` estimator (:mod:`dvsland.learn`, :mod:`.train_recipe`) on dataset
+folders of ``dvsland dataset build``; ``--recipe quick`` names a ready set of recipe settings
+(:data:`dvsland.learn.RECIPES`). The checkpoint is flown with ``--estimator learned --set
+estimator.learned.checkpoint=PATH``.
 
-``dvsland train [CONFIG] [--out PATH] [--overwrite-shipped] [--sites A~1,...] [--n-seq N] [--steps K]
-[--epochs E] [--init CKPT] [--threads N] [--set key=value ...] [--quiet]``: train the spiking
-divergence estimator (``snn``) and write its checkpoint.
-
-Data: constant-divergence descents and climbs on held-out terrain (site variants A~1 ... I~2,
-never the nine evaluation sites, unless ``--sites`` names others), rendered by the fast renderer
-and turned into events by the config's emulator; model: :mod:`dvsland.estimators.snn`; training:
-:func:`dvsland.estimators.snn.train.train`. The checkpoint holds the weights, the encoder and
-model settings, the training settings and the history.
+Without ``--model`` and ``--data`` (the older mode): ``dvsland train [CONFIG] [--out PATH]
+[--overwrite-shipped] [--sites A~1,...] [--n-seq N] [--steps K] [--epochs E] [--init CKPT]
+[--threads N] [--set key=value ...] [--quiet]`` trains the log-polar spiking estimator ``snn``
+(:mod:`dvsland.estimators.snn`) on constant-divergence descents and climbs over held-out terrain
+(site variants A~1 ... I~2 unless ``--sites`` names others), rendered by the fast renderer and
+turned into events by the config's emulator (:func:`dvsland.estimators.snn.train.train`); its
+checkpoint is flown with ``--set estimator.snn.checkpoint=PATH``.
 
 Where it goes: ``--out PATH`` (a ``.pt`` file), or by default a new run folder
-``<logging.root>/<name>-train-<UTC stamp>/`` with ``snn.pt``, ``train.json`` and ``config.yaml``.
-A path inside the installed package (the shipped ``snn_default.pt``) is refused unless
-``--overwrite-shipped`` is given, and any other existing file unless ``--overwrite``: both are
-checked before any data is made.
+``<logging.root>/<name>-train-<UTC stamp>/`` (``<model>.pt`` for the recipe; ``snn.pt``,
+``train.json`` and ``config.yaml`` for the snn). A path inside the installed package (the shipped
+checkpoints) is refused unless ``--overwrite-shipped`` is given, and any other existing file unless
+``--overwrite``: both are checked before any data is read or made.
+
+Time caps: ``--max-minutes`` is wall-clock time, ``--max-cpu-minutes`` CPU time of the process
+(all its threads; what a shared machine gives a run is CPU time).
 
 Every checkpoint it reads (``--init``, ``--resume``, ``--data-cache``) goes through the one checkpoint
 validation (:mod:`dvsland.estimators.state_dict_check`) before any data are made or any file is
 written: a missing, foreign, damaged or diverged file is one error naming the option and the file.
 
-The options are added by :func:`add_train_arguments` in three groups (data, model, training), the
-one place to extend them.
+The options are added by :func:`add_train_arguments` in groups (recipe, output, data, model,
+training), the one place to extend them.
 """
 
 from __future__ import annotations
@@ -42,11 +46,15 @@ CHECKPOINT_NAME = "snn.pt"
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "train", help="train a learned estimator (--model NAME --data DIR) or the spiking snn; write its checkpoint",
-        description="Train the spiking divergence estimator on descents over held-out terrain and write its "
-                    "checkpoint: to --out PATH, or into a new run folder under logs/ (snn.pt, train.json, "
-                    "config.yaml). The shipped checkpoint inside the package is only replaced with "
-                    "--overwrite-shipped. Use the result with --set estimator.snn.checkpoint=PATH.")
+        "train", help="train a learned estimator on a dataset folder (--model cnn --data DIR; --recipe quick)",
+        description="Train a model of the learned estimator on dataset folders of `dvsland dataset build` "
+                    "(--model cnn|spiking|pkg.mod:Class --data DIR) and write its checkpoint: to --out PATH, or "
+                    "into a new run folder under logs/ (<model>.pt, with TensorBoard curves beside it). "
+                    "--recipe quick: a small, fast model and schedule capped at 12 CPU-minutes (docs/learning.md, "
+                    "'Your first model in 15 minutes'). Fly the result with --estimator learned --set "
+                    "estimator.learned.checkpoint=PATH. Without --model and --data: the older log-polar spiking "
+                    "estimator snn on generated descents (snn.pt; --set estimator.snn.checkpoint=PATH). The "
+                    "shipped checkpoints inside the package are only replaced with --overwrite-shipped.")
     add_config_args(p, out=False)
     add_train_arguments(p)
     p.set_defaults(func=run_train)
@@ -54,30 +62,36 @@ def register(subparsers) -> None:
 
 def add_train_arguments(p: argparse.ArgumentParser) -> None:
     """Every option of ``dvsland train`` (besides CONFIG and --set): output, data, model, training."""
-    rec = p.add_argument_group("recipe (any learned model on a dataset folder; chosen by --model)")
+    rec = p.add_argument_group("recipe (any learned model on a dataset folder; chosen by --model or --recipe)")
     rec.add_argument("--model", default=None, metavar="NAME|pkg.mod:Class",
                      help="train this model of the learned estimator's zoo (cnn, spiking) or any class with the "
-                          "same forward(vox, coords, log_count) on --data with the recipe; without --model: snn")
+                          "same forward(vox, coords, log_count) on --data with the recipe (default with --data: "
+                          "cnn); without --model and --data: the older spiking snn")
+    rec.add_argument("--recipe", default=None, metavar="NAME",
+                     help="a named set of recipe settings (model, input, schedule, time cap): quick = a first "
+                          "model in about 12 CPU-minutes; options given beside it win")
     rec.add_argument("--data", default=None, metavar="DIR[,DIR]",
                      help="dataset folder(s) of `dvsland dataset build`, of one sensor")
     rec.add_argument("--model-set", action="append", default=[], metavar="KEY=VALUE",
                      help="a model constructor setting, e.g. width=16 (repeatable)")
     rec.add_argument("--n-bins", type=ranged(int, 1, 64, "--n-bins"), default=None,
-                     help="time bins of the voxel grid (default 4; spiking 6)")
-    rec.add_argument("--n-windows", type=ranged(int, 1, 64, "--n-windows"), default=1,
-                     help="control steps the input spans (the last K windows; n_bins must be a multiple of K)")
+                     help="time bins of the voxel grid (default 4; spiking 6; quick 8)")
+    rec.add_argument("--n-windows", type=ranged(int, 1, 64, "--n-windows"), default=None,
+                     help="control steps the input spans (the last K windows; n_bins must be a multiple of K; "
+                          "default 1, quick 8)")
     rec.add_argument("--pool-px", type=ranged(int, 1, 64, "--pool-px"), default=None,
-                     help="sensor pixels per input cell side (default 2; spiking 4)")
-    rec.add_argument("--patience", type=ranged(int, 1, 10_000, "--patience"), default=6,
-                     help="early stopping: epochs without a better val error")
+                     help="sensor pixels per input cell side (default 2; spiking 4; quick 4)")
+    rec.add_argument("--patience", type=ranged(int, 1, 10_000, "--patience"), default=None,
+                     help="early stopping: epochs without a better val error (default 6)")
     rec.add_argument("--resume", action="store_true", help="continue the training stored in --out")
     rec.add_argument("--tensorboard", default=None, metavar="DIR",
                      help="TensorBoard folder (default: beside --out, <out>.tb)")
     out = p.add_argument_group("output")
     out.add_argument("--out", default=None, metavar="PATH",
-                     help="checkpoint file to write (.pt); default: logs/<name>-train-<UTC stamp>/snn.pt")
+                     help="checkpoint file to write (.pt); default: logs/<name>-train-<UTC stamp>/<model>.pt "
+                          "(snn.pt without --model)")
     out.add_argument("--overwrite-shipped", action="store_true",
-                     help="allow --out inside the installed dvsland package (the shipped snn_default.pt)")
+                     help="allow --out inside the installed dvsland package (the shipped checkpoints)")
     out.add_argument("--overwrite", action="store_true", help="allow --out to replace an existing file of yours")
     out.add_argument("--quiet", action="store_true", help="print only the checkpoint path")
     add_threads_arg(out)
@@ -126,7 +140,11 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     tr.add_argument("--train-seed", type=ranged(int, 0, 2 ** 63 - 1, "--train-seed"), default=None,
                     help="seed of the weights and the batch order (default --seed; the data keep --seed)")
     tr.add_argument("--max-minutes", type=ranged(float, 0.01, 100000.0, "--max-minutes"), default=None,
-                    help="stop training after this long")
+                    help="stop training after this many wall-clock minutes (the time on the clock; on a shared "
+                         "machine it buys less training than the same CPU time)")
+    tr.add_argument("--max-cpu-minutes", type=ranged(float, 0.01, 100000.0, "--max-cpu-minutes"), default=None,
+                    help="recipe: stop training after this many CPU-minutes of this process (all threads; reading "
+                         "the data before the first epoch not counted); quick: 12")
 
 
 def package_dir() -> Path:
@@ -254,10 +272,15 @@ def _sequences():
 
 
 def run_train(args) -> int:
-    if args.model is not None or args.data is not None:
+    if args.model is not None or args.data is not None or args.recipe is not None:
         from .train_recipe import run_recipe
 
         return run_recipe(args, check_out_path)
+    for flag, value in (("--max-cpu-minutes", args.max_cpu_minutes), ("--n-windows", args.n_windows),
+                        ("--patience", args.patience)):
+        if value is not None:
+            raise ValueError(f"{flag} is an option of the recipe (--model NAME --data DIR); the snn (no --model) "
+                             f"takes --max-minutes, --epochs and --steps")
     if args.resume:
         raise ValueError("--resume continues a recipe training (--model NAME --data DIR --out CKPT); the snn "
                          "starts from a checkpoint's weights with --init CKPT")

@@ -38,22 +38,31 @@ def check_model_name(model) -> None:
 
 
 def recipe_settings(args, cfg):
-    """The :class:`~dvsland.learn.RecipeSettings` of the command line (ValueError naming the option)."""
-    from dvsland.learn import RecipeSettings
+    """The :class:`~dvsland.learn.RecipeSettings` of the command line: the defaults, or the named
+    ``--recipe``'s settings, with every option given on top (ValueError naming the option)."""
+    from dvsland.learn import RECIPES, RecipeSettings
 
     check_model_name(args.model)
-    name = "cnn" if args.model is None else args.model.strip()
-    nb, pool = MODEL_INPUT_DEFAULTS.get(name, (4, 2))
-    ms = _parse_model_set(args.model_set)
+    base = {}
+    if getattr(args, "recipe", None) is not None:
+        if args.recipe not in RECIPES:
+            raise ValueError(f"--recipe {args.recipe!r}: unknown recipe; choose one of {', '.join(sorted(RECIPES))}")
+        base = dict(RECIPES[args.recipe])
+    name = args.model.strip() if args.model is not None else base.get("model", "cnn")
+    nb, pool = (base["n_bins"], base["pool_px"]) if "n_bins" in base else MODEL_INPUT_DEFAULTS.get(name, (4, 2))
+    ms = {**base.get("model_settings", {}), **_parse_model_set(args.model_set)}
     nb = args.n_bins if args.n_bins is not None else nb
+    n_windows = args.n_windows if args.n_windows is not None else base.get("n_windows", 1)
     if name == "spiking":
-        ms.setdefault("slice_dt_s", cfg.dt_s * args.n_windows / nb)
+        ms.setdefault("slice_dt_s", cfg.dt_s * n_windows / nb)
+    given = {"epochs": args.epochs, "max_minutes": args.max_minutes, "batch_size": args.batch, "lr": args.lr,
+             "patience": args.patience, "max_cpu_minutes": getattr(args, "max_cpu_minutes", None)}
+    defaults = {"epochs": 30, "batch_size": 64, "lr": 2e-3, "patience": 6}
+    over = {k: v if v is not None else base.get(k, defaults.get(k)) for k, v in given.items()}
+    rest = {k: v for k, v in base.items() if k in ("schedule", "val_max_samples")}
     return RecipeSettings(model=name, model_settings=ms, n_bins=nb,
-                          pool_px=args.pool_px if args.pool_px is not None else pool, n_windows=args.n_windows,
-                          epochs=30 if args.epochs is None else args.epochs, max_minutes=args.max_minutes,
-                          batch_size=64 if args.batch is None else args.batch,
-                          lr=2e-3 if args.lr is None else args.lr, patience=args.patience,
-                          seed=args.seed if args.train_seed is None else args.train_seed).check()
+                          pool_px=args.pool_px if args.pool_px is not None else pool, n_windows=n_windows,
+                          seed=args.seed if args.train_seed is None else args.train_seed, **over, **rest).check()
 
 
 def run_recipe(args, check_out_path) -> int:

@@ -1,12 +1,13 @@
 """The training recipe of the learned estimators (docs/learning.md).
 
-Public names: :func:`train` and :class:`RecipeSettings` (:mod:`.recipe`), :func:`score` and
+Public names: :func:`train`, :class:`RecipeSettings` and the named recipes :data:`RECIPES`,
+:func:`recipe` (:mod:`.recipe`), :func:`score` and
 :func:`predict` (:mod:`.metrics`: median |relative error| and calibration per site type),
 :func:`make_batch` (:mod:`.batches`).
 """
 
 from .batches import Batch, make_batch
 from .metrics import predict, score
-from .recipe import RecipeSettings, train
+from .recipe import RECIPES, RecipeSettings, recipe, train
 
-__all__ = ["train", "RecipeSettings", "score", "predict", "make_batch", "Batch"]
+__all__ = ["train", "RecipeSettings", "RECIPES", "recipe", "score", "predict", "make_batch", "Batch"]

@@ -33,6 +33,12 @@ from .metrics import predict, score
 from .resample import load_canvas_split, reference_camera
 
 
+#: learning-rate schedules: ``cosine`` decays per epoch over ``epochs``; ``budget`` per batch over
+#: the run's budget (the largest of its shares of the epochs, of ``max_minutes`` and of
+#: ``max_cpu_minutes`` spent), with a short warm-up: a time-capped run ends at the low rate
+SCHEDULES = ("cosine", "budget")
+
+
 @dataclass
 class RecipeSettings:
     """The recipe's settings (all stored in the checkpoint's ``train`` field)."""
@@ -45,6 +51,7 @@ class RecipeSettings:
     n_windows: int = 1
     epochs: int = 30
     max_minutes: Optional[float] = None
+    max_cpu_minutes: Optional[float] = None
     batch_size: int = 64
     lr: float = 2e-3
     weight_decay: float = 1e-4
@@ -53,6 +60,7 @@ class RecipeSettings:
     seed: int = 0
     max_drop: float = 0.5
     val_max_samples: int = 6000
+    schedule: str = "cosine"
 
     def check(self) -> "RecipeSettings":
         """ValueError naming the setting for a value outside its range (or an empty model name)."""
@@ -68,14 +76,70 @@ class RecipeSettings:
             v = float(getattr(self, name))
             if not (lo <= v <= hi) or (name == "lr" and v == 0):
                 raise ValueError(f"{name} must be in [{lo}, {hi}]{' (> 0)' if name == 'lr' else ''}, got {v}")
-        if self.max_minutes is not None and not float(self.max_minutes) > 0:
-            raise ValueError(f"max_minutes must be > 0 (or None), got {self.max_minutes}")
+        for name in ("max_minutes", "max_cpu_minutes"):
+            v = getattr(self, name)
+            if v is not None and not float(v) > 0:
+                raise ValueError(f"{name} must be > 0 (or None), got {v}")
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"schedule {self.schedule!r}: expected one of {', '.join(SCHEDULES)}")
         return self
 
 
-def _lr(s: RecipeSettings, epoch: int) -> float:
-    """Cosine decay from lr to lr / 20 over the epochs."""
+#: named recipes (``dvsland train --recipe NAME``, :func:`recipe`): settings that differ from the
+#: defaults. ``quick``: a first model on a small dataset (docs/learning.md, "Your first model in 15
+#: minutes"): the last 8 control steps at one bin each on 4 x 4 pixel cells (a 32 x 32 grid), a
+#: narrow CNN, a per-batch cosine over a 12 CPU-minute budget
+RECIPES: Dict[str, Dict] = {
+    "quick": {"model": "cnn", "model_settings": {"width": 16}, "n_bins": 8, "n_windows": 8, "pool_px": 4,
+              "batch_size": 64, "lr": 3e-3, "schedule": "budget", "max_cpu_minutes": 12.0, "epochs": 30,
+              "patience": 30, "val_max_samples": 3000},
+}
+
+
+def recipe(name: str, **overrides) -> RecipeSettings:
+    """The settings of the named recipe ``name`` (:data:`RECIPES`), with ``overrides`` on top.
+
+    Raises:
+        ValueError: naming ``--recipe`` for an unknown name (listing the known ones), or a setting
+            out of range (:meth:`RecipeSettings.check`).
+    """
+    if name not in RECIPES:
+        raise ValueError(f"--recipe {name!r}: unknown recipe; choose one of {', '.join(sorted(RECIPES))}")
+    return RecipeSettings(**{**copy.deepcopy(RECIPES[name]), **overrides}).check()
+
+
+def _lr(s: RecipeSettings, epoch: int, progress: Optional[float] = None) -> float:
+    """The learning rate: cosine decay from lr to lr / 20 over the epochs (``schedule="cosine"``,
+    per epoch), or over ``progress`` in [0, 1], the share of the budget spent (``"budget"``, per
+    batch, after a warm-up over the first 3 %)."""
+    if s.schedule == "budget" and progress is not None:
+        p = min(max(float(progress), 0.0), 1.0)
+        return s.lr * min(1.0, 0.1 + p / 0.03) * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * p)))
     return s.lr * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(epoch, s.epochs) / s.epochs)))
+
+
+class Clock:
+    """The budget of a run: wall seconds (``time.perf_counter``) and CPU seconds of this process, all
+    its threads (``time.process_time``), each counted on from what earlier sessions of the run spent
+    (``wall0``, ``cpu0``, s), against ``max_minutes`` (wall) and ``max_cpu_minutes`` (CPU)."""
+
+    def __init__(self, s: RecipeSettings, wall0: float = 0.0, cpu0: float = 0.0):
+        self.w0, self.c0 = time.perf_counter() - wall0, time.process_time() - cpu0
+        self.caps = (None if s.max_minutes is None else 60.0 * float(s.max_minutes),
+                     None if s.max_cpu_minutes is None else 60.0 * float(s.max_cpu_minutes))
+
+    def wall(self) -> float:
+        return time.perf_counter() - self.w0
+
+    def cpu(self) -> float:
+        return time.process_time() - self.c0
+
+    def share(self) -> float:
+        """The largest share of a cap spent (0 without caps; >= 1: time is up)."""
+        return max([spent / cap for spent, cap in zip((self.wall(), self.cpu()), self.caps) if cap] + [0.0])
+
+    def up(self) -> bool:
+        return self.share() >= 1.0
 
 
 def _loss(mu, log_var, target, l1_weight: float):
@@ -141,8 +205,9 @@ def _resume_state(out: Path, model_desc: dict, provenance: dict, s: RecipeSettin
     checkpoint's best weights with a fresh optimizer and epoch count (``lr`` may then differ too)."""
     ck = read_checkpoint(out, "--resume")
     finetune = (ck.get("data") or {}).get("config_hash") != provenance.get("config_hash")
-    budget = ("epochs", "max_minutes", "patience") + (("lr",) if finetune else ())
-    old_s = {k: v for k, v in (ck.get("train") or {}).items() if k not in budget}
+    budget = ("epochs", "max_minutes", "max_cpu_minutes", "patience") + (("lr",) if finetune else ())
+    old_train = {**dataclasses.asdict(RecipeSettings()), **(ck.get("train") or {})}  # settings added since: defaults
+    old_s = {k: v for k, v in old_train.items() if k not in budget}
     new_s = {k: v for k, v in dataclasses.asdict(s).items() if k not in budget}
     for what, old, new in (("model", ck.get("model"), model_desc), ("settings", old_s, new_s)):
         if old != new:
@@ -204,7 +269,8 @@ def _start_from(ck: dict, finetune: bool, net, opt, run: dict, log: Callable, sr
     net.load_state_dict(ck["last"]["state_dict"])
     opt.load_state_dict(ck["last"]["optimizer"])
     run.update(epoch=ck["epoch"], history=ck["history"], best_val=ck["best_val"], bad_epochs=ck["bad_epochs"],
-               best_state=ck["state_dict"], seconds=ck["last"]["seconds"])
+               best_state=ck["state_dict"], seconds=ck["last"]["seconds"],
+               cpu_seconds=float(ck["last"].get("cpu_seconds", ck["last"]["seconds"])))
     if (ck.get("data") or {}).get("finetuned_from") is not None:
         run["finetuned_from"] = ck["data"]["finetuned_from"]
     log(f"resuming {src} at epoch {run['epoch']}")
@@ -232,7 +298,7 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
     prov = _provenance(data_dir, tr, va)
     opt = torch.optim.AdamW(net.parameters(), lr=s.lr, weight_decay=s.weight_decay)
     run = {"epoch": 0, "history": [], "best_val": math.inf, "bad_epochs": 0, "best_state": net.state_dict(),
-           "seconds": 0.0}
+           "seconds": 0.0, "cpu_seconds": 0.0}
     out = Path(out)
     if resume:
         _start_from(*_resume_state(out, model_desc, prov, s, net, opt), net, opt, run, log, out)
@@ -243,14 +309,12 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
         prov["finetuned_from"] = run["finetuned_from"]
     writer = _writer(tb_dir)
     val_idx = _val_subset(va, s.val_max_samples)
-    t_start = time.perf_counter() - run["seconds"]
-    deadline = None if s.max_minutes is None else t_start + 60.0 * s.max_minutes
-    while run["epoch"] < s.epochs and run["bad_epochs"] < s.patience:
-        if deadline is not None and time.perf_counter() >= deadline:
-            break
+    clock = Clock(s, run["seconds"], run["cpu_seconds"])
+    while run["epoch"] < s.epochs and run["bad_epochs"] < s.patience and not clock.up():
         ep = run["epoch"]
-        train_loss = _run_epoch(net, opt, tr, spec, coords, s, ep, deadline, progress)
-        rec = _validate(net, va, val_idx, spec, coords, s, ep, train_loss, time.perf_counter() - t_start)
+        train_loss, lr = _run_epoch(net, opt, tr, spec, coords, s, ep, clock, progress)
+        rec = _validate(net, va, val_idx, spec, coords, s, ep, train_loss, clock.wall())
+        rec.update(lr=lr, cpu_seconds=clock.cpu())
         run["history"].append(rec)
         _tensorboard(writer, rec)
         if rec["val"]["all"]["median_rel_error"] < run["best_val"]:
@@ -258,32 +322,37 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
                        best_state=copy.deepcopy(net.state_dict()))
         else:
             run["bad_epochs"] += 1
-        run["epoch"] = ep + 1
-        run["seconds"] = time.perf_counter() - t_start
+        run.update(epoch=ep + 1, seconds=clock.wall(), cpu_seconds=clock.cpu())
         log(f"epoch {ep}: train loss {train_loss:.4f}, val loss {rec['val_loss']:.4f}, val median |rel err| "
             f"{100 * rec['val']['all']['median_rel_error']:.2f} % (best {100 * run['best_val']:.2f} %), "
             f"within 1/2 sigma {100 * rec['val']['all']['within_1sigma']:.0f}/"
-            f"{100 * rec['val']['all']['within_2sigma']:.0f} %, {run['seconds']:.0f} s")
+            f"{100 * rec['val']['all']['within_2sigma']:.0f} %, {run['seconds']:.0f} s wall, "
+            f"{run['cpu_seconds']:.0f} s CPU")
         _save(out, net, opt, spec, model_desc, prov, s, run, final=None)
     if writer is not None:
         writer.close()
     return _finish(out, net, opt, spec, coords, model_desc, prov, s, run, data_dir, va, log)
 
 
-def _run_epoch(net, opt, tr: Windows, spec, coords, s: RecipeSettings, epoch: int, deadline, progress) -> float:
-    """One pass over the train split in batches (seeded order and augmentation); mean loss."""
+def _run_epoch(net, opt, tr: Windows, spec, coords, s: RecipeSettings, epoch: int, clock: Clock,
+               progress) -> tuple:
+    """One pass over the train split in batches (seeded order and augmentation), cut short when
+    ``clock`` is up; (mean loss, the last learning rate)."""
     gen = torch.Generator().manual_seed(s.seed * 100003 + epoch)
     order = torch.randperm(tr.n_samples, generator=gen)
-    for g in opt.param_groups:
-        g["lr"] = _lr(s, epoch)
     net.train()
     total, count = 0.0, 0
     batches = range(0, len(order) - s.batch_size + 1, s.batch_size)
+    n_batches = max(len(batches), 1)
+    lr = _lr(s, epoch, epoch / s.epochs)
     if progress:
         from tqdm import tqdm
 
         batches = tqdm(batches, desc=f"epoch {epoch}", leave=False, mininterval=2.0)
-    for start in batches:
+    for i, start in enumerate(batches):
+        lr = _lr(s, epoch, max((epoch + i / n_batches) / s.epochs, clock.share()))
+        for g in opt.param_groups:
+            g["lr"] = lr
         bt = make_batch(tr, order[start:start + s.batch_size], spec, gen, s.max_drop)
         mu, log_var = net(bt.vox, coords, bt.log_count)
         loss = _loss(mu, log_var, bt.target, s.l1_weight)
@@ -292,9 +361,9 @@ def _run_epoch(net, opt, tr: Windows, spec, coords, s: RecipeSettings, epoch: in
         torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
         opt.step()
         total, count = total + float(loss.detach()), count + 1
-        if deadline is not None and time.perf_counter() >= deadline:
+        if clock.up():
             break
-    return total / max(count, 1)
+    return total / max(count, 1), lr
 
 
 def _validate(net, va: Windows, rows, spec, coords, s: RecipeSettings, epoch: int, train_loss: float,
@@ -331,7 +400,8 @@ def _save(out, net, opt, spec: InputSpec, model_desc, prov, s, run, final) -> No
     blob = {"model": model_desc, "input": spec._asdict(), "state_dict": run["best_state"], "data": prov,
             "train": dataclasses.asdict(s), "history": run["history"], "epoch": run["epoch"],
             "best_val": run["best_val"], "bad_epochs": run["bad_epochs"],
-            "last": {"state_dict": net.state_dict(), "optimizer": opt.state_dict(), "seconds": run["seconds"]}}
+            "last": {"state_dict": net.state_dict(), "optimizer": opt.state_dict(), "seconds": run["seconds"],
+                     "cpu_seconds": run["cpu_seconds"]}}
     if final is not None:
         blob["final"] = final
     blob["input"]["sensor_size"] = list(spec.sensor_size)
@@ -348,7 +418,7 @@ def _finish(out, net, opt, spec, coords, model_desc, prov, s, run, data_dir, va,
         final["test"] = score(*predict(best, te, spec, coords), te)
     except ValueError as exc:  # a dataset without a test split
         final["test_error"] = str(exc)
-    final["train_seconds"] = run["seconds"]
+    final["train_seconds"], final["train_cpu_seconds"] = run["seconds"], run["cpu_seconds"]
     _save(out, net, opt, spec, model_desc, prov, s, run, final)
     for split in ("val", "test"):
         if split in final:
