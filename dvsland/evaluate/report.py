@@ -61,12 +61,13 @@ def _time_lines(summary: dict) -> list:
     base = summary.get("time_base", "CPU")
     lines = [f"Time per update for the batch of B = {B} on {summary.get('device', '?')} "
              f"({summary.get('torch_threads', '?')} torch threads): {_time_head(summary)}"]
-    head = f"{'estimator':<12} {base + ' ms med':>12} {base + ' ms mean':>13}"
+    w = _name_width(summary)
+    head = f"{'estimator':<{w}} {base + ' ms med':>12} {base + ' ms mean':>13}"
     if base == "CPU":
         head += f" {'wall ms med':>12} {'wall ms mean':>13}"
     lines += [head, "-" * len(head)]
     for n, e in ests.items():
-        row = f"{n:<12} {_f(e.get('ms_per_step_median'), nd=2):>12} {_f(e.get('ms_per_step_mean'), nd=2):>13}"
+        row = f"{n:<{w}} {_f(e.get('ms_per_step_median'), nd=2):>12} {_f(e.get('ms_per_step_mean'), nd=2):>13}"
         if base == "CPU":
             row += (f" {_f(e.get('wall_ms_per_step_median'), nd=2):>12}"
                     f" {_f(e.get('wall_ms_per_step_mean'), nd=2):>13}")
@@ -74,8 +75,13 @@ def _time_lines(summary: dict) -> list:
     return lines
 
 
-def _metric_row(name: str, label: str, m: dict) -> str:
-    return (f"{name:<12} {label:<9} {m['n_steps']:>6d} {_f(m['coverage'], True):>7} "
+def _name_width(summary: dict) -> int:
+    """Width of the estimator column: the longest label (``dpr[baseline_steps=5]``), at least 12."""
+    return max([12] + [len(n) for n in summary["estimators"]])
+
+
+def _metric_row(name: str, label: str, m: dict, w: int = 12) -> str:
+    return (f"{name:<{w}} {label:<9} {m['n_steps']:>6d} {_f(m['coverage'], True):>7} "
             f"{_f(m['median_abs_rel_err'], True):>9} {_f(m['rmse'], nd=4):>8} {_f(m['within_10'], True):>7} "
             f"{_f(m['within_20'], True):>7} {_f(m['bias_rel'], True):>8}")
 
@@ -89,20 +95,21 @@ def _error_lines(summary: dict) -> list:
     what = "recording" if rec else "site"
     lines = [f"Open-loop divergence error {'of each estimator' if rec else 'per site'} on the {_source(summary)}; "
              "med|rel| and RMSE over steps with an estimate, <10%/<20% over all scored steps"]
-    head = (f"{'estimator':<12} {'' if rec else what:<9} {'steps':>6} {'cover':>7} {'med|rel|':>9} {'RMSE':>8} "
+    w = _name_width(summary)
+    head = (f"{'estimator':<{w}} {'' if rec else what:<9} {'steps':>6} {'cover':>7} {'med|rel|':>9} {'RMSE':>8} "
             f"{'<10%':>7} {'<20%':>7} {'bias':>8}")
     lines += [head, "-" * len(head)]
     for name, e in ests.items():
         if rec:
-            lines.append(_metric_row(name, "", e["all_sites"]))
+            lines.append(_metric_row(name, "", e["all_sites"], w))
             continue
         for s in sites:
-            lines.append(_metric_row(name, s, e["sites"][s]))
+            lines.append(_metric_row(name, s, e["sites"][s], w))
         n_target = sum(s in TARGET_SITES for s in sites)
         if len(sites) > 1 and n_target:  # the target sites' aggregate, when any ran
-            lines.append(_metric_row(name, tl, e["sites_A_G"]))
+            lines.append(_metric_row(name, tl, e["sites_A_G"], w))
         if len(sites) > 1 and n_target < len(sites):  # all sites, when it differs from that
-            lines.append(_metric_row(name, "all", e["all_sites"]))
+            lines.append(_metric_row(name, "all", e["all_sites"], w))
         lines.append("")
     return lines[:-1] if lines[-1] == "" else lines
 
@@ -118,12 +125,13 @@ def _band_lines(summary: dict) -> list:
     bands = [b[0] for b in BANDS if any(e.get(key, {}).get(b[0], {}).get("n_steps", 0) for e in ests.values())]
     if not bands:
         return []
+    w = _name_width(summary)
     lines = [f"By altitude band ({over}): med|rel| / <10% / coverage",
-             f"{'estimator':<12} " + " ".join(f"{b:>26}" for b in bands)]
+             f"{'estimator':<{w}} " + " ".join(f"{b:>26}" for b in bands)]
     for name, e in ests.items():
         cells = [f"{_f(e[key][b]['median_abs_rel_err'], True)} / {_f(e[key][b]['within_10'], True)} / "
                  f"{_f(e[key][b]['coverage'], True)}" for b in bands]
-        lines.append(f"{name:<12} " + " ".join(f"{c:>26}" for c in cells))
+        lines.append(f"{name:<{w}} " + " ".join(f"{c:>26}" for c in cells))
     return lines
 
 
