@@ -198,7 +198,10 @@ def plot_speed_vs_error(summary: dict, path: Path) -> None:
 def plot_traces(res: EvaluationResult, path: Path) -> None:
     """Per site (or the recording): true D and each estimator's D_hat over time, on limits that
     show the truth and the bulk of the estimates (:func:`dvsland.report.style.robust_limits`);
-    estimates beyond them sit as open triangles on the edge, counted in the legend."""
+    estimates beyond them sit as open triangles on the edge, counted in the panel's title. One
+    legend for the figure, below the panels."""
+    from matplotlib.lines import Line2D
+
     from dvsland.report import style
 
     plt = style.pyplot()
@@ -206,26 +209,36 @@ def plot_traces(res: EvaluationResult, path: Path) -> None:
     B = len(desc.sites)
     cols = min(3, B)
     rows = int(math.ceil(B / cols))
-    width = max(4.2 * cols, 9.0)  # room for the title and the legend
-    fig, axes = plt.subplots(rows, cols, figsize=(width, 2.8 * rows + 0.8), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(max(4.6 * cols, 9.0), 3.2 * rows + 1.2), squeeze=False,
+                             layout="constrained")
     d_true = desc.divergence
     rec = is_recording(res.summary or {})
     for i, s in enumerate(desc.sites):
         ax = axes[i // cols][i % cols]
         v = desc.valid[i]
         lo, hi = style.robust_limits(d_true[i][v], [dh[i][v] for dh in res.d_hat.values()])
+        out = {}
         for k, (name, dh) in enumerate(res.d_hat.items()):
-            style.plot_clipped(ax, desc.t_s[v], dh[i][v], lo, hi, name, "-", ms=0, lw=0.7, color=f"C{k % 10}",
-                               outside_label="{label}: {n} beyond the axes (on the edge)")
-        ax.plot(desc.t_s[v], d_true[i][v], "k", lw=1.2, label="truth")
-        style.label(ax, "t [s]", "D [1/s]", f"recording {s}" if rec else f"site {s}")
-        ax.legend(fontsize=6.5, loc="best")
+            out[name] = style.plot_clipped(ax, desc.t_s[v], dh[i][v], lo, hi, name, "-", ms=0, lw=0.6,
+                                           outside_label=None, color=f"C{k % 10}", alpha=0.85)
+        ax.plot(desc.t_s[v], d_true[i][v], "k", lw=1.4, label="truth")
+        beyond = ", ".join(f"{n}\u00a0{c}" for n, c in out.items() if c)  # a name and its count stay together
+        if beyond:
+            import textwrap
+
+            beyond = "\n".join(textwrap.wrap(f"(beyond the axes: {beyond})", 48))
+        title = (f"recording {s}" if rec else f"site {s}") + (f"\n{beyond}" if beyond else "")
+        style.label(ax, "t [s]", "D [1/s]")
+        ax.set_title(title, fontsize=8 if beyond else 10)
     for j in range(B, rows * cols):
         axes[j // cols][j % cols].axis("off")
+    handles = [Line2D([], [], color=f"C{k % 10}", lw=1.5, label=n) for k, n in enumerate(res.d_hat)]
+    handles += [Line2D([], [], color="k", lw=1.5, label="truth"),
+                Line2D([], [], ls="", marker="^", mfc="none", mec="0.3", label="estimate beyond the axes (on the edge)")]
+    fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 4), fontsize=8, frameon=False)
     note = checkpoint_note(res.summary) if res.summary else ""
     fig.suptitle(f"Open-loop divergence D on the {_source(res.summary or {})}: truth and estimates"
                  + (f"\n{note}" if note else ""))
-    fig.tight_layout()
     style.save(fig, path, dpi=110)
 
 

@@ -125,10 +125,12 @@ def plot_clipped(ax, x, y, lo: float, hi: float, label: str, style: str = ".", m
         c = line.get_color()
         edge = dict(ls="", mfc="none", mec=c, ms=4, mew=0.8, clip_on=False)
         text = "_nolegend_" if outside_label is None else outside_label.format(label=label, n=n_out)
-        ax.plot(x[above], np.full(int(above.sum()), hi), marker="^", **edge,
-                label=text if above.any() else "_nolegend_")
-        ax.plot(x[below], np.full(int(below.sum()), lo), marker="v", **edge,
-                label="_nolegend_" if above.any() else text)
+        # only non-empty lines: an empty line drawn unclipped would stretch the layout to the origin
+        if above.any():
+            ax.plot(x[above], np.full(int(above.sum()), hi), marker="^", **edge, label=text)
+        if below.any():
+            ax.plot(x[below], np.full(int(below.sum()), lo), marker="v", **edge,
+                    label="_nolegend_" if above.any() else text)
     ax.set_ylim(lo, hi)
     return n_out
 
