@@ -205,3 +205,22 @@ def test_simulate_table_and_lowest_chart_name_a_checkpoint(tmp_path, monkeypatch
     monkeypatch.setattr(plt, "close", lambda fig: seen.setdefault("fig", fig))
     lowest_altitude_chart(runs, tmp_path / "l.png")
     assert "m.pt sha256:0123456789ab" in seen["fig"].axes[0].get_title()
+
+
+def test_error_table_has_no_duplicate_aggregate_rows():
+    """A and H: rows A, H and all (no 'A' aggregate repeating row A); A and D: A, D and 'A,D' (no
+    'all' repeating it); one recording: one row per estimator."""
+    from dvsland.evaluate.report import _error_lines
+
+    m = {"n_steps": 1, "coverage": 1.0, "median_abs_rel_err": 0.1, "rmse": 0.01, "within_10": 1.0,
+         "within_20": 1.0, "bias_rel": 0.0}
+
+    def rows(sites, tl):
+        e = {"sites": {s: m for s in sites}, "sites_A_G": m, "all_sites": m}
+        lines = _error_lines({"sites": sites, "target_label": tl, "estimators": {"dpr": e}})
+        return [line.split()[1] for line in lines[3:] if line.startswith("dpr")]
+
+    assert rows(["A", "H"], "A") == ["A", "H", "all"]
+    assert rows(["A", "D"], "A,D") == ["A", "D", "A,D"]
+    assert rows(["H", "I"], "none") == ["H", "I", "all"]
+    assert rows(list("ABCDEFGHI"), "A-G") == list("ABCDEFGHI") + ["A-G", "all"]

@@ -106,7 +106,7 @@ def _error_lines(summary: dict) -> list:
         for s in sites:
             lines.append(_metric_row(name, s, e["sites"][s], w))
         n_target = sum(s in TARGET_SITES for s in sites)
-        if len(sites) > 1 and n_target:  # the target sites' aggregate, when any ran
+        if n_target > 1:  # the target sites' aggregate, when several ran (one: its own row says it)
             lines.append(_metric_row(name, tl, e["sites_A_G"], w))
         if len(sites) > 1 and n_target < len(sites):  # all sites, when it differs from that
             lines.append(_metric_row(name, "all", e["all_sites"], w))
