@@ -295,7 +295,7 @@ def test_controller_by_name_and_gs_lands_softly(tmp_path):
     z_est = r.traces["z_est_m"]
     act = r.traces["active"].astype(bool)
     assert np.nanmax(np.abs(z_est[act] / r.traces["z_m"][act] - 1)) < 0.01  # oracle: the altitude is known
-    with pytest.raises(ValueError, match=r"unknown controller 'nope'; known: \['div_gs', 'div_p', 'tau_p'\]"):
+    with pytest.raises(ValueError, match=r"unknown controller 'nope'; known: \['div_gs', 'div_p', 'policy', 'tau_p'\]"):
         _sim(tmp_path, sites="D", controller="nope", name="bad")
 
 

@@ -172,3 +172,33 @@ def test_policy_net_starts_near_hover():
     with torch.no_grad():
         frac = float(torch.sigmoid(net(torch.zeros(1, 4, dtype=torch.float64))))
     assert frac == pytest.approx(1 / 3, rel=0.05)
+
+
+def test_straight_through_gradient_with_an_event_estimator():
+    """With events in the loop the estimate keeps its value and takes the true divergence's gradient."""
+    st = build_stages(load_config("paper_montecarlo", ["estimator.name=dpr", "dispersion.terrain_variants=1",
+                                                       "simulation.n_seeds=1", "render.threads=1",
+                                                       "controller.name=div_gs"]), "D")
+    s0 = init_state(st)
+    ref = fly_steps(st, s0, 12)[1][-1]
+    z0 = s0.z_m.clone().requires_grad_(True)
+    s = s0._replace(z_m=z0)
+    for _ in range(12):
+        s, out = loop_step(st, s, grad="straight_through")
+    assert torch.equal(torch.isnan(out.d_est), torch.isnan(ref.d_est))
+    ok = ~torch.isnan(ref.d_est)
+    assert bool(ok.any()) and torch.allclose(out.d_est[ok], ref.d_est[ok], rtol=1e-12)
+    assert out.d_est.grad_fn is not None
+    s.z_m.sum().backward()
+    assert z0.grad is not None and torch.isfinite(z0.grad).all()
+
+
+def test_dynamics_gradient_finite_at_zero_thrust():
+    """A step at 0 N (engine off) has a finite gradient: no 0/0 in the burnout branch not taken."""
+    from dvsland.dynamics.lander import LanderParams, step_exact
+
+    u = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    z, v, m, _ = step_exact(torch.full((3,), 1000.0, dtype=torch.float64), torch.full((3,), -20.0, dtype=torch.float64),
+                            torch.tensor([1e4, 1e3, 5e3], dtype=torch.float64), u, 0.1, LanderParams())
+    (z + v + m).sum().backward()
+    assert torch.isfinite(u.grad).all()

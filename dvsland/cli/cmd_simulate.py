@@ -34,7 +34,7 @@ def register(subparsers) -> None:
                         "'package.module:Class' or 'path/to/file.py:Class'; 'ALIAS=...' shows it as ALIAS in "
                         "tables and figures (default: estimator.name)")
     p.add_argument("--controller", default=None, metavar="NAME",
-                   help="thrust law (tau_p, div_p, div_gs, or a registered name); sets controller.name")
+                   help="thrust law (tau_p, div_p, div_gs, policy, or a registered name); sets controller.name")
     p.add_argument("--renderer", default=None, metavar="NAME",
                    help="scene renderer: fast, pyrender or a registered one (default: render.renderer)")
     add_sites_arg(p, "fly only these configured sites (simulation.sites)")

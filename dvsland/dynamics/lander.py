@@ -104,7 +104,7 @@ def step_exact(z_m: Tensor, v_mps: Tensor, m_kg: Tensor, thrust_n: Tensor, dt_s:
     mdot = u * (1.0 / ce)
     # burn time inside this step: dt unless the tank empties first (u = 0 -> dt; no fuel -> 0)
     full = mdot * dt_s <= fuel
-    h1 = torch.where(full, dt_s, fuel / mdot)
+    h1 = torch.where(full, dt_s, fuel / torch.where(full, 1.0, mdot))  # no 0/0 in the branch not taken (its gradient)
     x = (mdot * h1 / m0).clamp_max(1.0 - 1e-15)
     log_ratio = torch.log1p(-x)  # ln(m1 / m0)
     v1 = v0 - g * h1 - ce * log_ratio

@@ -90,8 +90,15 @@ def step_terms(stages, before, after, out, w: LossWeights) -> Dict[str, torch.Te
             "_landed": landed.to(zero.dtype), "_ended": ended.to(zero.dtype)}
 
 
+def gradient_mode(stages):
+    """``grad`` of :func:`dvsland.sim.loop_step` for training: True for an estimator without events
+    (the oracle: a function of the state), else ``"straight_through"`` (the true divergence's gradient)."""
+    return True if stages.events is None else "straight_through"
+
+
 def window_loss(stages, state, window: int, w: LossWeights) -> Tuple[torch.Tensor, Dict[str, float], object]:
-    """Fly ``window`` steps (0: until every descent has ended or ``t_max``) from ``state`` detached.
+    """Fly ``window`` steps (0: until every descent has ended or ``t_max``) from ``state`` detached,
+    with the gradient of :func:`gradient_mode`.
 
     Returns:
         (loss: 0-dim float64 with its graph; terms: name -> batch-mean float, plus ``landed``,
@@ -99,9 +106,9 @@ def window_loss(stages, state, window: int, w: LossWeights) -> Tuple[torch.Tenso
     """
     state = tree_map(lambda t: t.detach(), state)
     sums: Dict[str, torch.Tensor] = {}
-    n = 0
+    n, grad = 0, gradient_mode(stages)
     while (window and n < window) or (not window and n < stages.settings.n_steps_max):
-        nxt, out = loop_step(stages, state, grad=True)
+        nxt, out = loop_step(stages, state, grad=grad)
         for k, v in step_terms(stages, state, nxt, out, w).items():
             sums[k] = sums[k] + v if k in sums else v
         state, n = nxt, n + 1
@@ -114,4 +121,4 @@ def window_loss(stages, state, window: int, w: LossWeights) -> Tuple[torch.Tenso
     return loss, terms, state
 
 
-__all__ = ["LossWeights", "window_loss", "step_terms", "crossing_speed", "ttc_target", "ERR_SCALE"]
+__all__ = ["LossWeights", "window_loss", "gradient_mode", "step_terms", "crossing_speed", "ttc_target", "ERR_SCALE"]

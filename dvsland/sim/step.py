@@ -188,7 +188,7 @@ def render(stages, state: LoopState, all_active: Optional[bool] = None) -> Optio
     if stages.events is None:
         return None
     s = stages.settings
-    alt = state.z_m.clamp(s.render_min_altitude_m, s.render_max_altitude_m)
+    alt = state.z_m.detach().clamp(s.render_min_altitude_m, s.render_max_altitude_m)  # frames: inputs, no gradient
     if all_active is None:
         all_active = bool(state.active.all())
     if state.last_frames is None or all_active:
@@ -225,7 +225,10 @@ def estimate(stages, state: LoopState, events, t_us: int, grad: bool = False) ->
     """The estimator's step on ``events``: (estimator state, :class:`Estimate`).
 
     Event estimators give no estimate on the first frame and for descents restarted at this step.
-    ``grad=True`` keeps the estimate's autograd graph (otherwise it is detached at this boundary).
+    ``grad=True`` keeps the estimate's autograd graph (otherwise it is detached at this boundary);
+    ``grad="straight_through"`` makes D_hat = D_true(z, v) + (D_hat - D_true) held fixed: the
+    estimate's value, with the gradient of the true divergence (events are inputs, not functions
+    of the state, so an event estimator's output has no other path back to the state).
     """
     fns = stage_fns(stages)
     B, dev, name = state.batch_size, state.z_m.device, fns.estimator_name
@@ -239,6 +242,9 @@ def estimate(stages, state: LoopState, events, t_us: int, grad: bool = False) ->
     if stages.events is not None and state.restarted is not None:
         d_hat = torch.where(state.restarted, torch.full_like(d_hat, float("nan")), d_hat)
     d_hat, bad = sanitise_estimates(d_hat)  # +-inf or absurd |D_hat| -> NaN, counted
+    if grad == "straight_through":
+        d_true = truth.divergence.to(torch.float64)
+        d_hat = d_true + (d_hat - d_true).detach()
     conf = check_batch_tensor(out.confidence, B, dev, name, "confidence", detach=not grad)
     return st, Estimate(d_hat, confidence_of(conf, d_hat), bad, out.diagnostics)
 
@@ -313,7 +319,9 @@ def loop_step(stages, state: LoopState, thrust: Optional[torch.Tensor] = None,
         grad: keep the autograd graph through the estimate (the dynamics, filter and law are
             differentiable torch maths; termination masks are constants; a thrust given in ``thrust``
             keeps its graph too). With the ``oracle`` the estimate is a function of (z, v), so the
-            gradient runs through the whole closed loop. Off by default (the estimate is detached).
+            gradient runs through the whole closed loop. ``"straight_through"``: the estimate's value
+            with the true divergence's gradient (any estimator; see :func:`estimate`). Off by default
+            (the estimate is detached).
 
     Returns:
         (the next :class:`LoopState`, the :class:`StepOutput` of this step).
