@@ -29,7 +29,7 @@ def data(tmp_path_factory):
 def test_quick_resolves_to_its_settings():
     s = recipe("quick")
     assert (s.model, s.model_settings, s.n_bins, s.n_windows, s.pool_px) == ("cnn", {"width": 16}, 8, 8, 4)
-    assert s.schedule == "budget" and s.max_cpu_minutes == 12.0 and s.max_minutes is None
+    assert s.schedule == "budget" and s.max_cpu_minutes == 9.0 and s.echo == 2 and s.max_minutes is None
     assert s.batch_size == 64 and s.lr == 3e-3 and s.patience >= s.epochs  # the budget, not patience, ends it
     assert recipe("quick", lr=1e-3).lr == 1e-3 and RECIPES["quick"]["lr"] == 3e-3  # the table is not changed
     with pytest.raises(ValueError, match="--recipe 'quik'.*quick"):
@@ -98,3 +98,25 @@ def test_quick_smoke_run_writes_a_checkpoint_the_estimator_flies(data, tmp_path,
     assert stopped_by_cap == (ck["final"]["train_cpu_seconds"] >= 1.2) and math.isfinite(ck["final"]["val"]["all"]["median_rel_error"])
     est = get_estimator("learned", 2, (128, 128), checkpoint=str(out))
     assert est.meta["model"]["settings"]["width"] == 16
+
+
+def test_echoes_mirror_the_grid_as_the_events_would_be(data):
+    """An echo's grid (:func:`_mirrored`) is the grid of the same events mirrored or transposed."""
+    from dvsland.data import gather_batch
+    from dvsland.estimators.learned.inputs import voxel_grid
+    from dvsland.learn.recipe import _mirrored, input_spec, load_split
+
+    spec = input_spec(data, recipe("quick"))
+    w = load_split(data, "train", spec)
+    b, x, y, frac, p, _ = gather_batch(w, torch.arange(4))
+    vox = voxel_grid(b, x, y, frac, p, 4, spec)
+    W, H = spec.sensor_size
+    assert vox.abs().sum() > 0
+    assert torch.equal(voxel_grid(b, W - 1 - x, y, frac, p, 4, spec), vox.flip(3))
+    assert torch.equal(voxel_grid(b, x, H - 1 - y, frac, p, 4, spec), vox.flip(2))
+    assert torch.equal(voxel_grid(b, y, x, frac, p, 4, spec), vox.transpose(2, 3))
+    out = _mirrored(vox, spec, torch.Generator().manual_seed(1))
+    views = lambda v: [t for u in (v, v.transpose(1, 2)) for t in (u, u.flip(2), u.flip(1), u.flip(1).flip(2))]
+    assert all(any(torch.equal(o, t) for t in views(v)) for o, v in zip(out, vox))
+    odd = spec._replace(pool_px=3)  # cells that do not tile the sensor symmetrically: no mirror
+    assert _mirrored(vox, odd, torch.Generator()) is vox

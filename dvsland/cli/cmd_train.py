@@ -50,7 +50,7 @@ def register(subparsers) -> None:
         description="Train a model of the learned estimator on dataset folders of `dvsland dataset build` "
                     "(--model cnn|spiking|pkg.mod:Class --data DIR) and write its checkpoint: to --out PATH, or "
                     "into a new run folder under logs/ (<model>.pt, with TensorBoard curves beside it). "
-                    "--recipe quick: a small, fast model and schedule capped at 12 CPU-minutes (docs/learning.md, "
+                    "--recipe quick: a small, fast model and schedule capped at 9 CPU-minutes (docs/learning.md, "
                     "'Your first model in 15 minutes'). Fly the result with --estimator learned --set "
                     "estimator.learned.checkpoint=PATH. Without --model and --data: the older log-polar spiking "
                     "estimator snn on generated descents (snn.pt; --set estimator.snn.checkpoint=PATH). The "
@@ -69,7 +69,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                           "cnn); without --model and --data: the older spiking snn")
     rec.add_argument("--recipe", default=None, metavar="NAME",
                      help="a named set of recipe settings (model, input, schedule, time cap): quick = a first "
-                          "model in about 12 CPU-minutes; options given beside it win")
+                          "model in about 9 CPU-minutes of training; options given beside it win")
     rec.add_argument("--data", default=None, metavar="DIR[,DIR]",
                      help="dataset folder(s) of `dvsland dataset build`, of one sensor")
     rec.add_argument("--model-set", action="append", default=[], metavar="KEY=VALUE",
@@ -96,7 +96,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     out.add_argument("--quiet", action="store_true", help="print only the checkpoint path")
     add_threads_arg(out)
 
-    data = p.add_argument_group("data")
+    data = p.add_argument_group("data", "the older snn mode's generated descents (without --model and --data)")
     data.add_argument("--sites", default=None, metavar="A~1,B~2,...",
                       help="training terrains (sites or variants; default: the variants ~1 and ~2 of A-I, "
                            "never the evaluation sites themselves)")
@@ -114,11 +114,12 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     data.add_argument("--sun-step", type=ranged(float, 0.01, 90.0, "--sun-step"), default=None,
                       help="round dispersed sun elevations to this step, deg (default: the config's sun_step_deg)")
     data.add_argument("--seed", type=ranged(int, 0, 2 ** 63 - 1, "--seed"), default=0,
-                      help="seed of the data (and of the weights unless --train-seed)")
+                      help="seed of the data (and of the weights unless --train-seed); the recipe: of the weights, "
+                           "the batch order and the augmentation")
     data.add_argument("--data-cache", default=None, metavar="PATH",
                       help="torch file of the generated sequences: loaded when it exists and matches, else written")
 
-    model = p.add_argument_group("model")
+    model = p.add_argument_group("model", "the older snn mode's network; --init also for the recipe")
     model.add_argument("--channels", default="16,32", help="LIF channels of the two layers (new networks only)")
     model.add_argument("--n-sub", type=ranged(int, 1, 64, "--n-sub"), default=4,
                        help="network steps (time slices) per control step")
@@ -126,7 +127,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                        help="start from this checkpoint's weights (fine-tuning): an snn checkpoint, or with --model a "
                             "learned one of the same model and settings; checked like every checkpoint")
 
-    tr = p.add_argument_group("training")
+    tr = p.add_argument_group("training", "both modes unless marked (recipe defaults: epochs 30, batch 64, lr 2e-3)")
     tr.add_argument("--epochs", type=ranged(int, 1, 100_000, "--epochs"), default=None,
                     help="epochs (default 14 for snn, 30 for the recipe)")
     tr.add_argument("--batch", type=ranged(int, 1, 65_536, "--batch"), default=None,
@@ -134,9 +135,9 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     tr.add_argument("--lr", type=ranged(float, 1e-08, 10.0, "--lr"), default=None,
                     help="learning rate (default 3e-3 for snn, 2e-3 for the recipe)")
     tr.add_argument("--crop-steps", type=ranged(int, 1, 10_000, "--crop-steps"), default=None,
-                    help="train on random windows of this many steps (validation on whole sequences)")
+                    help="snn: train on random windows of this many steps (validation on whole sequences)")
     tr.add_argument("--warmup-steps", type=ranged(int, 0, 10_000, "--warmup-steps"), default=5,
-                    help="steps at the start of a sequence not scored")
+                    help="snn: steps at the start of a sequence not scored")
     tr.add_argument("--train-seed", type=ranged(int, 0, 2 ** 63 - 1, "--train-seed"), default=None,
                     help="seed of the weights and the batch order (default --seed; the data keep --seed)")
     tr.add_argument("--max-minutes", type=ranged(float, 0.01, 100000.0, "--max-minutes"), default=None,
@@ -144,7 +145,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                          "machine it buys less training than the same CPU time)")
     tr.add_argument("--max-cpu-minutes", type=ranged(float, 0.01, 100000.0, "--max-cpu-minutes"), default=None,
                     help="recipe: stop training after this many CPU-minutes of this process (all threads; reading "
-                         "the data before the first epoch not counted); quick: 12")
+                         "the data before the first epoch not counted); quick: 9")
 
 
 def package_dir() -> Path:

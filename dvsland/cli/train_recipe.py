@@ -59,7 +59,7 @@ def recipe_settings(args, cfg):
              "patience": args.patience, "max_cpu_minutes": getattr(args, "max_cpu_minutes", None)}
     defaults = {"epochs": 30, "batch_size": 64, "lr": 2e-3, "patience": 6}
     over = {k: v if v is not None else base.get(k, defaults.get(k)) for k, v in given.items()}
-    rest = {k: v for k, v in base.items() if k in ("schedule", "val_max_samples")}
+    rest = {k: v for k, v in base.items() if k in ("schedule", "val_max_samples", "echo")}
     return RecipeSettings(model=name, model_settings=ms, n_bins=nb,
                           pool_px=args.pool_px if args.pool_px is not None else pool, n_windows=n_windows,
                           seed=args.seed if args.train_seed is None else args.train_seed, **over, **rest).check()
