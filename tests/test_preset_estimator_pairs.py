@@ -40,9 +40,6 @@ BOUNDS = {
     "montecarlo": _IDEAL,
     "montecarlo_efference": _IDEAL,
     # the noisy pixel (shot noise, leak, hot pixels) through the denoising front end it ships with
-    # the quick recipe's dataset preset: montecarlo_efference on the sites it trains on (no D)
-    "quick": {"oracle": (1e-6, 0.0), "dpr": (0.75, 0.566), "cmax": (0.10, 0.043), "snn": (0.55, 0.405),
-              "learned": (0.10, 0.047)},
     "realistic_sensor": {"oracle": (1e-6, 0.0), "dpr": (0.60, 0.422), "cmax": (0.10, 0.055),
                          "snn": (0.30, 0.188), "learned": (0.30, 0.201)},
 }
