@@ -105,6 +105,8 @@ def run_recipe(args, check_out_path) -> int:
     if args.quiet:
         print(out)
         return 0
-    print(f"wrote {out} ({ck['epoch']} epochs, {ck['final']['train_seconds']:.0f} s; TensorBoard: {tb})")
+    fin = ck["final"]
+    print(f"wrote {out} ({ck['epoch']} epochs, {fin['train_seconds']:.0f} s wall, "
+          f"{fin.get('train_cpu_seconds', float('nan')):.0f} s CPU; TensorBoard: {tb})")
     print(f"use it: dvsland evaluate --estimators learned --set estimator.learned.checkpoint={out}")
     return 0
