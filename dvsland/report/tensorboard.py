@@ -427,6 +427,10 @@ class TensorBoardLogger:
                  # the seed's index (the 64-bit seed itself is in results.json: a float64 hparam rounds it)
                  "n_bin": int(r.get("n_bin", 0)), "seed_index": int(r.get("seed_index", 0)),
                  "estimator": _estimator_label(str(r.get("estimator", "")))}
+            if r.get("checkpoint"):  # a trained estimator: which weights flew
+                from .checkpoint import checkpoint_text
+
+                h["checkpoint"] = checkpoint_text(r["checkpoint"])
             h.update(extra or {})
             hps.append(h)
             thrust = r.get("max_thrust_n")
