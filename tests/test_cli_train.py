@@ -114,3 +114,16 @@ def test_script_is_a_thin_wrapper(repo_root, monkeypatch, no_data, capsys):
     spec.loader.exec_module(mod)
     assert mod.main(["--quiet", "--out", str(DEFAULT_CHECKPOINT)]) == 2  # the command's refusal
     assert "--overwrite-shipped" in capsys.readouterr().err
+
+
+def test_help_describes_the_recipe_first_and_names_each_clock(capsys):
+    """``train --help`` leads with the recipe of the learned estimator (the snn mode comes after, as
+    the older one) and says which time each cap counts."""
+    try:
+        main(["train", "--help"])
+    except SystemExit as exc:
+        assert exc.code in (0, None)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "--recipe" in out and "estimator.learned.checkpoint" in out
+    assert out.index("estimator.learned.checkpoint") < out.index("estimator.snn.checkpoint")
+    assert "wall-clock minutes" in out and "CPU-minutes of this process" in out
