@@ -18,6 +18,7 @@ import torch
 
 from dvsland.config.schema import CMaxConfig
 from dvsland.estimators import get_estimator, native_cmax
+from dvsland.estimators.abstain import EVIDENCE_KEY, gate_output
 from dvsland.estimators.base import EstimateOut
 from dvsland.estimators.cmax import CMaxEstimator, CMaxState, cmax_step
 from dvsland.evaluate.synthetic import blob_layout
@@ -124,9 +125,14 @@ def _fly_recorded(name):
 
 
 def _digest(rec) -> str:
-    """SHA-256 of every step's D_hat, confidence and diagnostics (NaN written as -7)."""
+    """SHA-256 of every step's D_hat, confidence and diagnostics (NaN written as -7); the
+    motion-evidence factor, which came later, is checked to be 1 (these events show motion) and
+    left out."""
     h = hashlib.sha256()
     for d, c, g in rec:
+        g = dict(g)
+        ev = g.pop(EVIDENCE_KEY, None)
+        assert ev is None or (ev == 1).all(), ev
         for name, v in [("d", d), ("c", c)] + sorted(g.items()):
             v = v.detach().cpu()
             if v.is_floating_point():
@@ -202,6 +208,8 @@ def test_module_step_is_the_method():
     est, state, ev, t_us = _warm()
     s1, o1 = est.step_state(state, ev, t_us)
     s2, o2 = cmax_step(est.params, state, ev, t_us, est.setup)
+    o2 = gate_output(o2, ev, est.batch_size, est.sensor_size, t_us, est.abstain)  # the base's motion test
+    assert (o1.diagnostics[EVIDENCE_KEY] == 1).all()
     assert tree_equal(s1, s2) and _same_out(o1, o2)
 
 

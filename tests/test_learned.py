@@ -26,6 +26,15 @@ def _events(B=3, n=400, W=128, H=128, seed=0, t0=0, t1=100_000, skip=()):
                   p=(torch.randint(0, 2, (m,), generator=g) * 2 - 1).to(torch.int8)[order])
 
 
+def _plain(*args, **kwargs):
+    """``get_estimator`` with the motion-evidence test off: these tests are about the models and
+    their plumbing on arbitrary (uniformly random) events, on which the test makes the estimator
+    abstain (tests/test_abstention.py)."""
+    est = get_estimator(*args, **kwargs)
+    est.abstain = None
+    return est
+
+
 def _checkpoint(path, name="cnn", n_bins=4, pool_px=2, sensor=(128, 128), settings=None):
     net, cls = build_model(name, {"n_bins": n_bins, **(settings or {})})
     spec = InputSpec(sensor, n_bins, pool_px, 64.0)
@@ -91,7 +100,7 @@ def ckpt(tmp_path):
 
 
 def test_estimator_shapes_nan_without_events_and_confidence(ckpt):
-    est = get_estimator("learned", 3, (128, 128), checkpoint=str(ckpt), min_events=5)
+    est = _plain("learned", 3, (128, 128), checkpoint=str(ckpt), min_events=5)
     d = est.update(_events(3, 600, skip=(1,)), 100_000)
     assert d.shape == (3,) and d.dtype == torch.float32
     assert torch.isnan(d[1]) and torch.isfinite(d[[0, 2]]).all() and (d[[0, 2]] < 0).all()
@@ -102,7 +111,7 @@ def test_estimator_shapes_nan_without_events_and_confidence(ckpt):
 
 
 def test_estimator_reset_by_mask_clears_only_those_rows(ckpt):
-    est = get_estimator("learned", 3, (128, 128), checkpoint=str(ckpt), min_events=1)
+    est = _plain("learned", 3, (128, 128), checkpoint=str(ckpt), min_events=1)
     d = est.update(_events(3, 600), 100_000)
     assert torch.isfinite(d).all()
     est.reset(torch.tensor([False, True, False]))
@@ -115,10 +124,10 @@ def test_estimator_reset_by_mask_clears_only_those_rows(ckpt):
 def test_estimator_rows_are_independent(ckpt):
     """A row's estimate depends on its own events only (no mixing across the batch)."""
     ev = _events(3, 900)
-    full = get_estimator("learned", 3, (128, 128), checkpoint=str(ckpt), min_events=1).update(ev, 100_000)
+    full = _plain("learned", 3, (128, 128), checkpoint=str(ckpt), min_events=1).update(ev, 100_000)
     keep = ev.b == 2
     one = Events(b=ev.b[keep] * 0, x=ev.x[keep], y=ev.y[keep], t=ev.t[keep], p=ev.p[keep])
-    single = get_estimator("learned", 1, (128, 128), checkpoint=str(ckpt), min_events=1).update(one, 100_000)
+    single = _plain("learned", 1, (128, 128), checkpoint=str(ckpt), min_events=1).update(one, 100_000)
     assert float(single[0]) == pytest.approx(float(full[2]), rel=1e-5)
 
 
@@ -126,13 +135,13 @@ def test_corrupted_checkpoint_is_a_clear_error(tmp_path, ckpt):
     bad = tmp_path / "bad.pt"
     bad.write_bytes(ckpt.read_bytes()[:300])
     with pytest.raises(ValueError, match="estimator.learned.checkpoint.*not a readable"):
-        get_estimator("learned", 2, (128, 128), checkpoint=str(bad))
+        _plain("learned", 2, (128, 128), checkpoint=str(bad))
     with pytest.raises(ValueError, match="estimator.learned.checkpoint: file not found"):
-        get_estimator("learned", 2, (128, 128), checkpoint=str(tmp_path / "none.pt"))
+        _plain("learned", 2, (128, 128), checkpoint=str(tmp_path / "none.pt"))
     other = tmp_path / "other.pt"
     torch.save({"state_dict": {}}, other)
     with pytest.raises(ValueError, match="estimator.learned.checkpoint.*not a dvsland learned checkpoint"):
-        get_estimator("learned", 2, (128, 128), checkpoint=str(other))
+        _plain("learned", 2, (128, 128), checkpoint=str(other))
 
 
 def test_mismatched_checkpoint_names_tensor_and_sensor(tmp_path, ckpt):
@@ -141,21 +150,21 @@ def test_mismatched_checkpoint_names_tensor_and_sensor(tmp_path, ckpt):
     ck["model"]["settings"]["n_bins"] = 5
     torch.save(ck, tmp_path / "mis.pt")
     with pytest.raises(ValueError, match="estimator.learned.checkpoint.*tensor 'features.0.weight'"):
-        get_estimator("learned", 2, (128, 128), checkpoint=str(tmp_path / "mis.pt"))
+        _plain("learned", 2, (128, 128), checkpoint=str(tmp_path / "mis.pt"))
     ck = torch.load(ckpt, weights_only=True)
     ck["state_dict"]["head.2.bias"][0] = float("nan")
     torch.save(ck, tmp_path / "nan.pt")
     with pytest.raises(ValueError, match="NaN"):
-        get_estimator("learned", 2, (128, 128), checkpoint=str(tmp_path / "nan.pt"))
+        _plain("learned", 2, (128, 128), checkpoint=str(tmp_path / "nan.pt"))
     with pytest.raises(ValueError, match="128 x 128 sensor"):
         load_checkpoint(ckpt, sensor_size=(346, 260))
     with pytest.raises(ValueError, match="min_events"):
-        get_estimator("learned", 2, (128, 128), checkpoint=str(ckpt), min_events=0)
+        _plain("learned", 2, (128, 128), checkpoint=str(ckpt), min_events=0)
 
 
 def test_spiking_checkpoint_runs_in_the_estimator_and_reports_activity(tmp_path):
     _checkpoint(tmp_path / "s.pt", "spiking", n_bins=6, pool_px=4, settings={"slice_dt_s": 0.1 / 6})
-    est = get_estimator("learned", 2, (128, 128), checkpoint=str(tmp_path / "s.pt"), min_events=1)
+    est = _plain("learned", 2, (128, 128), checkpoint=str(tmp_path / "s.pt"), min_events=1)
     d = est.update(_events(2, 500), 100_000)
     assert d.shape == (2,)
     diag = est.diagnostics()
@@ -165,8 +174,8 @@ def test_spiking_checkpoint_runs_in_the_estimator_and_reports_activity(tmp_path)
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cpu_and_cuda_agree(ckpt):
     ev = _events(3, 900)
-    cpu = get_estimator("learned", 3, (128, 128), checkpoint=str(ckpt), min_events=1).update(ev, 100_000)
-    gpu = get_estimator("learned", 3, (128, 128), "cuda", checkpoint=str(ckpt), min_events=1)
+    cpu = _plain("learned", 3, (128, 128), checkpoint=str(ckpt), min_events=1).update(ev, 100_000)
+    gpu = _plain("learned", 3, (128, 128), "cuda", checkpoint=str(ckpt), min_events=1)
     evg = Events(**{k: getattr(ev, k).cuda() for k in "bxytp"})
     assert torch.allclose(gpu.update(evg, 100_000).cpu(), cpu, rtol=1e-4)
 
@@ -199,7 +208,7 @@ def test_shipped_checkpoints_load_and_estimate(which):
 
     path = SHIPPED["cnn" if which == "" else which]
     assert path.is_file() and path.stat().st_size < 1_000_000
-    est = get_estimator("learned", 2, (128, 128), checkpoint=which, min_events=1)
+    est = _plain("learned", 2, (128, 128), checkpoint=which, min_events=1)
     assert est.meta["data"]["config_hash"] and est.meta["train"]["model"] == (which or "cnn")
     d = est.update(_events(2, 3000), 100_000)
     assert d.shape == (2,) and torch.isfinite(d).all() and (d < 0).all()
@@ -215,7 +224,7 @@ def test_ring_path_agrees_with_the_model(ckpt, tmp_path):
     torch.save(ck, tmp_path / "k4.pt")
     outs = {}
     for fast in ("", "ring", "bf16"):
-        est = get_estimator("learned", 3, (128, 128), checkpoint=str(tmp_path / "k4.pt"), min_events=1, fast=fast)
+        est = _plain("learned", 3, (128, 128), checkpoint=str(tmp_path / "k4.pt"), min_events=1, fast=fast)
         rows = []
         for k in range(1, 8):
             rows.append(est.update(_events(3, 700, seed=k, t0=(k - 1) * 100_000, t1=k * 100_000), k * 100_000))
@@ -227,7 +236,7 @@ def test_ring_path_agrees_with_the_model(ckpt, tmp_path):
     assert torch.allclose(outs["ring"], ref, rtol=1e-5, atol=0)
     assert ((outs["bf16"] - ref).abs() / ref.abs()).max() < 0.02
     with pytest.raises(ValueError, match="estimator.learned.fast"):
-        get_estimator("learned", 3, (128, 128), checkpoint=str(tmp_path / "k4.pt"), fast="nope")
+        _plain("learned", 3, (128, 128), checkpoint=str(tmp_path / "k4.pt"), fast="nope")
 
 
 def test_other_camera_events_land_on_the_reference_canvas():
@@ -278,7 +287,7 @@ def test_davis346_offcentre_zoom_gives_the_divergence():
 
     cam = CameraConfig(sensor="davis346", principal_point_px=[140.5, 150.5])
     events = _offcentre_zoom_events(-0.2, 2, 10, cam)
-    est = get_estimator("learned", 2, (346, 260), principal_point_px=[140.5, 150.5])
+    est = _plain("learned", 2, (346, 260), principal_point_px=[140.5, 150.5])
     assert est.focal_px == pytest.approx(5.5 / 18.5e-3) and not est.cmap.identity
     d = [est.update(ev, 100_000 * k) for k, ev in enumerate(events, start=1)]
     late = torch.stack(d[8:])

@@ -14,6 +14,8 @@ from typing import Any, Dict, NamedTuple, Optional, Sequence, Tuple
 
 import torch
 
+from .abstain import DEFAULT_ABSTAIN, EVIDENCE_KEY, AbstainParams, gate_output, motion_evidence
+
 
 @dataclass
 class Truth:
@@ -95,6 +97,13 @@ class DivergenceEstimator:
     #: rendering and event emulation.
     needs_events: bool = True
 
+    #: The shared motion-evidence test (:mod:`dvsland.estimators.abstain`) run on every step of an
+    #: estimator that takes events: where the window shows no moving scene (noise, flicker) D_hat
+    #: becomes NaN and the confidence 0, where it shows little the confidence is scaled down, where
+    #: it shows a scene nothing changes. None turns it off (for a class or one instance);
+    #: another :class:`~dvsland.estimators.abstain.AbstainParams` tunes it.
+    abstain: Optional[AbstainParams] = DEFAULT_ABSTAIN
+
     def __init_subclass__(cls, **kwargs):
         """Every subclass's ``update`` runs behind :func:`_checked_update`: events are checked
         (b, x, y, p in range: a clear error, never an index error deep in an estimator) and
@@ -106,6 +115,16 @@ class DivergenceEstimator:
         stp = cls.__dict__.get("step_state")
         if stp is not None and not getattr(stp, "_dvsland_checked", False):
             cls.step_state = _checked_step_state(stp)
+        conf = cls.__dict__.get("confidence")
+        if callable(conf) and not getattr(conf, "_dvsland_checked", False):
+            cls.confidence = _gated_confidence(conf)
+
+    def _gate(self, out: "EstimateOut", events, t_us: int) -> "EstimateOut":
+        """``out`` after the motion-evidence test of ``events`` (unchanged for an estimator without
+        events, with ``abstain = None``, or when ``out`` was gated already)."""
+        if not getattr(self, "needs_events", True) or getattr(self, "abstain", None) is None:
+            return out
+        return gate_output(out, events, self.batch_size, self.sensor_size, t_us, self.abstain)
 
     def __init__(self, batch_size: int, sensor_size: Tuple[int, int], device: Any = "cpu",
                  dt_s: float = 0.1, principal_point_px: Optional[Sequence[float]] = None, **params):
@@ -194,7 +213,7 @@ class DivergenceEstimator:
         d = getattr(self, "_d", None)
         if d is None:
             return torch.zeros(self.batch_size, dtype=torch.float32, device=self.device)
-        return torch.isfinite(d).to(torch.float32)
+        return _times_factor(self, torch.isfinite(d).to(torch.float32))
 
     def diagnostics(self) -> Dict[str, torch.Tensor]:
         """What the estimator tracks, for logging (e.g. ``centroids`` (B, N, 2), ``n_tracked`` (B,)).
@@ -217,7 +236,44 @@ def _checked_update(update):
 
             W, H = self.sensor_size
             events = checked_for_estimator(events, self.batch_size, W, H, what=f"{type(self).__name__}.update events")
-        return update(self, events, t_us, *args, **kwargs)
+        d = update(self, events, t_us, *args, **kwargs)
+        if not self._has_contract():
+            self._motion_factor = None  # a factor belongs to the update that measured it
+        if (not getattr(self, "needs_events", True) or getattr(self, "abstain", None) is None
+                or not isinstance(d, torch.Tensor)):
+            return d
+        if self._has_contract():  # an update that bypasses step_state (e.g. learned's in-place ring)
+            last = getattr(self, "_last", None)
+            if isinstance(last, EstimateOut) and EVIDENCE_KEY not in last.diagnostics:
+                self._last = self._gate(last, events, t_us)
+                return self._last.d_hat.clone()
+            return d
+        # the object API alone: the factor is kept for confidence()
+        ev = motion_evidence(events, self.batch_size, self.sensor_size, t_us, self.abstain, device=d.device)
+        self._motion_factor = ev.factor
+        return torch.where(ev.factor > 0, d, torch.full_like(d, float("nan")))
+
+    wrapper._dvsland_checked = True
+    return wrapper
+
+
+def _times_factor(self, c: torch.Tensor) -> torch.Tensor:
+    """An object-API estimator's confidence ``c`` (B,) times the factor of its last update's
+    motion evidence (0 where the factor is 0); unchanged for estimators under the contract."""
+    f = getattr(self, "_motion_factor", None)
+    if f is None or not isinstance(c, torch.Tensor) or self._has_contract():
+        return c
+    f = f.to(device=c.device)
+    return torch.where(f > 0, c * f.to(c.dtype), torch.zeros_like(c))
+
+
+def _gated_confidence(confidence):
+    """Wrap an object-API estimator's own ``confidence`` with its last motion-evidence factor."""
+    import functools
+
+    @functools.wraps(confidence)
+    def wrapper(self, *args, **kwargs):
+        return _times_factor(self, confidence(self, *args, **kwargs))
 
     wrapper._dvsland_checked = True
     return wrapper
@@ -235,7 +291,10 @@ def _checked_step_state(step_state):
             W, H = self.sensor_size
             events = checked_for_estimator(events, self.batch_size, W, H,
                                            what=f"{type(self).__name__}.step_state events")
-        return step_state(self, state, events, t_us, *args, **kwargs)
+        state, out = step_state(self, state, events, t_us, *args, **kwargs)
+        if isinstance(out, EstimateOut):
+            out = self._gate(out, events, t_us)
+        return state, out
 
     wrapper._dvsland_checked = True
     return wrapper

@@ -39,6 +39,7 @@ from dvsland.config.schema import DPRConfig
 from dvsland.pytree import check_state_like, tree_where
 
 from .base import DivergenceEstimator, EstimateOut, Truth, confidence_from_rel_std
+from .abstain import EVIDENCE_KEY
 from .density_peaks import density_peaks
 from .divergence import baseline_divergence, pairwise_divergence
 from .meanshift import meanshift_flat
@@ -396,6 +397,11 @@ class DPREstimator(DivergenceEstimator):
         return self.state.window[:, q:q + H, q:q + W].clone()
 
     def diagnostics(self) -> Dict[str, torch.Tensor]:
-        """:func:`dpr_diagnostics` of the held state (copies), also right after a reset."""
-        return {k: v.clone() for k, v in dpr_diagnostics(self.state, self.confidence()).items()}
+        """:func:`dpr_diagnostics` of the held state (copies), also right after a reset, and the
+        last update's ``motion_evidence`` (:mod:`.abstain`)."""
+        out = {k: v.clone() for k, v in dpr_diagnostics(self.state, self.confidence()).items()}
+        last = getattr(self, "_last", None)
+        if last is not None and EVIDENCE_KEY in last.diagnostics:
+            out[EVIDENCE_KEY] = last.diagnostics[EVIDENCE_KEY].clone()
+        return out
 

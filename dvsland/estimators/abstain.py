@@ -1,0 +1,203 @@
+"""Abstention: one shared, cheap test of whether a window of events shows motion at all.
+
+Every estimator that takes events runs behind it (:class:`dvsland.estimators.base.DivergenceEstimator`
+applies it to whatever the estimator's step returns, plug-ins included): where the window holds
+no evidence of a moving scene (uniform sensor noise on a static scene, a global flicker) the
+estimate becomes NaN and its confidence 0; where the evidence is weak the confidence is scaled
+down. Where a scene moves, the factor is exactly 1 and the estimator's output passes unchanged.
+
+What is measured per descent, on the events of one step (all descents at once, no loop):
+
+- ``clustering``: the index of dispersion of the *active pixels* (pixels with at least one event)
+  counted over ``cell_px`` x ``cell_px`` cells, divided by its value for pixels active at random
+  (a binomial count: mean m, variance m (1 - m / cell_px^2)). About 1 for uniform noise, whatever
+  its rate; a scene's events lie on its edges and texture, 3 to 20 on the shipped sites.
+- ``neighbours``: the share of active pixels with an active 8-neighbour, as an excess over its
+  value for pixels active at random, 1 - (1 - q)^8 with q the share of active pixels: 0 for noise,
+  0.1 to 0.9 on scenes (events of an edge have neighbours; the background-activity filter's idea).
+- ``flicker``: |correlation of polarity and time| over the window's events: about 0.87 for a
+  global flicker (every pixel ON, then OFF), below 0.3 on scenes (ON and OFF events interleave).
+
+The factor: ``clamp(max(ramp(clustering), ramp(neighbours)), 0, 1)``, times the flicker ramp, and
+judged only on windows with enough events: below ``min_events`` the window is not judged (factor
+1: the estimators' own rules on few events hold, e.g. ``cmax``'s ``min_events`` over its longer
+window), from ``full_events`` on it is judged fully, linear between.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional, Tuple
+
+import torch
+import torch.nn.functional as F
+
+
+class AbstainParams(NamedTuple):
+    """Thresholds of the motion-evidence test (the defaults are the shipped behaviour).
+
+    Attributes:
+        cell_px: side of the cells of the clustering index, px (>= 2).
+        clustering_none / clustering_full: clustering index at or below which the window shows no
+            structure (factor 0) / at or above which it does (factor 1); linear between.
+        neighbours_none / neighbours_full: the same for the neighbour excess.
+        flicker_full / flicker_none: |corr(polarity, time)| at or below which the window is no
+            flicker (factor 1) / at or above which it is one (factor 0).
+        min_events / full_events: events of one descent in the window below which it is not judged
+            (factor 1) / from which it is judged fully.
+    """
+
+    cell_px: int = 8
+    clustering_none: float = 1.4
+    clustering_full: float = 1.6
+    neighbours_none: float = 3.25
+    neighbours_full: float = 4.25
+    flicker_full: float = 0.5
+    flicker_none: float = 0.7
+    min_events: int = 100
+    full_events: int = 200
+
+
+#: the shipped thresholds; ``DivergenceEstimator.abstain = None`` turns the test off for a class or
+#: an instance, another :class:`AbstainParams` tunes it.
+DEFAULT_ABSTAIN = AbstainParams()
+
+#: the key of the factor in every gated estimator's diagnostics
+EVIDENCE_KEY = "motion_evidence"
+
+
+class MotionEvidence(NamedTuple):
+    """The test's result for B descents.
+
+    Attributes:
+        factor: (B,) float32 in [0, 1], what the confidence is multiplied by (0: D_hat becomes NaN).
+        clustering: (B,) float32 clustering index (1 = random), 0 where not measurable.
+        neighbours: (B,) float32 neighbour excess (0 = random).
+        flicker: (B,) float32 |corr(polarity, time)| in [0, 1].
+        n_events: (B,) int64 events of each descent in the window.
+    """
+
+    factor: torch.Tensor
+    clustering: torch.Tensor
+    neighbours: torch.Tensor
+    flicker: torch.Tensor
+    n_events: torch.Tensor
+
+
+#: the neighbour share's spread under random activity, measured, over its binomial standard error
+NEIGHBOUR_SD_INFLATION = 1.3
+
+
+def _ramp(v: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
+    """0 at or below ``lo``, 1 at or above ``hi``, linear between (``lo > hi`` falls instead)."""
+    return ((v - lo) / (hi - lo)).clamp(0.0, 1.0)
+
+
+def _occupancy(events, B: int, W: int, H: int, dev) -> torch.Tensor:
+    """(B, H, W) float32, 1 where a pixel holds at least one event (no host sync)."""
+    occ = torch.zeros(B * H * W + 1, dtype=torch.float32, device=dev)
+    b, x, y = events.b.to(dev), events.x.to(dev), events.y.to(dev)
+    ok = (b >= 0) & (b < B) & (x >= 0) & (x < W) & (y >= 0) & (y < H)
+    idx = torch.where(ok, (b * H + y) * W + x, torch.full_like(b, B * H * W))
+    occ[idx] = 1.0
+    return occ[:-1].view(B, H, W)
+
+
+def _spatial(occ: torch.Tensor, cell: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """(clustering (B,), neighbour excess (B,)) float32 of occupancy images (B, H, W)."""
+    B, H, W = occ.shape
+    Hc, Wc = H // cell, W // cell
+    q = occ.mean(dim=(1, 2))
+    if Hc * Wc >= 2:
+        c = occ[:, :Hc * cell, :Wc * cell].reshape(B, Hc, cell, Wc, cell).sum(dim=(2, 4)).reshape(B, -1)
+        m = c.mean(dim=1)
+        den = m * (1.0 - m / (cell * cell))
+        clus = torch.where(den > 1e-6, c.var(dim=1) / den.clamp_min(1e-6), torch.zeros_like(m))
+    else:  # too small a sensor to count cells: no clustering evidence either way
+        clus = torch.zeros_like(q)
+    box = F.avg_pool2d(occ[:, None], 3, stride=1, padding=1, count_include_pad=True)[:, 0] * 9.0 - occ
+    active = occ.sum(dim=(1, 2))
+    obs = ((box > 0.5).to(occ.dtype) * occ).sum(dim=(1, 2)) / active.clamp_min(1.0)
+    exp = 1.0 - (1.0 - q) ** 8
+    # in standard errors of the share under random activity (binomial over the active pixels,
+    # times NEIGHBOUR_SD_INFLATION for the pairs a neighbourhood shares)
+    se = NEIGHBOUR_SD_INFLATION * torch.sqrt(exp * (1.0 - exp) / active.clamp_min(1.0))
+    nbz = torch.where((active > 0) & (se > 0), (obs - exp) / se.clamp_min(1e-9), torch.zeros_like(q))
+    return clus, nbz
+
+
+def _flicker(events, B: int, t_us: int, n: torch.Tensor, dev) -> torch.Tensor:
+    """|corr(polarity, time)| per descent, (B,) float32 (0 where undefined)."""
+    b = events.b.to(dev).clamp(0, B - 1)
+    t = (events.t.to(dev) - int(t_us)).to(torch.float64)
+    p = events.p.to(dev).to(torch.float64)
+    z = torch.zeros(B, dtype=torch.float64, device=dev)
+    st, sp = z.index_add(0, b, t), z.index_add(0, b, p)
+    stt, spp, spt = z.index_add(0, b, t * t), z.index_add(0, b, p * p), z.index_add(0, b, p * t)
+    nn = n.to(torch.float64).clamp_min(1.0)
+    vt, vp = stt / nn - (st / nn) ** 2, spp / nn - (sp / nn) ** 2
+    cov = spt / nn - st * sp / nn ** 2
+    ok = (vt > 1e-9) & (vp > 1e-9)
+    r = cov.abs() / torch.sqrt((vt * vp).clamp_min(1e-30))
+    return torch.where(ok, r, torch.zeros_like(r)).clamp(0.0, 1.0).to(torch.float32)
+
+
+def motion_evidence(events, batch_size: int, sensor_size: Tuple[int, int], t_us: int,
+                    params: AbstainParams = DEFAULT_ABSTAIN, device=None) -> MotionEvidence:
+    """The motion-evidence test of the events of one step (module doc), all descents at once.
+
+    Args:
+        events: :class:`dvsland.events.Events` of the step (b in [0, B), x, y on the sensor), or None
+            / empty (then nothing is judged: factor 1).
+        batch_size: B.
+        sensor_size: (W, H) px.
+        t_us: end of the window, int µs (times are taken relative to it).
+        params: :class:`AbstainParams`.
+        device: where the result lives (default the events').
+
+    Returns:
+        :class:`MotionEvidence`, each field (B,).
+    """
+    B, (W, H) = int(batch_size), (int(sensor_size[0]), int(sensor_size[1]))
+    dev = torch.device(device) if device is not None else (events.b.device if events is not None else "cpu")
+    if events is None or events.b.numel() == 0:
+        zf = torch.zeros(B, dtype=torch.float32, device=dev)
+        return MotionEvidence(torch.ones_like(zf), zf, zf.clone(), zf.clone(),
+                              torch.zeros(B, dtype=torch.int64, device=dev))
+    n = torch.bincount(events.b.to(dev).clamp(0, B - 1), minlength=B)[:B]
+    clus, nbx = _spatial(_occupancy(events, B, W, H, dev), max(2, int(params.cell_px)))
+    flick = _flicker(events, B, t_us, n, dev)
+    motion = torch.maximum(_ramp(clus, params.clustering_none, params.clustering_full),
+                           _ramp(nbx, params.neighbours_none, params.neighbours_full))
+    motion = motion * _ramp(flick, params.flicker_none, params.flicker_full)
+    judged = _ramp(n.to(torch.float32), float(params.min_events), float(max(params.full_events, params.min_events + 1)))
+    factor = (1.0 - judged * (1.0 - motion)).clamp(0.0, 1.0)
+    return MotionEvidence(factor, clus.to(torch.float32), nbx.to(torch.float32), flick, n)
+
+
+def apply_evidence(out, factor: torch.Tensor):
+    """``out`` (:class:`~dvsland.estimators.base.EstimateOut`) with its confidence times ``factor``
+    (B,) float32, D_hat NaN (and confidence 0) where the factor is 0, and ``factor`` in its
+    diagnostics under :data:`EVIDENCE_KEY`. Where the factor is 1 D_hat and confidence are unchanged."""
+    d = out.d_hat
+    f = factor.to(device=d.device)
+    d = torch.where(f > 0, d, torch.full_like(d, float("nan")))
+    conf = out.confidence * f.to(out.confidence.dtype)
+    conf = torch.where(torch.isfinite(d), conf, torch.zeros_like(conf))
+    diag = dict(out.diagnostics)
+    diag[EVIDENCE_KEY] = f
+    if "confidence" in diag:
+        diag["confidence"] = conf
+    return out._replace(d_hat=d, confidence=conf, diagnostics=diag)
+
+
+def gate_output(out, events, batch_size: int, sensor_size, t_us: int, params: Optional[AbstainParams]):
+    """``out`` gated by the motion evidence of ``events`` (unchanged when ``params`` is None or
+    ``out`` was gated already)."""
+    if params is None or EVIDENCE_KEY in out.diagnostics:
+        return out
+    ev = motion_evidence(events, batch_size, sensor_size, t_us, params, device=out.d_hat.device)
+    return apply_evidence(out, ev.factor)
+
+
+__all__ = ["AbstainParams", "DEFAULT_ABSTAIN", "EVIDENCE_KEY", "MotionEvidence", "motion_evidence",
+           "apply_evidence", "gate_output"]
