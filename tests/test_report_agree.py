@@ -224,3 +224,20 @@ def test_error_table_has_no_duplicate_aggregate_rows():
     assert rows(["A", "D"], "A,D") == ["A", "D", "A,D"]
     assert rows(["H", "I"], "none") == ["H", "I", "all"]
     assert rows(list("ABCDEFGHI"), "A-G") == list("ABCDEFGHI") + ["A-G", "all"]
+
+
+def test_simulate_with_a_learned_estimator_records_its_checkpoint(tmp_path):
+    """results.json of a learned run names the checkpoint in its header and in every run."""
+    from dvsland import simulate
+    from dvsland.report.checkpoint import file_sha256
+
+    res = simulate("montecarlo_efference", estimator="learned", sites="D", quiet=True, out=tmp_path / "run",
+                   overrides=["simulation.n_seeds=1", "simulation.t_max_s=2", "dispersion.terrain_variants=1"])
+    doc = json.loads((res.run_dir / "results.json").read_text())
+    ck = doc["checkpoint"]
+    assert ck["file"] == "learned_cnn.pt" and ck["sha256"] == file_sha256(ck["path"])
+    assert all(r["checkpoint"] == ck for r in doc["runs"])
+    oracle = simulate("paper", estimator="oracle", sites="A", quiet=True, out=tmp_path / "oracle",
+                      overrides=["simulation.t_max_s=1"])
+    doc = json.loads((oracle.run_dir / "results.json").read_text())
+    assert doc["checkpoint"] is None and "checkpoint" not in doc["runs"][0]

@@ -15,6 +15,7 @@ from dvsland._version import __version__
 from dvsland.config import Config, load_config, validate_config
 from dvsland.config.validate import check_memory
 from dvsland.report import write_results_json, write_traces_npz
+from dvsland.report.checkpoint import estimator_checkpoint
 from dvsland.runs import failure_status, guarded_run, make_run_dir
 from dvsland.stages import build_stages, check_names
 
@@ -56,12 +57,13 @@ def _device(name: str) -> torch.device:
     return dev
 
 
-def _run_meta(cfg: Config, estimator_name: str, device, batch_size: int, rendered: bool) -> dict:
-    """The header fields of results.json."""
+def _run_meta(cfg: Config, estimator_name: str, device, batch_size: int, rendered: bool, estimator=None) -> dict:
+    """The header fields of results.json (``checkpoint``: a trained estimator's file name and hash, or None)."""
     return {"status": "running", "estimator": estimator_name, "device": str(device), "dt_s": cfg.dt_s,
             "batch_size": batch_size, "dvsland_version": __version__, "torch_version": torch.__version__,
             "python": sys.version.split()[0], "machine": platform.machine(),
-            "renderer": cfg.render.renderer if rendered else None}
+            "renderer": cfg.render.renderer if rendered else None,
+            "checkpoint": estimator_checkpoint(cfg, cfg.estimator.name, estimator)}
 
 
 @guarded_run  # SIGTERM = Ctrl-C; an interrupted set-up still leaves results.json
@@ -125,7 +127,7 @@ def simulate(config: Union[Config, PathLike, None] = None, *, estimator=None, re
     stages = build_stages(cfg, layout, dev, estimator=estimator if instance else None, renderer=renderer,
                           controller=controller, progress=not cfg.logging.quiet)
     loop = ClosedLoop(stages, sync_timers=sync_timers)
-    meta = _run_meta(cfg, est_name, dev, layout.batch_size, stages.events is not None)
+    meta = _run_meta(cfg, est_name, dev, layout.batch_size, stages.events is not None, stages.estimator)
     cbs = CallbackList([])
     try:
         cbs = CallbackList(default_callbacks(cfg, run_dir, loop, on_step) + list(callbacks))

@@ -18,6 +18,7 @@ import torch
 
 from dvsland.control.gain import loop_gain_fields
 from dvsland.estimators.registry import estimator_label
+from dvsland.report.checkpoint import estimator_checkpoint
 
 from .result import TraceRecorder
 from .state import LoopState
@@ -146,6 +147,7 @@ def run_summaries(stages, state: LoopState) -> List[dict]:
     gains = loop_gain_fields(stages.controller, state.m_kg, state.z_m)
     ctl_name = getattr(stages.controller, "controller_name", type(stages.controller).__name__)
     est_label = estimator_label(cfg.estimator.name)  # an alias (mine=pkg.mod:Class) is shown as the alias
+    ckpt = estimator_checkpoint(cfg, cfg.estimator.name, stages.estimator)  # a trained estimator's file and hash
     runs = []
     for b in range(L.batch_size):
         runs.append({
@@ -161,6 +163,8 @@ def run_summaries(stages, state: LoopState) -> List[dict]:
             "held_steps": int(st["n_held"][b]), "missing_estimates": int(st["n_missing"][b]),
             "sanitised_estimates": int(st["n_sanitised"][b]), "positive_estimates": int(st["n_positive"][b]),
         })
+        if ckpt is not None:
+            runs[-1]["checkpoint"] = ckpt
         if est_label != cfg.estimator.name:  # the whole import path, to repeat the run
             runs[-1]["estimator_spec"] = cfg.estimator.name
         if L.dispersed:  # a Monte Carlo batch: the element's scene and dispersed values
