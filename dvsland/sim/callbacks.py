@@ -180,7 +180,8 @@ class SummaryCallback(Callback):
                   f"steps in {len(held)} of {len(runs)} runs; the controller applied missing_policy={policy!r} "
                   f"(column 'held')")
         print(f"{result.status}: {loop.B} descents, {result.n_steps} steps, wall {result.wall_time_s:.2f} s "
-              f"(loop {result.timings_s.get('loop', 0.0):.2f} s), real-time factor {result.real_time_factor:.1f}; "
+              f"(loop {result.timings_s.get('loop', 0.0):.2f} s; this process's CPU so far {time.process_time():.1f} s), "
+              f"real-time factor {result.real_time_factor:.1f}; "
               f"output in {result.run_dir}")
 
 
