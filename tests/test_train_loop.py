@@ -202,3 +202,12 @@ def test_dynamics_gradient_finite_at_zero_thrust():
                             torch.tensor([1e4, 1e3, 5e3], dtype=torch.float64), u, 0.1, LanderParams())
     (z + v + m).sum().backward()
     assert torch.isfinite(u.grad).all()
+
+
+def test_a_horizon_that_does_not_fit_memory_is_refused():
+    from dvsland.learn.loop_train import check_horizon_fits
+
+    st = _stages("div_gs")
+    assert check_horizon_fits(st, 40, 2**34) > 0
+    with pytest.raises(ValueError, match=r"--window 0: .* GiB of autograd graph"):
+        check_horizon_fits(st, 0, 2**20)

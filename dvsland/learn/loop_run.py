@@ -12,6 +12,7 @@ from typing import Callable, Optional
 
 import torch
 
+from dvsland.campaign.plan import available_memory_bytes
 from dvsland.config import dump_config
 from dvsland.control.policy import POLICY_KIND
 from dvsland.estimators.state_dict_check import (check_finite_numbers, check_optimizer_state, check_state_dict,
@@ -20,7 +21,8 @@ from dvsland.report.results import atomic_write_text
 from dvsland.stages import build_stages
 
 from .loop_loss import LossWeights
-from .loop_train import LAW_KIND, TrainLoopRun, TrainLoopSettings, save_checkpoint, train_windows, validate
+from .loop_train import (LAW_KIND, TrainLoopRun, TrainLoopSettings, check_horizon_fits, save_checkpoint, train_windows,
+                         validate)
 from .loop_trainables import Trainable, make_trainable
 
 #: files of a train-loop run folder
@@ -110,6 +112,7 @@ def train_loop(cfg, run_dir: Path, settings: TrainLoopSettings, sites=None, val_
     torch.manual_seed(s.seed)
     stages = build_stages(cfg, sites)
     trainable = make_trainable(stages, s.what, s.params)
+    check_horizon_fits(stages, s.window, available_memory_bytes())
     opt = torch.optim.Adam(trainable.parameters(), lr=s.lr)
     run, episode = TrainLoopRun(), torch.zeros(stages.batch_size, dtype=torch.int64)
     ckpt = run_dir / CHECKPOINT

@@ -31,6 +31,9 @@ from .loop_trainables import WHATS, Trainable
 
 #: ``kind`` of a law checkpoint (a policy's is :data:`dvsland.control.policy.POLICY_KIND`)
 LAW_KIND = "dvsland-loop-law"
+#: autograd memory a window holds per descent-step, bytes: about 1 KB measured with the oracle,
+#: ``div_gs`` or ``policy`` and the efference filter (scripts/bench_loop_grad.py); 4x that as margin
+GRAPH_BYTES_PER_DESCENT_STEP = 4096
 
 
 @dataclass(frozen=True)
@@ -117,6 +120,19 @@ def validate(stages, trainable: Trainable) -> dict:
             "outcomes": state.outcome.tolist()}
 
 
+def check_horizon_fits(stages, window: int, available_bytes: float) -> int:
+    """Bytes the graph of one window holds (``window`` steps, 0 = ``t_max``, of B descents); ValueError
+    naming ``--window`` when that passes half of ``available_bytes``."""
+    steps = window or stages.settings.n_steps_max
+    need = steps * stages.batch_size * GRAPH_BYTES_PER_DESCENT_STEP
+    if need > 0.5 * available_bytes:
+        raise ValueError(f"--window {window}: a window of {steps} steps x {stages.batch_size} descents holds about "
+                         f"{need / 2**30:.1f} GiB of autograd graph; {available_bytes / 2**30:.1f} GiB is available: "
+                         f"use a window of at most {int(0.5 * available_bytes / (stages.batch_size * GRAPH_BYTES_PER_DESCENT_STEP))}"
+                         f" steps, or fewer seeds or sites")
+    return need
+
+
 def check_finite_loss(loss: torch.Tensor, trainable: Trainable, windows: int) -> None:
     """ValueError when a window's loss or gradient is not finite (nothing is saved from it)."""
     grads = [p.grad for p in trainable.parameters() if p.grad is not None]
@@ -166,4 +182,4 @@ def save_checkpoint(path: Path, trainable: Trainable, opt, s: TrainLoopSettings,
 
 
 __all__ = ["TrainLoopSettings", "TrainLoopRun", "restart_ended", "validate", "train_windows", "save_checkpoint",
-           "check_finite_loss", "LAW_KIND"]
+           "check_finite_loss", "check_horizon_fits", "LAW_KIND", "GRAPH_BYTES_PER_DESCENT_STEP"]
