@@ -76,6 +76,57 @@ def check_out_dir(out: Union[str, Path], overwrite: bool = False) -> Path:
     return run_dir
 
 
+def open_folder(out: Union[str, Path, None], flag: str = "--out", create: bool = True) -> Path:
+    """Check and (``create``) create a folder a command writes into and may resume (a dataset),
+    without the run claim of :func:`check_out_dir`: the same refusals of an empty path, a name too
+    long for the file system, a file of that name and a folder the OS will not create (one
+    :class:`RunDirError` naming ``flag`` and the path)."""
+    if out is None or str(out).strip() == "":
+        raise RunDirError(f"{flag}: the folder must not be empty")
+    path = Path(out)
+    try:
+        _check_name_lengths(path)
+    except RunDirError as exc:
+        raise RunDirError(str(exc).replace("--out", flag, 1)) from None
+    if path.exists() and not path.is_dir():
+        raise RunDirError(f"{flag} {path}: exists and is not a folder")
+    if not create:
+        return path
+    try:
+        _mkdir(path)
+    except RunDirError as exc:
+        raise RunDirError(f"{flag} {path}: {exc}") from None
+    return path
+
+
+def lock_folder(folder: Union[str, Path], name: str, what: str):
+    """Hold an exclusive lock on ``folder/name`` (released when the returned file is closed or the
+    process ends, SIGKILL included); :class:`RunDirError` when another process holds it (``what``
+    names the command, e.g. ``dvsland campaign``). None where there is no ``fcntl``."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock
+        return None
+    path = Path(folder) / name
+    try:
+        f = open(path, "a+")
+    except OSError as exc:
+        raise RunWriteError(path, exc) from None
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.seek(0)
+        owner = f.read().strip() or "another process"
+        f.close()
+        raise RunDirError(f"{folder}: another {what} is running in this folder ({owner}); wait for it to end "
+                          f"(or stop it), then run the command again") from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+    f.flush()
+    return f
+
+
 def _check_name_lengths(path: Path) -> None:
     """RunDirError when a part of ``path`` or the whole is longer than the file system takes."""
     try:
@@ -164,12 +215,15 @@ def make_run_dir(cfg: Config, out: Optional[Union[str, Path]] = None, kind: str 
         base = root / f"{name}-{utc_stamp()}"
         if os.path.commonpath([os.path.abspath(base), os.path.abspath(root)]) != os.path.abspath(root):
             raise RunDirError(f"name: {cfg.name!r} would put the run folder outside logging.root = {root}")
-        run_dir = _new_folder(base)
     else:
-        run_dir = check_out_dir(out, overwrite)
+        base = None
+    # the claim and the guards' note of the folder as one step: a Ctrl-C between the two (or while
+    # config.yaml is written) left a claimed folder that no guard gave a results.json
+    with deferred_interrupts():
+        run_dir = _new_folder(base) if out is None else check_out_dir(out, overwrite)
+        for frame in _GUARDS.stack:
+            frame.append(run_dir)
     atomic_write_text(run_dir / "config.yaml", dump_config(cfg))  # RunWriteError names the path
-    for frame in _GUARDS.stack:
-        frame.append(run_dir)
     return run_dir
 
 
@@ -254,10 +308,16 @@ def _as_write_error(exc: BaseException, made: list):
     return RunWriteError(where, exc)
 
 
+#: the exit status of a command that caught an interrupt itself (128 + SIGINT)
+INTERRUPTED_STATUS = 130
+
+
 def guarded_run(fn):
     """Decorator for a command: SIGTERM acts like Ctrl-C during the call, and every run folder
     made inside it (:func:`make_run_dir`) is left with a results.json when the call ends in an
-    exception or an interrupt (``status: "interrupted"``, ``phase``: ``setup`` or ``run``)."""
+    exception or an interrupt (``status: "interrupted"``, ``phase``: ``setup`` or ``run``), or
+    returns :data:`INTERRUPTED_STATUS` (a command that caught Ctrl-C to print its own line: a
+    campaign interrupted before its shards flew left a folder without results.json)."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -265,7 +325,11 @@ def guarded_run(fn):
         _GUARDS.stack.append(made)
         try:
             with _interrupt_handlers(made):
-                return fn(*args, **kwargs)
+                status = fn(*args, **kwargs)
+            if status == INTERRUPTED_STATUS:  # the command caught Ctrl-C itself and said so
+                for run_dir in made:
+                    _finish_interrupted(run_dir, KeyboardInterrupt("Ctrl-C"))
+            return status
         except BaseException as exc:
             for run_dir in made:
                 _finish_interrupted(run_dir, exc)
@@ -352,5 +416,6 @@ class deferred_interrupts:  # noqa: N801 - used like a function: ``with deferred
         return False
 
 
-__all__ = ["failure_status", "make_run_dir", "check_out_dir", "guarded_run", "utc_stamp", "RunDirError", "RunWriteError",
+__all__ = ["failure_status", "make_run_dir", "open_folder", "lock_folder", "check_out_dir",
+           "guarded_run", "utc_stamp", "RunDirError", "RunWriteError",
            "RUN_MARKERS", "CLAIM_FILE", "deferred_interrupts"]

@@ -78,8 +78,8 @@ def test_interrupted_campaign_resumes_to_the_same_result(tmp_path, monkeypatch):
     real = runner_mod.run_local
     calls = {"n": 0}
 
-    def flaky(config, shards, workers=1, keep=None):
-        for res in real(config, shards, workers, keep):
+    def flaky(config, shards, workers=1, keep=None, **kw):
+        for res in real(config, shards, workers, keep, **kw):
             calls["n"] += 1
             if calls["n"] == 3:
                 raise KeyboardInterrupt

@@ -229,8 +229,8 @@ def test_second_ctrl_c_during_clean_up_still_leaves_results(tmp_path, monkeypatc
     """A second Ctrl-C while an interrupted campaign merged its shards left no results.json."""
     real_local, real_merge = runner_mod.run_local, runner_mod.merge
 
-    def one_then_ctrl_c(config, shards, workers=1, keep=None):
-        for res in real_local(config, shards, workers, keep):
+    def one_then_ctrl_c(config, shards, workers=1, keep=None, **kw):
+        for res in real_local(config, shards, workers, keep, **kw):
             yield res
             raise KeyboardInterrupt  # the first Ctrl-C, after one shard
 

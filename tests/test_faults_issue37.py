@@ -326,3 +326,105 @@ def test_interrupt_inside_exec_during_imports_exits_130_not_by_sigint(monkeypatc
     assert main(["config", "show"]) == 130
     assert flag.value == 0
     assert "dvsland: interrupted" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ 10. Ctrl-C right after planning
+import json as _json
+import os as _os
+import signal as _signal
+import subprocess as _subprocess
+import sys as _sys
+import time as _time
+from pathlib import Path as _Path
+
+_REPO = _Path(__file__).resolve().parents[1]
+
+
+def _proc_stat(pid: int):
+    """(state, ppid) of ``pid`` from /proc, or None when it is gone."""
+    try:
+        raw = _Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = raw[raw.rindex(")") + 2:].split()
+    return fields[0], int(fields[1])
+
+
+def _group_alive(pgid: int) -> list:
+    """Live (not zombie) processes of the process group ``pgid``."""
+    out = []
+    for d in _Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            if _os.getpgid(int(d.name)) != pgid:
+                continue
+        except OSError:
+            continue
+        st = _proc_stat(int(d.name))
+        if st is not None and st[0] != "Z":
+            out.append(int(d.name))
+    return out
+
+
+def _spawned_children(pid: int) -> list:
+    out = []
+    for d in _Path("/proc").iterdir():
+        try:
+            if d.name.isdigit() and _proc_stat(int(d.name))[1] == pid and \
+                    b"spawn_main" in (d / "cmdline").read_bytes():
+                out.append(int(d.name))
+        except (OSError, TypeError):
+            continue
+    return out
+
+
+def _wait_for(cond, timeout_s: float) -> bool:
+    t_end = _time.monotonic() + timeout_s
+    while _time.monotonic() < t_end:
+        if cond():
+            return True
+        _time.sleep(0.02)
+    return False
+
+
+def _ctrl_c_campaign(out: _Path, when: str, delay_s: float):
+    """Start `campaign --workers 2` in its own process group, wait for phase ``when`` (``folder``:
+    its campaign.json is written; ``spawn``: its workers are being started), wait ``delay_s``
+    and press Ctrl-C (SIGINT to the whole group, as a terminal does). Returns (rc, stderr, pgid)."""
+    env = {**_os.environ, "OMP_NUM_THREADS": "1"}
+    drv = _subprocess.Popen([_sys.executable, "-m", "dvsland.cli.main", "campaign", "configs/montecarlo.yaml",
+                             "--n-seeds", "4", "--sites", "A,D", "--shard-seeds", "2", "--workers", "2",
+                             "--out", str(out)], cwd=_REPO, env=env, stdout=_subprocess.PIPE,
+                            stderr=_subprocess.PIPE, start_new_session=True)
+    try:
+        seen = _wait_for((lambda: (out / "campaign.json").is_file()) if when == "folder"
+                         else (lambda: len(_spawned_children(drv.pid)) > 0), 120)
+        assert seen, f"the campaign never reached phase {when!r}"
+        _time.sleep(delay_s)
+        _os.killpg(drv.pid, _signal.SIGINT)
+        _, err = drv.communicate(timeout=60)
+    finally:
+        if drv.poll() is None:
+            _os.killpg(drv.pid, _signal.SIGKILL)
+            drv.wait()
+    return drv.returncode, err.decode(errors="replace"), drv.pid
+
+
+@pytest.mark.skipif(not _sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.parametrize("when, delay_s", [("folder", 0.0), ("spawn", 0.3), ("spawn", 1.5)])
+def test_ctrl_c_right_after_planning_leaves_results_and_no_worker(tmp_path, when, delay_s):
+    """A campaign interrupted right after planning printed a spawn worker's traceback (its
+    imports got the terminal's SIGINT too) and once left no results.json (an interrupt before
+    the shards flew was caught by the command and never reported); now one line, status 130, a
+    results.json saying interrupted, and no process of the command left."""
+    out = tmp_path / "c"
+    rc, err, pgid = _ctrl_c_campaign(out, when, delay_s)
+    left = [] if _wait_for(lambda: not _group_alive(pgid), 15) else _group_alive(pgid)
+    for pid in left:  # only what this test started
+        _os.kill(pid, _signal.SIGKILL)
+    assert rc == 130, err
+    assert "Traceback" not in err and "EOFError" not in err, err
+    saved = _json.loads((out / "results.json").read_text())
+    assert saved["status"] == "interrupted", saved
+    assert left == [], f"processes left behind: {left}"

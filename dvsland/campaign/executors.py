@@ -15,12 +15,13 @@ parent's pid, so a driver killed with SIGKILL (no clean-up of its own) leaves no
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
 import threading
 import time
-from typing import Iterator, List, Optional
+from typing import Iterator, List, Optional, Tuple
 
 from .reaper import start_reaper, stop_reaper
 from .shard import run_shard
@@ -68,13 +69,50 @@ class WorkerLostError(RuntimeError):
     """A pool worker ended without returning (killed: most often by the system's out-of-memory killer)."""
 
 
-def make_pool(workers: int):
-    """A spawned process pool of ``workers`` processes that die with this process."""
+#: what :class:`WorkerLostError` says to do next when the caller names nothing else
+CAMPAIGN_HINT = ("resume with `dvsland campaign --resume RUN_DIR` and fewer --workers, a smaller --shard-seeds "
+                 "or a lower simulation.max_memory_gb")
+
+
+def _init_worker(parent_pid: int, slots=None) -> None:
+    """Process-pool initializer: die with the driver, report shard progress into ``slots``."""
+    _die_with_parent(parent_pid)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the driver's Ctrl-C (it stops the pool), not ours
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    if slots is not None:
+        from . import progress
+
+        progress.install(slots)
+
+
+def make_pool(workers: int, slots=None):
+    """A spawned process pool of ``workers`` processes that die with this process; ``slots`` (a
+    shared array, :class:`~.progress.StepBar`) receives their shards' progress."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
     return ProcessPoolExecutor(max_workers=int(workers), mp_context=mp.get_context("spawn"),
-                               initializer=_die_with_parent, initargs=(os.getpid(),))
+                               initializer=_init_worker, initargs=(os.getpid(), slots))
+
+
+@contextlib.contextmanager
+def _sigint_blocked():
+    """SIGINT blocked in this thread inside the block, so processes spawned here start with it
+    blocked (a terminal's Ctrl-C reaches the whole process group: a worker importing its modules
+    printed a KeyboardInterrupt traceback). The driver still gets it: another thread takes it, or
+    it waits until the block ends. The resource tracker of multiprocessing starts the same way."""
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    from multiprocessing import resource_tracker
+
+    # first: starting the tracker unblocks SIGINT in this thread when it is done (its own trick)
+    resource_tracker.ensure_running()
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def _stop_pool(pool) -> None:
@@ -87,48 +125,86 @@ def _stop_pool(pool) -> None:
         proc.kill()
     pool.shutdown(wait=False, cancel_futures=True)
     for proc in procs:
-        proc.join(timeout=1.0)
+        proc.join(timeout=2.0)
 
 
-def run_local(config: dict, shards: List[dict], workers: int = 1, keep_dirs: Optional[List[Optional[str]]] = None
-              ) -> Iterator[dict]:
-    """Shards one after another (``workers <= 1``) or in a process pool of ``workers`` processes
-    (spawned: no fork of a torch process), yielding results as they complete."""
-    keep_dirs = keep_dirs or [None] * len(shards)
-    if workers <= 1:
-        for sh, kd in zip(shards, keep_dirs):
-            yield run_shard(config, sh, kd)
-        return
-    from concurrent.futures import as_completed
+def map_pool(fn, calls: List[tuple], workers: int, tick=None, slots=None,
+             hint: str = CAMPAIGN_HINT) -> Iterator[Tuple[int, object]]:
+    """``fn(*call)`` for each of ``calls`` in a pool of ``workers`` spawned processes, yielding
+    ``(index, result)`` as each completes: the one worker lifetime of every dvsland pool.
+
+    - Workers die with the driver, SIGKILL included (:func:`_die_with_parent`).
+    - Workers start with SIGINT blocked, and are started with the driver's interrupts held back
+      (:func:`dvsland.runs.deferred_interrupts`), so a Ctrl-C while they start is the driver's
+      alone: no worker is half-started (its traceback, EOFError or KeyboardInterrupt, on the
+      terminal) or unknown to the driver (left running after it).
+    - Ctrl-C, SIGTERM, a failing call or the consumer closing the generator: the workers are
+      killed and reaped at once (a finished result is already with the driver; nothing of a
+      killed one is kept). A worker that dies (the OOM killer) is a :class:`WorkerLostError`
+      ending with ``hint``.
+    - ``tick()`` is called about every 0.25 s while waiting (a progress bar's refresh); ``slots``
+      are given to the workers (:mod:`.progress`).
+    """
+    from concurrent.futures import FIRST_COMPLETED, wait
 
     from dvsland.runs import deferred_interrupts
 
-    pool = make_pool(min(int(workers), len(shards)) or 1)  # no idle processes
+    pool = None
     try:
-        futs = [pool.submit(run_shard, config, sh, kd) for sh, kd in zip(shards, keep_dirs)]
-        for f in as_completed(futs):
-            yield _result(f)
+        with deferred_interrupts(), _sigint_blocked():
+            pool = make_pool(min(int(workers), len(calls)) or 1, slots)  # no idle processes
+            futs = {pool.submit(fn, *call): i for i, call in enumerate(calls)}
+        pending = set(futs)
+        while pending:
+            done, pending = wait(pending, timeout=0.25 if tick is not None else None, return_when=FIRST_COMPLETED)
+            for f in sorted(done, key=futs.get):
+                yield futs[f], _result(f, hint)
+            if tick is not None:
+                tick()
     except BaseException:
         # Ctrl-C / SIGTERM / a failing shard: stop now. Waiting for the running shards (minutes
-        # each) would leave the campaign deaf to the interrupt; finished shards are already on
-        # disk, and --resume runs the rest. A second Ctrl-C waits until the workers are told.
+        # each) would leave the command deaf to the interrupt; finished shards are already on
+        # disk, and a resume runs the rest. A second Ctrl-C waits until the workers are reaped.
         with deferred_interrupts():
-            _stop_pool(pool)
+            if pool is not None:
+                _stop_pool(pool)
         raise
     pool.shutdown(wait=True)
 
 
-def _result(fut) -> dict:
+def run_local(config: dict, shards: List[dict], workers: int = 1, keep_dirs: Optional[List[Optional[str]]] = None,
+              bar=None) -> Iterator[dict]:
+    """Shards one after another (``workers <= 1``) or in a process pool of ``workers`` processes
+    (spawned: no fork of a torch process, :func:`map_pool`), yielding results as they complete.
+    ``bar``: a :class:`~.progress.StepBar` over ``shards`` (slot i = shard i) that follows their steps."""
+    from . import progress
+
+    keep_dirs = keep_dirs or [None] * len(shards)
+    slot = (lambda i: i) if bar is not None else (lambda i: None)
+    if workers <= 1:
+        progress.install(bar.slots if bar is not None else None, bar.refresh if bar is not None else None)
+        try:
+            for i, (sh, kd) in enumerate(zip(shards, keep_dirs)):
+                yield run_shard(config, sh, kd, progress_slot=slot(i))
+        finally:
+            progress.install(None)
+        return
+    calls = [(config, sh, kd, 1, slot(i)) for i, (sh, kd) in enumerate(zip(shards, keep_dirs))]
+    for _, res in map_pool(run_shard, calls, workers, tick=bar.refresh if bar is not None else None,
+                           slots=bar.slots if bar is not None else None):
+        yield res
+
+
+def _result(fut, hint: str = CAMPAIGN_HINT):
     """``fut.result()``, with a worker that died (BrokenProcessPool) as one :class:`WorkerLostError`."""
     from concurrent.futures.process import BrokenProcessPool
 
     try:
         return fut.result()
     except BrokenProcessPool as exc:
-        raise WorkerLostError("a campaign worker process was killed before finishing its shard (most often by "
-                              "the system's out-of-memory killer: `dmesg | grep -i killed`); finished shards are "
-                              "kept: resume with `dvsland campaign --resume RUN_DIR` and fewer --workers, a smaller --shard-seeds or a lower "
-                              "simulation.max_memory_gb") from exc
+        raise WorkerLostError("a worker process was killed before finishing its shard (most often by the "
+                              "system's out-of-memory killer: `dmesg | grep -i killed`); finished shards are "
+                              f"kept: {hint}") from exc
 
 
 def run_ray(config: dict, shards: List[dict], workers: Optional[int] = None,

@@ -31,7 +31,7 @@ from typing import List, Optional, Sequence, Tuple
 from dvsland import __version__
 from dvsland.config import Config
 from dvsland.report.stats import default_group_keys, format_group_table, group_stats
-from dvsland.runs import RunWriteError, deferred_interrupts, make_run_dir
+from dvsland.runs import RunDirError, RunWriteError, deferred_interrupts, lock_folder, make_run_dir
 
 from .executors import EXECUTORS, WorkerLostError, run_local, run_ray
 from .plan import CampaignPlan, Shard, auto_shard_seeds, config_digest, make_plan, shard_hash
@@ -170,30 +170,12 @@ def merge(plan: CampaignPlan, run_dir) -> tuple:
 
 
 def lock_campaign(run_dir):
-    """Hold an exclusive lock on ``run_dir/.campaign.lock`` (released when the returned file is
-    closed or the process ends); ValueError when another campaign process holds it."""
+    """Hold an exclusive lock on ``run_dir/.campaign.lock`` (:func:`dvsland.runs.lock_folder`);
+    ValueError when another campaign process holds it."""
     try:
-        import fcntl
-    except ImportError:  # not POSIX: no lock
-        return None
-    path = Path(run_dir) / LOCK_FILE
-    try:
-        f = open(path, "a+")
-    except OSError as exc:
-        raise RunWriteError(path, exc) from None
-    try:
-        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        f.seek(0)
-        owner = f.read().strip() or "another process"
-        f.close()
-        raise ValueError(f"{run_dir}: another dvsland campaign is running in this folder ({owner}); wait for it "
-                         f"to end (or stop it), then --resume") from None
-    f.seek(0)
-    f.truncate()
-    f.write(f"pid {os.getpid()} on {os.uname().nodename}\n")
-    f.flush()
-    return f
+        return lock_folder(run_dir, LOCK_FILE, "dvsland campaign")
+    except RunDirError as exc:
+        raise RunDirError(f"{exc} with --resume") from None
 
 
 def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_seeds: Optional[int] = None,
@@ -233,13 +215,16 @@ def run_campaign(config: Optional[Config] = None, sweeps: Sequence[str] = (), n_
             print(f"campaign: {shard_seeds} seed(s) per shard, chosen from the memory estimate for {workers} "
                   "worker(s) (--shard-seeds S to choose)", file=sys.stderr)
     plan, run_dir, lock = _open_campaign(config, sweeps, n_seeds, shard_seeds, resume, out)
+    session = {"executor": executor, "workers": int(workers), "t0": t0, "rejected": []}
     try:
-        todo, rejected = check_shards(plan, run_dir, quiet)
-        n_done_before = len(plan.shards) - len(todo)
-        if max_shards is not None:
-            todo = todo[:max(0, int(max_shards))]
-        fly = _fly(plan, run_dir, todo, executor, workers, keep_runs, quiet, n_done_before)
-        session = {"executor": executor, "workers": int(workers), "t0": t0, "rejected": rejected}
+        try:
+            todo, session["rejected"] = check_shards(plan, run_dir, quiet)
+            n_done_before = len(plan.shards) - len(todo)
+            if max_shards is not None:
+                todo = todo[:max(0, int(max_shards))]
+            fly = _fly(plan, run_dir, todo, executor, workers, keep_runs, quiet, n_done_before)
+        except BaseException as exc:  # noqa: BLE001 - Ctrl-C before the shards flew: report it too
+            fly = {"status": "interrupted", "exc": exc, "descents": 0, "n_run": 0, "run_s": 0.0}
         return _finish(plan, run_dir, fly, session, quiet)
     finally:
         if lock is not None:
@@ -273,16 +258,13 @@ def _fly(plan: CampaignPlan, run_dir: Path, todo: List[Shard], executor: str, wo
     n_run, run_s}; Ctrl-C or an error ends it with status ``interrupted`` (``exc`` to re-raise)."""
     keep = [str(run_dir / SHARDS_DIR / sh.id) if keep_runs else None for sh in todo]
     shard_dicts = [asdict(sh) for sh in todo]
-    pbar = None
-    if not quiet:
-        from tqdm.auto import tqdm
-
-        pbar = tqdm(total=len(plan.shards), initial=n_done_before, unit="shard", desc="campaign", file=sys.stderr)
+    bar = None if quiet else _step_bar(plan, shard_dicts, executor, workers, n_done_before)
+    slot_of = {sh["id"]: i for i, sh in enumerate(shard_dicts)}
     out = {"status": "complete", "exc": None, "descents": 0, "n_run": 0}
     t_run = time.perf_counter()
     it = None
     try:
-        it = (run_local(plan.config, shard_dicts, workers, keep) if executor == "local"
+        it = (run_local(plan.config, shard_dicts, workers, keep, bar=bar) if executor == "local"
               else run_ray(plan.config, shard_dicts, workers, keep))
         for res in it:
             if res.get("status") != "complete":
@@ -290,19 +272,30 @@ def _fly(plan: CampaignPlan, run_dir: Path, todo: List[Shard], executor: str, wo
             write_shard(run_dir, res)
             out["n_run"] += 1
             out["descents"] += len(res["runs"])
-            if pbar is not None:
-                pbar.update(1)
+            if bar is not None:
                 minutes = (time.perf_counter() - t_run) / 60
-                pbar.set_postfix(descents_per_min=f"{out['descents'] / minutes:.1f}" if minutes > 0 else "-")
+                bar.shard_done(slot_of.get(res["id"], -1),
+                               f"{out['descents'] / minutes:.1f} descents/min" if minutes > 0 else "")
     except BaseException as exc:  # noqa: BLE001 - Ctrl-C too: keep what is done, report it, re-raise
         out.update(status="interrupted", exc=exc)
     finally:
         if it is not None:
             it.close()  # a failed write ends the executor too (its workers stopped)
-        if pbar is not None:
-            pbar.close()
+        if bar is not None:
+            bar.close()
     out["run_s"] = time.perf_counter() - t_run
     return out
+
+
+def _step_bar(plan: CampaignPlan, shard_dicts: List[dict], executor: str, workers: int, n_done_before: int):
+    """The campaign's bar over the loop steps of the shards to fly (:class:`~.progress.StepBar`;
+    shared slots for a local pool; Ray's shards are counted when they end)."""
+    from .progress import StepBar, shard_steps
+
+    done_before = [asdict(s) for s in plan.shards if s.id not in {d["id"] for d in shard_dicts}]
+    return StepBar(shard_steps(plan.config, shard_dicts), "campaign", len(plan.shards), n_done_before,
+                   steps_before=sum(shard_steps(plan.config, done_before)),
+                   shared=executor == "local" and workers > 1 and len(shard_dicts) > 1)
 
 
 def _finish(plan: CampaignPlan, run_dir: Path, fly: dict, session: dict, quiet: bool) -> CampaignResult:

@@ -41,7 +41,8 @@ def velocity_at_altitude(z_m: np.ndarray, v_mps: np.ndarray, altitude_m: float) 
     return out
 
 
-def run_shard(plan_config: dict, shard: dict, keep_dir: Optional[str] = None, threads: int = 1) -> dict:
+def run_shard(plan_config: dict, shard: dict, keep_dir: Optional[str] = None, threads: int = 1,
+              progress_slot: Optional[int] = None) -> dict:
     """Fly one shard; return ``{"id", "sweep", "seed_offset", "n_seeds", "runs", "wall_time_s",
     "status", "host", "config_hash"}``. Each run gets ``sweep`` (the grid point) and
     ``v_at_50m_mps``; ``config_hash`` (:func:`~.plan.shard_hash`) names what the shard flew.
@@ -52,11 +53,13 @@ def run_shard(plan_config: dict, shard: dict, keep_dir: Optional[str] = None, th
         keep_dir: write the shard's run folder (config.yaml, results.json, traces.npz) here;
             None = a temporary folder, removed afterwards.
         threads: torch threads of this worker.
+        progress_slot: report the steps flown into this slot after every step (:mod:`.progress`).
     """
     import torch
 
     from dvsland.sim import simulate
 
+    from . import progress
     from .plan import Shard, config_from_dict, shard_hash
 
     sh = Shard(**shard)
@@ -69,7 +72,9 @@ def run_shard(plan_config: dict, shard: dict, keep_dir: Optional[str] = None, th
         shutil.rmtree(keep_dir)
     with tempfile.TemporaryDirectory(prefix="dvsland-shard-") as tmp:
         out = keep_dir if keep_dir is not None else os.path.join(tmp, sh.id)
-        res = simulate(cfg, out=out, quiet=True)
+        on_step = (None if progress_slot is None
+                   else (lambda loop, _out: progress.report(progress_slot, loop.state.step)))
+        res = simulate(cfg, out=out, quiet=True, on_step=on_step)
         alt = float(cfg.simulation.success_altitude_m)
         v50 = velocity_at_altitude(res.traces["z_m"], res.traces["v_mps"], alt)
     runs = []

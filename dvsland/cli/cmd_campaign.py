@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import sys
 
-from .common import add_config_args, add_sites_arg, add_threads_arg, config_from_args, parse_sites, restrict_sites
+from .common import (add_config_args, add_sites_arg, add_threads_arg, config_from_args, parse_sites, ranged,
+                     restrict_sites)
 
 
 def register(subparsers) -> None:
@@ -19,7 +20,8 @@ def register(subparsers) -> None:
     add_config_args(p)
     p.add_argument("--sweep", action="append", default=[], metavar="KEY=V1,V2",
                    help="sweep a config value, e.g. --sweep estimator.name=dpr,oracle (repeatable: cartesian grid)")
-    p.add_argument("--n-seeds", type=int, default=None, metavar="N", help="seeds per grid point "
+    p.add_argument("--n-seeds", type=ranged(int, 1, 10**9, "--n-seeds"), default=None, metavar="N",
+                   help="seeds per grid point "
                    "(default simulation.n_seeds)")
     p.add_argument("--shard-seeds", type=int, default=0, metavar="S",
                    help="seeds per shard (default 0: chosen from the memory estimate, simulation.max_memory_gb "
@@ -42,6 +44,8 @@ def run_campaign_cmd(args) -> int:
     from dvsland.campaign.executors import WorkerLostError
 
     cfg = None
+    if args.resume is not None and not str(args.resume).strip():
+        raise ValueError("--resume: give the campaign folder to resume (it is empty)")
     sites = parse_sites(args.sites)  # before anything is loaded or written
     if args.resume is None:
         cfg = restrict_sites(config_from_args(args), sites)

@@ -62,16 +62,17 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         return _run(argv, started)
     except KeyboardInterrupt as exc:
-        # an interrupt raised inside code that exec() ran from a string (dataclasses builds its
-        # methods so, while the sub-commands are imported) leaves CPython's "unhandled
-        # KeyboardInterrupt" flag set even though it is handled here, and the interpreter would then
-        # end itself by SIGINT at exit instead of with status 130; running exec() once more clears it
-        exec("pass")  # noqa: S102 - a constant string
         what = ("what was gathered so far was written" if started
                 else "before the command started; nothing was written")
         print(f"dvsland: interrupted ({str(exc) or 'Ctrl-C'}); {what}", file=sys.stderr)
         return 130
     finally:
+        # an interrupt raised inside code that exec() ran from a string (dataclasses and namedtuples
+        # build their methods so, in every import) leaves CPython's "unhandled KeyboardInterrupt"
+        # flag set even when it is handled (here, or by a command that returns 130 after saving its
+        # work), and the interpreter would then end itself by SIGINT at exit instead of with the
+        # status returned; running exec() once more clears it
+        exec("pass")  # noqa: S102 - a constant string
         for s, h in old.items():
             try:
                 signal.signal(s, h if h is not None else signal.SIG_DFL)

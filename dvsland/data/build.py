@@ -3,10 +3,10 @@
 The plan is the campaign's (:func:`dvsland.campaign.make_plan`): shard ``g000-s<k>`` flies every
 configured site x controller setting for the seeds ``k .. k + shard_size - 1`` as one batch, and a
 seed's dispersions depend only on (``simulation.seed``, site, seed index), never on the shard size.
-The campaign's executors are not reused: they map the campaign's own ``run_shard`` (a
-``simulate`` that returns run summaries to the driver), while a dataset shard is a file of
-hundreds of MB (45 descents x ~1600 steps x 4.7 kB) written where it is flown; shards run here
-one after another, or in a local process pool (``workers``).
+A dataset shard is a file of hundreds of MB (45 descents x ~1600 steps x 4.7 kB) written where it
+is flown (not sent to the driver as a campaign's shard result is); shards run here one after
+another, or in the campaign's process pool (``workers``: :func:`dvsland.campaign.executors.map_pool`,
+whose workers die with the driver). The progress bar counts loop steps inside the shards.
 
 Each shard is written to a temporary name and renamed when complete, then ``dataset.json`` is
 rewritten (atomically) with it marked complete. Re-running the same request in the same folder
@@ -127,57 +127,97 @@ def build_dataset(config=None, n_seeds: int = 1, out=None, sites=None, shard_siz
         ValueError: ``out`` missing, or holding a dataset of another request (names what differs).
     """
     from dvsland.campaign import make_plan
+    from dvsland.runs import open_folder
 
     if out is None:
         raise ValueError("out: the dataset folder is required (--out DIR)")
+    root = open_folder(out, "--out", create=False)  # empty, too long a name, a file: refused first
     if int(workers) < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     cfg = resolve_config(config, overrides, sites, estimator)
     plan = make_plan(cfg, (), n_seeds, shard_size)
-    root = Path(out)
-    manifest = _open_folder(root, new_manifest(plan, cfg), cfg)
+    manifest, lock = _open_folder(root, new_manifest(plan, cfg), cfg)
+    try:
+        return _build(plan, root, manifest, quiet, max_shards, compression, int(workers))
+    finally:
+        if lock is not None:
+            lock.close()
+
+
+def _build(plan, root: Path, manifest: dict, quiet: bool, max_shards, compression, workers: int) -> BuildResult:
+    """Fly the shards of ``manifest`` that have no good file (at most ``max_shards``)."""
     todo = [e for e in manifest["shards"] if not _shard_ok(root, e, quiet)]
     todo = todo if max_shards is None else todo[:max(0, int(max_shards))]
     shards = {s.id: asdict(s) for s in plan.shards}
     t0, n_built, n_samples = time.perf_counter(), 0, 0
-    pbar = None if quiet else _progress(len(manifest["shards"]), len(manifest["shards"]) - len(todo))
+    to_fly = [shards[e["id"]] for e in todo]
+    bar = None if quiet else _progress(plan, to_fly, workers)
     try:
-        for entry in _run(plan.config, [shards[e["id"]] for e in todo], root, compression, int(workers)):
+        for i, entry in _run(plan.config, to_fly, root, compression, workers, bar):
             _record(manifest, entry)
             save_manifest(root, manifest)
             n_built, n_samples = n_built + 1, n_samples + entry["n_samples"]
-            if pbar is not None:
-                pbar.update(1)
-                pbar.set_postfix(samples_per_s=f"{n_samples / (time.perf_counter() - t0):.0f}")
+            if bar is not None:
+                bar.shard_done(i, f"{n_samples / (time.perf_counter() - t0):.0f} samples/s")
     finally:
-        if pbar is not None:
-            pbar.close()
+        if bar is not None:
+            bar.close()
     return _result(root, manifest, n_built, n_samples, time.perf_counter() - t0)
 
 
-def _open_folder(root: Path, fresh: dict, cfg: Config) -> dict:
-    """The manifest to continue: the folder's own when it asked for the same, else ``fresh``
-    (written with config.yaml). Stale temporary files of a killed build are removed."""
-    from dvsland.config import dump_config
+#: the lock a running build holds in its folder (a second build into the same folder is refused)
+LOCK_FILE = ".dataset.lock"
 
-    if root.exists() and not root.is_dir():
-        raise ValueError(f"out={str(root)!r}: exists and is not a folder; a dataset build needs a new or empty "
-                         "folder (or its own dataset to resume)")
-    if manifest_path(root).is_file():
-        old = load_manifest(root, "out")
-        diff = same_request(old, fresh)
-        if diff is not None:
-            raise ValueError(f"out={str(root)!r} holds a dataset of another request ({diff}); "
-                             "use a new --out, or the same arguments to resume it")
-        fresh = old
-    else:
-        others = sorted(p.name for p in root.iterdir())[:5] if root.is_dir() else []
+
+def _open_folder(root: Path, fresh: dict, cfg: Config):
+    """(manifest to continue, the folder's lock): the folder's own manifest when it asked for the
+    same, else ``fresh`` (written with config.yaml). A folder holding anything but a dataset is
+    refused before anything is written; a build already running there is refused
+    (:func:`dvsland.runs.lock_folder`). Stale temporary files of a killed build are removed."""
+    from dvsland.runs import lock_folder, open_folder
+
+    if not manifest_path(root).is_file():
+        others = sorted(p.name for p in root.iterdir() if p.name != LOCK_FILE)[:5] if root.is_dir() else []
         if others:  # another run's files or a user's: never mixed with a dataset
             raise ValueError(f"out={str(root)!r} holds files that are not a dataset ({', '.join(others)}); a dataset "
                              "build needs a new or empty folder (or its own dataset to resume)")
-        root.mkdir(parents=True, exist_ok=True)
-        (root / "config.yaml").write_text(dump_config(cfg))
+    _same_request(root, fresh)
+    open_folder(root, "--out")
+    lock = lock_folder(root, LOCK_FILE, "dvsland dataset build")
+    try:
+        fresh = _continue_or_start(root, fresh, cfg)
+    except BaseException:
+        if lock is not None:
+            lock.close()
+        raise
+    return fresh, lock
+
+
+def _same_request(root: Path, fresh: dict):
+    """The folder's manifest when it asked for the same as ``fresh``; None when it has none;
+    ValueError (naming what differs) otherwise."""
+    if not manifest_path(root).is_file():
+        return None
+    old = load_manifest(root, "out")
+    diff = same_request(old, fresh)
+    if diff is not None:
+        raise ValueError(f"out={str(root)!r} holds a dataset of another request ({diff}); "
+                         "use a new --out, or the same arguments to resume it")
+    return old
+
+
+def _continue_or_start(root: Path, fresh: dict, cfg: Config) -> dict:
+    """Under the folder's lock: its manifest (read again: a build may have ended meanwhile) or
+    ``fresh`` written with config.yaml; the shards folder made and its temporary files removed."""
+    from dvsland.config import dump_config
+    from dvsland.report.results import atomic_write_text
+
+    old = _same_request(root, fresh)
+    if old is not None:
+        fresh = _checked_entries(root, old, fresh)
+    else:
         save_manifest(root, fresh)
+    atomic_write_text(root / "config.yaml", dump_config(cfg))  # resumed: a damaged copy is rewritten
     if (root / SHARDS_DIR).exists() and not (root / SHARDS_DIR).is_dir():
         raise ValueError(f"out={str(root)!r}: its {SHARDS_DIR!r} entry is a file, not the shards folder; "
                          "use a new --out")
@@ -187,12 +227,32 @@ def _open_folder(root: Path, fresh: dict, cfg: Config) -> dict:
     return fresh
 
 
+def _checked_entries(root: Path, old: dict, fresh: dict) -> dict:
+    """``old`` (the folder's manifest) with each shard entry checked against the plan's in
+    ``fresh``: an entry that is missing, not an object, or names another file (a damaged or
+    hand-edited manifest: a path outside the folder was kept and read) is reported on stderr and
+    replaced by the plan's, so its shard is rebuilt."""
+    have = {e.get("id"): e for e in old["shards"] if isinstance(e, dict)}
+    entries = []
+    for want in fresh["shards"]:
+        got = have.get(want["id"])
+        if got is None or got.get("file") != want["file"]:
+            print(f"dvsland dataset: {manifest_path(root)}: the entry of shard {want['id']} is missing or names "
+                  f"another file ({None if got is None else got.get('file')!r}, expected {want['file']!r}); "
+                  "rebuilding that shard", file=sys.stderr)
+            got = dict(want)
+        entries.append(got)
+    return {**old, "shards": entries}
+
+
 def _shard_ok(root: Path, entry: dict, quiet: bool) -> bool:
     """A complete entry whose file exists with the recorded size and readable tables."""
     if entry.get("status") != "complete":
         return False
     path = root / entry["file"]
     try:
+        if not all(isinstance(entry.get(k), int) for k in ("bytes", "n_samples", "n_events")):
+            raise ShardError(f"shard {str(path)!r}: its manifest entry lacks its size or counts")
         if not path.is_file() or path.stat().st_size != entry.get("bytes"):
             raise ShardError(f"shard {str(path)!r}: missing or not of the recorded size {entry.get('bytes')} bytes")
         read_index(path)
@@ -221,42 +281,50 @@ def _result(root: Path, manifest: dict, n_built: int, n_samples: int, seconds: f
                        bytes_per_sample=tot_b / tot_s if tot_s else None)
 
 
-def _progress(total: int, initial: int):
-    from tqdm.auto import tqdm
+def _progress(plan, to_fly: List[dict], workers: int):
+    """The build's bar over the loop steps of the shards to fly (:class:`dvsland.campaign.progress.StepBar`)."""
+    from dvsland.campaign.progress import StepBar, shard_steps
 
-    return tqdm(total=total, initial=initial, unit="shard", desc="dataset", file=sys.stderr)
+    ids = {s["id"] for s in to_fly}
+    before = [asdict(s) for s in plan.shards if s.id not in ids]
+    return StepBar(shard_steps(plan.config, to_fly), "dataset", len(plan.shards), len(before),
+                   steps_before=sum(shard_steps(plan.config, before)), shared=workers > 1 and len(to_fly) > 1)
 
 
-def _run(plan_config: dict, shards: List[dict], root: Path, compression, workers: int) -> Iterator[dict]:
-    """Build ``shards`` here one after another, or in a spawned process pool; yield manifest entries."""
+def _run(plan_config: dict, shards: List[dict], root: Path, compression, workers: int, bar=None
+         ) -> Iterator[tuple]:
+    """Build ``shards`` here one after another, or in the campaign's process pool
+    (:func:`dvsland.campaign.executors.map_pool`: workers that die with this driver, stopped at
+    once on Ctrl-C); yield (index in ``shards``, manifest entry). ``bar`` follows their steps."""
+    from dvsland.campaign import progress
+
     paths = [str(shard_file(root, s["id"])) for s in shards]
+    slot = (lambda i: i) if bar is not None else (lambda i: None)
     if workers <= 1 or len(shards) <= 1:
-        for s, p in zip(shards, paths):
-            yield build_shard(plan_config, s, p, compression)
+        progress.install(bar.slots if bar is not None else None, bar.refresh if bar is not None else None)
+        try:
+            for i, (s, p) in enumerate(zip(shards, paths)):
+                yield i, build_shard(plan_config, s, p, compression, slot(i))
+        finally:
+            progress.install(None)
         return
-    from concurrent.futures import as_completed
+    from dvsland.campaign.executors import map_pool
 
-    from dvsland.campaign.executors import make_pool
-
-    pool = make_pool(workers)  # the campaign's pool: its workers die with this driver (SIGKILL included)
-    futs = [pool.submit(build_shard, plan_config, s, p, compression) for s, p in zip(shards, paths)]
-    try:
-        for f in as_completed(futs):
-            yield f.result()
-    except BaseException:  # Ctrl-C or a failing shard: stop the pool now; finished shards are on disk
-        pool.shutdown(wait=False, cancel_futures=True)
-        for proc in list((getattr(pool, "_processes", None) or {}).values()):
-            proc.terminate()
-        raise
-    pool.shutdown(wait=True)
+    calls = [(plan_config, s, p, compression, slot(i)) for i, (s, p) in enumerate(zip(shards, paths))]
+    yield from map_pool(build_shard, calls, workers, tick=bar.refresh if bar is not None else None,
+                        slots=bar.slots if bar is not None else None,
+                        hint="run the same `dvsland dataset build` command again to resume, with fewer --workers "
+                             "or a smaller --shard-size")
 
 
-def build_shard(plan_config: dict, shard: dict, path: str, compression: Optional[str] = "gzip") -> dict:
+def build_shard(plan_config: dict, shard: dict, path: str, compression: Optional[str] = "gzip",
+                progress_slot: Optional[int] = None) -> dict:
     """Fly one shard (a :class:`dvsland.campaign.Shard` as a dict) of the plan's config and write
-    it to ``path``; returns its manifest entry (without ``status``)."""
+    it to ``path``; returns its manifest entry (without ``status``). ``progress_slot``: report the
+    steps flown there after each step (:mod:`dvsland.campaign.progress`)."""
     import torch
 
-    from dvsland.campaign import Shard
+    from dvsland.campaign import Shard, progress
     from dvsland.campaign.plan import config_from_dict
 
     from .collect import Flight, descent_table, recording_stages
@@ -276,6 +344,7 @@ def build_shard(plan_config: dict, shard: dict, path: str, compression: Optional
         flight = Flight(stages, crop=crop)
         for st in flight:
             writer.append(st.events, st.counts, st.samples)
+            progress.report(progress_slot, flight.state.step)
         writer.finish(descent_table(stages.layout, flight.state))
     except BaseException:
         writer.abort()
