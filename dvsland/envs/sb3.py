@@ -39,8 +39,10 @@ def sb3_vec_env(env: Any):
             self._ret, self._len = np.zeros(env.num_envs), np.zeros(env.num_envs, int)
 
         def seed(self, seed=None):
-            self._seed = seed
-            return [None if seed is None else seed + i for i in range(self.num_envs)]
+            if seed is not None and (not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0):
+                raise ValueError(f"seed must be None or an int >= 0 (env i gets seed + i), got {seed!r}")
+            self._seed = None if seed is None else int(seed)
+            return [None if seed is None else self._seed + i for i in range(self.num_envs)]
 
         def reset(self):
             obs, _ = self.env.reset(seed=self._seed)
@@ -67,17 +69,30 @@ def sb3_vec_env(env: Any):
         def close(self):
             self.env.close()
 
+        # the batch is one env object: an attribute or a method is the batch's, once per index
         def get_attr(self, name, indices=None):
-            return [getattr(self.env, name)] * self.num_envs
+            return [getattr(self.env, name)] * len(self._indices(indices))
 
         def set_attr(self, name, value, indices=None):
+            if len(set(self._indices(indices))) != self.num_envs:
+                raise ValueError(f"set_attr({name!r}): the {self.num_envs} envs are one batch; an attribute is set "
+                                 f"for all of them (indices=None), got indices={indices!r}")
             setattr(self.env, name, value)
 
         def env_method(self, name, *args, indices=None, **kwargs):
-            return [getattr(self.env, name)(*args, **kwargs)]
+            return [getattr(self.env, name)(*args, **kwargs)] * len(self._indices(indices))
 
         def env_is_wrapped(self, wrapper_class, indices=None):
-            return [False] * self.num_envs
+            return [False] * len(self._indices(indices))
+
+        def _indices(self, indices) -> list:
+            """SB3's ``indices`` (None, an int or ints) as a checked list of env indices."""
+            idx = list(range(self.num_envs)) if indices is None else (
+                [indices] if isinstance(indices, (int, np.integer)) else list(indices))
+            bad = [i for i in idx if not isinstance(i, (int, np.integer)) or not 0 <= i < self.num_envs]
+            if bad:
+                raise ValueError(f"indices must be env indices in [0, {self.num_envs}), got {bad}")
+            return idx
 
     return LandingSB3()
 

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import copy
 import math
-from typing import Any, Optional, Sequence, Union
+from typing import Any, Mapping, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -43,7 +43,7 @@ from gymnasium.vector.utils import batch_space
 from dvsland.config import Config, ConfigError, load_config, validate_config
 from dvsland.config.validate import check_memory
 from dvsland.layout import build_layout
-from dvsland.checks import check_choice, check_device, check_range
+from dvsland.checks import check_choice, check_device, check_keys, check_range
 from dvsland.pytree import hash_bits
 from dvsland.sim import OUTCOMES, act_step, dispersed_start, init_state, reset_where, sense_step
 from dvsland.stages import build_stages, check_names
@@ -119,9 +119,11 @@ class LandingVectorEnv(VectorEnv):
                 check_memory(self.cfg, batch_size=int(num_envs))
             except ConfigError as exc:
                 raise ValueError(f"num_envs={num_envs}: {exc}") from None
-        self._spec = action_spec(action, self.cfg, clip_actions, setpoint_gain_ns)
-        self._reward = reward if isinstance(reward, RewardConfig) else RewardConfig(**(reward or {}))
-        self._sites = sites.split(",") if isinstance(sites, str) else sites
+        if not isinstance(clip_actions, (bool, np.bool_)):  # a string 'no' is truthy: it clipped
+            raise ValueError(f"clip_actions must be True or False, got {clip_actions!r}")
+        self._spec = action_spec(action, self.cfg, bool(clip_actions), setpoint_gain_ns)
+        self._reward = _reward_config(reward)
+        self._sites = _sites_arg(sites)
         self._num_envs_arg = None if num_envs is None else int(num_envs)
         self._device = torch.device(device)
         self._seed = int(self.cfg.simulation.seed)
@@ -415,10 +417,36 @@ def _autoreset_mode(mode) -> AutoresetMode:
     raise ValueError(f"autoreset_mode must be one of {names} (or a gymnasium AutoresetMode), got {mode!r}")
 
 
+def _reward_config(reward) -> RewardConfig:
+    """``reward`` (None, a RewardConfig or a mapping of its fields) as a RewardConfig; ValueError
+    naming ``reward`` and the allowed keys otherwise."""
+    if isinstance(reward, RewardConfig):
+        return reward
+    if reward is None:
+        return RewardConfig()
+    if not isinstance(reward, Mapping):
+        raise ValueError(f"reward must be None, a RewardConfig or a mapping of its fields, got {type(reward).__name__}")
+    check_keys("reward", reward, RewardConfig.__dataclass_fields__)
+    return RewardConfig(**reward)
+
+
+def _sites_arg(sites):
+    """``sites`` (None, ``"A,D"`` or a sequence of site names) as a list of names or None."""
+    if sites is None:
+        return None
+    if isinstance(sites, str):
+        return sites.split(",")
+    if not isinstance(sites, (list, tuple)) or not all(isinstance(s, str) for s in sites):
+        raise ValueError(f"sites must be None, 'A,D' or a list of site names, got {sites!r}")
+    return list(sites)
+
+
 def _reset_mask(options, B: int) -> Optional[torch.Tensor]:
     """``options["reset_mask"]`` as a (B,) bool tensor, or None (every env)."""
     if not options:
         return None
+    if not isinstance(options, Mapping):
+        raise ValueError(f"options must be None or a dict such as {{'reset_mask': ...}}, got {options!r}")
     unknown = sorted(set(options) - {"reset_mask"})
     if unknown:
         raise ValueError(f"options: unknown keys {unknown}; supported: ['reset_mask']")
@@ -438,7 +466,7 @@ def _resolve_config(config, overrides, estimator, device) -> Config:
     (``overrides``: a ``section.key=value`` string or a sequence of them)."""
     if isinstance(overrides, str):
         overrides = [overrides]
-    elif not all(isinstance(o, str) for o in overrides):
+    elif not isinstance(overrides, (list, tuple)) or not all(isinstance(o, str) for o in overrides):
         raise ValueError(f"overrides must be 'section.key=value' strings, got {overrides!r}")
     if isinstance(config, Config):
         if overrides:

@@ -10,6 +10,7 @@ the loop returns are new objects: a state can be kept, branched from or saved at
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 from typing import Any, NamedTuple, Optional, Union
 
@@ -115,17 +116,38 @@ def save_state(path: Union[str, Path], stages_or_state, state: Optional[LoopStat
     """Write a state with :func:`torch.save`: ``save_state(path, state)`` (or ``(path, stages, state)``).
 
     The file is a pickle: load only files you wrote (:func:`load_state`). It is written to a
-    temporary name and renamed, so a failure leaves the previous file or none.
+    temporary name and renamed, so a failure leaves the previous file or none (and no temporary).
+
+    Raises:
+        ValueError: not a LoopState, ``path`` a folder or in a folder that does not exist.
+        OSError: the file cannot be written (names it; a full disk keeps its errno).
     """
     st = stages_or_state if state is None else state
     if not isinstance(st, LoopState):
         raise ValueError(f"save_state: expected a LoopState, got {type(st).__name__}")
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"save_state: {str(path)!r} is a folder; give the state file's name")
+    if not path.parent.is_dir():
+        raise ValueError(f"save_state: the folder of {str(path)!r} does not exist")
     blob = {"format": STATE_FORMAT, "batch_size": st.batch_size, "state": tree_to(st, "cpu")}
     tmp = path.with_name(path.name + ".tmp")
-    torch.save(blob, tmp)
-    tmp.replace(path)
+    try:
+        torch.save(blob, tmp)
+        tmp.replace(path)
+    except (OSError, RuntimeError) as exc:  # torch reports a failed open or write as RuntimeError
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        reason = getattr(exc, "strerror", None) or str(exc).splitlines()[0][:200]
+        raise OSError(getattr(exc, "errno", None) or errno.EIO, f"save_state: cannot write the state file ({reason})",
+                      str(path)) from None
     return path
+
+
+#: fields that are finite in every state the loop makes (a damaged file is refused on load)
+_FINITE_FIELDS = ("z_m", "v_mps", "m_kg")
 
 
 def load_state(path: Union[str, Path], device: Any = "cpu") -> LoopState:
@@ -133,16 +155,26 @@ def load_state(path: Union[str, Path], device: Any = "cpu") -> LoopState:
     (the device of the stages it will be stepped with).
 
     Raises:
-        ValueError: ``path`` is not a dvsland loop-state file (names the file and what is wrong).
+        ValueError: ``path`` is not a dvsland loop-state file, or holds a non-finite altitude,
+            velocity or mass (names the file and what is wrong); ``device`` not available here.
     """
+    from dvsland.checks import check_device
+
+    device = check_device(device, "device")
     path = Path(path)
     try:
         blob = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:  # noqa: BLE001 - any unreadable file is one clear error
-        raise ValueError(f"state file {str(path)!r}: not a readable loop state ({type(exc).__name__}: {exc})") from None
+        reason = str(exc).splitlines()[0][:200] if str(exc) else ""
+        raise ValueError(f"state file {str(path)!r}: not a readable loop state ({type(exc).__name__}: {reason})") from None
     if not isinstance(blob, dict) or blob.get("format") != STATE_FORMAT or not isinstance(blob.get("state"), LoopState):
         raise ValueError(f"state file {str(path)!r}: not a dvsland loop state of format {STATE_FORMAT}")
-    return tree_to(blob["state"], device)
+    st = blob["state"]
+    for name in _FINITE_FIELDS:
+        value = getattr(st, name)
+        if not isinstance(value, torch.Tensor) or not bool(torch.isfinite(value).all()):
+            raise ValueError(f"state file {str(path)!r}: field {name!r} is not a finite tensor (a damaged state)")
+    return tree_to(st, device)
 
 
 __all__ = ["LoopState", "StageStates", "clone_state", "save_state", "load_state", "STATE_FORMAT"]
