@@ -18,6 +18,7 @@ this one counts loop steps.
 from __future__ import annotations
 
 import sys
+import time
 from typing import List, Optional, Sequence
 
 #: the slots of this process: the pool's shared array in a worker, the driver's list when it flies
@@ -89,16 +90,23 @@ class StepBar:
         self.bar = tqdm(total=self.before + sum(self.steps), initial=self.before, unit="step", desc=desc,
                         file=sys.stderr, dynamic_ncols=True)
         self.bar.set_postfix_str(self._postfix(), refresh=False)
+        self._drawn = time.monotonic()
 
     def _postfix(self) -> str:
         return f"shards {self.shards_done}/{self.shards_total}"
 
     def refresh(self) -> None:
-        """Move the bar to the steps flown so far (tqdm redraws at most ~10 times a second)."""
+        """Move the bar to the steps flown so far (tqdm redraws at most ~10 times a second); with
+        no new step (workers starting, terrain being prepared) redraw its clock once a second."""
         # a shard in flight stops one step short: its file is written after its last step
         n = self.before + sum(s if f else min(int(v), s - 1) for s, f, v in zip(self.steps, self.finished, self.slots))
         if n > self.bar.n:
             self.bar.update(n - self.bar.n)
+        elif time.monotonic() - self._drawn > 1.0:
+            self.bar.refresh()
+        else:
+            return
+        self._drawn = time.monotonic()
 
     def shard_done(self, slot: int, postfix: str = "") -> None:
         """Count the shard in ``slot`` as all its steps (its descents may have ended before t_max)."""
