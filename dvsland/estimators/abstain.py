@@ -93,51 +93,61 @@ def _ramp(v: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
 
 
 def _occupancy(events, B: int, W: int, H: int, dev) -> torch.Tensor:
-    """(B, H, W) float32, 1 where a pixel holds at least one event (no host sync)."""
-    occ = torch.zeros(B * H * W + 1, dtype=torch.float32, device=dev)
+    """(B, H + 2, W + 2) uint8 occupancy images with a zero border: 1 where a pixel holds at least
+    one event (events checked to lie on the sensor and in the batch; no host sync)."""
     b, x, y = events.b.to(dev), events.x.to(dev), events.y.to(dev)
-    ok = (b >= 0) & (b < B) & (x >= 0) & (x < W) & (y >= 0) & (y < H)
-    idx = torch.where(ok, (b * H + y) * W + x, torch.full_like(b, B * H * W))
-    occ[idx] = 1.0
-    return occ[:-1].view(B, H, W)
+    occ = torch.zeros(B * (H + 2) * (W + 2), dtype=torch.uint8, device=dev)
+    occ[(b * (H + 2) + y + 1) * (W + 2) + x + 1] = 1
+    return occ.view(B, H + 2, W + 2)
 
 
-def _spatial(occ: torch.Tensor, cell: int) -> Tuple[torch.Tensor, torch.Tensor]:
-    """(clustering (B,), neighbour excess (B,)) float32 of occupancy images (B, H, W)."""
-    B, H, W = occ.shape
+def _clustering(img: torch.Tensor, cell: int) -> torch.Tensor:
+    """Clustering index (B,) float32 of the active pixels of ``img`` (B, H, W) uint8 over ``cell``
+    px cells (module doc)."""
+    B, H, W = img.shape
     Hc, Wc = H // cell, W // cell
-    q = occ.mean(dim=(1, 2))
-    if Hc * Wc >= 2:
-        c = occ[:, :Hc * cell, :Wc * cell].reshape(B, Hc, cell, Wc, cell).sum(dim=(2, 4)).reshape(B, -1)
-        m = c.mean(dim=1)
-        den = m * (1.0 - m / (cell * cell))
-        clus = torch.where(den > 1e-6, c.var(dim=1) / den.clamp_min(1e-6), torch.zeros_like(m))
-    else:  # too small a sensor to count cells: no clustering evidence either way
-        clus = torch.zeros_like(q)
-    box = F.avg_pool2d(occ[:, None], 3, stride=1, padding=1, count_include_pad=True)[:, 0] * 9.0 - occ
-    active = occ.sum(dim=(1, 2))
-    obs = ((box > 0.5).to(occ.dtype) * occ).sum(dim=(1, 2)) / active.clamp_min(1.0)
+    if Hc * Wc < 2:  # too small a sensor to count cells: no clustering evidence either way
+        return torch.zeros(B, dtype=torch.float32, device=img.device)
+    acc = torch.uint8 if cell * cell <= 255 else torch.int32
+    c = img[:, :Hc * cell, :Wc * cell].reshape(B, Hc, cell, Wc, cell).sum(dim=4, dtype=acc).sum(dim=2, dtype=acc)
+    c = c.reshape(B, -1).to(torch.float32)
+    m = c.mean(dim=1)
+    den = m * (1.0 - m / (cell * cell))
+    return torch.where(den > 1e-6, c.var(dim=1) / den.clamp_min(1e-6), torch.zeros_like(m))
+
+
+def _neighbours(padded: torch.Tensor) -> torch.Tensor:
+    """Neighbour excess (B,) float32 in standard errors (module doc) of the occupancy images
+    ``padded`` (B, H + 2, W + 2) uint8 with a zero border: the share of active pixels with an
+    active 8-neighbour against 1 - (1 - q)^8 for pixels active at random."""
+    B, H, W = padded.shape[0], padded.shape[1] - 2, padded.shape[2] - 2
+    r = padded[:, :, :-2] + padded[:, :, 1:-1] + padded[:, :, 2:]  # the 3 x 3 box sum (uint8: <= 9)
+    box = r[:, :-2] + r[:, 1:-1] + r[:, 2:]
+    img = padded[:, 1:-1, 1:-1]
+    with_nb = ((box - img).clamp_(max=1) * img).view(B, -1).sum(dim=1, dtype=torch.int32).to(torch.float32)
+    active = padded.view(B, -1).sum(dim=1, dtype=torch.int32).to(torch.float32)  # the border is 0
+    obs = with_nb / active.clamp_min(1.0)
+    q = active / float(H * W)
     exp = 1.0 - (1.0 - q) ** 8
     # in standard errors of the share under random activity (binomial over the active pixels,
     # times NEIGHBOUR_SD_INFLATION for the pairs a neighbourhood shares)
     se = NEIGHBOUR_SD_INFLATION * torch.sqrt(exp * (1.0 - exp) / active.clamp_min(1.0))
-    nbz = torch.where((active > 0) & (se > 0), (obs - exp) / se.clamp_min(1e-9), torch.zeros_like(q))
-    return clus, nbz
+    return torch.where((active > 0) & (se > 0), (obs - exp) / se.clamp_min(1e-9), torch.zeros_like(q))
 
 
 def _flicker(events, B: int, t_us: int, n: torch.Tensor, dev) -> torch.Tensor:
     """|corr(polarity, time)| per descent, (B,) float32 (0 where undefined)."""
-    b = events.b.to(dev).clamp(0, B - 1)
-    t = (events.t.to(dev) - int(t_us)).to(torch.float64)
-    p = events.p.to(dev).to(torch.float64)
-    z = torch.zeros(B, dtype=torch.float64, device=dev)
-    st, sp = z.index_add(0, b, t), z.index_add(0, b, p)
-    stt, spp, spt = z.index_add(0, b, t * t), z.index_add(0, b, p * p), z.index_add(0, b, p * t)
-    nn = n.to(torch.float64).clamp_min(1.0)
-    vt, vp = stt / nn - (st / nn) ** 2, spp / nn - (sp / nn) ** 2
-    cov = spt / nn - st * sp / nn ** 2
-    ok = (vt > 1e-9) & (vp > 1e-9)
-    r = cov.abs() / torch.sqrt((vt * vp).clamp_min(1e-30))
+    b = events.b.to(dev)
+    t = (events.t.to(dev) - int(t_us)).to(torch.float32)
+    t = t / t.abs().max().clamp_min(1.0)  # in [-1, 0]: float32 sums keep their precision
+    p = events.p.to(dev).to(torch.float32)
+    sums = torch.zeros(4, B, dtype=torch.float32, device=dev).index_add_(1, b, torch.stack([t, p, t * t, p * t]))
+    nn = n.to(torch.float32).clamp_min(1.0)
+    mt, mp = sums[0] / nn, sums[1] / nn
+    vt, vp = sums[2] / nn - mt ** 2, 1.0 - mp ** 2  # p = +-1: E[p^2] = 1
+    cov = sums[3] / nn - mt * mp
+    ok = (vt > 1e-6) & (vp > 1e-6)
+    r = cov.abs() / torch.sqrt((vt * vp).clamp_min(1e-12))
     return torch.where(ok, r, torch.zeros_like(r)).clamp(0.0, 1.0).to(torch.float32)
 
 
@@ -146,8 +156,9 @@ def motion_evidence(events, batch_size: int, sensor_size: Tuple[int, int], t_us:
     """The motion-evidence test of the events of one step (module doc), all descents at once.
 
     Args:
-        events: :class:`dvsland.events.Events` of the step (b in [0, B), x, y on the sensor), or None
-            / empty (then nothing is judged: factor 1).
+        events: :class:`dvsland.events.Events` of the step, checked (b in [0, B), x, y on the
+            sensor: :func:`dvsland.events.validate.checked_for_estimator`, which every estimator's
+            input passes), or None / empty (then nothing is judged: factor 1).
         batch_size: B.
         sensor_size: (W, H) px.
         t_us: end of the window, int µs (times are taken relative to it).
@@ -163,8 +174,10 @@ def motion_evidence(events, batch_size: int, sensor_size: Tuple[int, int], t_us:
         zf = torch.zeros(B, dtype=torch.float32, device=dev)
         return MotionEvidence(torch.ones_like(zf), zf, zf.clone(), zf.clone(),
                               torch.zeros(B, dtype=torch.int64, device=dev))
-    n = torch.bincount(events.b.to(dev).clamp(0, B - 1), minlength=B)[:B]
-    clus, nbx = _spatial(_occupancy(events, B, W, H, dev), max(2, int(params.cell_px)))
+    n = torch.bincount(events.b.to(dev), minlength=B)[:B]
+    padded = _occupancy(events, B, W, H, dev)
+    clus = _clustering(padded[:, 1:-1, 1:-1], max(2, int(params.cell_px)))
+    nbx = _neighbours(padded)
     flick = _flicker(events, B, t_us, n, dev)
     motion = torch.maximum(_ramp(clus, params.clustering_none, params.clustering_full),
                            _ramp(nbx, params.neighbours_none, params.neighbours_full))
