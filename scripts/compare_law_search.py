@@ -56,7 +56,7 @@ def derivative_free(step_budget: int, seeds: int) -> dict:
     start = init_state(st)
     start, _ = restart_ended(st, start._replace(active=torch.zeros_like(start.active)),
                              torch.zeros(st.batch_size, dtype=torch.int64), 0, 0.05)
-    used = {"steps": 0, "evals": 0}
+    used = {"steps": 0, "evals": 0, "best": (float("inf"), None)}
 
     class Budget(Exception):
         pass
@@ -71,6 +71,8 @@ def derivative_free(step_budget: int, seeds: int) -> dict:
             loss, terms, _ = window_loss(st, start, 0, LOSS)
         used["steps"] += terms["steps"]
         used["evals"] += 1
+        if float(loss) < used["best"][0]:
+            used["best"] = (float(loss), np.array(x, dtype=float))
         return float(loss)
 
     x0 = np.array([float(tr.raw[n].detach()) for n in tr.names])
@@ -80,8 +82,18 @@ def derivative_free(step_budget: int, seeds: int) -> dict:
                                                                                               np.eye(2)])})
     except Budget:
         pass
+    with torch.no_grad():  # the search's answer: the best point it evaluated
+        for name, v in zip(tr.names, used["best"][1]):
+            tr.raw[name].fill_(float(v))
     return {"trainable": tr, "steps": used["steps"], "evals": used["evals"], "cpu_s": time.process_time() - c0,
             "values": tr.describe()}
+
+
+@torch.no_grad()
+def test_loss(test, trainable) -> float:
+    """The loss of whole descents of the test batch with the trained values."""
+    trainable.apply(test.controller)
+    return round(float(window_loss(test, init_state(test), 0, LOSS)[0]), 4)
 
 
 def main(argv=None) -> int:
@@ -93,16 +105,20 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     test = stages_of(8, a.test_seed)
-    base = validate(test, make_trainable(test, "law"))
+    rows_trainables = {"config (lambda 1, d_final 0.03)": make_trainable(test, "law")}
+    base = validate(test, rows_trainables["config (lambda 1, d_final 0.03)"])
     rows = {"config (lambda 1, d_final 0.03)": {"steps": 0, "cpu_s": 0.0, "values": make_trainable(test, "law").describe(),
                                                "test": base}}
     g = gradient(a.windows, a.seeds)
+    rows_trainables["gradient through the loop"] = g["trainable"]
     rows["gradient through the loop"] = {**{k: g[k] for k in ("steps", "cpu_s", "values")},
                                          "test": validate(test, g["trainable"])}
     d = derivative_free(g["steps"], a.seeds)
+    rows_trainables["Nelder-Mead (scipy)"] = d["trainable"]
     rows["Nelder-Mead (scipy)"] = {**{k: d[k] for k in ("steps", "evals", "cpu_s", "values")},
                                    "test": validate(test, d["trainable"])}
-    for r in rows.values():
+    for name, r in rows.items():
+        r["test_loss"] = test_loss(test, rows_trainables[name])
         r["test"].pop("outcomes", None)
         r["test"]["wilson95"] = [round(x, 3) for x in wilson_interval(r["test"]["landed"], r["test"]["n"])]
         r["cpu_s"] = round(r["cpu_s"], 1)
