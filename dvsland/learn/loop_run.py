@@ -75,7 +75,7 @@ def trained_config(cfg, trainable: Trainable, ckpt: Path):
         opts = {k: v for k, v in vals.items() if k != "kp_scale"}
         if opts:
             c = replace(c, **{trainable.law: replace(section, **opts)})
-    return replace(cfg, controller=c)
+    return replace(cfg, controller=c, logging=replace(cfg.logging, quiet=False))  # --quiet was the training's
 
 
 def _tensorboard(writer, rec: dict) -> None:
