@@ -338,15 +338,33 @@ def _check_path_size(path: str, what: str) -> None:
 
 
 def memory_limit_bytes(cfg: Config) -> float:
-    """``simulation.max_memory_gb`` in bytes; 0 = 80 % of this machine's physical memory."""
+    """``simulation.max_memory_gb`` in bytes; 0 = 80 % of this machine's physical memory, and on a
+    CUDA ``simulation.device`` at most 90 % of the card's free memory (:func:`device_free_bytes`)."""
     gb = float(getattr(cfg.simulation, "max_memory_gb", 0.0) or 0.0)
     if gb > 0:
         return gb * 2 ** 30
     try:
-        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        limit = 0.8 * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
-        return math.inf
-    return 0.8 * total
+        limit = math.inf
+    free = device_free_bytes(getattr(cfg.simulation, "device", "cpu"))
+    return limit if free is None else min(limit, 0.9 * free)
+
+
+def device_free_bytes(device) -> Optional[float]:
+    """Free memory of a CUDA ``device`` now (``torch.cuda.mem_get_info``), bytes; None for the CPU
+    or where CUDA cannot say (torch not loaded with CUDA, no card)."""
+    name = str(device or "cpu")
+    if not name.startswith("cuda"):
+        return None
+    try:
+        import torch
+
+        if not torch.cuda.is_available():
+            return None
+        return float(torch.cuda.mem_get_info(torch.device(name))[0])
+    except (ImportError, RuntimeError, ValueError, AssertionError):
+        return None
 
 
 def memory_parts(cfg: Config, n_sites: Optional[int] = None, batch_size: Optional[int] = None) -> dict:
@@ -399,13 +417,21 @@ def check_memory(cfg: Config, n_sites: Optional[int] = None, batch_size: Optiona
     cm = cfg.estimator.cmax
     raise ConfigError(
         f"simulation.max_memory_gb{_where(source)}: this run needs about {need / 2 ** 30:.1f} GiB, above the limit of "
-        f"{limit / 2 ** 30:.1f} GiB: {gib['pixels']} for the {cfg.camera.width_px}x{cfg.camera.height_px} px camera "
+        f"{limit / 2 ** 30:.1f} GiB{_limit_source(cfg)}: {gib['pixels']} for the {cfg.camera.width_px}x{cfg.camera.height_px} px camera "
         f"(terrain tiles and {SITE_BYTES_PER_PX} B per pixel per site + {STATE_BYTES_PER_PX} B per pixel per "
         f"descent, B = {_batch(cfg, batch_size)}), {gib['terrain']} to prepare a terrain level, {gib['events']} for "
         f"emulator.max_events_per_step = {getattr(cfg.emulator, 'max_events_per_step', 0)} x {BYTES_PER_EVENT} B"
         + (f", {gib['cmax']} for the cmax search (estimator.cmax.n_grid = {cm.n_grid})" if parts["cmax"] else "")
         + "; use fewer sites, settings or seeds, a smaller camera, a lower emulator.max_events_per_step or "
           "estimator.cmax.n_grid, or raise simulation.max_memory_gb")
+
+
+def _limit_source(cfg: Config) -> str:
+    """`` (... free on cuda:0)`` when the card's free memory set the limit, else ``""``."""
+    if float(getattr(cfg.simulation, "max_memory_gb", 0.0) or 0.0) > 0:
+        return ""
+    free = device_free_bytes(getattr(cfg.simulation, "device", "cpu"))
+    return "" if free is None else f" (90 % of the {free / 2 ** 30:.1f} GiB free on {cfg.simulation.device})"
 
 
 #: the smallest change of log intensity per pixel and control step assumed by
