@@ -27,7 +27,8 @@ _SLOTS: dict = {"slots": None, "notify": None}
 
 def install(slots, notify=None) -> None:
     """Make :func:`report` write into ``slots`` (an indexable of ints; None = report nothing) and
-    call ``notify()`` after each write (the driver's refresh when it flies the shard itself)."""
+    call ``notify(slot)`` after each write (the driver's :meth:`StepBar.refresh` when it flies the
+    shard itself)."""
     _SLOTS["slots"], _SLOTS["notify"] = slots, notify
 
 
@@ -39,7 +40,7 @@ def report(slot: Optional[int], steps: int) -> None:
     slots[slot] = int(steps)
     notify = _SLOTS["notify"]
     if notify is not None:
-        notify()
+        notify(slot)
 
 
 def shard_steps(plan_config: dict, shards: Sequence[dict]) -> List[int]:
@@ -91,15 +92,21 @@ class StepBar:
                         file=sys.stderr, dynamic_ncols=True)
         self.bar.set_postfix_str(self._postfix(), refresh=False)
         self._drawn = time.monotonic()
+        self._done_steps = self.before  # steps of the shards finished, earlier and now
 
     def _postfix(self) -> str:
         return f"shards {self.shards_done}/{self.shards_total}"
 
-    def refresh(self) -> None:
+    def refresh(self, slot: Optional[int] = None) -> None:
         """Move the bar to the steps flown so far (tqdm redraws at most ~10 times a second); with
-        no new step (workers starting, terrain being prepared) redraw its clock once a second."""
+        no new step (workers starting, terrain being prepared) redraw its clock once a second.
+        ``slot``: only that shard is in flight (flown here: O(1) per step, no loop over shards)."""
         # a shard in flight stops one step short: its file is written after its last step
-        n = self.before + sum(s if f else min(int(v), s - 1) for s, f, v in zip(self.steps, self.finished, self.slots))
+        if slot is not None:
+            n = self._done_steps + (0 if self.finished[slot] else min(int(self.slots[slot]), self.steps[slot] - 1))
+        else:
+            n = self._done_steps + sum(min(int(v), s - 1) for s, f, v in zip(self.steps, self.finished, self.slots)
+                                       if not f)
         if n > self.bar.n:
             self.bar.update(n - self.bar.n)
         elif time.monotonic() - self._drawn > 1.0:
@@ -113,6 +120,7 @@ class StepBar:
         if 0 <= slot < len(self.finished) and not self.finished[slot]:
             self.finished[slot] = True
             self.shards_done += 1
+            self._done_steps += self.steps[slot]
         self.bar.set_postfix_str(self._postfix() + (f", {postfix}" if postfix else ""), refresh=False)
         self.refresh()
 
