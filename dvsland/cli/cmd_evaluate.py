@@ -1,5 +1,5 @@
 """``dvsland evaluate [CONFIG] [--estimators dpr,cmax] [--sites A,B,...] [--segment-steps N --stride S]
-[--max-steps N] [--device cpu|cuda] [--threads N] [--out DIR] [--set key=value ...] [--quiet]``:
+[--max-steps N] [--device cpu|cuda] [--threads N] [--calibration] [--out DIR] [--set key=value ...] [--quiet]``:
 open-loop evaluation of divergence estimators on the evaluation event streams."""
 
 from __future__ import annotations
@@ -37,6 +37,11 @@ def register(subparsers) -> None:
     p.add_argument("--device", default=None, metavar="DEVICE", help="torch device (default simulation.device)")
     add_threads_arg(p)
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("--calibration", action="store_true",
+                   help="also write the calibration report of every estimator: calibration.json, calibration.txt "
+                        "(share of estimates inside the predicted 1 sigma / 2 sigma per site type, abstentions "
+                        "apart; printed too) and calibration.png (reliability diagram, risk-coverage curve); "
+                        "rendered descents only (docs/estimators.md)")
     p.add_argument("--scenarios", default=None, metavar="NAME,NAME",
                    help="hard scenarios flown after the descents, each a named segment of the report: "
                         "hover_start, slow_to_hover, feature_poor, noise_burst, 'all' or 'none' (default: all for "
@@ -125,6 +130,9 @@ def run_evaluate(args) -> int:
     if args.recording and (args.sites or args.segment_steps or args.stride != 1 or args.scenarios):
         raise ValueError("--sites, --segment-steps, --stride and --scenarios select rendered descents; they do "
                          "not apply to --recording")
+    if args.recording and args.calibration:
+        raise ValueError("--calibration needs rendered descents: the --recording evaluation does not record "
+                         "the estimators' confidence yet")
     if not args.recording and (args.ground_truth or args.t_unit or args.element):
         raise ValueError("--ground-truth, --t-unit and --element need --recording PATH")
     if args.element < 0:
@@ -153,6 +161,12 @@ def run_evaluate(args) -> int:
                        device=device, progress=not quiet, scenarios=scen)
     paths = write_outputs(res, run_dir, figures=not args.no_figures and cfg.logging.figures)
     table = format_table(res.summary)
+    cal_table = None
+    if args.calibration:
+        from dvsland.evaluate.calibration_report import write_calibration
+
+        cal_paths, cal_table = write_calibration(res, run_dir, figures=not args.no_figures and cfg.logging.figures)
+        paths.update(cal_paths)
     if cfg.logging.tensorboard:
         from dvsland.report.results import writes_under
         from dvsland.report.tensorboard import write_evaluation_tensorboard
@@ -161,6 +175,9 @@ def run_evaluate(args) -> int:
             paths["tensorboard"] = write_evaluation_tensorboard(run_dir / "tb", res, dump_config(cfg), table)
     if not quiet:
         print(table)
+        if cal_table is not None:
+            print()
+            print(cal_table)
         print(f"wrote {', '.join(str(p) for p in paths.values())}")
     print(f"run folder: {run_dir}")
     return 0

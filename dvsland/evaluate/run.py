@@ -53,6 +53,8 @@ class EvaluationResult:
         time_base: "CPU" or "wall": what ``ms_per_step`` measures.
         checkpoints: {estimator: :func:`dvsland.report.checkpoint.checkpoint_identity`} of the
             estimators that read a trained checkpoint (``learned``, ``snn``).
+        confidence: {estimator: (B, K + 1) float64 confidence in [0, 1] of each estimate (0 where
+            none or not run)}; read by the calibration report (:mod:`dvsland.evaluate.calibration`).
     """
 
     descents: Descents
@@ -65,6 +67,7 @@ class EvaluationResult:
     wall_ms_per_step: Dict[str, np.ndarray] = field(default_factory=dict)
     time_base: str = "CPU"
     checkpoints: Dict[str, dict] = field(default_factory=dict)
+    confidence: Dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def _sync(device: torch.device) -> None:
@@ -244,6 +247,7 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
 
         renderer = get_renderer(cfg.render.renderer, desc.sites, cfg.camera, cfg.render, device=device)
     d_hat = {n: np.full((B, K + 1), np.nan) for n in estimators}
+    conf = {n: np.zeros((B, K + 1)) for n in estimators}
     base = time_base(device)
     times: Dict[str, List[float]] = {n: [] for n in estimators}  # in the time base
     walls: Dict[str, List[float]] = {n: [] for n in estimators}
@@ -277,6 +281,7 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
                 times[name].append(timer.last_cpu_ms if base == "CPU" else timer.last_ms)
                 walls[name].append(timer.last_ms)
                 d_hat[name][:, k] = out.d_est.detach().cpu().numpy()
+                conf[name][:, k] = out.d_conf.detach().cpu().numpy()
                 if first:
                     alt[:, k], vel[:, k] = out.z_m.cpu().numpy(), out.v_mps.cpu().numpy()
                     valid[:, k] = (out.active & (out.z_m > z_end)).cpu().numpy()
@@ -299,7 +304,7 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
     flown_desc = Descents(desc.sites, desc.t_s, alt, vel, valid)
     res = EvaluationResult(flown_desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events,
                            wall_ms_per_step={n: np.asarray(v) for n, v in walls.items()}, time_base=base,
-                           checkpoints=checkpoints)
+                           checkpoints=checkpoints, confidence=conf)
     info = dict(trajectory="closed_form", flight="loop_step, tracking thrust",
                 integrator=str(cfg.dynamics.integrator),
                 trajectory_max_rel_dz=float(rel_dz[flown].max()) if flown.any() else 0.0,
