@@ -10,13 +10,18 @@ What is measured per descent, on the events of one step (all descents at once, n
 
 - ``clustering``: the index of dispersion of the *active pixels* (pixels with at least one event)
   counted over ``cell_px`` x ``cell_px`` cells, divided by its value for pixels active at random
-  (a binomial count: mean m, variance m (1 - m / cell_px^2)). About 1 for uniform noise, whatever
-  its rate; a scene's events lie on its edges and texture, 3 to 20 on the shipped sites.
-- ``neighbours``: the share of active pixels with an active 8-neighbour, as an excess over its
-  value for pixels active at random, 1 - (1 - q)^8 with q the share of active pixels: 0 for noise,
-  0.1 to 0.9 on scenes (events of an edge have neighbours; the background-activity filter's idea).
-- ``flicker``: |correlation of polarity and time| over the window's events: about 0.87 for a
-  global flicker (every pixel ON, then OFF), below 0.3 on scenes (ON and OFF events interleave).
+  (a binomial count: mean m, variance m (1 - m / cell_px^2)). 1 +- 0.09 for uniform noise, whatever
+  its rate; a scene's events lie on its edges and texture: >= 3.2 on every judged window of the
+  shipped sites (ideal pixel).
+- ``neighbours``: the share of active pixels with an active 8-neighbour, minus its value for
+  pixels active at random, 1 - (1 - q)^8 with q the share of active pixels, in standard errors of
+  that share: 0 +- 1 for noise, >= 6.8 on the shipped sites (events of an edge have neighbours:
+  the background-activity filter's idea).
+- ``flicker``: |correlation of polarity and time| over the window: about 0.87 for a global
+  flicker (every pixel ON, then OFF), <= 0.18 on the shipped sites (ON and OFF interleave).
+
+Through the realistic pixel either of the first two can fall to noise level on a window, but not
+both (measured on every step of the nine evaluation descents; docs/estimators.md).
 
 The factor: ``clamp(max(ramp(clustering), ramp(neighbours)), 0, 1)``, times the flicker ramp, and
 judged only on windows with enough events: below ``min_events`` the window is not judged (factor
@@ -29,7 +34,6 @@ from __future__ import annotations
 from typing import NamedTuple, Optional, Tuple
 
 import torch
-import torch.nn.functional as F
 
 
 class AbstainParams(NamedTuple):
@@ -151,6 +155,20 @@ def _flicker(events, B: int, t_us: int, n: torch.Tensor, dev) -> torch.Tensor:
     return torch.where(ok, r, torch.zeros_like(r)).clamp(0.0, 1.0).to(torch.float32)
 
 
+def check_abstain_params(p: AbstainParams) -> None:
+    """Raise ValueError naming the field when ``p`` is no usable :class:`AbstainParams`."""
+    if not isinstance(p, AbstainParams):
+        raise ValueError(f"abstain must be an AbstainParams or None, got {type(p).__name__}")
+    if not 2 <= p.cell_px <= 1024:
+        raise ValueError(f"abstain.cell_px must be in [2, 1024] px, got {p.cell_px}")
+    for lo, hi in (("clustering_none", "clustering_full"), ("neighbours_none", "neighbours_full"),
+                   ("flicker_full", "flicker_none"), ("min_events", "full_events")):
+        if not getattr(p, lo) < getattr(p, hi):
+            raise ValueError(f"abstain.{lo} must be < abstain.{hi}, got {getattr(p, lo)} and {getattr(p, hi)}")
+    if p.min_events < 0:
+        raise ValueError(f"abstain.min_events must be >= 0, got {p.min_events}")
+
+
 def motion_evidence(events, batch_size: int, sensor_size: Tuple[int, int], t_us: int,
                     params: AbstainParams = DEFAULT_ABSTAIN, device=None) -> MotionEvidence:
     """The motion-evidence test of the events of one step (module doc), all descents at once.
@@ -168,6 +186,7 @@ def motion_evidence(events, batch_size: int, sensor_size: Tuple[int, int], t_us:
     Returns:
         :class:`MotionEvidence`, each field (B,).
     """
+    check_abstain_params(params)
     B, (W, H) = int(batch_size), (int(sensor_size[0]), int(sensor_size[1]))
     dev = torch.device(device) if device is not None else (events.b.device if events is not None else "cpu")
     if events is None or events.b.numel() == 0:
@@ -182,7 +201,7 @@ def motion_evidence(events, batch_size: int, sensor_size: Tuple[int, int], t_us:
     motion = torch.maximum(_ramp(clus, params.clustering_none, params.clustering_full),
                            _ramp(nbx, params.neighbours_none, params.neighbours_full))
     motion = motion * _ramp(flick, params.flicker_none, params.flicker_full)
-    judged = _ramp(n.to(torch.float32), float(params.min_events), float(max(params.full_events, params.min_events + 1)))
+    judged = _ramp(n.to(torch.float32), float(params.min_events), float(params.full_events))
     factor = (1.0 - judged * (1.0 - motion)).clamp(0.0, 1.0)
     return MotionEvidence(factor, clus.to(torch.float32), nbx.to(torch.float32), flick, n)
 
@@ -212,5 +231,5 @@ def gate_output(out, events, batch_size: int, sensor_size, t_us: int, params: Op
     return apply_evidence(out, ev.factor)
 
 
-__all__ = ["AbstainParams", "DEFAULT_ABSTAIN", "EVIDENCE_KEY", "MotionEvidence", "motion_evidence",
+__all__ = ["AbstainParams", "DEFAULT_ABSTAIN", "EVIDENCE_KEY", "MotionEvidence", "motion_evidence", "check_abstain_params",
            "apply_evidence", "gate_output"]
