@@ -118,8 +118,8 @@ def test_preset_estimator_pair_open_loop_error_is_bounded(preset, estimator):
 @pytest.mark.slow
 def test_realistic_sensor_cmax_on_a_to_g_as_shipped():
     """The preset's target: ``cmax`` within 10 % on the whole closed-form descents of A-G (measured
-    2026-11-26: 3.4 %, 5 557 scored steps, 65 s CPU; 190 % with ``emulator.denoise=none``, the preset
-    before it shipped with denoising)."""
+    2026-11-26: 3.4 %, 5 557 scored steps, 65 s CPU; the preset's comment gives 190 % for the raw
+    pixel, ``emulator.denoise=none``)."""
     from dvsland.evaluate import evaluate
 
     res = evaluate(pair_config("realistic_sensor", "cmax"), ["cmax"], list("ABCDEFG"), progress=False,
