@@ -171,11 +171,18 @@ def test_cli_calibration_with_a_plugin(tmp_path, capsys):
     assert cal["estimators"]["mine"]["risk_coverage"]["answered_share"] == 1.0
 
 
-def test_cli_calibration_refuses_a_recording(tmp_path, capsys):
+def test_cli_calibration_of_a_recording(tmp_path, capsys):
+    """A recording's evaluation records each estimate's confidence, so its calibration report is written."""
+    import json
+    from pathlib import Path
+
     from dvsland.cli.main import main
 
-    f = tmp_path / "ev.csv"
-    f.write_text("t,x,y,p\n0,1,1,1\n")
-    assert main(["evaluate", "--recording", str(f), "--calibration", "--out", str(tmp_path / "r")]) != 0
-    assert "--calibration" in capsys.readouterr().err
-    assert not (tmp_path / "r").exists()
+    data = Path(__file__).parent / "data"
+    out = tmp_path / "r"
+    rc = main(["evaluate", "paper", "--recording", str(data / "descent_A.npz"), "--estimators", "oracle,dpr",
+               "--max-steps", "25", "--calibration", "--no-figures", "--quiet", "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    cal = json.loads((out / "calibration.json").read_text())
+    cov = cal["estimators"]["dpr"]["coverage"]["all"]
+    assert cov["n_steps"] > 0 and cov["n_estimates"] + cov["n_nan"] + cov["n_zero_confidence"] == cov["n_steps"]

@@ -130,9 +130,6 @@ def run_evaluate(args) -> int:
     if args.recording and (args.sites or args.segment_steps or args.stride != 1 or args.scenarios):
         raise ValueError("--sites, --segment-steps, --stride and --scenarios select rendered descents; they do "
                          "not apply to --recording")
-    if args.recording and args.calibration:
-        raise ValueError("--calibration needs rendered descents: the --recording evaluation does not record "
-                         "the estimators' confidence yet")
     if not args.recording and (args.ground_truth or args.t_unit or args.element):
         raise ValueError("--ground-truth, --t-unit and --element need --recording PATH")
     if args.element < 0:

@@ -18,8 +18,7 @@ def calibration_of(res) -> dict:
     steps); ValueError when the evaluation recorded no confidence."""
     conf = getattr(res, "confidence", None) or {}
     if not conf:
-        raise ValueError("--calibration: this evaluation recorded no per-step confidence (rendered descents "
-                         "record it; --recording does not yet)")
+        raise ValueError("--calibration: this evaluation recorded no per-step confidence")
     return calibration_summary(res.descents.divergence, res.d_hat, conf, res.scored, res.descents.sites)
 
 

@@ -135,12 +135,14 @@ def _run_intervals(ests: dict, ev_all, cut: np.ndarray, edges: np.ndarray, truth
                    progress: bool, label: str) -> tuple:
     """Feed each estimator of ``ests`` ({label: estimator}) interval k's events (``ev_all[cut[k-1]:cut[k]]``)
     at ``edges[k]`` µs with the ground truth ``truth`` ({"divergence", "altitude_m", "velocity_mps"}:
-    (K + 1,) arrays, NaN = unknown). Returns ``(d_hat, times, walls, n_events)``: {label: (1, K + 1)
-    estimates, 1/s}, {label: [ms per update in the time base, :func:`.run.time_base`]},
-    {label: [wall ms per update]}, (1, K + 1) event counts (-1 at k = 0)."""
+    (K + 1,) arrays, NaN = unknown). Returns ``(d_hat, conf, times, walls, n_events)``: {label: (1, K + 1)
+    estimates, 1/s}, {label: (1, K + 1) confidence in [0, 1] (0 where there is no estimate)},
+    {label: [ms per update in the time base, :func:`.run.time_base`]}, {label: [wall ms per update]},
+    (1, K + 1) event counts (-1 at k = 0)."""
     K = len(edges) - 1
     d_true = truth["divergence"]
     d_hat = {n: np.full((1, K + 1), np.nan) for n in ests}
+    conf = {n: np.zeros((1, K + 1)) for n in ests}
     cpu_base = time_base(device) == "CPU"
     times: Dict[str, List[float]] = {n: [] for n in ests}
     walls: Dict[str, List[float]] = {n: [] for n in ests}
@@ -171,11 +173,12 @@ def _run_intervals(ests: dict, ev_all, cut: np.ndarray, edges: np.ndarray, truth
             times[n].append((time.process_time() - c_start) * 1e3 if cpu_base else wall_ms)
             walls[n].append(wall_ms)
             d_hat[n][:, k] = d.detach().double().cpu().numpy()
+            conf[n][:, k] = np.nan_to_num(est.confidence().detach().double().cpu().numpy(), nan=0.0)
         if bar is not None:
             bar.update(1)
     if bar is not None:
         bar.close()
-    return d_hat, times, walls, n_events
+    return d_hat, conf, times, walls, n_events
 
 
 def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
@@ -242,11 +245,11 @@ def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
         ck = estimator_checkpoint(vcfg, est_name, ests[lab])
         if ck is not None:
             checkpoints[lab] = ck
-    d_hat, times, walls, n_events = _run_intervals(ests, ev_all, cut, edges, truth, device, progress, label)
+    d_hat, conf, times, walls, n_events = _run_intervals(ests, ev_all, cut, edges, truth, device, progress, label)
     scored = desc.valid & (np.arange(K + 1)[None] > warmup_steps)
     res = EvaluationResult(desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events,
                            wall_ms_per_step={n: np.asarray(v) for n, v in walls.items()},
-                           time_base=time_base(device), checkpoints=checkpoints)
+                           time_base=time_base(device), checkpoints=checkpoints, confidence=conf)
     info = dict(trajectory="recording", recording=recording.source, recording_format=recording.format,
                 sensor_size=[int(W), int(H)], sensor_size_from=recording.meta.get("sensor_size_from"),
                 has_ground_truth=gt is not None, n_steps=K, steps_run=K,
