@@ -57,8 +57,8 @@ class AbstainParams(NamedTuple):
     neighbours_full: float = 4.25
     flicker_full: float = 0.5
     flicker_none: float = 0.7
-    min_events: int = 100
-    full_events: int = 200
+    min_events: int = 200
+    full_events: int = 300
 
 
 #: the shipped thresholds; ``DivergenceEstimator.abstain = None`` turns the test off for a class or
