@@ -257,3 +257,24 @@ def test_bad_thresholds_name_the_field():
         motion_evidence(None, 1, (W, H), DT_US, AbstainParams(clustering_none=2.0, clustering_full=1.0))
     with pytest.raises(ValueError, match=r"abstain.cell_px must be in \[2, 1024\]"):
         motion_evidence(None, 1, (W, H), DT_US, AbstainParams(cell_px=1))
+
+
+def test_config_section_tunes_or_turns_off_the_test():
+    """estimator.abstain: defaults leave the class's setting, enabled=false turns it off, a tuned
+    threshold is passed on, and a contradictory pair is refused naming the keys."""
+    from dvsland.config import load_config
+    from dvsland.estimators.abstain import DEFAULT_ABSTAIN
+    from dvsland.stages import build_estimator
+
+    cfg = load_config("paper", ["estimator.name=cmax"])
+    assert build_estimator(cfg, 2).abstain == DEFAULT_ABSTAIN
+    off = load_config("paper", ["estimator.name=cmax", "estimator.abstain.enabled=false"])
+    assert build_estimator(off, 2).abstain is None
+    tuned = load_config("paper", ["estimator.name=cmax", "estimator.abstain.min_events=500",
+                                  "estimator.abstain.full_events=800"])
+    assert build_estimator(tuned, 2).abstain.min_events == 500
+    bad = load_config("paper", ["estimator.name=cmax", "estimator.abstain.clustering_none=2.0"])
+    with pytest.raises(ValueError, match=r"estimator\.abstain\.clustering_none"):
+        build_estimator(bad, 2)
+    oracle = load_config("paper", ["estimator.name=oracle"])
+    assert not getattr(build_estimator(oracle, 2), "needs_events", True)  # no events: never judged

@@ -304,6 +304,26 @@ class LearnedConfig:
 
 
 @dataclass
+class AbstainConfig:
+    """The motion-evidence test every event estimator runs behind (not in paper): a window that shows
+    no moving scene (sensor noise, a static scene, a global flicker) gives no estimate."""
+
+    enabled: bool = opt(True, "run the test (false: every estimate passes as its estimator gave it)")
+    cell_px: int = opt(8, "side of the cells of the clustering index, px", rng=(2, 256))
+    clustering_none: float = opt(1.4, "clustering index (1 = random) at or below which a window shows no structure",
+                                 rng=(0.0, 1e3))
+    clustering_full: float = opt(1.6, "clustering index at or above which it shows a scene", rng=(0.0, 1e3))
+    neighbours_none: float = opt(3.25, "neighbour excess over random (standard errors) at or below which a window "
+                                 "shows no structure", rng=(-1e3, 1e3))
+    neighbours_full: float = opt(4.25, "neighbour excess at or above which it shows a scene", rng=(-1e3, 1e3))
+    flicker_full: float = opt(0.5, "|corr(polarity, time)| at or below which a window is no flicker", rng=(0.0, 1.0))
+    flicker_none: float = opt(0.7, "|corr(polarity, time)| at or above which it is a flicker (no estimate)",
+                              rng=(0.0, 1.0))
+    min_events: int = opt(200, "events of one descent in a window below which it is not judged", rng=(0, 10**9))
+    full_events: int = opt(300, "events from which a window is judged fully", rng=(0, 10**9))
+
+
+@dataclass
 class EstimatorConfig:
     """Which divergence estimator runs, and its parameters."""
 
@@ -313,6 +333,8 @@ class EstimatorConfig:
     oracle: OracleConfig = opt(None, "parameters of 'oracle'", factory=OracleConfig)
     snn: SNNConfig = opt(None, "parameters of 'snn'", factory=SNNConfig)
     learned: LearnedConfig = opt(None, "parameters of 'learned'", factory=LearnedConfig)
+    abstain: AbstainConfig = opt(None, "the motion-evidence test every event estimator runs behind",
+                                 factory=AbstainConfig)
     params: dict = opt(None, "free-form keyword parameters for other (third-party) estimators",
                        factory=dict)
 

@@ -7,6 +7,7 @@ from typing import Any
 
 from dvsland.config import Config
 
+from .abstain import DEFAULT_ABSTAIN, AbstainParams, check_abstain_params
 from .registry import get_estimator, split_alias
 
 
@@ -36,4 +37,24 @@ def make_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: str 
     params.setdefault("dt_s", cfg.dt_s)
     params.setdefault("seed", cfg.simulation.seed if seed is None else seed)
     params.setdefault("principal_point_px", cfg.camera.principal_point_px)
-    return get_estimator(name, batch_size, (cfg.camera.width_px, cfg.camera.height_px), device, **params)
+    est = get_estimator(name, batch_size, (cfg.camera.width_px, cfg.camera.height_px), device, **params)
+    apply_abstain(est, getattr(cfg.estimator, "abstain", None))
+    return est
+
+
+def apply_abstain(est, section) -> None:
+    """Set ``est.abstain`` from the ``estimator.abstain`` section (:class:`AbstainParams`, or None when
+    ``enabled`` is false). A class that opts out (``abstain = None``) stays out; a section equal to the
+    defaults leaves the class's own setting."""
+    if section is None or getattr(est, "abstain", None) is None:
+        return
+    fields = {k: getattr(section, k) for k in AbstainParams._fields}
+    if not section.enabled:
+        est.abstain = None
+    elif AbstainParams(**fields) != DEFAULT_ABSTAIN:
+        params = AbstainParams(**fields)
+        try:
+            check_abstain_params(params)
+        except ValueError as exc:
+            raise ValueError(f"estimator.{exc}") from None
+        est.abstain = params
