@@ -388,9 +388,12 @@ class deferred_interrupts:  # noqa: N801 - used like a function: ``with deferred
     """Hold SIGINT and SIGTERM back inside the block and raise KeyboardInterrupt once it ends
     (unless it ends in an exception of its own), so a final file (results.json after an
     interrupt) is written whole even when Ctrl-C is pressed again. Main thread only; elsewhere
-    it does nothing."""
+    it does nothing. ``during`` says what the block did (the raised interrupt's message)."""
 
     _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self, during: str = "the results were written (they were written first)"):
+        self.during = during
 
     def __enter__(self):
         self.caught, self.old = [], {}
@@ -411,8 +414,7 @@ class deferred_interrupts:  # noqa: N801 - used like a function: ``with deferred
         for s, old in self.old.items():
             signal.signal(s, old if old is not None else signal.SIG_DFL)
         if self.caught and exc_type is None:
-            raise KeyboardInterrupt(f"{signal.Signals(self.caught[0]).name} while the results were written "
-                                    f"(they were written first)")
+            raise KeyboardInterrupt(f"{signal.Signals(self.caught[0]).name} while {self.during}")
         return False
 
 

@@ -427,4 +427,5 @@ def test_ctrl_c_right_after_planning_leaves_results_and_no_worker(tmp_path, when
     assert "Traceback" not in err and "EOFError" not in err, err
     saved = _json.loads((out / "results.json").read_text())
     assert saved["status"] == "interrupted", saved
+    assert f"dvsland campaign --resume {out}" in err, err  # the folder to resume, named
     assert left == [], f"processes left behind: {left}"

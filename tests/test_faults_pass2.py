@@ -262,3 +262,59 @@ def test_load_state_checks_device_and_finite_fields(tmp_path, state):
     with pytest.raises(ValueError, match="'z_m' is not a finite"):
         load_state(tmp_path / "nan.pt")
     assert np.isfinite(load_state(path).z_m.numpy()).all()
+
+
+# ------------------------------------------------------------------ what an interrupt says
+def test_campaign_interrupted_before_its_folder_says_nothing_was_written(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the plan was built said "finished shards are kept: resume with --resume
+    <folder>" when there was no folder; now it says nothing was written (and, once the folder
+    exists, names it)."""
+    import dvsland.campaign.runner as runner_mod
+
+    def ctrl_c(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(runner_mod, "make_plan", ctrl_c)
+    assert main(["campaign", "paper", "--n-seeds", "1", "--shard-seeds", "1", "--out", str(tmp_path / "c")]) == 130
+    err = capsys.readouterr().err
+    assert "before its folder was made; nothing was written" in err and "--resume" not in err, err
+    assert not (tmp_path / "c").exists()
+
+
+def test_dataset_build_interrupted_before_its_dataset_says_nothing_was_written(tmp_path, monkeypatch, capsys):
+    import dvsland.campaign
+
+    def ctrl_c(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dvsland.campaign, "make_plan", ctrl_c)
+    rc = main(["dataset", "build", CONFIG, "--n-seeds", "1", "--out", str(tmp_path / "d"), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 130 and "nothing was written" in err and "resume" not in err, err
+
+
+def test_ctrl_c_while_torch_imports_is_held_until_it_is_imported():
+    """A signal in the first second of a command could land inside torch's import, where its C++
+    calls back into Python: the KeyboardInterrupt aborted the process ("terminate called after
+    throwing an instance of 'pybind11::error_already_set'", status -6; seen about once in 70 SIGTERMs
+    at 0.2-1.6 s into `dvsland config show paper`). The CLI now holds the interrupt while torch
+    imports and delivers it once torch is whole (and importable again)."""
+    import subprocess
+
+    code = ("import os, signal, sys, threading\n"
+            "from dvsland.cli.main import _TorchImportGuard\n"
+            "_TorchImportGuard().install()\n"
+            "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+            "threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGINT)).start()\n"
+            "try:\n"
+            "    import torch\n"
+            "    print('IMPORTED', flush=True)\n"
+            "    threading.Event().wait(5)\n"
+            "    print('NOT INTERRUPTED')\n"
+            "except KeyboardInterrupt:\n"
+            "    import torch\n"
+            "    print('HELD', float(torch.ones(2).sum()))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr[-2000:]
+    assert out.stdout.split() == ["IMPORTED", "HELD", "2.0"], out.stdout + out.stderr[-2000:]

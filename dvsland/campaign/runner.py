@@ -330,6 +330,10 @@ def _finish(plan: CampaignPlan, run_dir: Path, fly: dict, session: dict, quiet: 
     if isinstance(exc, WorkerLostError):
         raise WorkerLostError(str(exc).replace("RUN_DIR", str(run_dir))) from exc
     if exc is not None:
+        try:
+            exc.run_dir = str(run_dir)  # the command names the folder to resume
+        except AttributeError:
+            pass
         raise exc
     return CampaignResult(run_dir=run_dir, runs=runs, groups=groups, group_by=by, status=status,
                           n_shards=len(plan.shards), n_shards_run=fly["n_run"], wall_time_s=wall,

@@ -56,8 +56,11 @@ def run_campaign_cmd(args) -> int:
         res = run_campaign(cfg, sweeps=args.sweep, n_seeds=args.n_seeds, executor=args.executor,
                            workers=args.workers, resume=args.resume, out=args.out, quiet=args.quiet,
                            shard_seeds=args.shard_seeds, keep_runs=args.keep_runs)
-    except KeyboardInterrupt:
-        print("dvsland: campaign interrupted; finished shards are kept: resume with --resume <folder>", flush=True)
+    except KeyboardInterrupt as exc:
+        run_dir = getattr(exc, "run_dir", None)  # set once the campaign's folder exists
+        print("dvsland: campaign interrupted before its folder was made; nothing was written" if run_dir is None
+              else f"dvsland: campaign interrupted; finished shards are kept: dvsland campaign --resume {run_dir}",
+              file=sys.stderr, flush=True)
         return 130
     except WorkerLostError as exc:
         print(f"dvsland: error: {exc}", file=sys.stderr, flush=True)

@@ -11,6 +11,8 @@ resumable HDF5 shards and a manifest; the same command again resumes an interrup
 
 from __future__ import annotations
 
+import sys
+
 from .common import add_config_args, config_from_args, ranged
 
 
@@ -54,8 +56,14 @@ def run_build(args) -> int:
                             compression=None if args.compression == "none" else args.compression,
                             workers=args.workers)
     except KeyboardInterrupt:
-        print(f"dvsland: dataset build interrupted; complete shards are kept in {args.out}: run the same "
-              "command again to resume", flush=True)
+        from pathlib import Path
+
+        from dvsland.data.manifest import manifest_path
+
+        print(f"dvsland: dataset build interrupted; complete shards are kept in {args.out}: run the same command "
+              "again to resume" if manifest_path(Path(args.out)).is_file() else
+              "dvsland: dataset build interrupted before its dataset was started; nothing was written",
+              file=sys.stderr, flush=True)
         return 130
     m = res.manifest
     n_done = sum(e["status"] == "complete" for e in m["shards"])

@@ -53,11 +53,79 @@ def _own_signals() -> dict:
     return old
 
 
+class _TorchImportGuard:
+    """A ``sys.meta_path`` finder that holds SIGINT and SIGTERM back while torch imports (wherever
+    a command first imports it) and delivers the interrupt once it is imported: a KeyboardInterrupt
+    raised inside torch's import, where its C++ calls back into Python, aborted the process
+    ("terminate called after throwing an instance of 'pybind11::error_already_set'", status -6)."""
+
+    def find_spec(self, name, path=None, target=None):
+        if name != "torch":
+            return None
+        import importlib.util
+
+        self.remove()  # once: and find the real spec without coming back here
+        spec = importlib.util.find_spec("torch")
+        if spec is None or spec.loader is None:
+            return spec
+        spec.loader = _HeldLoader(spec.loader)
+        return spec
+
+    def install(self) -> None:
+        if "torch" not in sys.modules and self not in sys.meta_path:
+            sys.meta_path.insert(0, self)
+
+    def remove(self) -> None:
+        if self in sys.meta_path:
+            sys.meta_path.remove(self)
+
+
+class _HeldLoader:
+    """Runs torch's own loader with SIGINT and SIGTERM held back, then sends the first again
+    (50 ms later, past the import machinery) to the handler the command has."""
+
+    def __init__(self, loader):
+        self.loader = loader
+
+    def create_module(self, spec):
+        return self.loader.create_module(spec)
+
+    def exec_module(self, module):
+        caught, old = [], {}
+
+        def hold(signum, frame):  # noqa: ARG001 - signal handler signature
+            runs = sys.modules.get("dvsland.runs")  # a command's interrupt watchdog: the main thread answers
+            for dog in (runs._GUARDS.watchdog[-1:] if runs is not None else []):
+                dog.acknowledge()
+            caught.append(signum)
+
+        try:  # a plain handler here (not dvsland.runs': importing it could itself be interrupted)
+            for s in (signal.SIGINT, signal.SIGTERM):
+                old[s] = signal.signal(s, hold)
+        except (ValueError, OSError):  # not the main thread: nothing to hold
+            pass
+        try:
+            self.loader.exec_module(module)
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h if h is not None else signal.SIG_DFL)
+        if caught:  # sent again once the import is done: raised here, it failed the import and left
+            import os  # torch half registered (a later import: "Only a single TORCH_LIBRARY ...")
+            import threading
+
+            threading.Timer(0.05, os.kill, (os.getpid(), caught[0])).start()
+
+    def __getattr__(self, name):  # anything else the import system asks of the real loader
+        return getattr(self.loader, name)
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run the ``dvsland`` command line ``argv`` (default: ``sys.argv[1:]``); return the exit
     status: 0 done, 1 a run that ended incomplete, 2 bad input (one line naming it), 130
     interrupted (SIGINT or SIGTERM, at any moment)."""
     old = _own_signals()  # first: a Ctrl-C while the sub-commands are imported is ours too
+    guard = _TorchImportGuard()
+    guard.install()
     started = []
     try:
         return _run(argv, started)
@@ -72,7 +140,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         # flag set even when it is handled (here, or by a command that returns 130 after saving its
         # work), and the interpreter would then end itself by SIGINT at exit instead of with the
         # status returned; running exec() once more clears it
-        exec("pass")  # noqa: S102 - a constant string
+        for _ in range(3):  # a signal landing inside this exec() sets the flag again: once more
+            try:
+                exec("pass")  # noqa: S102 - a constant string
+                break
+            except KeyboardInterrupt:
+                continue
+        guard.remove()
         for s, h in old.items():
             try:
                 signal.signal(s, h if h is not None else signal.SIG_DFL)
