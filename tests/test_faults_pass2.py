@@ -318,3 +318,24 @@ def test_ctrl_c_while_torch_imports_is_held_until_it_is_imported():
                          env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr[-2000:]
     assert out.stdout.split() == ["IMPORTED", "HELD", "2.0"], out.stdout + out.stderr[-2000:]
+
+
+@pytest.mark.parametrize("entry", [{"id": 0, "status": "complete"}, {"id": 0, "status": "complete", "file": "../x.h5"},
+                                   {"id": 0, "status": "complete", "file": "/etc/passwd"}, 7])
+def test_readers_refuse_a_damaged_manifest_entry(tmp_path, capsys, entry):
+    """`dataset info` (and every reader) names the damaged entry instead of a KeyError traceback or
+    reading a file outside the folder; the build reads without the check (it repairs on resume)."""
+    import json as _json
+
+    from dvsland.cli.main import main as cli_main
+    from dvsland.data.manifest import load_manifest
+
+    d = tmp_path / "ds"
+    d.mkdir()
+    (d / "dataset.json").write_text(_json.dumps({"format": "dvsland-event-windows", "shards": [entry]}))
+    with pytest.raises(ValueError, match=r"shards\[0\]"):
+        load_manifest(d)
+    assert load_manifest(d, "out", check_entries=False)["shards"] == [entry]
+    assert cli_main(["dataset", "info", str(d)]) == 2
+    err = capsys.readouterr().err
+    assert "shards[0]" in err and "Traceback" not in err

@@ -198,7 +198,7 @@ def _same_request(root: Path, fresh: dict):
     ValueError (naming what differs) otherwise."""
     if not manifest_path(root).is_file():
         return None
-    old = load_manifest(root, "out")
+    old = load_manifest(root, "out", check_entries=False)  # damaged entries are repaired below
     diff = same_request(old, fresh)
     if diff is not None:
         raise ValueError(f"out={str(root)!r} holds a dataset of another request ({diff}); "

@@ -50,12 +50,16 @@ def shard_file(folder, shard_id: str) -> Path:
     return Path(folder) / SHARDS_DIR / f"{shard_id}.h5"
 
 
-def load_manifest(folder, param: str = "root") -> dict:
+def load_manifest(folder, param: str = "root", check_entries: bool = True) -> dict:
     """The manifest of a dataset folder.
+
+    Args:
+        check_entries: check every complete shard entry (:func:`check_shard_entries`); the build,
+            which repairs damaged entries on resume, reads without.
 
     Raises:
         ValueError: the folder is missing or empty, has no ``dataset.json``, or the manifest is
-            unreadable (names ``param``, the folder and what is wrong).
+            unreadable or names a shard file it cannot (names ``param``, the folder and what is wrong).
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -71,7 +75,28 @@ def load_manifest(folder, param: str = "root") -> dict:
         raise ValueError(f"{param}={str(folder)!r}: {MANIFEST} is unreadable ({exc})") from None
     if not isinstance(m, dict) or m.get("format") != "dvsland-event-windows" or not isinstance(m.get("shards"), list):
         raise ValueError(f"{param}={str(folder)!r}: {MANIFEST} is not a dvsland event-window manifest")
+    if check_entries:
+        check_shard_entries(folder, m, param)
     return m
+
+
+def check_shard_entries(folder: Path, m: dict, param: str) -> None:
+    """ValueError naming ``param``, the folder and the entry when a shard entry is not an object, or a
+    complete one names no file, or a file outside ``folder`` (a damaged or hand-edited manifest)."""
+    root = os.path.realpath(folder)
+    for i, e in enumerate(m["shards"]):
+        if not isinstance(e, dict):
+            raise ValueError(f"{param}={str(folder)!r}: {MANIFEST} shards[{i}] is not an object; rebuild with "
+                             f"`dvsland dataset build ... --out {folder}` (it repairs damaged entries)")
+        if e.get("status") != "complete":
+            continue
+        f = e.get("file")
+        inside = isinstance(f, str) and f.strip() and \
+            os.path.commonpath([root, os.path.realpath(os.path.join(root, f))]) == root
+        if not inside:
+            raise ValueError(f"{param}={str(folder)!r}: {MANIFEST} shards[{i}] names no shard file inside the folder "
+                             f"(file {f!r}); rebuild with `dvsland dataset build ... --out {folder}` (it repairs "
+                             f"damaged entries)")
 
 
 def save_manifest(folder, manifest: dict) -> Path:
