@@ -77,6 +77,21 @@ def parse_campaign_runs(text):
     return tuple(runs)
 
 
+def check_estimator_names(names) -> None:
+    """ValueError naming ``--estimators`` for a name no registry knows (an import path
+    ``pkg.mod:Class``, an alias ``A=...`` and options ``name[k=v]`` are read by their name)."""
+    if not names:
+        return
+    from dvsland.estimators import available_estimators
+    from dvsland.estimators.registry import split_alias
+
+    known = available_estimators()
+    for n in names:
+        base = split_alias(n)[1].split("[", 1)[0].strip()
+        if ":" not in base and base not in known:
+            raise ValueError(f"--estimators: unknown estimator {n!r}; known: {known}")
+
+
 def run(args) -> int:
     from dvsland.bench import run_bench
     from dvsland.cli.common import check_device, parse_sites
@@ -92,6 +107,11 @@ def run(args) -> int:
     render_threads = threads if args.render_threads is None else args.render_threads
 
     est = [e.strip() for e in args.estimators.split(",") if e.strip()] if args.estimators else None
+    try:
+        check_estimator_names(est)
+    except ValueError as exc:
+        print(f"dvsland: error: {exc}", file=sys.stderr)
+        return 2
     command = "dvsland " + " ".join(sys.argv[1:]) if sys.argv and sys.argv[0].endswith("dvsland") else "dvsland bench"
     run_bench(args.what, quick=args.quick, device=args.device, out=args.out, config=args.config,
               closed_loop_config=args.closed_loop_config, docs=args.docs, threads=threads,
