@@ -155,8 +155,8 @@ def package_dir() -> Path:
     return Path(dvsland.__file__).resolve().parent
 
 
-def check_out_path(out, overwrite_shipped: bool = False, overwrite: bool = False) -> Path:
-    """The checkpoint path ``--out`` names, checked before any work.
+def check_out_path(out, overwrite_shipped: bool = False, overwrite: bool = False, name: str = CHECKPOINT_NAME) -> Path:
+    """The checkpoint path ``--out`` names, checked before any work (``name``: the file a folder is told to hold).
 
     Raises:
         ValueError: a path inside the installed package without ``overwrite_shipped``, an existing
@@ -172,7 +172,7 @@ def check_out_path(out, overwrite_shipped: bool = False, overwrite: bool = False
                          f"replace a shipped file. Write elsewhere (default: a run folder under logs/), or pass "
                          f"--overwrite-shipped to replace it on purpose")
     if path.is_dir():
-        raise ValueError(f"--out {out}: is a folder; give the checkpoint file, e.g. {path / CHECKPOINT_NAME}")
+        raise ValueError(f"--out {out}: is a folder; give the checkpoint file, e.g. {path / name}")
     if path.exists() and not overwrite and not (overwrite_shipped and pkg in resolved.parents):
         raise ValueError(f"--out {out}: the file exists; pass --overwrite to replace it")
     for parent in path.parents:

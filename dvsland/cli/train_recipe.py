@@ -67,7 +67,7 @@ def recipe_settings(args, cfg):
 
 def run_recipe(args, check_out_path) -> int:
     """Check the arguments, train, write the checkpoint and print where it is and how it scored.
-    ``check_out_path(out, overwrite_shipped, overwrite)``: the --out guard of ``dvsland train``."""
+    ``check_out_path(out, overwrite_shipped, overwrite, name)``: the --out guard of ``dvsland train``."""
     check_model_name(args.model)  # before torch loads: a typo is answered at once
     from dvsland.estimators.learned import read_checkpoint
     from dvsland.learn import train
@@ -98,7 +98,8 @@ def run_recipe(args, check_out_path) -> int:
     elif args.resume:
         out = Path(args.out)
     else:
-        out = check_out_path(args.out, args.overwrite_shipped, args.overwrite)
+        out = check_out_path(args.out, args.overwrite_shipped, args.overwrite,
+                             name=f"{'cnn' if args.model is None else args.model.strip().split(':')[-1]}.pt")
     tb = Path(args.tensorboard) if args.tensorboard else out.with_name(out.stem + ".tb")
     log = (lambda *a, **k: None) if args.quiet else print
     ck = train(args.data, out, s, resume=args.resume, progress=not args.quiet, tb_dir=tb, log=log, init=args.init)
