@@ -342,10 +342,10 @@ def test_readers_refuse_a_damaged_manifest_entry(tmp_path, capsys, entry):
 
 
 def test_bench_refuses_an_unknown_estimator_before_running(tmp_path, capsys):
-    from dvsland.cli.cmd_bench import check_estimator_names
     from dvsland.cli.main import main as cli_main
+    from dvsland.estimators.registry import check_estimator_names
 
     check_estimator_names(["dpr[baseline_steps=5]", "fast=dpr", "cmax", "my.mod:Cls"])  # accepted
     assert cli_main(["bench", "throughput", "--quick", "--estimators", "nosuch", "--out", str(tmp_path / "b")]) == 2
-    assert "--estimators: unknown estimator 'nosuch'" in capsys.readouterr().err
+    assert "--estimators: unknown estimator(s) ['nosuch']" in capsys.readouterr().err
     assert not (tmp_path / "b").exists()

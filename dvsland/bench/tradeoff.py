@@ -28,6 +28,7 @@ import numpy as np
 
 from dvsland.config import Config, apply_overrides, build, config_to_dict
 from dvsland.estimators import available_estimators
+from dvsland.estimators.registry import check_estimator_names
 
 from .stages import time_stages
 
@@ -68,9 +69,7 @@ def configurations(quick: bool, estimators: Optional[Sequence[str]] = None,
                    pyrender: bool = True) -> List[Configuration]:
     """The configurations to measure: each registered estimator's variants, then the settings."""
     names = list(estimators) if estimators else available_estimators()
-    unknown = [n for n in names if n not in available_estimators() and ":" not in n]
-    if unknown:
-        raise ValueError(f"--estimators: unknown estimator(s) {unknown}; known: {available_estimators()}")
+    check_estimator_names(names)
     table = VARIANTS_QUICK if quick else VARIANTS_FULL
     out = []
     for name in names:

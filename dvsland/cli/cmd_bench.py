@@ -77,21 +77,6 @@ def parse_campaign_runs(text):
     return tuple(runs)
 
 
-def check_estimator_names(names) -> None:
-    """ValueError naming ``--estimators`` for a name no registry knows (an import path
-    ``pkg.mod:Class``, an alias ``A=...`` and options ``name[k=v]`` are read by their name)."""
-    if not names:
-        return
-    from dvsland.estimators import available_estimators
-    from dvsland.estimators.registry import split_alias
-
-    known = available_estimators()
-    for n in names:
-        base = split_alias(n)[1].split("[", 1)[0].strip()
-        if ":" not in base and base not in known:
-            raise ValueError(f"--estimators: unknown estimator {n!r}; known: {known}")
-
-
 def run(args) -> int:
     from dvsland.bench import run_bench
     from dvsland.cli.common import check_device, parse_sites
@@ -108,6 +93,8 @@ def run(args) -> int:
 
     est = [e.strip() for e in args.estimators.split(",") if e.strip()] if args.estimators else None
     try:
+        from dvsland.estimators.registry import check_estimator_names
+
         check_estimator_names(est)
     except ValueError as exc:
         print(f"dvsland: error: {exc}", file=sys.stderr)

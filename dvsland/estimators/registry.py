@@ -181,3 +181,12 @@ def _parameters(cls) -> Tuple[List[str], bool]:
              if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
              and p.name not in ("self", "batch_size", "sensor_size", "device")]
     return names, any(p.kind is p.VAR_KEYWORD for p in sig.parameters.values())
+
+
+def check_estimator_names(names, param: str = "--estimators") -> None:
+    """ValueError naming ``param`` for names no registry knows (an import path ``pkg.mod:Class``, an
+    alias ``A=...`` and options ``name[k=v]`` are read by their name)."""
+    known = available_estimators()
+    unknown = [n for n in (names or ()) if ":" not in n and split_alias(n)[1].split("[", 1)[0].strip() not in known]
+    if unknown:
+        raise ValueError(f"{param}: unknown estimator(s) {unknown}; known: {known}")
