@@ -88,3 +88,15 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory):
+    """A dataset folder of `dvsland dataset build`: five one-second descents of site A in one shard
+    (montecarlo_efference, one thread), built once per test session; read it, do not write into it."""
+    from dvsland.data import build_dataset
+
+    out = tmp_path_factory.mktemp("ds") / "tiny5"
+    build_dataset("montecarlo_efference", out=out, n_seeds=5, sites="A", shard_size=5, quiet=True,
+                  overrides=["render.threads=1", "simulation.torch_threads=1", "simulation.t_max_s=1.0"])
+    return out

@@ -14,7 +14,6 @@ from dvsland.cli import cmd_train
 from dvsland.cli.main import main
 from dvsland.estimators.snn import DEFAULT_CHECKPOINT, load_checkpoint
 
-SETS = ["render.threads=1", "simulation.torch_threads=1", "simulation.t_max_s=1.0"]
 RECIPE = ["--model", "cnn", "--epochs", "2", "--batch", "4", "--model-set", "width=4", "--quiet"]
 SNN_TINY = ["--sites", "A~1", "--n-seq", "4", "--steps", "6", "--epochs", "1", "--batch", "2", "--warmup-steps", "2",
             "--quiet"]
@@ -25,12 +24,8 @@ def _digest(path):
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    from dvsland.data import build_dataset
-
-    out = tmp_path_factory.mktemp("ds") / "tiny5"
-    build_dataset("montecarlo_efference", out=out, n_seeds=5, sites="A", shard_size=5, overrides=SETS, quiet=True)
-    return out
+def data(tiny_dataset):
+    return tiny_dataset
 
 
 @pytest.fixture(scope="module")

@@ -16,10 +16,8 @@ SETS = ["render.threads=1", "simulation.torch_threads=1", "simulation.t_max_s=1.
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("ds") / "tiny5"
-    build_dataset("montecarlo_efference", out=out, n_seeds=5, sites="A", shard_size=5, overrides=SETS, quiet=True)
-    return out
+def data(tiny_dataset):
+    return tiny_dataset
 
 
 FAST = dict(epochs=2, batch_size=4, val_max_samples=100, model_settings={"width": 4})

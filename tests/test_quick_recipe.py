@@ -14,16 +14,10 @@ from dvsland.cli.main import build_parser, main
 from dvsland.learn import RECIPES, RecipeSettings, recipe
 from dvsland.learn.recipe import Clock, _lr
 
-SETS = ["render.threads=1", "simulation.torch_threads=1", "simulation.t_max_s=1.0"]
-
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    from dvsland.data import build_dataset
-
-    out = tmp_path_factory.mktemp("ds") / "tiny5"
-    build_dataset("montecarlo_efference", out=out, n_seeds=5, sites="A", shard_size=5, overrides=SETS, quiet=True)
-    return out
+def data(tiny_dataset):
+    return tiny_dataset
 
 
 def test_quick_resolves_to_its_settings():
