@@ -211,6 +211,17 @@ def hold_last_finish(p: LawParams, state: HoldLastState, usable: Tensor, u: Tens
     return HoldLastState(thrust), thrust
 
 
+def divergence_law_finish(p: LawParams, state: HoldLastState, d: Tensor, u: Tensor, mg: Tensor,
+                          active: Optional[Tensor], tau_target_s: Tensor) -> Tuple[HoldLastState, ControlOutput]:
+    """The end of a law on the filtered divergence ``d`` (B,) 1/s: the command ``u`` (B,) N where ``d``
+    is known, the missing policy where it is NaN (:func:`hold_last_finish`), and the
+    :class:`ControlOutput` with tau_hat = -1/d (NaN unless d < 0) and the target ``tau_target_s`` (B,) s."""
+    usable = ~torch.isnan(d)
+    state, thrust = hold_last_finish(p, state, usable, u, mg, active)
+    tau_hat = torch.where(d < 0, -1.0 / d, float("nan"))
+    return state, ControlOutput(thrust_n=thrust, tau_hat_s=tau_hat, tau_target_s=tau_target_s, held=~usable)
+
+
 def law_inputs(p: LawParams, t_s, d_filtered: Tensor, mass_kg: Tensor):
     """(d (B,) float64, m (B,) float64, m g (B,) float64, t_s as float or float64 tensor)."""
     if isinstance(t_s, Tensor):

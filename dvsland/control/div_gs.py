@@ -34,7 +34,7 @@ import torch
 from dvsland.config.schema import DivGSConfig
 
 from .base import (ControlOutput, Controller, HoldLastState, LawParams, check_bounds, clamp_thrust,
-                   hold_last_finish, hold_last_init, law_inputs, law_params)
+                   divergence_law_finish, hold_last_init, law_inputs, law_params)
 from .registry import register_controller
 
 Tensor = torch.Tensor
@@ -87,9 +87,7 @@ def div_gs_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor, mas
     a_ref = coef * d_star * d_star * z
     u = m * (p.g_mps2 + a_ref) + o.lambda_per_s * m * z * (d_star - torch.where(usable, d, 0.0))
     u = clamp_thrust(p, u)
-    state, thrust = hold_last_finish(p, state, usable, u, mg, active)
-    tau_hat = torch.where(d < 0, -1.0 / d, float("nan"))
-    return state, ControlOutput(thrust_n=thrust, tau_hat_s=tau_hat, tau_target_s=-1.0 / d_star, held=~usable)
+    return divergence_law_finish(p, state, d, u, mg, active, -1.0 / d_star)
 
 
 @register_controller("div_gs")

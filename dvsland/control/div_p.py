@@ -26,7 +26,7 @@ import torch
 from dvsland.config.schema import DivPConfig
 
 from .base import (ControlOutput, Controller, HoldLastState, LawParams, check_bounds, check_gain_and_target,
-                   clamp_thrust, hold_last_finish, hold_last_init, law_inputs, law_params)
+                   clamp_thrust, divergence_law_finish, hold_last_init, law_inputs, law_params)
 from .gain import div_loop_gain, gain_limit_altitude_m
 from .registry import register_controller
 
@@ -51,9 +51,7 @@ def div_p_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor, mass
     if p.options.feedforward_mg:
         u = u + mg
     u = clamp_thrust(p, torch.nan_to_num(u, nan=0.0))
-    state, thrust = hold_last_finish(p, state, usable, u, mg, active)
-    tau_hat = torch.where(d < 0, -1.0 / d, float("nan"))
-    return state, ControlOutput(thrust_n=thrust, tau_hat_s=tau_hat, tau_target_s=tau_star, held=~usable)
+    return divergence_law_finish(p, state, d, u, mg, active, tau_star)
 
 
 @register_controller("div_p")

@@ -28,7 +28,7 @@ from torch import nn
 from dvsland.estimators.state_dict_check import check_state_dict, read_checkpoint_file
 
 from .base import (ControlOutput, Controller, HoldLastState, LawParams, check_bounds, clamp_thrust,
-                   hold_last_finish, hold_last_init, law_inputs, law_params)
+                   divergence_law_finish, hold_last_init, law_inputs, law_params)
 from .registry import register_controller
 
 Tensor = torch.Tensor
@@ -107,10 +107,7 @@ def policy_law_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor,
         t_s = torch.full_like(d, float(t_s))
     obs, d_star = policy_observation(p, t_s, d, m)
     u = clamp_thrust(p, torch.sigmoid(p.options.net(obs)) * p.options.thrust_high_n)
-    usable = ~torch.isnan(d)
-    state, thrust = hold_last_finish(p, state, usable, u, mg, active)
-    tau_hat = torch.where(d < 0, -1.0 / d, float("nan"))
-    return state, ControlOutput(thrust_n=thrust, tau_hat_s=tau_hat, tau_target_s=-1.0 / d_star, held=~usable)
+    return divergence_law_finish(p, state, d, u, mg, active, -1.0 / d_star)
 
 
 @register_controller("policy")

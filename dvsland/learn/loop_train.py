@@ -22,6 +22,7 @@ from typing import Callable, Optional, Sequence
 
 import torch
 
+from dvsland.checks import check_range
 from dvsland.control.policy import POLICY_KIND
 from dvsland.sim import dispersed_start, init_state, loop_step, reset_where
 from dvsland.sim.termination import SUCCESS
@@ -67,15 +68,13 @@ class TrainLoopSettings:
     def check(self) -> "TrainLoopSettings":
         if self.what not in WHATS:
             raise ValueError(f"--what {self.what!r}: choose one of {list(WHATS)}")
-        for name, lo, hi in (("window", 0, 100000), ("max_windows", 0, 10**9), ("val_every", 0, 10**9)):
-            v = getattr(self, name)
-            if not (isinstance(v, int) and lo <= v <= hi):
-                raise ValueError(f"--{name.replace('_', '-')} must be an integer in [{lo}, {hi}], got {v!r}")
-        for name, lo, hi in (("lr", 0.0, 10.0), ("dispersion", 0.0, 0.5), ("cpu_minutes", 0.0, 1e6)):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi) or (name == "lr" and v == 0):
-                raise ValueError(f"--{name.replace('_', '-')} must be a number in {'(' if name == 'lr' else '['}{lo}, "
-                                 f"{hi}], got {v!r}")
+        for name, lo, hi, integer in (("window", 0, 100000, True), ("max_windows", 0, 10**9, True),
+                                      ("val_every", 0, 10**9, True), ("lr", 0.0, 10.0, False),
+                                      ("dispersion", 0.0, 0.5, False), ("cpu_minutes", 0.0, 1e6, False)):
+            v, flag = getattr(self, name), "--" + name.replace("_", "-")
+            if integer and not isinstance(v, int):
+                raise ValueError(f"{flag}: {v!r} is not an integer")
+            check_range(flag, v, lo, hi, open_lo=name == "lr")
         self.loss.check()
         return self
 
