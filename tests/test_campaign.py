@@ -126,6 +126,7 @@ def test_process_pool_equals_sequential(tmp_path):
     assert _key(seq) == _key(pool)
 
 
+@pytest.mark.slow  # 15 s: starts a local Ray instance (the optional executor)
 @pytest.mark.skipif(not ray_available(), reason="Ray is not installed (pip install 'dvsland[ray]'); "
                                                 "the Ray executor is not tested")
 def test_ray_executor_on_a_local_instance(tmp_path, monkeypatch):

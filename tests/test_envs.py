@@ -40,7 +40,8 @@ def fly_episode(env, policy=None, max_steps=100_000):
     raise AssertionError("episode did not end")
 
 
-@pytest.mark.parametrize("preset,overrides", [("paper", []), ("montecarlo_efference", ["simulation.n_seeds=2"])])
+@pytest.mark.parametrize("preset,overrides", [("paper", []), pytest.param(  # 13 s: every dispersion on
+    "montecarlo_efference", ["simulation.n_seeds=2"], marks=pytest.mark.slow)])
 def test_controller_commands_reproduce_simulate(tmp_path, preset, overrides):
     """Raw thrust actions = info['controller_thrust_n']: same outcome, t_end and final altitude (bit
     for bit) as dvsland.simulate, oracle estimator, sites D and H."""

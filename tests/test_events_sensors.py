@@ -68,6 +68,7 @@ def _chain(cfg, frames_of, altitudes, B):
     return out
 
 
+@pytest.mark.slow  # 13 s: a 346 x 260 sensor through render, emulator and estimator
 def test_davis346_render_emulate_estimate():
     """DAVIS346 (346 x 260, non-square) end to end with the fast terrain renderer."""
     from dvsland.render import get_renderer

@@ -173,7 +173,7 @@ def test_interrupt_during_the_parsers_imports_is_one_line(args):
     assert p.stderr.strip().startswith("dvsland: interrupted") and len(p.stderr.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("sig", ["SIGINT", pytest.param("SIGTERM", marks=pytest.mark.slow)])  # 10 s each
 def test_signal_in_the_first_seconds_is_never_a_traceback(sig):
     """A real signal at several moments of the start-up (imports, parsing, the command)."""
     import signal
