@@ -25,7 +25,7 @@ from typing import NamedTuple, Optional, Tuple
 import torch
 from torch import nn
 
-from dvsland.estimators.state_dict_check import check_state_dict, read_checkpoint_file
+from dvsland.estimators.state_dict_check import check_state_dict, read_checkpoint_file, short_path
 
 from .base import (ControlOutput, Controller, HoldLastState, LawParams, check_bounds, clamp_thrust,
                    divergence_law_finish, hold_last_init, law_inputs, law_params)
@@ -73,7 +73,7 @@ def load_policy(path, param: str = "controller.policy.checkpoint") -> PolicyNet:
     """
     hint = "write one with dvsland train-loop CONFIG --what policy"
     ck = read_checkpoint_file(path, param, "dvsland policy checkpoint", hint)
-    where = f"{param} {path}"
+    where = f"{param} {short_path(path)}"
     if ck.get("kind") != POLICY_KIND:
         raise ValueError(f"{where}: not a policy checkpoint (kind {ck.get('kind')!r}, expected {POLICY_KIND!r}; "
                          f"{hint})")

@@ -106,8 +106,8 @@ def window_loss(stages, state, window: int, w: LossWeights) -> Tuple[torch.Tenso
     """
     state = tree_map(lambda t: t.detach(), state)
     sums: Dict[str, torch.Tensor] = {}
-    n, grad = 0, gradient_mode(stages)
-    while (window and n < window) or (not window and n < stages.settings.n_steps_max):
+    n, grad, limit = 0, gradient_mode(stages), window or stages.settings.n_steps_max
+    while n < limit:
         nxt, out = loop_step(stages, state, grad=grad)
         for k, v in step_terms(stages, state, nxt, out, w).items():
             sums[k] = sums[k] + v if k in sums else v

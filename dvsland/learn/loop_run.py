@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, replace
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Optional
 
 import torch
 
@@ -18,6 +18,7 @@ from dvsland.control.policy import POLICY_KIND
 from dvsland.estimators.state_dict_check import (check_finite_numbers, check_optimizer_state, check_state_dict,
                                                  read_checkpoint_file)
 from dvsland.report.results import atomic_write_text
+from dvsland.report.tensorboard import summary_writer
 from dvsland.stages import build_stages
 
 from .loop_loss import LossWeights
@@ -79,8 +80,6 @@ def trained_config(cfg, trainable: Trainable, ckpt: Path):
 
 
 def _tensorboard(writer, rec: dict) -> None:
-    if writer is None:
-        return
     step = rec["window"]
     for k in ("loss", "track", "landing", "fail", "fuel"):
         if k in rec:
@@ -96,7 +95,7 @@ def _tensorboard(writer, rec: dict) -> None:
 
 
 def train_loop(cfg, run_dir: Path, settings: TrainLoopSettings, sites=None, val_seed: int = 999,
-               val_seeds: Optional[int] = None, resume: bool = False, progress: bool = True, log: Callable[[str], None] = print) -> dict:
+               val_seeds: Optional[int] = None, resume: bool = False, progress: bool = True) -> dict:
     """Train ``settings.what`` through the loop of ``cfg`` into ``run_dir``; returns train_loop.json's dict.
 
     Args:
@@ -122,7 +121,7 @@ def train_loop(cfg, run_dir: Path, settings: TrainLoopSettings, sites=None, val_
             episode = ep
         s = replace(s, cpu_minutes=s.cpu_minutes + run.cpu_s / 60.0)  # the budget is this call's
     val_stages = build_stages(validation_config(cfg, val_seed, val_seeds), sites)
-    writer, bar = _writer(run_dir), _bar(progress, s, run)
+    writer, bar = summary_writer(run_dir / "tb"), _bar(progress, s, run)
 
     def on_window(rec: dict) -> None:
         if s.val_every and rec["window"] % s.val_every == 0:
@@ -135,27 +134,22 @@ def train_loop(cfg, run_dir: Path, settings: TrainLoopSettings, sites=None, val_
 
     try:
         episode = train_windows(stages, trainable, opt, s, run, episode, on_window)
-    finally:  # an interrupt keeps what was trained so far
+    finally:  # an interrupt keeps what was trained so far, and the curves written so far
         save_checkpoint(ckpt, trainable, opt, s, run, episode, cfg.controller.name)
+        writer.flush()
         if bar is not None:
             bar.close()
     final = validate(val_stages, trainable)
     summary = {"what": s.what, "controller": cfg.controller.name, "settings": {**asdict(s), "params": list(s.params)},
                "batch": stages.batch_size, "windows": run.windows, "simulated_steps": run.steps,
                "cpu_s": round(run.cpu_s, 1), "train_landed": run.landed, "train_ended": run.ended,
-               "values": trainable.describe(), "val_seed": val_seed, "val_batch": val_stages.batch_size, "validation": final, "history": run.history}
+               "values": trainable.describe(), "val_seed": val_seed, "val_batch": val_stages.batch_size,
+               "validation": final, "history": run.history}
     atomic_write_text(run_dir / TRAINED_CONFIG, dump_config(trained_config(cfg, trainable, ckpt)))
     atomic_write_text(run_dir / SUMMARY, json.dumps(summary, indent=1) + "\n")
-    if writer is not None:
-        _tensorboard(writer, {"window": run.windows, "landed": run.landed, "val": final})
-        writer.close()
+    _tensorboard(writer, {"window": run.windows, "landed": run.landed, "val": final})
+    writer.close()
     return summary
-
-
-def _writer(run_dir: Path):
-    from torch.utils.tensorboard import SummaryWriter
-
-    return SummaryWriter(str(run_dir / "tb"))
 
 
 def _bar(progress: bool, s: TrainLoopSettings, run: TrainLoopRun):
@@ -166,8 +160,8 @@ def _bar(progress: bool, s: TrainLoopSettings, run: TrainLoopRun):
     from tqdm.auto import tqdm
 
     return tqdm(total=round(s.cpu_minutes * 60.0, 1), initial=round(run.cpu_s, 1), unit="cpu-s",
-                desc=f"train-loop {s.what}", file=sys.stderr, mininterval=2.0, bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} cpu-s "
-                "[{elapsed}<{remaining}{postfix}]")
+                desc=f"train-loop {s.what}", file=sys.stderr, mininterval=2.0,
+                bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} cpu-s [{elapsed}<{remaining}{postfix}]")
 
 
 __all__ = ["train_loop", "restore", "trained_config", "validation_config", "CHECKPOINT", "TRAINED_CONFIG", "SUMMARY",

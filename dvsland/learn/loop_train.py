@@ -125,10 +125,10 @@ def check_horizon_fits(stages, window: int, available_bytes: float) -> int:
     steps = window or stages.settings.n_steps_max
     need = steps * stages.batch_size * GRAPH_BYTES_PER_DESCENT_STEP
     if need > 0.5 * available_bytes:
+        most = int(0.5 * available_bytes / (stages.batch_size * GRAPH_BYTES_PER_DESCENT_STEP))
         raise ValueError(f"--window {window}: a window of {steps} steps x {stages.batch_size} descents holds about "
                          f"{need / 2**30:.1f} GiB of autograd graph; {available_bytes / 2**30:.1f} GiB is available: "
-                         f"use a window of at most {int(0.5 * available_bytes / (stages.batch_size * GRAPH_BYTES_PER_DESCENT_STEP))}"
-                         f" steps, or fewer seeds or sites")
+                         f"use a window of at most {most} steps, or fewer seeds or sites")
     return need
 
 
