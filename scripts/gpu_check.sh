@@ -28,9 +28,24 @@ fi
 export PYTHONPATH="${PYTHONPATH:+$PYTHONPATH:}$PWD" PYTHONUNBUFFERED=1 PYOPENGL_PLATFORM=egl
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
 python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())" | tee -a "$OUT/gpu.txt"
-# the CUDA tests (every test that names cuda; they skip on a CPU machine)
-timeout 240 python3 -m pytest -q -p no:cacheprovider -x -k "cuda" tests/ 2>&1 | tail -40 | tee "$OUT/cuda_tests.log"
-# the throughput table: terrain variants and the sun fixed, so that set-up stays short
-timeout 280 python3 -m dvsland.bench.throughput --device cuda --batches 576,2304,4608 --estimators learned,cmax \
-  --set dispersion.terrain_variants=1 --set 'dispersion.sun_elevation_deg={kind: "off"}' \
-  --out "$OUT" --json "$OUT/throughput.json" 2>&1 | tail -30 | tee "$OUT/throughput.log"
+FIX=(--set dispersion.terrain_variants=1 --set 'dispersion.sun_elevation_deg={kind: "off"}')
+# 1. the CUDA tests (every test that names cuda, and tests/test_cuda_loop.py; they skip on a CPU machine)
+timeout 170 python3 -m pytest -q -p no:cacheprovider -k "cuda" tests/ 2>&1 | tail -40 | tee "$OUT/cuda_tests.log"
+# 2. the throughput table and the torch-API env: terrain variants and the sun fixed, so that set-up stays short
+timeout 250 python3 -m dvsland.bench.throughput --device cuda --batches "${BATCHES:-576,4608,8192}" \
+  --estimators learned,cmax --steps 10 --env-batches 4608 --env-steps 20 "${FIX[@]}" \
+  --out "$OUT" 2>&1 | tail -40 | tee "$OUT/throughput.log"
+# 3. where a large step's device time goes
+timeout 60 python3 scripts/gpu_profile_step.py --device cuda --batch 4608 --estimator learned --steps 3 --rows 25 \
+  > "$OUT/profile.txt" 2>&1; tail -5 "$OUT/profile.txt"
+# 4. the 450-descent cmax campaign on the card, wall time (set-up included)
+s=$SECONDS
+timeout 100 python3 -m dvsland.cli.main campaign montecarlo_efference --estimator cmax --n-seeds 50 --quiet \
+  --set simulation.device=cuda "${FIX[@]}" --out /tmp/camp > "$OUT/campaign.log" 2>&1
+echo "campaign rc=$? wall_s=$((SECONDS - s))" | tee -a "$OUT/campaign.log"
+cp /tmp/camp/table.md "$OUT/campaign_table.md" 2>/dev/null
+python3 - <<'PY' 2>&1 | tee -a "$OUT/campaign.log"
+import json, collections
+r = json.load(open("/tmp/camp/results.json"))
+print(r.get("status"), collections.Counter(x.get("outcome") for x in r.get("runs", [])), r.get("timing", ""))
+PY

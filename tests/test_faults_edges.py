@@ -72,11 +72,12 @@ def test_memory_estimate_counts_terrain_preparation():
 
 
 def test_memory_estimate_counts_the_cmax_search():
-    """estimator.cmax.n_grid near its bound asked for about 1 GB per descent, uncounted."""
-    cfg = load_config(None, QUIET + ["estimator.name=cmax", "estimator.cmax.n_grid=1001", "simulation.max_memory_gb=8"])
+    """estimator.cmax.n_grid near its bound asks for about 32 MB per descent (the warp factors of
+    every candidate), once uncounted."""
+    cfg = load_config(None, QUIET + ["estimator.name=cmax", "estimator.cmax.n_grid=1001", "simulation.max_memory_gb=1.6"])
     with pytest.raises(ConfigError, match=r"for the cmax search \(estimator.cmax.n_grid = 1001\)"):
         check_memory(cfg)
-    check_memory(load_config(None, QUIET + ["estimator.name=cmax", "simulation.max_memory_gb=8"]))
+    check_memory(load_config(None, QUIET + ["estimator.name=cmax", "simulation.max_memory_gb=1.6"]))
 
 
 # ------------------------------------------------------------------ 6. checkpoints validated on load

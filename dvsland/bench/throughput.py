@@ -22,7 +22,7 @@ import os
 import platform
 import time
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Sequence
 
 import torch
 
@@ -34,6 +34,7 @@ def run_case(estimator: str, batch_size: int, device: str, steps: int, warmup: i
     """One (estimator, B) case: set-up seconds, descent-steps/s, ms per step by stage, syncs/step."""
     from dvsland.bench.syncs import SyncCounter
     from dvsland.config import load_config
+    from dvsland.config.validate import estimate_run_bytes
     from dvsland.envs.layout import fit_layout
     from dvsland.sim import init_state, loop_step
     from dvsland.sim.loop import StageTimer
@@ -45,27 +46,77 @@ def run_case(estimator: str, batch_size: int, device: str, steps: int, warmup: i
     layout = fit_layout(cfg, None, batch_size)
     stages = build_stages(cfg, layout, device)
     state = init_state(stages)
+    cuda = torch.device(device).type == "cuda"
     for _ in range(warmup):
         state, _ = loop_step(stages, state)
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize()
+    _sync(cuda)
     setup_s = time.perf_counter() - t0
-    timer = StageTimer(device, sync=True)
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
+    # the throughput: plain steps, one synchronisation at the end
     w0, c0 = time.perf_counter(), time.process_time()
     for _ in range(steps):
-        state, _ = loop_step(stages, state, timer=timer)
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize()
+        state, _ = loop_step(stages, state)
+    _sync(cuda)
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    # the stages: a few more steps, each stage synchronised (slower on a GPU: the stages cannot overlap)
+    n_timed = max(1, min(steps, 5))
+    timer = StageTimer(device, sync=True)
+    for _ in range(n_timed):
+        state, _ = loop_step(stages, state, timer=timer)
+    _sync(cuda)
     with SyncCounter() as sc:
         state, _ = loop_step(stages, state)
     B = stages.batch_size
-    return {"estimator": estimator, "B": B, "device": str(device), "setup_s": round(setup_s, 2), "steps": steps,
-            "descent_steps_per_s": round(B * steps / wall), "wall_ms_per_step": round(1e3 * wall / steps, 2),
-            "cpu_ms_per_step": round(1e3 * cpu / steps, 2),
-            "us_per_descent_step": round(1e6 * wall / (steps * B), 3),
-            "stage_ms": {k: round(1e3 * timer.seconds.get(k, 0.0) / steps, 2) for k in STAGE_KEYS},
-            "syncs_per_step": sc.total, "active": int(state.active.sum())}
+    row = {"estimator": estimator, "B": B, "device": str(device), "setup_s": round(setup_s, 2), "steps": steps,
+           "descent_steps_per_s": round(B * steps / wall), "wall_ms_per_step": round(1e3 * wall / steps, 2),
+           "cpu_ms_per_step": round(1e3 * cpu / steps, 2),
+           "us_per_descent_step": round(1e6 * wall / (steps * B), 3),
+           "stage_ms": {k: round(1e3 * timer.seconds.get(k, 0.0) / n_timed, 2) for k in STAGE_KEYS},
+           "syncs_per_step": sc.total, "syncs_by_call": dict(sorted(sc.calls.items())),
+           "active": int(state.active.sum()),
+           "memory_estimate_gib": round(estimate_run_bytes(cfg, batch_size=B) / 2 ** 30, 2)}
+    if cuda:
+        row["peak_memory_gib"] = round(torch.cuda.max_memory_allocated() / 2 ** 30, 2)
+    return row
+
+
+def run_env_case(batch_size: int, device: str, steps: int, preset: str, overrides=(),
+                 observation: str = "events") -> Dict:
+    """The gymnasium vector env with ``array_api="torch"`` on ``device`` (oracle estimator, random
+    thrust in the action space): env-steps per second over ``steps`` steps after two warm-up steps."""
+    from dvsland.envs import LandingVectorEnv
+
+    t0 = time.perf_counter()
+    env = LandingVectorEnv(num_envs=batch_size, config=preset, estimator="oracle", observation=observation,
+                           device=device, overrides=["render.threads=1", *overrides], array_api="torch")
+    env.reset(seed=0)
+    lo = torch.as_tensor(env.action_space.low, dtype=torch.float32, device=device)
+    hi = torch.as_tensor(env.action_space.high, dtype=torch.float32, device=device)
+    gen = torch.Generator(device=device).manual_seed(0)
+
+    def act():
+        return lo + (hi - lo) * torch.rand(lo.shape, generator=gen, device=device)
+
+    cuda = torch.device(device).type == "cuda"
+    for _ in range(2):
+        env.step(act())
+    _sync(cuda)
+    setup_s = time.perf_counter() - t0
+    w0 = time.perf_counter()
+    for _ in range(steps):
+        env.step(act())
+    _sync(cuda)
+    wall = time.perf_counter() - w0
+    env.close()
+    return {"env": observation, "B": env.num_envs, "device": str(device), "setup_s": round(setup_s, 2),
+            "steps": steps, "env_steps_per_s": round(env.num_envs * steps / wall),
+            "wall_ms_per_step": round(1e3 * wall / steps, 2)}
+
+
+def _sync(cuda: bool) -> None:
+    if cuda:
+        torch.cuda.synchronize()
 
 
 def machine() -> Dict:
@@ -78,14 +129,22 @@ def machine() -> Dict:
     return m
 
 
-def table(rows: List[Dict], info: Dict) -> str:
-    """The markdown table of ``rows`` with the machine line."""
+def table(rows: List[Dict], info: Dict, env_rows: Sequence[Dict] = ()) -> str:
+    """The markdown tables of ``rows`` (and ``env_rows``) with the machine line."""
     head = ("| estimator | B | device | set-up s | descent-steps/s | µs per descent-step | render | emulate | "
-            "estimate | control | dynamics | syncs/step |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+            "estimate | control | dynamics | syncs/step | memory GiB (estimate) |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     body = "".join(f"| {r['estimator']} | {r['B']} | {r['device']} | {r['setup_s']} | {r['descent_steps_per_s']:,} | "
                    f"{r['us_per_descent_step']} | " + " | ".join(f"{r['stage_ms'][k]}" for k in STAGE_KEYS)
-                   + f" | {r['syncs_per_step']} |\n" for r in rows)
-    return f"Machine: {json.dumps(info)}; stage columns in ms per step.\n\n" + head + body
+                   + f" | {r['syncs_per_step']} | {r.get('peak_memory_gib', '–')} ({r.get('memory_estimate_gib', '–')}) |\n"
+                   for r in rows)
+    text = (f"Machine: {json.dumps(info)}; descent-steps/s from plain steps; stage columns in ms per step, "
+            "each stage synchronised.\n\n" + head + body)
+    if env_rows:
+        text += ("\n| env observation | num_envs | device | set-up s | env-steps/s | ms per step |\n|---|---|---|---|---|---|\n"
+                 + "".join(f"| {r['env']} | {r['B']} | {r['device']} | {r['setup_s']} | {r['env_steps_per_s']:,} | "
+                           f"{r['wall_ms_per_step']} |\n" for r in env_rows))
+    return text
 
 
 def main(argv=None) -> int:
@@ -97,6 +156,8 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--preset", default="montecarlo_efference")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="config override (repeatable)")
+    ap.add_argument("--env-batches", default="", help="also time the torch-API vector env at these num_envs")
+    ap.add_argument("--env-steps", type=int, default=20)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default=None, help="folder for throughput.json and throughput.md")
     ap.add_argument("--json", default=None, help="also write the rows and the machine to this JSON file")
@@ -108,15 +169,20 @@ def main(argv=None) -> int:
             r = run_case(est, b, a.device, a.steps, a.warmup, a.preset, a.overrides)
             print(json.dumps(r), flush=True)
             rows.append(r)
+    env_rows = []
+    for b in (int(x) for x in a.env_batches.split(",") if x):
+        r = run_env_case(b, a.device, a.env_steps, a.preset, a.overrides)
+        print(json.dumps(r), flush=True)
+        env_rows.append(r)
     info = machine()
     if a.out:
         out = Path(a.out)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "throughput.json").write_text(json.dumps({"machine": info, "rows": rows}, indent=1) + "\n")
-        (out / "throughput.md").write_text(table(rows, info))
+        (out / "throughput.json").write_text(json.dumps({"machine": info, "rows": rows, "env_rows": env_rows}, indent=1) + "\n")
+        (out / "throughput.md").write_text(table(rows, info, env_rows))
     if a.json:
-        Path(a.json).write_text(json.dumps({"machine": info, "rows": rows}, indent=1) + "\n")
-    print(table(rows, info))
+        Path(a.json).write_text(json.dumps({"machine": info, "rows": rows, "env_rows": env_rows}, indent=1) + "\n")
+    print(table(rows, info, env_rows))
     return 0 if all(math.isfinite(r["descent_steps_per_s"]) for r in rows) else 1
 
 

@@ -215,10 +215,13 @@ PREP_BYTES_PER_TEXEL = 480
 #: bytes per texel of a prepared scene's tiles (irradiance and height, float32, and the atlas copy);
 #: a tile is about 3 x camera.width_px texels wide, so a wide camera needs far more than its pixels
 ATLAS_BYTES_PER_TEXEL = 16
-#: bytes per canvas pixel, candidate and element of the cmax search (one warped image per half,
-#: float64 then float32; measured 5.4-7 B), and per event and candidate (its warped positions)
-CMAX_BYTES_PER_CANVAS_PX = 8
-CMAX_BYTES_PER_EVENT = 40
+#: the cmax search's memory per element: bytes per pixel of its two int64 half-images, cropped to
+#: the sensor box and one pixel beyond (the image and one product of it at a time), per event and
+#: candidate (the warp factors of every candidate) and per event of the candidates scored at once
+#: (the warped positions, corner weights and indices of one chunk of candidates)
+CMAX_BYTES_PER_CANVAS_PX = 16
+CMAX_BYTES_PER_EVENT_CANDIDATE = 8
+CMAX_BYTES_PER_EVENT = 100
 #: longest run name / label after the folder-name mapping, characters (file names: <= 255 bytes)
 MAX_NAME_CHARS = 120
 #: longest path the OS takes (PATH_MAX) and longest single name in it (NAME_MAX), bytes
@@ -385,10 +388,11 @@ def memory_parts(cfg: Config, n_sites: Optional[int] = None, batch_size: Optiona
              "terrain": tex * PREP_BYTES_PER_TEXEL,
              "events": float(getattr(cfg.emulator, "max_events_per_step", 0) or 0) * BYTES_PER_EVENT, "cmax": 0.0}
     if cfg.estimator.name == "cmax":
-        cm, pad = cfg.estimator.cmax, max(W, H)  # the canvas margin is at most the sensor size
+        cm = cfg.estimator.cmax
         G = max(cm.n_grid, cm.refine_points)
-        parts["cmax"] = B * G * (float(W + 2 * pad) * (H + 2 * pad) * CMAX_BYTES_PER_CANVAS_PX
-                                 + (cm.max_events or 4000) * CMAX_BYTES_PER_EVENT)
+        n_ev = float(cm.max_events or 4000) * math.sqrt(W * H) / 128.0
+        parts["cmax"] = B * (2.0 * (W + 3) * (H + 3) * CMAX_BYTES_PER_CANVAS_PX
+                             + n_ev * (G * CMAX_BYTES_PER_EVENT_CANDIDATE + CMAX_BYTES_PER_EVENT))
     return parts
 
 

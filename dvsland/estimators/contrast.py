@@ -201,8 +201,10 @@ def event_hash(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Tenso
 #: image sums are then exact int64 (the same in any summation order, on any device and in the
 #: compiled kernel); rounding moves a weight by at most 1.2e-4 of an event
 WEIGHT_UNIT = 4096.0
-#: largest canvas of one chunk of candidates of the torch path, int64 pixels (32 MiB)
+#: largest canvas of one chunk of candidates of the torch path, int64 pixels: 32 MiB on the CPU,
+#: 1 GiB on a GPU (the chunk is at least one candidate: B x 2 x the sensor box)
 _CANVAS_MAX = 1 << 22
+_CANVAS_MAX_CUDA = 1 << 27
 
 
 def split_contrast(xc: torch.Tensor, yc: torch.Tensor, b: torch.Tensor, half: torch.Tensor, dt_s: torch.Tensor,
@@ -250,12 +252,11 @@ def split_contrast(xc: torch.Tensor, yc: torch.Tensor, b: torch.Tensor, half: to
     out = torch.zeros(B, G, 3, dtype=torch.float64, device=dev)
     if xc.numel() == 0:
         return out
-    cand = candidates.to(torch.float32)
-    ginv_t = torch.exp(-cand.abs() * half_window_s.to(torch.float32).unsqueeze(1)).t().contiguous()  # (G, B) = 1 / g
-    scale = torch.exp(cand.t()[:, b] * dt_s.to(torch.float32))  # (G, E)
+    cand_t = candidates.to(torch.float32).t().contiguous()  # (G, B)
+    ginv_t = torch.exp(-cand_t.abs() * half_window_s.to(torch.float32).unsqueeze(0))  # (G, B) = 1 / g
     wt = torch.ones_like(xc, dtype=torch.float32) if event_weight is None else event_weight.to(torch.float32)
-    n, s = _splat_sums(xc.to(torch.float32), yc.to(torch.float32), b, half, scale, ginv_t, wt, centre_xy,
-                       sensor_box, Hc, Wc, native)  # (B, G, 2), (B, G, 3) int64
+    n, s = _splat_sums(xc.to(torch.float32), yc.to(torch.float32), b, half, cand_t, dt_s.to(torch.float32), ginv_t,
+                       wt, centre_xy, sensor_box, Hc, Wc, native)  # (B, G, 2), (B, G, 3) int64
     x_lo, x_hi, y_lo, y_hi = sensor_box
     area = ((x_hi - x_lo) * (y_hi - y_lo)) * (ginv_t.t().to(torch.float64) ** 2)  # (B, G) px^2
     u = WEIGHT_UNIT
@@ -269,29 +270,49 @@ def split_contrast(xc: torch.Tensor, yc: torch.Tensor, b: torch.Tensor, half: to
     return out
 
 
-def _splat_sums(xc, yc, b, half, scale, ginv_t, wt, centre_xy, sensor_box, Hc: int, Wc: int, native):
+def _splat_sums(xc, yc, b, half, cand_t, dt_s, ginv_t, wt, centre_xy, sensor_box, Hc: int, Wc: int, native):
     """(n (B, G, 2), s (B, G, 3)) int64: per element, candidate and half the summed integer corner
-    weights, and sum I0^2, sum I1^2, sum I0 I1 over the pixels (weights in 1 / WEIGHT_UNIT)."""
+    weights, and sum I0^2, sum I1^2, sum I0 I1 over the pixels (weights in 1 / WEIGHT_UNIT).
+    ``cand_t`` and ``ginv_t`` are (G, B) float32, ``dt_s`` (E,) float32."""
     mod = native_cmax.kernel_for(xc, native)
     if mod is not None:
+        scale = torch.exp(cand_t[:, b] * dt_s)  # (G, E)
         x_lo, x_hi, y_lo, y_hi = sensor_box
         return mod.splat_sums(xc.contiguous(), yc.contiguous(), b.to(torch.int64).contiguous(),
                               half.to(torch.int64).contiguous(), scale.contiguous(), ginv_t, wt.contiguous(),
                               float(centre_xy[0]), float(centre_xy[1]), float(x_lo), float(x_hi), float(y_lo),
                               float(y_hi), Hc, Wc, WEIGHT_UNIT)
-    G = scale.shape[0]
-    B = ginv_t.shape[1]
-    chunk = max(1, min(G, _CANVAS_MAX // max(B * 2 * Hc * Wc, 1)))
-    parts = [_splat_sums_torch(xc, yc, b, half, scale[g0:g0 + chunk], ginv_t[g0:g0 + chunk], wt, centre_xy,
-                               sensor_box, Hc, Wc) for g0 in range(0, G, chunk)]
+    G, B = ginv_t.shape
+    box = _box_canvas(sensor_box, Hc, Wc)
+    cells = B * 2 * box[2] * box[3]
+    cap = _CANVAS_MAX_CUDA if xc.device.type == "cuda" else _CANVAS_MAX
+    chunk = max(1, min(G, cap // max(cells, 1)))
+    parts = [_splat_sums_torch(xc, yc, b, half, torch.exp(cand_t[g0:g0 + chunk, b] * dt_s), ginv_t[g0:g0 + chunk],
+                               wt, centre_xy, sensor_box, box) for g0 in range(0, G, chunk)]
+    if len(parts) == 1:
+        return parts[0]
     return torch.cat([p[0] for p in parts], 1), torch.cat([p[1] for p in parts], 1)
 
 
-def _splat_sums_torch(xc, yc, b, half, scale, ginv_t, wt, centre_xy, sensor_box, Hc: int, Wc: int):
+def _box_canvas(sensor_box, Hc: int, Wc: int) -> Tuple[int, int, int, int]:
+    """(x_off, y_off, Hb, Wb): the part of the (Hc, Wc) canvas that a counted event's four corners
+    can reach: the sensor box and one pixel beyond (weight outside the box is never counted, so
+    the sums over this crop equal those over the whole canvas)."""
+    x_lo, x_hi, y_lo, y_hi = sensor_box
+    x0 = max(0, int(math.floor(x_lo)) - 1)
+    y0 = max(0, int(math.floor(y_lo)) - 1)
+    x1 = min(Wc, int(math.floor(x_hi)) + 3)
+    y1 = min(Hc, int(math.floor(y_hi)) + 3)
+    return x0, y0, y1 - y0, x1 - x0
+
+
+def _splat_sums_torch(xc, yc, b, half, scale, ginv_t, wt, centre_xy, sensor_box, box):
     """The torch path of :func:`_splat_sums` for (G, E) ``scale`` and (G, B) ``ginv_t``: the
-    reference of the compiled kernel, operation for operation in float32."""
+    reference of the compiled kernel, operation for operation in float32. ``box`` (x_off, y_off,
+    Hb, Wb) is the crop of the canvas that the counted weight falls in (:func:`_box_canvas`)."""
     G, B = ginv_t.shape
-    P = Hc * Wc
+    ox, oy, Hb, Wb = box
+    P = Hb * Wb
     cx, cy = float(centre_xy[0]), float(centre_xy[1])
     x_lo, x_hi, y_lo, y_hi = sensor_box
     xw = (xc - cx) * scale  # (G, E), about the FoE
@@ -300,19 +321,19 @@ def _splat_sums_torch(xc, yc, b, half, scale, ginv_t, wt, centre_xy, sensor_box,
     inside = ((xw >= (x_lo - cx) * gi) & (xw <= (x_hi - cx) * gi)
               & (yw >= (y_lo - cy) * gi) & (yw <= (y_hi - cy) * gi))
     xs, ys = xw + cx, yw + cy
-    x0 = xs.floor().clamp_(0, Wc - 2)
-    y0 = ys.floor().clamp_(0, Hc - 2)
+    x0 = xs.floor().clamp_(ox, ox + Wb - 2)
+    y0 = ys.floor().clamp_(oy, oy + Hb - 2)
     fx = (xs - x0).clamp_(0, 1)
     fy = (ys - y0).clamp_(0, 1)
     wy1 = wt * fy
     wy0 = wt - wy1
     a, c = wy0 * fx, wy1 * fx
     img = (torch.arange(G, device=b.device).unsqueeze(1) * B + b) * 2 + half  # (G, E)
-    base = img * P + y0.to(torch.int64) * Wc + x0.to(torch.int64)
+    base = img * P + (y0.to(torch.int64) - oy) * Wb + (x0.to(torch.int64) - ox)
     base = torch.where(inside, base, torch.zeros_like(base))  # outside: weight 0 at a valid index
     canvas = torch.zeros(G * B * 2 * P, dtype=torch.int64, device=b.device)
     zero = torch.zeros((), dtype=torch.int64, device=b.device)
-    for off, wk in ((0, wy0 - a), (1, a), (Wc, wy1 - c), (Wc + 1, c)):
+    for off, wk in ((0, wy0 - a), (1, a), (Wb, wy1 - c), (Wb + 1, c)):
         q = torch.where(inside, (wk * WEIGHT_UNIT).round().to(torch.int64), zero)
         canvas.index_add_(0, (base + off).view(-1), q.view(-1))
     ims = canvas.view(G, B, 2, P)

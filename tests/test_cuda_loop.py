@@ -1,0 +1,88 @@
+"""The loop on a CUDA device: host synchronisations per step, cmax's score, the torch-API env and
+the throughput bench's memory figures. Every test skips without a CUDA device (none in CI); the lent
+GPU machine runs them through ``scripts/gpu_check.sh``."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+
+pytestmark = [pytest.mark.cuda,
+              pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
+
+
+def _cuda_syncs(fn) -> int:
+    """Synchronisations that torch's sync debug mode reports while ``fn()`` runs."""
+    torch.cuda.synchronize()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            fn()
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    return sum("synchroniz" in str(w.message) for w in caught)
+
+
+def _stages_and_state(estimator: str, n_seeds: int):
+    from dvsland.config import load_config
+    from dvsland.sim import init_state, loop_step
+    from dvsland.stages import build_stages
+
+    cfg = load_config("paper", [f"estimator.name={estimator}", "simulation.device=cuda", "render.threads=1",
+                                f"simulation.n_seeds={n_seeds}"])
+    stages = build_stages(cfg, "D")
+    state = init_state(stages)
+    for _ in range(3):
+        state, _ = loop_step(stages, state)
+    return stages, state
+
+
+@pytest.mark.parametrize("estimator", ["oracle", "learned", "cmax"])
+def test_cuda_syncs_per_step_do_not_grow_with_the_batch(estimator):
+    from dvsland.sim import loop_step
+
+    counts = []
+    for n_seeds in (1, 8):
+        stages, state = _stages_and_state(estimator, n_seeds)
+        counts.append(_cuda_syncs(lambda: loop_step(stages, state)))
+    assert counts[1] == counts[0], f"syncs per step at B = 1 and 8 seeds: {counts}"
+
+
+def test_cmax_score_on_cuda_matches_cpu():
+    from dvsland.estimators.contrast import split_contrast
+
+    g = torch.Generator().manual_seed(0)
+    E, B, G = 20000, 7, 5
+    xc, yc = 128 * torch.rand(E, generator=g) + 128, 128 * torch.rand(E, generator=g) + 128
+    b = torch.randint(0, B, (E,), generator=g)
+    half = torch.randint(0, 2, (E,), generator=g)
+    dt = 0.05 * torch.rand(E, generator=g) - 0.025
+    cand = -0.3 * torch.rand(B, G, generator=g, dtype=torch.float64)
+    hw = torch.full((B,), 0.025, dtype=torch.float64)
+    args = ((191.5, 191.5), (384, 384), (127.5, 255.5, 127.5, 255.5))
+    ref = split_contrast(xc, yc, b, half, dt, cand, *args, hw, native=False)
+    got = split_contrast(*(v.cuda() for v in (xc, yc, b, half, dt, cand)), *args, hw.cuda(), native=False)
+    torch.testing.assert_close(got.cpu(), ref, rtol=1e-12, atol=1e-9)
+
+
+def test_torch_env_keeps_observations_on_the_card():
+    from dvsland.envs import LandingVectorEnv
+
+    env = LandingVectorEnv(num_envs=8, config="paper", estimator="oracle", observation="events", device="cuda",
+                           array_api="torch", overrides=["render.threads=1"])
+    obs, _ = env.reset(seed=0)
+    thrust = torch.as_tensor(env.action_space.high, device="cuda") * 0.5
+    obs, reward, term, trunc, info = env.step(thrust)
+    for t in (obs, reward, term, trunc):
+        assert isinstance(t, torch.Tensor) and t.device.type == "cuda"
+    env.close()
+
+
+def test_throughput_case_reports_peak_memory_on_cuda():
+    from dvsland.bench.throughput import run_case
+
+    r = run_case("learned", 8, "cuda", steps=2, warmup=1, preset="paper")
+    assert r["descent_steps_per_s"] > 0 and r["peak_memory_gib"] >= 0 and r["memory_estimate_gib"] > 0
