@@ -150,6 +150,8 @@ class LoopSettings(NamedTuple):
             are clamped into it before rendering).
         estimator_name: the configured estimator's name (results and logs).
         compact: finished descents leave the step's hot path (``simulation.compact``).
+        compile: the filter's and the law's steps run through ``torch.compile``
+            (``simulation.compile``).
     """
 
     dt_s: float
@@ -163,6 +165,7 @@ class LoopSettings(NamedTuple):
     render_max_altitude_m: float
     estimator_name: str
     compact: bool = True
+    compile: bool = False
 
     @classmethod
     def from_config(cls, cfg: Config) -> "LoopSettings":
@@ -174,7 +177,7 @@ class LoopSettings(NamedTuple):
                    g_mps2=float(cfg.dynamics.g_mps2), mass_kg=float(cfg.dynamics.mass_kg),
                    render_min_altitude_m=float(cfg.render.min_altitude_m),
                    render_max_altitude_m=float(cfg.render.max_altitude_m), estimator_name=str(cfg.estimator.name),
-                   compact=bool(getattr(sim, "compact", True)))
+                   compact=bool(getattr(sim, "compact", True)), compile=bool(getattr(sim, "compile", False)))
 
 
 @dataclass

@@ -56,7 +56,7 @@ class _Frames:
     """A smooth zooming texture: (altitude (B,), site (B,)) -> (B, 32, 32)."""
 
     def __call__(self, z, idx):
-        y, x = torch.meshgrid(torch.arange(32.0), torch.arange(32.0), indexing="ij")
+        y, x = torch.meshgrid(torch.arange(32.0, device=z.device), torch.arange(32.0, device=z.device), indexing="ij")
         s = (1000.0 / z.double()).view(-1, 1, 1)
         return (1.2 + torch.sin((x - 16) * 0.4 * s + idx.view(-1, 1, 1)) * torch.cos((y - 16) * 0.3 * s)).float()
 

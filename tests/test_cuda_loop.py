@@ -5,6 +5,8 @@ GPU machine runs them through ``scripts/gpu_check.sh``."""
 from __future__ import annotations
 
 import warnings
+from collections import Counter
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,8 +15,9 @@ pytestmark = [pytest.mark.cuda,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")]
 
 
-def _cuda_syncs(fn) -> int:
-    """Synchronisations that torch's sync debug mode reports while ``fn()`` runs."""
+def _cuda_syncs(fn) -> Counter:
+    """Synchronisations that torch's sync debug mode reports while ``fn()`` runs, by the file and
+    line that made them."""
     torch.cuda.synchronize()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -23,7 +26,7 @@ def _cuda_syncs(fn) -> int:
             fn()
         finally:
             torch.cuda.set_sync_debug_mode("default")
-    return sum("synchroniz" in str(w.message) for w in caught)
+    return Counter(f"{Path(w.filename).name}:{w.lineno}" for w in caught if "synchroniz" in str(w.message))
 
 
 def _stages_and_state(estimator: str, n_seeds: int):
@@ -48,7 +51,8 @@ def test_cuda_syncs_per_step_do_not_grow_with_the_batch(estimator):
     for n_seeds in (1, 8):
         stages, state = _stages_and_state(estimator, n_seeds)
         counts.append(_cuda_syncs(lambda: loop_step(stages, state)))
-    assert counts[1] == counts[0], f"syncs per step at B = 1 and 8 seeds: {counts}"
+    totals = [sum(c.values()) for c in counts]
+    assert totals[1] == totals[0], f"syncs per step at 1 and 8 seeds: {totals}, by line: {counts}"
 
 
 def test_cmax_score_on_cuda_matches_cpu():
@@ -65,7 +69,9 @@ def test_cmax_score_on_cuda_matches_cpu():
     args = ((191.5, 191.5), (384, 384), (127.5, 255.5, 127.5, 255.5))
     ref = split_contrast(xc, yc, b, half, dt, cand, *args, hw, native=False)
     got = split_contrast(*(v.cuda() for v in (xc, yc, b, half, dt, cand)), *args, hw.cuda(), native=False)
-    torch.testing.assert_close(got.cpu(), ref, rtol=1e-12, atol=1e-9)
+    # the image sums are exact integers on either device, but float32 exp differs in its last bit
+    # between the CPU and the card, which moves a few corner weights by one unit (1.2e-4 event)
+    torch.testing.assert_close(got.cpu(), ref, rtol=1e-5, atol=1e-6)
 
 
 def test_torch_env_keeps_observations_on_the_card():

@@ -487,6 +487,10 @@ class SimulationConfig:
                                "of this machine's memory (not in paper)", rng=(0.0, 1e6))
     compact: bool = opt(True, "finished descents leave the hot path: their events are dropped before the "
                         "estimator (false: the estimator still sees them; docs/campaigns.md)")
+    compile: bool = opt(False, "run the filter's and the law's steps through torch.compile: a few fused kernels "
+                        "instead of hundreds of small ones per step (worth it on a GPU at large batches), after a "
+                        "one-off compile of tens of seconds; needs a C++ compiler on the CPU "
+                        "(docs/howto/devices.md)")
 
 
 @dataclass
