@@ -52,7 +52,8 @@ def test_cuda_syncs_per_step_do_not_grow_with_the_batch(estimator):
         stages, state = _stages_and_state(estimator, n_seeds)
         counts.append(_cuda_syncs(lambda: loop_step(stages, state)))
     totals = [sum(c.values()) for c in counts]
-    assert totals[1] == totals[0], f"syncs per step at 1 and 8 seeds: {totals}, by line: {counts}"
+    # (on the H200 the oracle loop at 1 seed once showed one sync in torch/__init__.py that 8 seeds did not)
+    assert totals[1] <= totals[0], f"syncs per step at 1 and 8 seeds: {totals}, by line: {counts}"
 
 
 def test_cmax_score_on_cuda_matches_cpu():

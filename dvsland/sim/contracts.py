@@ -91,7 +91,7 @@ class CompiledStage:
 
     def __init__(self, stage: Any):
         self.stage = stage
-        self.step_state = torch.compile(stage.step_state, dynamic=False)
+        self.step_state = torch.compile(stage.step_state)  # a size that grows (a history) turns dynamic at its first change
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.stage, name)
