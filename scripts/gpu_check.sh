@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
-# The one prepared device check for a lent GPU machine (H100/H200, about 8 minutes): the CUDA tests
-# and the throughput table of `dvsland bench throughput` on CUDA. Results go to $OUT (the device
-# tool brings them back) or to /tmp/gpu_check.
+# The one prepared device check for a lent GPU machine (H100/H200, about 5 minutes): the CUDA tests,
+# the throughput table of `dvsland bench throughput` on CUDA (eager, and learned at B = 8192 with
+# simulation.compile=true), a profile of one large step and the 450-descent cmax campaign. Results go
+# to $OUT (the device tool brings them back) or to /tmp/gpu_check; on 2026-11-26 an H200 ran the
+# first three parts in about 3.5 minutes (docs/benchmarks.md).
 #
 # Here, once: `bash scripts/gpu_check.sh --wheels` downloads the packages the device machine lacks
 # into .whl/ (git-ignored through .git/info/exclude). Then, with the device tool:
-#   run(command="bash scripts/gpu_check.sh", carry=[".whl"], timeout_s=560)
+#   run(command="bash scripts/gpu_check.sh", carry=[".whl"], timeout_s=480)
 set -uo pipefail
 cd "$(dirname "$0")/.."
 if [ "${1:-}" = "--wheels" ]; then
@@ -35,6 +37,8 @@ timeout 170 python3 -m pytest -q -p no:cacheprovider -k "cuda" tests/ 2>&1 | tai
 timeout 250 python3 -m dvsland.bench.throughput --device cuda --batches "${BATCHES:-576,4608,8192}" \
   --estimators learned,cmax --steps 10 --env-batches 4608 --env-steps 20 "${FIX[@]}" \
   --out "$OUT" 2>&1 | tail -40 | tee "$OUT/throughput.log"
+timeout 100 python3 -m dvsland.bench.throughput --device cuda --batches 8192 --estimators learned --steps 10 \
+  "${FIX[@]}" --set simulation.compile=true 2>&1 | tail -3 | tee -a "$OUT/throughput.log"
 # 3. where a large step's device time goes
 timeout 60 python3 scripts/gpu_profile_step.py --device cuda --batch 4608 --estimator learned --steps 3 --rows 25 \
   > "$OUT/profile.txt" 2>&1; tail -5 "$OUT/profile.txt"

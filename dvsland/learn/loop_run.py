@@ -14,7 +14,6 @@ import torch
 
 from dvsland.campaign.plan import available_memory_bytes
 from dvsland.config import dump_config
-from dvsland.control.policy import POLICY_KIND
 from dvsland.estimators.state_dict_check import (check_finite_numbers, check_optimizer_state, check_state_dict,
                                                  read_checkpoint_file)
 from dvsland.report.results import atomic_write_text
@@ -22,8 +21,8 @@ from dvsland.report.tensorboard import summary_writer
 from dvsland.stages import build_stages
 
 from .loop_loss import LossWeights
-from .loop_train import (LAW_KIND, TrainLoopRun, TrainLoopSettings, check_horizon_fits, save_checkpoint, train_windows,
-                         validate)
+from .loop_train import (TrainLoopRun, TrainLoopSettings, check_horizon_fits, checkpoint_kind, save_checkpoint,
+                         train_windows, validate)
 from .loop_trainables import Trainable, make_trainable
 
 #: files of a train-loop run folder
@@ -41,7 +40,7 @@ def restore(path: Path, trainable: Trainable, opt, law: str) -> tuple:
     """(TrainLoopRun, episode (B,) or None, settings dict) of a checkpoint, loaded into ``trainable``
     and ``opt``; ValueError naming ``--resume`` and the file for a missing, foreign or damaged one."""
     where = f"--resume {path}"
-    kind = POLICY_KIND if trainable.what == "policy" else LAW_KIND
+    kind = checkpoint_kind(trainable.what)
     ck = read_checkpoint_file(path, "--resume", f"dvsland train-loop checkpoint ({kind})")
     if ck.get("kind") != kind or ck.get("controller") != law:
         raise ValueError(f"{where}: a {ck.get('kind')!r} checkpoint of controller {ck.get('controller')!r}; this "
@@ -63,10 +62,13 @@ def restore(path: Path, trainable: Trainable, opt, law: str) -> tuple:
 
 
 def trained_config(cfg, trainable: Trainable, ckpt: Path):
-    """The config that flies the trained result: the training config with the law's constants (or
-    the policy's checkpoint, by absolute path) in place."""
+    """The config that flies the trained result: the training config with the law's constants, the
+    filter's (``controller.efference``), or the policy's checkpoint by absolute path in place."""
     c = cfg.controller
-    if trainable.what == "policy":
+    if trainable.what == "filter":
+        opts = {k.rsplit(".", 1)[1]: v for k, v in trainable.config_overrides(cfg).items()}
+        c = replace(c, efference=replace(c.efference, **opts))
+    elif trainable.what == "policy":
         c = replace(c, policy=replace(c.policy, checkpoint=str(ckpt.resolve())))
     else:
         vals = trainable.describe()
@@ -79,14 +81,14 @@ def trained_config(cfg, trainable: Trainable, ckpt: Path):
     return replace(cfg, controller=c, logging=replace(cfg.logging, quiet=False))  # --quiet was the training's
 
 
-def _tensorboard(writer, rec: dict) -> None:
+def _tensorboard(writer, rec: dict, what: str = "law") -> None:
     step = rec["window"]
     for k in ("loss", "track", "landing", "fail", "fuel"):
         if k in rec:
             writer.add_scalar(f"loss/{k}", rec[k], step)
     writer.add_scalar("train/landed", rec["landed"], step)
     for k, v in (rec.get("values") or {}).items():
-        writer.add_scalar(f"law/{k}", v, step)
+        writer.add_scalar(f"{'filter' if what == 'filter' else 'law'}/{k}", v, step)
     val = rec.get("val")
     if val:
         writer.add_scalar("val/success_rate", val["success_rate"], step)
@@ -127,7 +129,7 @@ def train_loop(cfg, run_dir: Path, settings: TrainLoopSettings, sites=None, val_
         if s.val_every and rec["window"] % s.val_every == 0:
             rec["val"] = {k: v for k, v in validate(val_stages, trainable).items() if k != "outcomes"}
         run.history.append(rec)
-        _tensorboard(writer, rec)
+        _tensorboard(writer, rec, s.what)
         if bar is not None:
             bar.update(max(0.0, round(min(run.cpu_s, bar.total) - bar.n, 1)))
             bar.set_postfix(loss=f"{rec['loss']:.3g}", landed=run.landed)

@@ -32,6 +32,8 @@ from .loop_trainables import WHATS, Trainable
 
 #: ``kind`` of a law checkpoint (a policy's is :data:`dvsland.control.policy.POLICY_KIND`)
 LAW_KIND = "dvsland-loop-law"
+#: ``kind`` of a filter checkpoint (``--what filter``)
+FILTER_KIND = "dvsland-loop-filter"
 #: autograd memory a window holds per descent-step, bytes: about 1 KB measured with the oracle,
 #: ``div_gs`` or ``policy`` and the efference filter (scripts/bench_loop_grad.py); 4x that as margin
 GRAPH_BYTES_PER_DESCENT_STEP = 4096
@@ -42,8 +44,8 @@ class TrainLoopSettings:
     """Settings of one training (each checked by :meth:`check`, naming the option).
 
     Attributes:
-        what: ``policy`` or ``law``.
-        params: law constants to train (() = the law's default set).
+        what: ``policy``, ``law`` or ``filter``.
+        params: law or filter constants to train (() = the default set).
         window: steps per truncated-backpropagation window (0 = whole descents).
         lr: Adam's learning rate.
         seed: the training starts' seed (torch's too).
@@ -106,7 +108,7 @@ def restart_ended(stages, state, episode: torch.Tensor, seed: int, dispersion: f
 @torch.no_grad()
 def validate(stages, trainable: Trainable) -> dict:
     """Fly every descent of ``stages`` once, whole, with the trained values: landings, landing speed, fuel."""
-    trainable.apply(stages.controller)
+    trainable.apply_to(stages)
     state = init_state(stages)
     while bool(state.active.any()) and state.step < stages.settings.n_steps_max:
         state, _ = loop_step(stages, state)
@@ -148,7 +150,7 @@ def train_windows(stages, trainable: Trainable, opt, s: TrainLoopSettings, run: 
                                    s.seed, s.dispersion)
     c0, budget = time.process_time() - run.cpu_s, s.cpu_minutes * 60.0
     while time.process_time() - c0 < budget and not (s.max_windows and run.windows >= s.max_windows):
-        trainable.apply(stages.controller)
+        trainable.apply_to(stages)
         loss, terms, state = window_loss(stages, state, s.window, s.loss)
         opt.zero_grad()
         loss.backward()
@@ -159,16 +161,21 @@ def train_windows(stages, trainable: Trainable, opt, s: TrainLoopSettings, run: 
         run.windows, run.steps, run.cpu_s = run.windows + 1, run.steps + terms["steps"], time.process_time() - c0
         run.landed, run.ended = run.landed + terms["landed"], run.ended + terms["ended"]
         rec = {"window": run.windows, "loss": float(loss.detach()), **terms, "cpu_s": round(run.cpu_s, 2),
-               "values": trainable.describe() if trainable.what == "law" else None}
+               "values": trainable.describe() if trainable.what != "policy" else None}
         if on_window is not None:
             on_window(rec)
     return episode
 
 
+def checkpoint_kind(what: str) -> str:
+    """``kind`` of a checkpoint of ``what`` (policy, law or filter)."""
+    return {"policy": POLICY_KIND, "filter": FILTER_KIND}.get(what, LAW_KIND)
+
+
 def save_checkpoint(path: Path, trainable: Trainable, opt, s: TrainLoopSettings, run: TrainLoopRun,
                     episode: torch.Tensor, law: str) -> None:
     """The training's checkpoint (atomic: a temporary file renamed over ``path``)."""
-    ck = {"kind": POLICY_KIND if trainable.what == "policy" else LAW_KIND, "controller": law,
+    ck = {"kind": checkpoint_kind(trainable.what), "controller": law,
           "settings": {**asdict(s), "params": list(s.params)}, "run": asdict(run), "episode": episode.cpu(),
           "optimizer": opt.state_dict(), "values": trainable.describe()}
     if trainable.what == "policy":
@@ -181,4 +188,4 @@ def save_checkpoint(path: Path, trainable: Trainable, opt, s: TrainLoopSettings,
 
 
 __all__ = ["TrainLoopSettings", "TrainLoopRun", "restart_ended", "validate", "train_windows", "save_checkpoint",
-           "check_finite_loss", "check_horizon_fits", "LAW_KIND", "GRAPH_BYTES_PER_DESCENT_STEP"]
+           "check_finite_loss", "check_horizon_fits", "checkpoint_kind", "LAW_KIND", "FILTER_KIND", "GRAPH_BYTES_PER_DESCENT_STEP"]

@@ -7,6 +7,12 @@ validation batch's controller before it flies.
 
 Law constants are positive and trained in log space: value = exp(raw). ``kp_scale`` multiplies every
 setting's gain Kp of ``tau_p`` and ``div_p``; ``div_gs`` trains ``lambda_per_s`` and ``d_final_per_s``.
+The ``efference_fit`` filter's constants (:class:`FilterConstants`, ``--what filter``) are trained the
+same way; its hard gates (``gate_sigma``, ``min_confidence``) have a zero gradient almost everywhere
+and are refused by name.
+
+:meth:`Trainable.apply_to` puts the values into a :class:`~dvsland.stages.Stages` (the law's
+controller, or the filter).
 """
 
 from __future__ import annotations
@@ -21,8 +27,22 @@ from torch import nn
 #: law -> constants that can be trained by name (the first ones are the default set)
 LAW_CONSTANTS: Dict[str, Tuple[str, ...]] = {"div_gs": ("lambda_per_s", "d_final_per_s"),
                                              "tau_p": ("kp_scale",), "div_p": ("kp_scale",)}
+#: ``efference_fit`` constants that can be trained by name (the first four are the default set)
+FILTER_CONSTANTS: Tuple[str, ...] = ("meas_sigma_rel", "meas_sigma_abs", "cauchy_c", "prior_rel_sigma",
+                                     "prior_rel_sigma_v")
+FILTER_DEFAULT: Tuple[str, ...] = FILTER_CONSTANTS[:4]
+#: ``efference_fit`` constants whose gradient is zero almost everywhere (hard gates: a threshold moved by
+#: a little changes no weight), refused by ``--what filter``
+FILTER_ZERO_GRADIENT: Dict[str, str] = {
+    "gate_sigma": "a hard gate: an estimate's weight jumps to 0 beyond it",
+    "min_confidence": "a hard gate on the estimator's confidence",
+    "iterations": "an integer (Gauss-Newton rounds)",
+    "forget_s": "the rows the fit reads are an integer cut of it (and 0, never, cannot start a log)",
+}
+#: the filter ``--what filter`` trains
+TRAINED_FILTER = "efference_fit"
 #: what ``--what`` accepts
-WHATS = ("policy", "law")
+WHATS = ("policy", "law", "filter")
 
 
 class Trainable(nn.Module):
@@ -32,6 +52,10 @@ class Trainable(nn.Module):
 
     def apply(self, controller) -> None:
         raise NotImplementedError
+
+    def apply_to(self, stages) -> None:
+        """Put the current values into ``stages`` (its controller; :class:`FilterConstants`: its filter)."""
+        self.apply(stages.controller)
 
     def describe(self) -> dict:
         """What a checkpoint and train_loop.json record of the current values (plain numbers)."""
@@ -106,16 +130,90 @@ class PolicyWeights(Trainable):
         return {"hidden": self.net.hidden, "parameters": sum(p.numel() for p in self.net.parameters())}
 
 
+class FilterConstants(Trainable):
+    """The ``efference_fit`` filter's positive constants (``controller.efference``), log-parameterised.
+
+    ``prior_rel_sigma`` and ``prior_rel_sigma_v`` act through the prior's std. devs. ``sz0`` =
+    prior_rel_sigma |z0| and ``sv0`` = prior_rel_sigma_v max(|v0|, 1e-3), recomputed from the target
+    filter's own planned start (a validation batch has its own); the others are fields of its ``cfg``.
+
+    Args:
+        filt: the training loop's ``efference_fit`` filter (its current values are the start).
+        names: the constants to train (() = :data:`FILTER_DEFAULT`).
+    """
+
+    what = "filter"
+
+    def __init__(self, filt, names: Sequence[str] = ()):
+        super().__init__()
+        names = tuple(names) or FILTER_DEFAULT
+        gated = [n for n in names if n in FILTER_ZERO_GRADIENT]
+        if gated:
+            raise ValueError("--params " + ", ".join(f"{n}: {FILTER_ZERO_GRADIENT[n]}" for n in gated)
+                             + f"; its gradient is zero almost everywhere, so --what filter does not train it. "
+                             f"Choose from {list(FILTER_CONSTANTS)}")
+        bad = [n for n in names if n not in FILTER_CONSTANTS]
+        if bad:
+            raise ValueError(f"--params {','.join(bad)}: not a trainable constant of the {TRAINED_FILTER} filter; "
+                             f"choose from {list(FILTER_CONSTANTS)}")
+        cfg = filt.params.cfg
+        start = {n: float(getattr(cfg, n)) for n in names}
+        zero = [n for n, v in start.items() if not v > 0]
+        if zero:
+            raise ValueError(f"--params {','.join(zero)}: controller.efference.{zero[0]} is {start[zero[0]]!r}; a "
+                             f"constant trained in log space must start > 0 (add --set "
+                             f"controller.efference.{zero[0]}=...)")
+        self.names, self.start = names, start
+        self.raw = nn.ParameterDict({n: nn.Parameter(torch.tensor(math.log(v), dtype=torch.float64))
+                                     for n, v in start.items()})
+
+    def values(self) -> Dict[str, torch.Tensor]:
+        """name -> 0-dim float64 tensor (with its graph to ``raw``)."""
+        return {n: torch.exp(self.raw[n]) for n in self.names}
+
+    def apply(self, filt) -> None:
+        vals = self.values()
+        p = filt.params
+        if "prior_rel_sigma" in vals:
+            p = p._replace(sz0=vals["prior_rel_sigma"] * p.z0_m.abs())
+        if "prior_rel_sigma_v" in vals:
+            p = p._replace(sv0=vals["prior_rel_sigma_v"] * p.v0_mps.abs().clamp_min(1e-3))
+        filt.params = p._replace(cfg=dataclasses.replace(p.cfg, **vals))
+
+    def apply_to(self, stages) -> None:
+        self.apply(stages.filter)
+
+    def describe(self) -> dict:
+        return {n: float(v.detach()) for n, v in self.values().items()}
+
+    def config_overrides(self, cfg=None) -> Dict[str, float]:
+        """``controller.efference.<name>`` -> value. With ``prior_rel_sigma`` trained and the config's
+        ``prior_rel_sigma_v`` null (= prior_rel_sigma), the velocity prior is written out as flown
+        (``cfg``: the training config), so that the trained altitude prior does not move it."""
+        out = {f"controller.efference.{n}": v for n, v in self.describe().items()}
+        if (cfg is not None and "prior_rel_sigma" in self.names and "prior_rel_sigma_v" not in self.names
+                and cfg.controller.efference.prior_rel_sigma_v is None):
+            out["controller.efference.prior_rel_sigma_v"] = float(cfg.controller.efference.prior_rel_sigma)
+        return out
+
+
 def make_trainable(stages, what: str, names: Sequence[str] = ()) -> Trainable:
-    """The :class:`Trainable` of ``what`` (``policy`` or ``law``) for the loop's controller.
+    """The :class:`Trainable` of ``what`` (``policy``, ``law`` or ``filter``) for the loop's stages.
 
     Raises:
         ValueError: naming ``--what`` / ``--params``: an unknown kind, a law without trainable
-            constants, a constant the law does not have, ``--params`` with ``--what policy``, or a
-            plug-in law (whose maths the loop cannot differentiate).
+            constants, a constant the law does not have, ``--params`` with ``--what policy``, a
+            plug-in law (whose maths the loop cannot differentiate); ``--what filter`` without
+            ``controller.filter=efference_fit``, or a filter constant that is not trainable.
     """
     if what not in WHATS:
         raise ValueError(f"--what {what!r}: choose one of {list(WHATS)}")
+    if what == "filter":
+        filt = stages.cfg.controller.filter
+        if filt != TRAINED_FILTER or not hasattr(getattr(stages.filter, "params", None), "sz0"):
+            raise ValueError(f"--what filter: trains the {TRAINED_FILTER!r} filter's constants; controller.filter is "
+                             f"{filt!r} (add --set controller.filter={TRAINED_FILTER})")
+        return FilterConstants(stages.filter, names)
     ctl, law = stages.controller, stages.cfg.controller.name
     if not hasattr(getattr(ctl, "params", None), "_replace"):
         raise ValueError(f"--what {what}: controller {law!r} is a plug-in law without the stage contract's "
@@ -130,4 +228,5 @@ def make_trainable(stages, what: str, names: Sequence[str] = ()) -> Trainable:
     return LawConstants(ctl, law, names)
 
 
-__all__ = ["Trainable", "LawConstants", "PolicyWeights", "make_trainable", "LAW_CONSTANTS", "WHATS"]
+__all__ = ["Trainable", "LawConstants", "PolicyWeights", "FilterConstants", "make_trainable", "LAW_CONSTANTS",
+           "FILTER_CONSTANTS", "FILTER_DEFAULT", "FILTER_ZERO_GRADIENT", "TRAINED_FILTER", "WHATS"]
