@@ -1,7 +1,7 @@
-"""``dvsland train-loop [CONFIG] --what policy|law [--params NAME,...] [--sites D,E,...] [--cpu-minutes M]
+"""``dvsland train-loop [CONFIG] --what policy|law|filter [--params NAME,...] [--sites D,E,...] [--cpu-minutes M]
 [--window N] [--lr LR] [--loss track=1,...] [--seed S] [--val-seed S] [--out DIR | --resume DIR] [--set ...]
-[--quiet]``: train a law's constants or a policy network by gradients through the closed loop
-(:mod:`dvsland.learn.loop_run`)."""
+[--quiet]``: train a law's constants, the ``efference_fit`` filter's constants or a policy network by
+gradients through the closed loop (:mod:`dvsland.learn.loop_run`)."""
 
 from __future__ import annotations
 
@@ -12,34 +12,43 @@ from .common import add_config_args, add_sites_arg, add_threads_arg, apply_threa
 
 #: defaults that differ by what is trained: (window, loss weights)
 WHAT_DEFAULTS = {"policy": (40, "track=1,landing=1,fail=25,fuel=0"),
-                 "law": (0, "track=0,landing=1,fail=25,fuel=0.05")}
+                 "law": (0, "track=0,landing=1,fail=25,fuel=0.05"),
+                 "filter": (40, "track=0,landing=1,fail=25,fuel=0,filter=1")}
+#: Adam's default learning rate by what is trained
+WHAT_LR = {"policy": 3e-3, "law": 2e-2, "filter": 2e-2}
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "train-loop", help="train a law's constants or a policy network by gradients through the closed loop",
+        "train-loop", help="train a law's or the efference_fit filter's constants, or a policy network, by "
+                           "gradients through the closed loop",
         description="Fly the config's descents as one batch with loop_step(grad=True) and train, from the loss "
                     "of the flight itself (landing speed, failures, fuel, tracking of the TTC profile), either "
                     "the constants of the configured law (--what law: div_gs lambda_per_s and d_final_per_s, "
-                    "tau_p / div_p kp_scale) or the network of the 'policy' law (--what policy: add --set "
+                    "tau_p / div_p kp_scale), the constants of the efference_fit filter (--what filter: "
+                    "meas_sigma_rel, meas_sigma_abs, cauchy_c, prior_rel_sigma, prior_rel_sigma_v; needs "
+                    "controller.filter=efference_fit) or the network of the 'policy' law (--what policy: add --set "
                     "controller.name=policy). The budget is process CPU time. Writes checkpoint.pt, trained.yaml "
                     "(fly it: dvsland simulate RUN/trained.yaml), train_loop.json and TensorBoard scalars (tb/) "
                     "into the run folder. Use an estimator whose estimate depends on the state (oracle): "
                     "frames and events carry no gradient.")
     add_config_args(p)
-    p.add_argument("--what", required=True, choices=("policy", "law"), help="what is trained")
+    p.add_argument("--what", required=True, choices=("policy", "law", "filter"), help="what is trained")
     p.add_argument("--params", default="", metavar="NAME,...",
-                   help="--what law: the constants to train (default: the law's set)")
+                   help="--what law or filter: the constants to train (default: the law's set; the filter's "
+                        "meas_sigma_rel,meas_sigma_abs,cauchy_c,prior_rel_sigma)")
     add_sites_arg(p, "train on these configured sites (simulation.sites)")
     p.add_argument("--cpu-minutes", type=float, default=1.0, metavar="M",
                    help="budget of process CPU time, minutes (not wall time; default 1)")
     p.add_argument("--max-windows", type=int, default=0, metavar="N", help="stop after N windows (0 = no cap)")
     p.add_argument("--window", type=int, default=None, metavar="N",
-                   help="steps per truncated-backpropagation window, 0 = whole descents (default: policy 40, law 0)")
-    p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: policy 3e-3, law 2e-2)")
+                   help="steps per truncated-backpropagation window, 0 = whole descents (default: policy 40, law 0, "
+                        "filter 40)")
+    p.add_argument("--lr", type=float, default=None,
+                   help="Adam learning rate (default: policy 3e-3, law and filter 2e-2)")
     p.add_argument("--loss", default="", metavar="NAME=W,...",
                    help="loss weights over the defaults: policy " + WHAT_DEFAULTS["policy"][1] + "; law "
-                        + WHAT_DEFAULTS["law"][1])
+                        + WHAT_DEFAULTS["law"][1] + "; filter " + WHAT_DEFAULTS["filter"][1])
     p.add_argument("--seed", type=int, default=0, help="seed of the training's dispersed restarts")
     p.add_argument("--val-seed", type=int, default=999, help="simulation.seed of the validation descents")
     p.add_argument("--val-seeds", type=int, default=None, metavar="N",
@@ -60,7 +69,7 @@ def loop_settings(args):
     return TrainLoopSettings(
         what=args.what, params=tuple(n.strip() for n in args.params.split(",") if n.strip()),
         window=window if args.window is None else args.window,
-        lr=(3e-3 if args.what == "policy" else 2e-2) if args.lr is None else args.lr, seed=args.seed,
+        lr=WHAT_LR[args.what] if args.lr is None else args.lr, seed=args.seed,
         cpu_minutes=args.cpu_minutes, max_windows=args.max_windows, val_every=args.val_every,
         loss=LossWeights.parse(args.loss, LossWeights.parse(loss))).check()
 

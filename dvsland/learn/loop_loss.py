@@ -9,7 +9,10 @@ controller and ``loop_step(..., grad=True)``; the loss is the batch mean of, per
 - ``landing`` x (v / 2 m/s)^2 at the step a descent ends (landing or crash: the faster, the worse);
   a landing's v is read where the step crosses the success altitude (:func:`crossing_speed`);
 - ``fail`` (a constant) when it ends other than landed (crash, ascent, timeout);
-- ``fuel`` x the propellant burnt, in % of the initial mass.
+- ``fuel`` x the propellant burnt, in % of the initial mass;
+- ``filter`` x sum over steps of ((D_f - D) / 0.01 1/s)^2 dt (clipped at 30), D_f the filter's output
+  and D the true divergence at the step's start (dense: how well the filter knows the divergence the
+  loop flies; ``--what filter``'s default beside the landing terms, 0 otherwise).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ class LossWeights:
     landing: float = 1.0
     fail: float = 25.0
     fuel: float = 0.0
+    filter: float = 0.0
 
     def check(self) -> "LossWeights":
         for name, v in vars(self).items():
@@ -83,11 +87,16 @@ def step_terms(stages, before, after, out, w: LossWeights) -> Dict[str, torch.Te
     landed = ended & (after.outcome == SUCCESS)
     m0 = stages.params.m0_kg
     v_end = torch.where(landed, crossing_speed(before, after, stages.settings.success_altitude_m), after.v_mps)
-    return {"track": w.track * torch.where(flying, err.clamp(-30, 30) ** 2 * dt, zero),
+    terms = {"track": w.track * torch.where(flying, err.clamp(-30, 30) ** 2 * dt, zero),
             "landing": w.landing * torch.where(ended, (v_end / 2.0) ** 2, zero),
             "fail": w.fail * (ended & ~landed).to(zero.dtype),
             "fuel": w.fuel * 100.0 * torch.where(flying, before.m_kg - after.m_kg, zero) / m0,
             "_landed": landed.to(zero.dtype), "_ended": ended.to(zero.dtype)}
+    if w.filter:  # only when weighted: a missing output (NaN) must not reach the graph as 0 x NaN
+        f_err = (out.d_filtered - out.d_true) / ERR_SCALE
+        ok = flying & torch.isfinite(f_err)
+        terms["filter"] = w.filter * torch.where(ok, torch.where(ok, f_err, 0.0).clamp(-30, 30) ** 2 * dt, zero)
+    return terms
 
 
 def gradient_mode(stages):

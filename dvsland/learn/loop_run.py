@@ -83,7 +83,7 @@ def trained_config(cfg, trainable: Trainable, ckpt: Path):
 
 def _tensorboard(writer, rec: dict, what: str = "law") -> None:
     step = rec["window"]
-    for k in ("loss", "track", "landing", "fail", "fuel"):
+    for k in ("loss", "track", "landing", "fail", "fuel", "filter"):
         if k in rec:
             writer.add_scalar(f"loss/{k}", rec[k], step)
     writer.add_scalar("train/landed", rec["landed"], step)
@@ -92,6 +92,8 @@ def _tensorboard(writer, rec: dict, what: str = "law") -> None:
     val = rec.get("val")
     if val:
         writer.add_scalar("val/success_rate", val["success_rate"], step)
+        if val.get("loss") is not None:
+            writer.add_scalar("val/loss", val["loss"], step)
         if val["median_landing_speed_mps"] is not None:
             writer.add_scalar("val/median_landing_speed_mps", val["median_landing_speed_mps"], step)
 
@@ -127,7 +129,8 @@ def train_loop(cfg, run_dir: Path, settings: TrainLoopSettings, sites=None, val_
 
     def on_window(rec: dict) -> None:
         if s.val_every and rec["window"] % s.val_every == 0:
-            rec["val"] = {k: v for k, v in validate(val_stages, trainable).items() if k != "outcomes"}
+            rec["val"] = {k: v for k, v in validate(val_stages, trainable, s.loss).items()
+                          if k != "outcomes"}
         run.history.append(rec)
         _tensorboard(writer, rec, s.what)
         if bar is not None:
@@ -141,7 +144,7 @@ def train_loop(cfg, run_dir: Path, settings: TrainLoopSettings, sites=None, val_
         writer.flush()
         if bar is not None:
             bar.close()
-    final = validate(val_stages, trainable)
+    final = validate(val_stages, trainable, s.loss)
     summary = {"what": s.what, "controller": cfg.controller.name, "settings": {**asdict(s), "params": list(s.params)},
                "batch": stages.batch_size, "windows": run.windows, "simulated_steps": run.steps,
                "cpu_s": round(run.cpu_s, 1), "train_landed": run.landed, "train_ended": run.ended,

@@ -1,5 +1,5 @@
-"""Training through the closed loop (``dvsland train-loop``): a law's constants or a policy network
-learn from the loss of the flight itself (:mod:`.loop_loss`), by truncated backpropagation in time.
+"""Training through the closed loop (``dvsland train-loop``): a law's constants, the ``efference_fit``
+filter's constants or a policy network learn from the loss of the flight itself (:mod:`.loop_loss`), by truncated backpropagation in time.
 
 A batch of B descents (the config's sites x settings x seeds) flies window after window; at each
 window's start the state is detached, and descents that have ended restart from a new dispersed
@@ -24,10 +24,11 @@ import torch
 
 from dvsland.checks import check_range
 from dvsland.control.policy import POLICY_KIND
+from dvsland.report.stats import median
 from dvsland.sim import dispersed_start, init_state, loop_step, reset_where
 from dvsland.sim.termination import SUCCESS
 
-from .loop_loss import LossWeights, window_loss
+from .loop_loss import LossWeights, step_terms, window_loss
 from .loop_trainables import WHATS, Trainable
 
 #: ``kind`` of a law checkpoint (a policy's is :data:`dvsland.control.policy.POLICY_KIND`)
@@ -37,6 +38,10 @@ FILTER_KIND = "dvsland-loop-filter"
 #: autograd memory a window holds per descent-step, bytes: about 1 KB measured with the oracle,
 #: ``div_gs`` or ``policy`` and the efference filter (scripts/bench_loop_grad.py); 4x that as margin
 GRAPH_BYTES_PER_DESCENT_STEP = 4096
+#: the ``efference_fit`` filter re-fits every row of its history each step: its graph holds about
+#: 1.6 KB per descent-step and history row (measured: 1.59 MB per descent-step after 1,000 steps,
+#: B = 1, oracle, div_gs); 2 KB as margin. A whole descent of n steps holds about n^2 / 2 of them.
+FIT_GRAPH_BYTES_PER_ROW = 2048
 
 
 @dataclass(frozen=True)
@@ -106,28 +111,59 @@ def restart_ended(stages, state, episode: torch.Tensor, seed: int, dispersion: f
 
 
 @torch.no_grad()
-def validate(stages, trainable: Trainable) -> dict:
-    """Fly every descent of ``stages`` once, whole, with the trained values: landings, landing speed, fuel."""
+def validate(stages, trainable: Trainable, loss: Optional[LossWeights] = None) -> dict:
+    """Fly every descent of ``stages`` once, whole, with the trained values: landings, landing speed, fuel
+    (medians as the reports compute them: :func:`dvsland.report.stats.median`, the mean of the two
+    middle values for an even count); with ``loss``, also the training's loss of these whole flights
+    (``loss``: the batch mean of :func:`~.loop_loss.step_terms` summed over the descent, and each term)."""
     trainable.apply_to(stages)
     state = init_state(stages)
+    sums = {}
     while bool(state.active.any()) and state.step < stages.settings.n_steps_max:
-        state, _ = loop_step(stages, state)
+        nxt, out = loop_step(stages, state)
+        if loss is not None:
+            for k, v in step_terms(stages, state, nxt, out, loss).items():
+                if not k.startswith("_"):
+                    sums[k] = sums[k] + v if k in sums else v
+        state = nxt
     landed = state.outcome == SUCCESS
-    v = state.v_mps[landed].abs()
-    fuel = (stages.params.m0_kg - state.m_kg)[landed]
+    terms = {k: round(float(v.mean()), 4) for k, v in sums.items()}
+    extra = {"loss": round(sum(float(v.mean()) for v in sums.values()), 4), "loss_terms": terms} if sums else {}
+    v = median(state.v_mps[landed].abs().tolist())
+    fuel = median((stages.params.m0_kg - state.m_kg)[landed].tolist())
     return {"n": state.batch_size, "landed": int(landed.sum()), "success_rate": float(landed.double().mean()),
-            "median_landing_speed_mps": round(float(v.median()), 3) if len(v) else None,
-            "median_fuel_kg": round(float(fuel.median()), 1) if len(fuel) else None,
+            "median_landing_speed_mps": round(v, 3) if v is not None else None,
+            "median_fuel_kg": round(fuel, 1) if fuel is not None else None, **extra,
             "outcomes": state.outcome.tolist()}
 
 
+def fit_history_rows(stages, window: int) -> int:
+    """History rows the ``efference_fit`` filter re-fits per step in a window, at most (0 for another
+    filter): the rows of a whole descent (half on average for ``window`` 0: every descent starts
+    afresh), or the rows its ``forget_s`` window reads."""
+    from dvsland.control.efference_fit import EfferenceFitParams
+
+    p = getattr(stages.filter, "params", None)
+    if not isinstance(p, EfferenceFitParams):
+        return 0
+    n = stages.settings.n_steps_max
+    rows = n // 2 if window == 0 else n
+    forget = float(p.cfg.forget_s)
+    if forget > 0:
+        rows = min(rows, int(math.ceil(p.cut_forget * forget / p.dt_s)))
+    return rows
+
+
 def check_horizon_fits(stages, window: int, available_bytes: float) -> int:
-    """Bytes the graph of one window holds (``window`` steps, 0 = ``t_max``, of B descents); ValueError
+    """Bytes the graph of one window holds (``window`` steps, 0 = ``t_max``, of B descents; with the
+    ``efference_fit`` filter, :data:`FIT_GRAPH_BYTES_PER_ROW` per row of its history too); ValueError
     naming ``--window`` when that passes half of ``available_bytes``."""
     steps = window or stages.settings.n_steps_max
-    need = steps * stages.batch_size * GRAPH_BYTES_PER_DESCENT_STEP
+    per_step = GRAPH_BYTES_PER_DESCENT_STEP + FIT_GRAPH_BYTES_PER_ROW * fit_history_rows(stages, window)
+    need = steps * stages.batch_size * per_step
     if need > 0.5 * available_bytes:
-        most = int(0.5 * available_bytes / (stages.batch_size * GRAPH_BYTES_PER_DESCENT_STEP))
+        per_window_step = GRAPH_BYTES_PER_DESCENT_STEP + FIT_GRAPH_BYTES_PER_ROW * fit_history_rows(stages, 1)
+        most = int(0.5 * available_bytes / (stages.batch_size * per_window_step))
         raise ValueError(f"--window {window}: a window of {steps} steps x {stages.batch_size} descents holds about "
                          f"{need / 2**30:.1f} GiB of autograd graph; {available_bytes / 2**30:.1f} GiB is available: "
                          f"use a window of at most {most} steps, or fewer seeds or sites")
@@ -188,4 +224,5 @@ def save_checkpoint(path: Path, trainable: Trainable, opt, s: TrainLoopSettings,
 
 
 __all__ = ["TrainLoopSettings", "TrainLoopRun", "restart_ended", "validate", "train_windows", "save_checkpoint",
-           "check_finite_loss", "check_horizon_fits", "checkpoint_kind", "LAW_KIND", "FILTER_KIND", "GRAPH_BYTES_PER_DESCENT_STEP"]
+           "check_finite_loss", "check_horizon_fits", "checkpoint_kind", "LAW_KIND", "FILTER_KIND", "GRAPH_BYTES_PER_DESCENT_STEP",
+           "FIT_GRAPH_BYTES_PER_ROW", "fit_history_rows"]

@@ -220,7 +220,7 @@ def make_trainable(stages, what: str, names: Sequence[str] = ()) -> Trainable:
                          f"params; train-loop trains built-in laws ({sorted(LAW_CONSTANTS)}) and 'policy'")
     if what == "policy":
         if names:
-            raise ValueError("--params: only with --what law (the policy trains its whole network)")
+            raise ValueError("--params: only with --what law or --what filter (the policy trains its whole network)")
         if law != "policy":
             raise ValueError(f"--what policy: needs controller.name=policy (got {law!r}); add "
                              f"--set controller.name=policy")
