@@ -1,7 +1,7 @@
-"""``dvsland train-loop [CONFIG] --what policy|law|filter [--params NAME,...] [--sites D,E,...] [--cpu-minutes M]
-[--window N] [--lr LR] [--loss track=1,...] [--seed S] [--val-seed S] [--out DIR | --resume DIR] [--set ...]
-[--quiet]``: train a law's constants, the ``efference_fit`` filter's constants or a policy network by
-gradients through the closed loop (:mod:`dvsland.learn.loop_run`)."""
+"""``dvsland train-loop [CONFIG] --what policy|law|filter|estimator [--params NAME,...] [--sites D,E,...]
+[--cpu-minutes M] [--window N] [--lr LR] [--loss track=1,...] [--seed S] [--val-seed S] [--out DIR | --resume DIR]
+[--set ...] [--quiet]``: train a law's constants, the ``efference_fit`` filter's constants, a policy network or the
+``learned`` estimator's network by gradients through the closed loop (:mod:`dvsland.learn.loop_run`)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,10 @@ from .common import add_config_args, add_sites_arg, add_threads_arg, apply_threa
 #: defaults that differ by what is trained: (window, loss weights)
 WHAT_DEFAULTS = {"policy": (40, "track=1,landing=1,fail=25,fuel=0"),
                  "law": (0, "track=0,landing=1,fail=25,fuel=0.05"),
-                 "filter": (40, "track=0,landing=1,fail=25,fuel=0,filter=1")}
+                 "filter": (40, "track=0,landing=1,fail=25,fuel=0,filter=1"),
+                 "estimator": (40, "track=0,landing=1,fail=25,fuel=0,filter=1")}
 #: Adam's default learning rate by what is trained
-WHAT_LR = {"policy": 3e-3, "law": 2e-2, "filter": 2e-2}
+WHAT_LR = {"policy": 3e-3, "law": 2e-2, "filter": 2e-2, "estimator": 1e-4}
 
 
 def register(subparsers) -> None:
@@ -31,9 +32,12 @@ def register(subparsers) -> None:
                     "controller.name=policy). The budget is process CPU time. Writes checkpoint.pt, trained.yaml "
                     "(fly it: dvsland simulate RUN/trained.yaml), train_loop.json and TensorBoard scalars (tb/) "
                     "into the run folder. Use an estimator whose estimate depends on the state (oracle): "
-                    "frames and events carry no gradient.")
+                    "frames and events carry no gradient. --what estimator fine-tunes the learned estimator's "
+                    "network (estimator.name=learned) on the same loss, the events fixed along the flown "
+                    "trajectory; trained.yaml then names its checkpoint as estimator.learned.checkpoint.")
     add_config_args(p)
-    p.add_argument("--what", required=True, choices=("policy", "law", "filter"), help="what is trained")
+    p.add_argument("--what", required=True, choices=("policy", "law", "filter", "estimator"),
+                   help="what is trained (estimator: the learned estimator's network, estimator.name=learned)")
     p.add_argument("--params", default="", metavar="NAME,...",
                    help="--what law or filter: the constants to train (default: the law's set; the filter's "
                         "meas_sigma_rel,meas_sigma_abs,cauchy_c,prior_rel_sigma)")
@@ -43,12 +47,12 @@ def register(subparsers) -> None:
     p.add_argument("--max-windows", type=int, default=0, metavar="N", help="stop after N windows (0 = no cap)")
     p.add_argument("--window", type=int, default=None, metavar="N",
                    help="steps per truncated-backpropagation window, 0 = whole descents (default: policy 40, law 0, "
-                        "filter 40)")
+                        "filter 40, estimator 40)")
     p.add_argument("--lr", type=float, default=None,
-                   help="Adam learning rate (default: policy 3e-3, law and filter 2e-2)")
+                   help="Adam learning rate (default: policy 3e-3, law and filter 2e-2, estimator 1e-4)")
     p.add_argument("--loss", default="", metavar="NAME=W,...",
                    help="loss weights over the defaults: policy " + WHAT_DEFAULTS["policy"][1] + "; law "
-                        + WHAT_DEFAULTS["law"][1] + "; filter " + WHAT_DEFAULTS["filter"][1])
+                        + WHAT_DEFAULTS["law"][1] + "; filter and estimator " + WHAT_DEFAULTS["filter"][1])
     p.add_argument("--seed", type=int, default=0, help="seed of the training's dispersed restarts")
     p.add_argument("--val-seed", type=int, default=999, help="simulation.seed of the validation descents")
     p.add_argument("--val-seeds", type=int, default=None, metavar="N",

@@ -101,8 +101,12 @@ def step_terms(stages, before, after, out, w: LossWeights) -> Dict[str, torch.Te
 
 def gradient_mode(stages):
     """``grad`` of :func:`dvsland.sim.loop_step` for training: True for an estimator without events
-    (the oracle: a function of the state), else ``"straight_through"`` (the true divergence's gradient)."""
-    return True if stages.events is None else "straight_through"
+    (the oracle: a function of the state) and for one whose step keeps its own graph (``--what
+    estimator``: the learned estimator's ``consts.grad``, the gradient to its weights), else
+    ``"straight_through"`` (the true divergence's gradient)."""
+    if stages.events is None or getattr(getattr(stages.estimator, "consts", None), "grad", False) is True:
+        return True
+    return "straight_through"
 
 
 def window_loss(stages, state, window: int, w: LossWeights) -> Tuple[torch.Tensor, Dict[str, float], object]:

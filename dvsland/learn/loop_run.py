@@ -52,6 +52,8 @@ def restore(path: Path, trainable: Trainable, opt, law: str) -> tuple:
                              f"{trainable.net.hidden}")
         check_state_dict(ck.get("state_dict"), trainable.net, where)
         trainable.net.load_state_dict(ck["state_dict"])
+    elif trainable.what == "estimator":
+        trainable.load_checkpoint_fields(ck, where)
     else:
         check_state_dict(ck.get("raw"), trainable.raw, where)
         trainable.raw.load_state_dict(ck["raw"])
@@ -70,6 +72,8 @@ def trained_config(cfg, trainable: Trainable, ckpt: Path):
         c = replace(c, efference=replace(c.efference, **opts))
     elif trainable.what == "policy":
         c = replace(c, policy=replace(c.policy, checkpoint=str(ckpt.resolve())))
+    elif trainable.what == "estimator":  # estimator.learned.checkpoint by path; the law as configured
+        cfg = trainable.trained_config(cfg, ckpt)
     else:
         vals = trainable.describe()
         if "kp_scale" in vals:

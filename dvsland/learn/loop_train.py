@@ -28,6 +28,7 @@ from dvsland.report.stats import median
 from dvsland.sim import dispersed_start, init_state, loop_step, reset_where
 from dvsland.sim.termination import SUCCESS
 
+from .loop_estimator import ESTIMATOR_KIND, estimator_graph_bytes
 from .loop_loss import LossWeights, step_terms, window_loss
 from .loop_trainables import WHATS, Trainable
 
@@ -156,13 +157,15 @@ def fit_history_rows(stages, window: int) -> int:
 
 def check_horizon_fits(stages, window: int, available_bytes: float) -> int:
     """Bytes the graph of one window holds (``window`` steps, 0 = ``t_max``, of B descents; with the
-    ``efference_fit`` filter, :data:`FIT_GRAPH_BYTES_PER_ROW` per row of its history too); ValueError
+    ``efference_fit`` filter, :data:`FIT_GRAPH_BYTES_PER_ROW` per row of its history too; with
+    ``--what estimator``, the network's graph, :func:`~.loop_estimator.estimator_graph_bytes`); ValueError
     naming ``--window`` when that passes half of ``available_bytes``."""
     steps = window or stages.settings.n_steps_max
-    per_step = GRAPH_BYTES_PER_DESCENT_STEP + FIT_GRAPH_BYTES_PER_ROW * fit_history_rows(stages, window)
+    est = estimator_graph_bytes(stages)
+    per_step = GRAPH_BYTES_PER_DESCENT_STEP + est + FIT_GRAPH_BYTES_PER_ROW * fit_history_rows(stages, window)
     need = steps * stages.batch_size * per_step
     if need > 0.5 * available_bytes:
-        per_window_step = GRAPH_BYTES_PER_DESCENT_STEP + FIT_GRAPH_BYTES_PER_ROW * fit_history_rows(stages, 1)
+        per_window_step = GRAPH_BYTES_PER_DESCENT_STEP + est + FIT_GRAPH_BYTES_PER_ROW * fit_history_rows(stages, 1)
         most = int(0.5 * available_bytes / (stages.batch_size * per_window_step))
         raise ValueError(f"--window {window}: a window of {steps} steps x {stages.batch_size} descents holds about "
                          f"{need / 2**30:.1f} GiB of autograd graph; {available_bytes / 2**30:.1f} GiB is available: "
@@ -204,8 +207,8 @@ def train_windows(stages, trainable: Trainable, opt, s: TrainLoopSettings, run: 
 
 
 def checkpoint_kind(what: str) -> str:
-    """``kind`` of a checkpoint of ``what`` (policy, law or filter)."""
-    return {"policy": POLICY_KIND, "filter": FILTER_KIND}.get(what, LAW_KIND)
+    """``kind`` of a checkpoint of ``what`` (policy, law, filter or estimator)."""
+    return {"policy": POLICY_KIND, "filter": FILTER_KIND, "estimator": ESTIMATOR_KIND}.get(what, LAW_KIND)
 
 
 def save_checkpoint(path: Path, trainable: Trainable, opt, s: TrainLoopSettings, run: TrainLoopRun,
@@ -216,6 +219,8 @@ def save_checkpoint(path: Path, trainable: Trainable, opt, s: TrainLoopSettings,
           "optimizer": opt.state_dict(), "values": trainable.describe()}
     if trainable.what == "policy":
         ck.update(hidden=trainable.net.hidden, state_dict=trainable.net.state_dict())
+    elif trainable.what == "estimator":  # a `dvsland train` checkpoint too: estimator.learned.checkpoint loads it
+        ck.update(trainable.checkpoint_fields())
     else:
         ck.update(raw={k: v.detach().clone() for k, v in trainable.raw.items()})
     tmp = path.with_name(path.name + ".tmp")

@@ -42,7 +42,7 @@ FILTER_ZERO_GRADIENT: Dict[str, str] = {
 #: the filter ``--what filter`` trains
 TRAINED_FILTER = "efference_fit"
 #: what ``--what`` accepts
-WHATS = ("policy", "law", "filter")
+WHATS = ("policy", "law", "filter", "estimator")
 
 
 class Trainable(nn.Module):
@@ -208,6 +208,13 @@ def make_trainable(stages, what: str, names: Sequence[str] = ()) -> Trainable:
     """
     if what not in WHATS:
         raise ValueError(f"--what {what!r}: choose one of {list(WHATS)}")
+    if what == "estimator":  # the learned estimator's network (dvsland.learn.loop_estimator)
+        if names:
+            raise ValueError("--params: only with --what law or --what filter (--what estimator trains the whole "
+                             "network)")
+        from .loop_estimator import EstimatorWeights
+
+        return EstimatorWeights(stages)
     if what == "filter":
         filt = stages.cfg.controller.filter
         if filt != TRAINED_FILTER or not hasattr(getattr(stages.filter, "params", None), "sz0"):

@@ -19,6 +19,7 @@ standard deviation of log|D| (about the relative error of D_hat); 0 where the es
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Dict, NamedTuple, Optional
 
@@ -77,6 +78,10 @@ class LearnedConsts(NamedTuple):
             the identity). coords: (1, 2, h, w) float32 coordinate channels.
         model: the network (eval mode). ring_net: the CNN on its circular ring
             (:class:`~.fast.RingCNN`), or None (the model then gets the ordered ring).
+        grad: keep the network's autograd graph (``dvsland train-loop --what estimator``: D_hat
+            then carries the gradient to the weights) when the caller has grad enabled; the
+            voxel grid and the ring are still built without one. The ring net copies the first
+            layer's weights, so training sets ``ring_net`` None. False (default): no graph.
     """
 
     batch_size: int
@@ -87,6 +92,7 @@ class LearnedConsts(NamedTuple):
     coords: torch.Tensor
     model: torch.nn.Module
     ring_net: Optional[torch.nn.Module]
+    grad: bool = False
 
 
 def initial_state(batch_size: int, spec: InputSpec, device) -> LearnedState:
@@ -135,10 +141,14 @@ def _write_window(state: LearnedState, grid: torch.Tensor, on_canvas: torch.Tens
     return ring, counts, sums, q
 
 
-@torch.no_grad()  # not inference_mode: D_hat and the state are ordinary tensors the loop may edit
 def learned_step(p: LearnedConfig, c: LearnedConsts, state: LearnedState, events, t_us: int,
                  donate: bool = False):
     """Pure step of ``learned``: (next :class:`LearnedState`, :class:`EstimateOut`).
+
+    Runs without autograd (not inference_mode: D_hat and the state are ordinary tensors the loop
+    may edit), unless ``c.grad`` and the caller's grad mode are both on: then the network's forward
+    keeps its graph (D_hat and the confidence carry the gradient to the weights) and only the
+    inputs (voxel grid, ring) are built without one.
 
     Args:
         p, c: the params and constants. state: :class:`LearnedState` of B rows.
@@ -147,16 +157,26 @@ def learned_step(p: LearnedConfig, c: LearnedConsts, state: LearnedState, events
         donate: write the new window into ``state.ring`` (no copy of the ring; ``state`` must not
             be used again). Off by default: ``state`` is left unchanged.
     """
+    if c.grad and torch.is_grad_enabled():
+        return _learned_step(p, c, state, events, t_us, donate, True)
+    with torch.no_grad():
+        return _learned_step(p, c, state, events, t_us, donate, False)
+
+
+def _learned_step(p: LearnedConfig, c: LearnedConsts, state: LearnedState, events, t_us: int, donate: bool,
+                  train: bool):
+    """:func:`learned_step`; ``train``: grad is on, the inputs are built under no_grad."""
     t_us = int(t_us)
     B, spec = c.batch_size, c.spec
-    last = state.t_prev_us
-    t0 = torch.where((last >= 0) & (last < t_us), last, torch.full_like(last, t_us - int(round(c.dt_s * 1e6))))
-    grid, on_canvas = events_voxel_grid(events, t0, t_us, B, spec, c.cmap, c.cells)
-    n = row_counts(events.b, B) if not c.cmap.identity else on_canvas
-    ring, counts, sums, q = _write_window(state, grid, on_canvas, spec.n_windows, donate)
-    total = counts.sum(1).to(torch.float32)
-    if not c.cmap.identity:
-        total = total * c.cmap.count_scale
+    with torch.no_grad() if train else nullcontext():  # the events are inputs: no graph to the ring
+        last = state.t_prev_us
+        t0 = torch.where((last >= 0) & (last < t_us), last, torch.full_like(last, t_us - int(round(c.dt_s * 1e6))))
+        grid, on_canvas = events_voxel_grid(events, t0, t_us, B, spec, c.cmap, c.cells)
+        n = row_counts(events.b, B) if not c.cmap.identity else on_canvas
+        ring, counts, sums, q = _write_window(state, grid, on_canvas, spec.n_windows, donate)
+        total = counts.sum(1).to(torch.float32)
+        if not c.cmap.identity:
+            total = total * c.cmap.count_scale
     st = state._replace(ring=ring, ring_counts=counts, ring_abs=sums, newest=q)
     activity: Dict[str, torch.Tensor] = {}
     if c.ring_net is not None:
