@@ -133,7 +133,6 @@ def test_validation_batch_flies_the_trained_weights_on_a_fresh_ring_net():
     assert st.estimator.consts.grad and st.estimator.consts.ring_net is None
 
 
-@pytest.mark.slow
 def test_cli_trains_resumes_and_flies_the_checkpoint(tmp_path, capsys):
     out = tmp_path / "run"
     base = ["--sites", "D", *sum((["--set", c] for c in COMMON + ["simulation.t_max_s=3"]), [])]
