@@ -299,6 +299,7 @@ class LearnedConfig:
     """A network trained by the recipe, 'learned' (docs/learning.md)."""
 
     checkpoint: str = opt("", "checkpoint of `dvsland train --model ...`; empty or 'cnn' = the shipped CNN, "
+                              "'cnn_realistic' = the shipped CNN fine-tuned through the realistic pixel too, "
                               "'spiking' = the shipped spiking model")
     min_events: int = opt(20, "windows with fewer events give no estimate (NaN)", rng=(1, 1000000000))
 

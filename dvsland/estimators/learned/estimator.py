@@ -37,7 +37,11 @@ from .fast import RingCNN
 from .inputs import InputSpec, camera_map, coord_channels, events_voxel_grid, pixel_cells, row_counts
 
 #: the shipped checkpoints (trained by `dvsland train`, commands in docs/learning.md)
-SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"), "spiking": Path(__file__).with_name("learned_spiking.pt")}
+#: the shipped checkpoints by name: the CNN, the CNN fine-tuned on events of the realistic pixel as
+#: well (docs/learning.md, "Through a realistic pixel"), the spiking model
+SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"),
+           "cnn_realistic": Path(__file__).with_name("learned_cnn_realistic.pt"),
+           "spiking": Path(__file__).with_name("learned_spiking.pt")}
 
 
 class LearnedState(NamedTuple):
@@ -206,7 +210,8 @@ def default_focal_px(sensor_size) -> float:
 
 
 def resolve_checkpoint(checkpoint: str) -> Path:
-    """``""`` or ``"cnn"`` -> the shipped CNN, ``"spiking"`` -> the shipped spiking model, else a path."""
+    """``""`` or ``"cnn"`` -> the shipped CNN, ``"cnn_realistic"`` -> the CNN fine-tuned through the
+    realistic pixel, ``"spiking"`` -> the shipped spiking model, else a path."""
     key = str(checkpoint or "cnn")
     return SHIPPED.get(key, Path(key))
 
@@ -217,7 +222,8 @@ class LearnedEstimator(DivergenceEstimator):
 
     Args:
         checkpoint: path of a ``dvsland train --model`` checkpoint; ``""``/``"cnn"`` = the shipped
-            CNN, ``"spiking"`` = the shipped spiking model.
+            CNN, ``"cnn_realistic"`` = the CNN fine-tuned through the realistic pixel, ``"spiking"`` =
+            the shipped spiking model.
         min_events: windows with fewer events give NaN, in [1, 1e9].
         principal_point_px: focus of expansion: the events are resampled about it onto the
             checkpoint's reference canvas (:mod:`.inputs`), whose centre it becomes.
