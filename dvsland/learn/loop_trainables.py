@@ -62,7 +62,24 @@ class Trainable(nn.Module):
         return {}
 
 
-class LawConstants(Trainable):
+class LogConstants(Trainable):
+    """Base of named positive constants trained in log space: ``raw[name]`` = log(value)."""
+
+    def _start(self, start: Dict[str, float]) -> None:
+        """The constants ``start`` (name -> value > 0), in this order, as the trained parameters."""
+        self.names = tuple(start)
+        self.raw = nn.ParameterDict({n: nn.Parameter(torch.tensor(math.log(v), dtype=torch.float64))
+                                     for n, v in start.items()})
+
+    def values(self) -> Dict[str, torch.Tensor]:
+        """name -> 0-dim float64 tensor (with its graph to ``raw``)."""
+        return {n: torch.exp(self.raw[n]) for n in self.names}
+
+    def describe(self) -> dict:
+        return {n: float(v.detach()) for n, v in self.values().items()}
+
+
+class LawConstants(LogConstants):
     """A built-in law's positive constants, log-parameterised.
 
     Args:
@@ -83,15 +100,9 @@ class LawConstants(Trainable):
         if bad:
             raise ValueError(f"--params {','.join(bad)}: not a trainable constant of {law!r}; choose from "
                              f"{list(LAW_CONSTANTS[law])}")
-        self.law, self.names = law, names
+        self.law = law
         self.base = controller.params
-        start = {n: 1.0 if n == "kp_scale" else float(getattr(self.base.options, n)) for n in names}
-        self.raw = nn.ParameterDict({n: nn.Parameter(torch.tensor(math.log(v), dtype=torch.float64))
-                                     for n, v in start.items()})
-
-    def values(self) -> Dict[str, torch.Tensor]:
-        """name -> 0-dim float64 tensor (with its graph to ``raw``)."""
-        return {n: torch.exp(self.raw[n]) for n in self.names}
+        self._start({n: 1.0 if n == "kp_scale" else float(getattr(self.base.options, n)) for n in names})
 
     def apply(self, controller) -> None:
         vals = self.values()
@@ -101,9 +112,6 @@ class LawConstants(Trainable):
         if vals:
             p = p._replace(options=dataclasses.replace(p.options, **vals))
         controller.params = p
-
-    def describe(self) -> dict:
-        return {n: float(v.detach()) for n, v in self.values().items()}
 
     def config_overrides(self) -> Dict[str, float]:
         """``controller.<law>.<name>`` -> value for the constants of the law's config section
@@ -130,7 +138,7 @@ class PolicyWeights(Trainable):
         return {"hidden": self.net.hidden, "parameters": sum(p.numel() for p in self.net.parameters())}
 
 
-class FilterConstants(Trainable):
+class FilterConstants(LogConstants):
     """The ``efference_fit`` filter's positive constants (``controller.efference``), log-parameterised.
 
     ``prior_rel_sigma`` and ``prior_rel_sigma_v`` act through the prior's std. devs. ``sz0`` =
@@ -163,13 +171,8 @@ class FilterConstants(Trainable):
             raise ValueError(f"--params {','.join(zero)}: controller.efference.{zero[0]} is {start[zero[0]]!r}; a "
                              f"constant trained in log space must start > 0 (add --set "
                              f"controller.efference.{zero[0]}=...)")
-        self.names, self.start = names, start
-        self.raw = nn.ParameterDict({n: nn.Parameter(torch.tensor(math.log(v), dtype=torch.float64))
-                                     for n, v in start.items()})
-
-    def values(self) -> Dict[str, torch.Tensor]:
-        """name -> 0-dim float64 tensor (with its graph to ``raw``)."""
-        return {n: torch.exp(self.raw[n]) for n in self.names}
+        self.start = start
+        self._start(start)
 
     def apply(self, filt) -> None:
         vals = self.values()
@@ -182,9 +185,6 @@ class FilterConstants(Trainable):
 
     def apply_to(self, stages) -> None:
         self.apply(stages.filter)
-
-    def describe(self) -> dict:
-        return {n: float(v.detach()) for n, v in self.values().items()}
 
     def config_overrides(self, cfg=None) -> Dict[str, float]:
         """``controller.efference.<name>`` -> value. With ``prior_rel_sigma`` trained and the config's
