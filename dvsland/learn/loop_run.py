@@ -14,7 +14,7 @@ import torch
 
 from dvsland.campaign.plan import available_memory_bytes
 from dvsland.config import dump_config
-from dvsland.estimators.state_dict_check import (check_finite_numbers, check_optimizer_state, check_state_dict,
+from dvsland.estimators.state_dict_check import (check_finite_numbers, check_optimizer_state,
                                                  read_checkpoint_file)
 from dvsland.report.results import atomic_write_text
 from dvsland.report.tensorboard import summary_writer
@@ -46,17 +46,7 @@ def restore(path: Path, trainable: Trainable, opt, law: str) -> tuple:
         raise ValueError(f"{where}: a {ck.get('kind')!r} checkpoint of controller {ck.get('controller')!r}; this "
                          f"training is --what {trainable.what} of {law!r}")
     check_finite_numbers(ck.get("run", {}), where, "run")
-    if trainable.what == "policy":
-        if ck.get("hidden") != trainable.net.hidden:
-            raise ValueError(f"{where}: hidden {ck.get('hidden')!r} != controller.policy.hidden "
-                             f"{trainable.net.hidden}")
-        check_state_dict(ck.get("state_dict"), trainable.net, where)
-        trainable.net.load_state_dict(ck["state_dict"])
-    elif trainable.what == "estimator":
-        trainable.load_checkpoint_fields(ck, where)
-    else:
-        check_state_dict(ck.get("raw"), trainable.raw, where)
-        trainable.raw.load_state_dict(ck["raw"])
+    trainable.load_checkpoint_fields(ck, where)
     check_optimizer_state(ck.get("optimizer"), opt, where)
     opt.load_state_dict(ck["optimizer"])
     run = TrainLoopRun(**{k: v for k, v in ck.get("run", {}).items() if k in TrainLoopRun.__dataclass_fields__})

@@ -217,12 +217,7 @@ def save_checkpoint(path: Path, trainable: Trainable, opt, s: TrainLoopSettings,
     ck = {"kind": checkpoint_kind(trainable.what), "controller": law,
           "settings": {**asdict(s), "params": list(s.params)}, "run": asdict(run), "episode": episode.cpu(),
           "optimizer": opt.state_dict(), "values": trainable.describe()}
-    if trainable.what == "policy":
-        ck.update(hidden=trainable.net.hidden, state_dict=trainable.net.state_dict())
-    elif trainable.what == "estimator":  # a `dvsland train` checkpoint too: estimator.learned.checkpoint loads it
-        ck.update(trainable.checkpoint_fields())
-    else:
-        ck.update(raw={k: v.detach().clone() for k, v in trainable.raw.items()})
+    ck.update(trainable.checkpoint_fields())  # --what estimator: a `dvsland train` checkpoint too
     tmp = path.with_name(path.name + ".tmp")
     torch.save(ck, tmp)
     tmp.replace(path)

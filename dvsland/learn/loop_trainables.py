@@ -24,6 +24,8 @@ from typing import Dict, Sequence, Tuple
 import torch
 from torch import nn
 
+from dvsland.estimators.state_dict_check import check_state_dict
+
 #: law -> constants that can be trained by name (the first ones are the default set)
 LAW_CONSTANTS: Dict[str, Tuple[str, ...]] = {"div_gs": ("lambda_per_s", "d_final_per_s"),
                                              "tau_p": ("kp_scale",), "div_p": ("kp_scale",)}
@@ -61,6 +63,15 @@ class Trainable(nn.Module):
         """What a checkpoint and train_loop.json record of the current values (plain numbers)."""
         return {}
 
+    def checkpoint_fields(self) -> dict:
+        """The fields of the training checkpoint that hold the trained values."""
+        raise NotImplementedError
+
+    def load_checkpoint_fields(self, ck: dict, where: str) -> None:
+        """Load the values that :meth:`checkpoint_fields` wrote into ``ck``; ValueError naming
+        ``where`` where they do not fit."""
+        raise NotImplementedError
+
 
 class LogConstants(Trainable):
     """Base of named positive constants trained in log space: ``raw[name]`` = log(value)."""
@@ -77,6 +88,13 @@ class LogConstants(Trainable):
 
     def describe(self) -> dict:
         return {n: float(v.detach()) for n, v in self.values().items()}
+
+    def checkpoint_fields(self) -> dict:
+        return {"raw": {k: v.detach().clone() for k, v in self.raw.items()}}
+
+    def load_checkpoint_fields(self, ck: dict, where: str) -> None:
+        check_state_dict(ck.get("raw"), self.raw, where)
+        self.raw.load_state_dict(ck["raw"])
 
 
 class LawConstants(LogConstants):
@@ -136,6 +154,15 @@ class PolicyWeights(Trainable):
 
     def describe(self) -> dict:
         return {"hidden": self.net.hidden, "parameters": sum(p.numel() for p in self.net.parameters())}
+
+    def checkpoint_fields(self) -> dict:
+        return {"hidden": self.net.hidden, "state_dict": self.net.state_dict()}
+
+    def load_checkpoint_fields(self, ck: dict, where: str) -> None:
+        if ck.get("hidden") != self.net.hidden:
+            raise ValueError(f"{where}: hidden {ck.get('hidden')!r} != controller.policy.hidden {self.net.hidden}")
+        check_state_dict(ck.get("state_dict"), self.net, where)
+        self.net.load_state_dict(ck["state_dict"])
 
 
 class FilterConstants(LogConstants):
