@@ -54,25 +54,11 @@ def restore(path: Path, trainable: Trainable, opt, law: str) -> tuple:
 
 
 def trained_config(cfg, trainable: Trainable, ckpt: Path):
-    """The config that flies the trained result: the training config with the law's constants, the
-    filter's (``controller.efference``), or the policy's checkpoint by absolute path in place."""
-    c = cfg.controller
-    if trainable.what == "filter":
-        opts = {k.rsplit(".", 1)[1]: v for k, v in trainable.config_overrides(cfg).items()}
-        c = replace(c, efference=replace(c.efference, **opts))
-    elif trainable.what == "policy":
-        c = replace(c, policy=replace(c.policy, checkpoint=str(ckpt.resolve())))
-    elif trainable.what == "estimator":  # estimator.learned.checkpoint by path; the law as configured
-        cfg = trainable.trained_config(cfg, ckpt)
-    else:
-        vals = trainable.describe()
-        if "kp_scale" in vals:
-            c = replace(c, settings=[replace(x, kp=x.kp * vals["kp_scale"]) for x in c.settings])
-        section = getattr(c, trainable.law, None)
-        opts = {k: v for k, v in vals.items() if k != "kp_scale"}
-        if opts:
-            c = replace(c, **{trainable.law: replace(section, **opts)})
-    return replace(cfg, controller=c, logging=replace(cfg.logging, quiet=False))  # --quiet was the training's
+    """The config that flies the trained result: the training config with the trained values in
+    place (:meth:`~.loop_trainables.Trainable.trained_config`: the law's or the filter's constants,
+    or the policy's or the estimator's checkpoint by absolute path)."""
+    flown = trainable.trained_config(cfg, ckpt)
+    return replace(flown, logging=replace(flown.logging, quiet=False))  # --quiet was the training's
 
 
 def _tensorboard(writer, rec: dict, what: str = "law") -> None:

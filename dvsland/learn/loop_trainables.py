@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 from typing import Dict, Sequence, Tuple
 
 import torch
@@ -70,6 +71,11 @@ class Trainable(nn.Module):
     def load_checkpoint_fields(self, ck: dict, where: str) -> None:
         """Load the values that :meth:`checkpoint_fields` wrote into ``ck``; ValueError naming
         ``where`` where they do not fit."""
+        raise NotImplementedError
+
+    def trained_config(self, cfg, ckpt: Path):
+        """``cfg`` (the training config) with the trained values in place, so that it flies them;
+        ``ckpt`` is the training's checkpoint (named by absolute path where the values live there)."""
         raise NotImplementedError
 
 
@@ -131,10 +137,15 @@ class LawConstants(LogConstants):
             p = p._replace(options=dataclasses.replace(p.options, **vals))
         controller.params = p
 
-    def config_overrides(self) -> Dict[str, float]:
-        """``controller.<law>.<name>`` -> value for the constants of the law's config section
-        (``kp_scale`` is not one: it scales the gains of ``controller.settings``)."""
-        return {f"controller.{self.law}.{n}": v for n, v in self.describe().items() if n != "kp_scale"}
+    def trained_config(self, cfg, ckpt: Path):
+        """The law's constants into ``controller.<law>``; ``kp_scale`` scales every setting's Kp."""
+        c, vals = cfg.controller, self.describe()
+        if "kp_scale" in vals:
+            c = dataclasses.replace(c, settings=[dataclasses.replace(x, kp=x.kp * vals.pop("kp_scale"))
+                                                 for x in c.settings])
+        if vals:
+            c = dataclasses.replace(c, **{self.law: dataclasses.replace(getattr(c, self.law), **vals)})
+        return dataclasses.replace(cfg, controller=c)
 
 
 class PolicyWeights(Trainable):
@@ -163,6 +174,12 @@ class PolicyWeights(Trainable):
             raise ValueError(f"{where}: hidden {ck.get('hidden')!r} != controller.policy.hidden {self.net.hidden}")
         check_state_dict(ck.get("state_dict"), self.net, where)
         self.net.load_state_dict(ck["state_dict"])
+
+    def trained_config(self, cfg, ckpt: Path):
+        """``controller.policy.checkpoint`` = ``ckpt`` by absolute path."""
+        c = cfg.controller
+        return dataclasses.replace(cfg, controller=dataclasses.replace(
+            c, policy=dataclasses.replace(c.policy, checkpoint=str(Path(ckpt).resolve()))))
 
 
 class FilterConstants(LogConstants):
@@ -198,7 +215,6 @@ class FilterConstants(LogConstants):
             raise ValueError(f"--params {','.join(zero)}: controller.efference.{zero[0]} is {start[zero[0]]!r}; a "
                              f"constant trained in log space must start > 0 (add --set "
                              f"controller.efference.{zero[0]}=...)")
-        self.start = start
         self._start(start)
 
     def apply(self, filt) -> None:
@@ -213,15 +229,15 @@ class FilterConstants(LogConstants):
     def apply_to(self, stages) -> None:
         self.apply(stages.filter)
 
-    def config_overrides(self, cfg=None) -> Dict[str, float]:
-        """``controller.efference.<name>`` -> value. With ``prior_rel_sigma`` trained and the config's
-        ``prior_rel_sigma_v`` null (= prior_rel_sigma), the velocity prior is written out as flown
-        (``cfg``: the training config), so that the trained altitude prior does not move it."""
-        out = {f"controller.efference.{n}": v for n, v in self.describe().items()}
-        if (cfg is not None and "prior_rel_sigma" in self.names and "prior_rel_sigma_v" not in self.names
-                and cfg.controller.efference.prior_rel_sigma_v is None):
-            out["controller.efference.prior_rel_sigma_v"] = float(cfg.controller.efference.prior_rel_sigma)
-        return out
+    def trained_config(self, cfg, ckpt: Path):
+        """The constants into ``controller.efference``. With ``prior_rel_sigma`` trained and the
+        config's ``prior_rel_sigma_v`` null (= prior_rel_sigma), the velocity prior is written out as
+        flown, so that the trained altitude prior does not move it."""
+        e, opts = cfg.controller.efference, self.describe()
+        if "prior_rel_sigma" in opts and "prior_rel_sigma_v" not in opts and e.prior_rel_sigma_v is None:
+            opts["prior_rel_sigma_v"] = float(e.prior_rel_sigma)
+        c = dataclasses.replace(cfg.controller, efference=dataclasses.replace(e, **opts))
+        return dataclasses.replace(cfg, controller=c)
 
 
 def make_trainable(stages, what: str, names: Sequence[str] = ()) -> Trainable:
