@@ -48,11 +48,10 @@ def apply_abstain(est, section) -> None:
     defaults leaves the class's own setting."""
     if section is None or getattr(est, "abstain", None) is None:
         return
-    fields = {k: getattr(section, k) for k in AbstainParams._fields}
+    params = AbstainParams(**{k: getattr(section, k) for k in AbstainParams._fields})
     if not section.enabled:
         est.abstain = None
-    elif AbstainParams(**fields) != DEFAULT_ABSTAIN:
-        params = AbstainParams(**fields)
+    elif params != DEFAULT_ABSTAIN:
         try:
             check_abstain_params(params)
         except ValueError as exc:
