@@ -11,7 +11,7 @@ import math
 import os
 import re
 import typing
-from typing import Any, Optional
+from typing import Any, Optional, Tuple
 
 from dvsland.checks import check_choice, check_range
 
@@ -343,15 +343,23 @@ def _check_path_size(path: str, what: str) -> None:
 def memory_limit_bytes(cfg: Config) -> float:
     """``simulation.max_memory_gb`` in bytes; 0 = 80 % of this machine's physical memory, and on a
     CUDA ``simulation.device`` at most 90 % of the card's free memory (:func:`device_free_bytes`)."""
+    return _memory_limit(cfg)[0]
+
+
+def _memory_limit(cfg: Config) -> Tuple[float, str]:
+    """(:func:`memory_limit_bytes`, where it came from for messages: `` (90 % of the ... GiB free on
+    cuda:0)`` when the card was asked, else ``""``), the card asked once."""
     gb = float(getattr(cfg.simulation, "max_memory_gb", 0.0) or 0.0)
     if gb > 0:
-        return gb * 2 ** 30
+        return gb * 2 ** 30, ""
     try:
         limit = 0.8 * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
         limit = math.inf
     free = device_free_bytes(getattr(cfg.simulation, "device", "cpu"))
-    return limit if free is None else min(limit, 0.9 * free)
+    if free is None:
+        return limit, ""
+    return min(limit, 0.9 * free), f" (90 % of the {free / 2 ** 30:.1f} GiB free on {cfg.simulation.device})"
 
 
 def device_free_bytes(device) -> Optional[float]:
@@ -412,7 +420,7 @@ def check_memory(cfg: Config, n_sites: Optional[int] = None, batch_size: Optiona
     parts. The simulator runs it on the batch it is about to build (after ``--sites``), before the
     run folder is made, a campaign on each grid point's largest shard before its plan is saved;
     it depends on the machine, so loading a config does not. A run that fits then goes through :func:`check_event_rates`."""
-    parts, limit = memory_parts(cfg, n_sites, batch_size), memory_limit_bytes(cfg)
+    parts, (limit, limit_from) = memory_parts(cfg, n_sites, batch_size), _memory_limit(cfg)
     need = sum(parts.values())
     if need <= limit:
         check_event_rates(cfg, batch_size, source)
@@ -421,21 +429,13 @@ def check_memory(cfg: Config, n_sites: Optional[int] = None, batch_size: Optiona
     cm = cfg.estimator.cmax
     raise ConfigError(
         f"simulation.max_memory_gb{_where(source)}: this run needs about {need / 2 ** 30:.1f} GiB, above the limit of "
-        f"{limit / 2 ** 30:.1f} GiB{_limit_source(cfg)}: {gib['pixels']} for the {cfg.camera.width_px}x{cfg.camera.height_px} px camera "
+        f"{limit / 2 ** 30:.1f} GiB{limit_from}: {gib['pixels']} for the {cfg.camera.width_px}x{cfg.camera.height_px} px camera "
         f"(terrain tiles and {SITE_BYTES_PER_PX} B per pixel per site + {STATE_BYTES_PER_PX} B per pixel per "
         f"descent, B = {_batch(cfg, batch_size)}), {gib['terrain']} to prepare a terrain level, {gib['events']} for "
         f"emulator.max_events_per_step = {getattr(cfg.emulator, 'max_events_per_step', 0)} x {BYTES_PER_EVENT} B"
         + (f", {gib['cmax']} for the cmax search (estimator.cmax.n_grid = {cm.n_grid})" if parts["cmax"] else "")
         + "; use fewer sites, settings or seeds, a smaller camera, a lower emulator.max_events_per_step or "
           "estimator.cmax.n_grid, or raise simulation.max_memory_gb")
-
-
-def _limit_source(cfg: Config) -> str:
-    """`` (... free on cuda:0)`` when the card's free memory set the limit, else ``""``."""
-    if float(getattr(cfg.simulation, "max_memory_gb", 0.0) or 0.0) > 0:
-        return ""
-    free = device_free_bytes(getattr(cfg.simulation, "device", "cpu"))
-    return "" if free is None else f" (90 % of the {free / 2 ** 30:.1f} GiB free on {cfg.simulation.device})"
 
 
 #: the smallest change of log intensity per pixel and control step assumed by
