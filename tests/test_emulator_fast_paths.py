@@ -87,13 +87,17 @@ def test_noise_candidates_at_extreme_rates(rate_hz):
         assert int(flat.min()) >= 0 and int(flat.max()) < 32 and int(t_rel.min()) >= 1 and int(t_rel.max()) <= 1000
 
 
+@pytest.mark.parametrize("numpy_faster", [True, False])
 @pytest.mark.parametrize("threads", [1, 2])
-def test_cpu_sort_is_the_same_with_one_or_more_threads(threads):
-    """The torch path sorts with torch.sort on one thread and numpy's sort with more: same events."""
+def test_cpu_sort_is_the_same_with_one_or_more_threads(threads, numpy_faster, monkeypatch):
+    """The torch path sorts with numpy's sort where it is faster (or with several threads), else
+    torch.sort: the same events either way."""
     from dvsland.events.emulator import _sort_values
 
+    monkeypatch.setattr(emu_mod, "_numpy_sorts_faster", lambda: numpy_faster)
     g = torch.Generator().manual_seed(1)
     keys = torch.randint(0, 2 ** 40, (50_001,), generator=g)
+    keys[::7] = keys[0]  # repeated keys too
     before = torch.get_num_threads()
     try:
         torch.set_num_threads(threads)
@@ -114,3 +118,10 @@ def test_merge_of_sorted_keys_equals_a_sort():
     b = torch.sort(torch.randint(0, 1000, (10_007,), generator=g)).values
     assert torch.equal(_merge_sorted(a, b), torch.sort(torch.cat((a, b))).values)
     assert torch.equal(_merge_sorted(a[:0], b), b) and torch.equal(_merge_sorted(a, b[:0]), a)
+
+
+def test_sort_choice_is_measured_once_and_is_a_bool():
+    emu_mod._numpy_sorts_faster.cache_clear()
+    first = emu_mod._numpy_sorts_faster()
+    assert isinstance(first, bool) and emu_mod._numpy_sorts_faster() is first
+    assert emu_mod._numpy_sorts_faster.cache_info().misses == 1
