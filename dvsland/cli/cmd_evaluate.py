@@ -1,5 +1,6 @@
 """``dvsland evaluate [CONFIG] [--estimators dpr,cmax] [--sites A,B,...] [--segment-steps N --stride S]
-[--max-steps N] [--device cpu|cuda] [--threads N] [--calibration] [--out DIR] [--set key=value ...] [--quiet]``:
+[--max-steps N] [--device cpu|cuda] [--threads N] [--calibration [--fit-calibration]] [--out DIR] [--set key=value ...]
+[--quiet]``:
 open-loop evaluation of divergence estimators on the evaluation event streams."""
 
 from __future__ import annotations
@@ -41,7 +42,12 @@ def register(subparsers) -> None:
                    help="also write the calibration report of every estimator: calibration.json, calibration.txt "
                         "(share of estimates inside the predicted 1 sigma / 2 sigma per site type, abstentions "
                         "apart; printed too) and calibration.png (reliability diagram, risk-coverage curve); "
-                        "rendered descents only (docs/estimators.md)")
+                        "rendered descents only (docs/estimators.md); also calibration_sample.npz, the scored "
+                        "steps (D, D_hat, confidence, events per window) that scripts/fit_calibration.py fits from")
+    p.add_argument("--fit-calibration", action="store_true",
+                   help="with --calibration: also fit each estimator's post-hoc confidence calibration on this "
+                        "evaluation and write it as calibration_table_<estimator>.json (fly it with --set "
+                        "estimator.calibration=PATH; judge it on other seeds; needs estimator.calibration=none)")
     p.add_argument("--scenarios", default=None, metavar="NAME,NAME",
                    help="hard scenarios flown after the descents, each a named segment of the report: "
                         "hover_start, slow_to_hover, feature_poor, noise_burst, 'all' or 'none' (default: all for "
@@ -138,7 +144,10 @@ def run_evaluate(args) -> int:
         from dvsland.evaluate.scenarios import resolve_scenarios
 
         resolve_scenarios(args.scenarios)  # unknown names: an error before anything runs
+    if args.fit_calibration and not args.calibration:
+        raise ValueError("--fit-calibration needs --calibration")
     cfg = config_from_args(args)  # checks the device before the run folder exists
+    _check_calibration_key(cfg, specs, args.fit_calibration)
     check_configured_sites(cfg, sites)
     apply_threads(cfg)  # --threads, else simulation.torch_threads (0 = torch's default)
     device = cfg.simulation.device
@@ -164,6 +173,7 @@ def run_evaluate(args) -> int:
 
         cal_paths, cal_table = write_calibration(res, run_dir, figures=not args.no_figures and cfg.logging.figures)
         paths.update(cal_paths)
+        paths.update(_write_calibration_fit(res, run_dir, cfg, args, specs, quiet))
     if cfg.logging.tensorboard:
         from dvsland.report.results import writes_under
         from dvsland.report.tensorboard import write_evaluation_tensorboard
@@ -178,3 +188,58 @@ def run_evaluate(args) -> int:
         print(f"wrote {', '.join(str(p) for p in paths.values())}")
     print(f"run folder: {run_dir}")
     return 0
+
+
+def _spec_names(specs) -> dict:
+    """{label: estimator name} of the ``--estimators`` list."""
+    from dvsland.evaluate.run import parse_estimator_spec
+
+    out = {}
+    for item in specs:
+        if isinstance(item, tuple):
+            out[item[0]] = item[1]
+        else:
+            label, name, _ = parse_estimator_spec(item)
+            out[label] = name
+    return out
+
+
+def _check_calibration_key(cfg, specs, fit: bool) -> None:
+    """``estimator.calibration`` resolved for every estimator named, before the run folder exists
+    (its errors name the key); ``--fit-calibration`` needs raw confidences."""
+    from dvsland.estimators.calibrate import resolve_calibration
+
+    value = getattr(cfg.estimator, "calibration", "none")
+    for name in _spec_names(specs).values():
+        resolve_calibration(value, name)
+    if fit and str(value).strip().lower() not in ("", "none"):
+        raise ValueError(f"--fit-calibration fits raw confidences: run it with estimator.calibration=none "
+                         f"(got {value!r})")
+
+
+def _write_calibration_fit(res, run_dir, cfg, args, specs, quiet: bool) -> dict:
+    """calibration_sample.npz and, with --fit-calibration, one calibration_table_<label>.json per
+    estimator in the run folder; {kind: path}."""
+    import re
+
+    from dvsland.evaluate.calibration_report import (calibration_sample, fit_from_samples, format_fit,
+                                                     write_calibration_sample)
+    from dvsland.report.checkpoint import checkpoint_text
+    from dvsland.report.results import write_json
+
+    if getattr(res, "recording", None) is not None or not getattr(res, "confidence", None):
+        return {}
+    meta = {"config": cfg.name, "seed": int(cfg.simulation.seed), "overrides": list(args.overrides or []),
+            "estimators": _spec_names(specs), "calibration": str(getattr(cfg.estimator, "calibration", "none")),
+            "checkpoints": {k: checkpoint_text(v) for k, v in (getattr(res, "checkpoints", None) or {}).items()}}
+    paths = {"calibration_sample": write_calibration_sample(res, run_dir, meta)}
+    if not args.fit_calibration:
+        return paths
+    sample = dict(calibration_sample(res), meta=meta)
+    for label in res.d_hat:
+        obj = fit_from_samples([sample], label)
+        safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", label)
+        paths[f"calibration_table_{safe}"] = write_json(run_dir / f"calibration_table_{safe}.json", obj)
+        if not quiet:
+            print(format_fit(obj))
+    return paths

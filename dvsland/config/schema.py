@@ -336,6 +336,11 @@ class EstimatorConfig:
     learned: LearnedConfig = opt(None, "parameters of 'learned'", factory=LearnedConfig)
     abstain: AbstainConfig = opt(None, "the motion-evidence test every event estimator runs behind",
                                  factory=AbstainConfig)
+    calibration: str = opt("none", "post-hoc confidence calibration (not in paper): 'none' = the estimator's own "
+                           "confidence; 'ideal' or 'realistic' = the table shipped for the estimator and that pixel "
+                           "(dvsland/estimators/calibration/<estimator>_<set>.json); a shipped name such as "
+                           "'cmax_realistic'; or a path to a .json table fitted by `dvsland evaluate --calibration "
+                           "--fit-calibration` (docs/estimators.md)")
     params: dict = opt(None, "free-form keyword parameters for other (third-party) estimators",
                        factory=dict)
 

@@ -15,6 +15,8 @@ from typing import Any, Dict, NamedTuple, Optional, Sequence, Tuple
 import torch
 
 from .abstain import DEFAULT_ABSTAIN, EVIDENCE_KEY, AbstainParams, gate_output, motion_evidence
+from .calibrate import CalibrationParams, calibrate_confidence, calibrate_output, feature_values, params_to, \
+    window_event_counts
 
 
 @dataclass
@@ -104,6 +106,12 @@ class DivergenceEstimator:
     #: another :class:`~dvsland.estimators.abstain.AbstainParams` tunes it.
     abstain: Optional[AbstainParams] = DEFAULT_ABSTAIN
 
+    #: Post-hoc confidence calibration (:mod:`dvsland.estimators.calibrate`) applied to every step's
+    #: confidence after the motion-evidence test: None (the default) = the estimator's own confidence;
+    #: a :class:`~dvsland.estimators.calibrate.CalibrationParams` table (``estimator.calibration``)
+    #: rescales its predicted sigma. D_hat is never changed.
+    calibration: Optional[CalibrationParams] = None
+
     def __init_subclass__(cls, **kwargs):
         """Every subclass's ``update`` runs behind :func:`_checked_update`: events are checked
         (b, x, y, p in range: a clear error, never an index error deep in an estimator) and
@@ -125,6 +133,11 @@ class DivergenceEstimator:
         if not getattr(self, "needs_events", True) or getattr(self, "abstain", None) is None:
             return out
         return gate_output(out, events, self.batch_size, self.sensor_size, t_us, self.abstain)
+
+    def _calibrate(self, out: "EstimateOut", events) -> "EstimateOut":
+        """``out`` with its confidence calibrated (unchanged with ``calibration = None`` or when
+        ``out`` was calibrated already)."""
+        return calibrate_output(out, events, self.batch_size, getattr(self, "calibration", None))
 
     def __init__(self, batch_size: int, sensor_size: Tuple[int, int], device: Any = "cpu",
                  dt_s: float = 0.1, principal_point_px: Optional[Sequence[float]] = None, **params):
@@ -239,16 +252,24 @@ def _checked_update(update):
         d = update(self, events, t_us, *args, **kwargs)
         if not self._has_contract():
             self._motion_factor = None  # a factor belongs to the update that measured it
-        if (not getattr(self, "needs_events", True) or getattr(self, "abstain", None) is None
-                or not isinstance(d, torch.Tensor)):
+            self._calibration_input = None
+        if not isinstance(d, torch.Tensor):
             return d
+        gated = getattr(self, "needs_events", True) and getattr(self, "abstain", None) is not None
         if self._has_contract():  # an update that bypasses step_state (e.g. learned's in-place ring)
             last = getattr(self, "_last", None)
-            if isinstance(last, EstimateOut) and EVIDENCE_KEY not in last.diagnostics:
-                self._last = self._gate(last, events, t_us)
-                return self._last.d_hat.clone()
+            if isinstance(last, EstimateOut):
+                out = self._gate(last, events, t_us) if gated and EVIDENCE_KEY not in last.diagnostics else last
+                out = self._calibrate(out, events)
+                if out is not last:
+                    self._last = out
+                    return out.d_hat.clone()
             return d
-        # the object API alone: the factor is kept for confidence()
+        # the object API alone: the factor (and the calibration's inputs) are kept for confidence()
+        if getattr(self, "calibration", None) is not None:
+            self._calibration_input = (window_event_counts(events, self.batch_size, d.device), d.detach().clone())
+        if not gated:
+            return d
         ev = motion_evidence(events, self.batch_size, self.sensor_size, t_us, self.abstain, device=d.device)
         self._motion_factor = ev.factor
         return torch.where(ev.factor > 0, d, torch.full_like(d, float("nan")))
@@ -259,12 +280,20 @@ def _checked_update(update):
 
 def _times_factor(self, c: torch.Tensor) -> torch.Tensor:
     """An object-API estimator's confidence ``c`` (B,) times the factor of its last update's
-    motion evidence (0 where the factor is 0); unchanged for estimators under the contract."""
-    f = getattr(self, "_motion_factor", None)
-    if f is None or not isinstance(c, torch.Tensor) or self._has_contract():
+    motion evidence (0 where the factor is 0), then calibrated (``calibration``); unchanged for
+    estimators under the contract (their step's output is gated and calibrated)."""
+    if not isinstance(c, torch.Tensor) or self._has_contract():
         return c
-    f = f.to(device=c.device)
-    return torch.where(f > 0, c * f.to(c.dtype), torch.zeros_like(c))
+    f = getattr(self, "_motion_factor", None)
+    if f is not None:
+        f = f.to(device=c.device)
+        c = torch.where(f > 0, c * f.to(c.dtype), torch.zeros_like(c))
+    params, inp = getattr(self, "calibration", None), getattr(self, "_calibration_input", None)
+    if params is not None and inp is not None:
+        p = params_to(params, c.device)
+        n, d = inp
+        c = calibrate_confidence(c, p, feature_values(p.feature, n_events=n.to(c.device), d_hat=d.to(c.device))).to(c.dtype)
+    return c
 
 
 def _gated_confidence(confidence):
@@ -293,7 +322,7 @@ def _checked_step_state(step_state):
                                            what=f"{type(self).__name__}.step_state events")
         state, out = step_state(self, state, events, t_us, *args, **kwargs)
         if isinstance(out, EstimateOut):
-            out = self._gate(out, events, t_us)
+            out = self._calibrate(self._gate(out, events, t_us), events)
         return state, out
 
     wrapper._dvsland_checked = True

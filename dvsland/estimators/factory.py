@@ -39,7 +39,19 @@ def make_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: str 
     params.setdefault("principal_point_px", cfg.camera.principal_point_px)
     est = get_estimator(name, batch_size, (cfg.camera.width_px, cfg.camera.height_px), device, **params)
     apply_abstain(est, getattr(cfg.estimator, "abstain", None))
+    apply_calibration(est, getattr(cfg.estimator, "calibration", "none"), name)
     return est
+
+
+def apply_calibration(est, value, name: str) -> None:
+    """Set ``est.calibration`` from ``estimator.calibration`` (``none``, a shipped set or name, or a
+    path to a table fitted for this estimator: :func:`~.calibrate.resolve_calibration`, whose errors
+    name the key). ``none`` leaves the estimator's own setting."""
+    from .calibrate import resolve_calibration
+
+    found = resolve_calibration(value, name)
+    if found is not None:
+        est.calibration = found[0]
 
 
 def apply_abstain(est, section) -> None:

@@ -5,6 +5,7 @@ risk-coverage curve per estimator) in the run folder. The numbers: :mod:`.calibr
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -97,3 +98,122 @@ def write_calibration(res, run_dir: Path, figures: bool = True) -> dict:
         paths["calibration_png"] = run_dir / "calibration.png"
         plot_calibration(cal, paths["calibration_png"])
     return paths, table
+
+
+# ---------------------------------------------------------------------------------------------- fitting a map
+#: the sample of an evaluation that a calibration table is fitted from (written with --calibration)
+SAMPLE_FILE = "calibration_sample.npz"
+
+
+def calibration_sample(res) -> dict:
+    """The scored steps of an evaluation as flat arrays: ``d_true``, ``site``, ``n_events`` (events
+    of the step's window) and, per estimator i (``labels[i]``), ``d_hat_i`` and ``confidence_i``."""
+    conf = getattr(res, "confidence", None) or {}
+    if not conf:
+        raise ValueError("--calibration: this evaluation recorded no per-step confidence")
+    sc = np.asarray(res.scored, dtype=bool)
+    sites = np.broadcast_to(np.array([str(s) for s in res.descents.sites])[:, None], sc.shape)
+    out = {"d_true": np.asarray(res.descents.divergence, dtype=np.float64)[sc], "site": sites[sc],
+           "n_events": np.asarray(res.n_events, dtype=np.int64)[sc], "labels": np.array(list(res.d_hat))}
+    for i, name in enumerate(res.d_hat):
+        out[f"d_hat_{i}"] = np.asarray(res.d_hat[name], dtype=np.float64)[sc]
+        out[f"confidence_{i}"] = np.asarray(conf[name], dtype=np.float64)[sc]
+    return out
+
+
+def write_calibration_sample(res, run_dir: Path, meta: dict) -> Path:
+    """Write :func:`calibration_sample` and ``meta`` (config name, seed, overrides, checkpoints as
+    JSON text) to ``run_dir / calibration_sample.npz``."""
+    import io
+    import json
+
+    from dvsland.report.results import to_json
+
+    path = Path(run_dir) / SAMPLE_FILE
+    buf = io.BytesIO()
+    np.savez_compressed(buf, meta=np.array(to_json(meta, indent=None)), **calibration_sample(res))
+    tmp = path.with_suffix(".tmp")
+    tmp.write_bytes(buf.getvalue())
+    tmp.replace(path)
+    json.loads(str(np.load(path)["meta"]))  # a file that reads back
+    return path
+
+
+def read_calibration_sample(path) -> dict:
+    """A ``calibration_sample.npz`` (or the run folder holding one) as {arrays..., "meta": dict}."""
+    import json
+
+    p = Path(path)
+    if p.is_dir():
+        p = p / SAMPLE_FILE
+    if not p.is_file():
+        raise ValueError(f"no calibration sample at {str(path)!r}: run `dvsland evaluate ... --calibration` "
+                         f"(it writes {SAMPLE_FILE} into its run folder)")
+    with np.load(p) as z:
+        out = {k: z[k] for k in z.files}
+    out["meta"] = json.loads(str(out.get("meta", np.array("{}"))))
+    return out
+
+
+def _coverage_rows(d_true, d_hat, conf, sites) -> dict:
+    from .calibration import coverage_table, site_type
+
+    t = coverage_table(d_true, d_hat, conf, [site_type(s) for s in sites])
+    return {k: {"n_estimates": r["n_estimates"], "cover_1sigma": r["cover_1sigma"], "cover_2sigma": r["cover_2sigma"],
+                "within_5_points": r["within_5_points"]} for k, r in t.items()}
+
+
+def fit_from_samples(samples, label: str, estimator: Optional[str] = None, feature: str = "events",
+                     sigma_bins: int = 8, feature_bins: int = 6, min_count: int = 40) -> dict:
+    """Fit one estimator's calibration table on one or several evaluation samples (pooled) and
+    return its JSON object (:func:`dvsland.estimators.calibrate.calibration_to_json`), its ``fit``
+    naming the configs, seeds, overrides and checkpoint of the samples and the coverage per site
+    type before and after on the fitting sample itself (judge it on other seeds).
+
+    Args:
+        samples: dicts of :func:`read_calibration_sample`.
+        label: the estimator's label in those evaluations (``cmax``, ``mine=pkg.mod:Class``'s ``mine``).
+        estimator: the estimator the table is for (default: the label's name in the first sample).
+        feature, sigma_bins, feature_bins, min_count: :func:`~dvsland.estimators.calibrate.fit_calibration`.
+    """
+    from dvsland.estimators.calibrate import apply_calibration_np, calibration_to_json, fit_calibration
+
+    parts, metas = [], []
+    for s in samples:
+        labels = [str(x) for x in np.asarray(s["labels"]).tolist()]
+        if label not in labels:
+            raise ValueError(f"estimator {label!r} is not in this calibration sample (it has {', '.join(labels)})")
+        i = labels.index(label)
+        meta = dict(s.get("meta") or {})
+        if meta.get("calibration", "none") not in ("none", "", None):
+            raise ValueError(f"this sample was evaluated with estimator.calibration={meta['calibration']!r}: fit on "
+                             f"raw confidences (estimator.calibration=none)")
+        parts.append((s["d_true"], s[f"d_hat_{i}"], s[f"confidence_{i}"], s["n_events"], s["site"]))
+        metas.append(meta)
+    dt, dh, c, ne, site = (np.concatenate([p[k] for p in parts]) for k in range(5))
+    params, info = fit_calibration(dt, dh, c, feature, ne, sigma_bins=sigma_bins, feature_bins=feature_bins,
+                                   min_count=min_count)
+    after = apply_calibration_np(params, dh, c, ne)
+    names = [m.get("estimators", {}).get(label, label) for m in metas]
+    est = estimator or names[0]
+    ck = [m.get("checkpoints", {}).get(label) for m in metas]
+    fit = {"configs": sorted({str(m.get("config", "?")) for m in metas}),
+           "seeds": sorted({int(m["seed"]) for m in metas if m.get("seed") is not None}),
+           "overrides": [m.get("overrides", []) for m in metas], "estimator_label": label,
+           "checkpoint": next((x for x in ck if x), None), "feature": feature, "sigma_bins": sigma_bins,
+           "feature_bins": feature_bins if feature != "none" else 1, "min_count": min_count,
+           "n_estimates": info["n_estimates"], "cell_counts": info["cell_counts"],
+           "coverage_before": _coverage_rows(dt, dh, c, site), "coverage_after_in_sample": _coverage_rows(dt, dh, after, site)}
+    return calibration_to_json(params, est, fit)
+
+
+def format_fit(obj: dict) -> str:
+    """Two lines per site type: the fitting sample's coverage before / after a fitted table."""
+    fit = obj["fit"]
+    lines = [f"calibration table for {obj['estimator']} (feature {obj['feature']}, fitted on {', '.join(fit['configs'])} "
+             f"seeds {fit['seeds']}, {fit['n_estimates']} estimates); in-sample 1 sigma / 2 sigma before -> after:"]
+    for grp, b in fit["coverage_before"].items():
+        a = fit["coverage_after_in_sample"][grp]
+        lines.append(f"  {grp:<14} {_pct(b['cover_1sigma']):>7} / {_pct(b['cover_2sigma']):>7} -> "
+                     f"{_pct(a['cover_1sigma']):>7} / {_pct(a['cover_2sigma']):>7}")
+    return "\n".join(lines)
