@@ -134,16 +134,19 @@ def log10_scale_at(params: CalibrationParams, log10_sigma: torch.Tensor,
     i0, i1, w = _interp_index(params.sigma_knots, x)
     if params.feature_knots.numel() == 1:
         row = ls[0]
-        return row[i0] * (1.0 - w) + row[i1] * w
+        return _lerp(row[i0], row[i1], w)
     if feature is None:
         raise ValueError(f"this calibration table reads the feature {params.feature!r}: pass feature=")
     f = feature.to(device=x.device, dtype=torch.float32)
     j0, j1, v = _interp_index(params.feature_knots, f)
     K = ls.shape[1]
     flat = ls.reshape(-1)
-    a = flat[j0 * K + i0] * (1.0 - w) + flat[j0 * K + i1] * w
-    b = flat[j1 * K + i0] * (1.0 - w) + flat[j1 * K + i1] * w
-    return a * (1.0 - v) + b * v
+    return _lerp(_lerp(flat[j0 * K + i0], flat[j0 * K + i1], w), _lerp(flat[j1 * K + i0], flat[j1 * K + i1], w), v)
+
+
+def _lerp(a: torch.Tensor, b: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """a + w (b - a): exactly a where b = a (a table of zeros stays exactly zero)."""
+    return a + w * (b - a)
 
 
 def raw_log10_sigma(confidence: torch.Tensor) -> torch.Tensor:
@@ -430,13 +433,14 @@ def _base_name(name: str) -> str:
     return s.split("[")[0].strip()
 
 
-def resolve_calibration(value: str, estimator: str) -> Optional[Tuple[CalibrationParams, dict]]:
+def resolve_calibration(value: str, estimator: str, checkpoint: Optional[str] = None) -> Optional[Tuple[CalibrationParams, dict]]:
     """The table that ``estimator.calibration = value`` selects for ``estimator``, or None.
 
     ``none`` (or empty): None. A shipped set (``ideal``, ``realistic``): the shipped
     ``<estimator>_<set>.json``. A shipped name (``cmax_realistic``) or a path to a ``.json`` file:
-    that table. A table fitted for another estimator is refused. Errors (ValueError) name
-    ``estimator.calibration``, and list the shipped names.
+    that table. A table fitted for another estimator, or (``checkpoint``: the text
+    ``"<file> sha256:<digits>"`` of the checkpoint the estimator reads) for another checkpoint, is
+    refused. Errors (ValueError) name ``estimator.calibration``, and list the shipped names.
     """
     v = str(value if value is not None else "none").strip()
     if v.lower() in ("", "none"):
@@ -461,7 +465,17 @@ def resolve_calibration(value: str, estimator: str) -> Optional[Tuple[Calibratio
     fitted = _base_name(obj.get("estimator", ""))
     if fitted != est:
         raise ValueError(f"{CONFIG_KEY}: {v!r} was fitted for estimator {fitted!r}, not {est!r}")
+    fit_ck = (obj.get("fit") or {}).get("checkpoint")
+    if checkpoint and fit_ck and _sha(fit_ck) != _sha(checkpoint):
+        raise ValueError(f"{CONFIG_KEY}: {v!r} was fitted on the checkpoint {fit_ck}, but this {est} reads "
+                         f"{checkpoint}; fit a table for it (docs/estimators.md)")
     return params, obj
+
+
+def _sha(text: str) -> str:
+    """The sha256 digits of a checkpoint text ``"file sha256:abc..."`` (the text itself without one)."""
+    t = str(text)
+    return t.split("sha256:", 1)[1].strip() if "sha256:" in t else t.strip()
 
 
 __all__ = ["FEATURES", "RAW_KEY", "CONFIG_KEY", "SHIPPED_SETS", "CalibrationParams", "identity_params", "check_params",

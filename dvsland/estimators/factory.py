@@ -39,17 +39,24 @@ def make_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: str 
     params.setdefault("principal_point_px", cfg.camera.principal_point_px)
     est = get_estimator(name, batch_size, (cfg.camera.width_px, cfg.camera.height_px), device, **params)
     apply_abstain(est, getattr(cfg.estimator, "abstain", None))
-    apply_calibration(est, getattr(cfg.estimator, "calibration", "none"), name)
+    apply_calibration(est, cfg, name)
     return est
 
 
-def apply_calibration(est, value, name: str) -> None:
+def apply_calibration(est, cfg: Config, name: str) -> None:
     """Set ``est.calibration`` from ``estimator.calibration`` (``none``, a shipped set or name, or a
-    path to a table fitted for this estimator: :func:`~.calibrate.resolve_calibration`, whose errors
-    name the key). ``none`` leaves the estimator's own setting."""
+    path to a table fitted for this estimator and its checkpoint:
+    :func:`~.calibrate.resolve_calibration`, whose errors name the key). ``none`` leaves the
+    estimator's own setting."""
+    value = getattr(cfg.estimator, "calibration", "none")
+    if str(value).strip().lower() in ("", "none"):
+        return
+    from dvsland.report.checkpoint import checkpoint_text, estimator_checkpoint
+
     from .calibrate import resolve_calibration
 
-    found = resolve_calibration(value, name)
+    _, spec = split_alias(name)
+    found = resolve_calibration(value, name, checkpoint_text(estimator_checkpoint(cfg, spec, est)) or None)
     if found is not None:
         est.calibration = found[0]
 
