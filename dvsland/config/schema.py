@@ -271,6 +271,11 @@ class CMaxConfig:
                                        "element's mean count per active pixel (hot pixels; 0 = off)", rng=(0.0, 1e6))
     trend_tol: float = opt(0.15, "use the extrapolate trend only where its line fits tau to this RMS fraction "
                                  "of the mean tau (0 = always)", rng=(0.0, 1e3))
+    structure_none: float = opt(0.15, "noise floor of the score: an estimate whose score exceeds that of "
+                                      "structureless events by at most this fraction is no estimate (NaN)",
+                                rng=(0.0, 1e3))
+    structure_full: float = opt(0.4, "... by at least this fraction it keeps its confidence (linear between; "
+                                     "0 = no noise-floor test; needs dither)", rng=(0.0, 1e3))
 
 
 @dataclass
@@ -387,6 +392,13 @@ class PolicyLawConfig:
     hidden: int = opt(32, "hidden units of an untrained network (a checkpoint carries its own)", rng=(1, 4096))
     tau_min_s: float = opt(4.0, "lowest time to contact of the observed target -1/max(tau0 - c2 t, tau_min), s",
                            rng=(0.0, 1e4), open_lo=True)
+    observation: str = opt("basic", "what the network sees: basic (filtered D, D*(t), their difference, hover "
+                           "fraction) or efference (also the raw estimate D_hat, its confidence and the filter's "
+                           "altitude; needs controller.filter=efference_fit or efference); a checkpoint records its "
+                           "own", choices=("basic", "efference"))
+    base: str = opt("none", "none: thrust = sigmoid(net) x top; div_gs: a residual on div_gs (controller.div_gs's "
+                    "constants), thrust = u_div_gs + m g tanh(net), which starts as div_gs exactly",
+                    choices=("none", "div_gs"))
 
 
 @dataclass

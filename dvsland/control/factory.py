@@ -39,7 +39,10 @@ def controller_options(cfg, name: Optional[str] = None) -> dict:
     name = name or cfg.controller.name
     section = getattr(cfg.controller, name, None)
     if dataclasses.is_dataclass(section):
-        return dataclasses.asdict(section)
+        options = dataclasses.asdict(section)
+        if name == "policy" and options.get("base", "none") != "none":  # a residual: its base law's constants
+            options["base_options"] = dataclasses.asdict(getattr(cfg.controller, options["base"]))
+        return options
     return dict(cfg.controller.params)
 
 

@@ -1,15 +1,28 @@
 """A thrust law that is a small network (controller ``policy``), trained through the closed loop
 (``dvsland train-loop --what policy``) and flown by path like any other law.
 
-Observation (B, 4) float64 of each descent, from what every law is given:
+Observation, float64 (B, 4) or (B, 7) per descent (``controller.policy.observation``):
 
-- the filtered divergence D_f (NaN -> 0) and the paper's TTC target D*(t) = -1 / max(tau0 - c2 t,
-  tau_min), both scaled by 1 / ``D_SCALE``;
-- their difference D_f - D*, scaled by 1 / ``ERR_SCALE``;
-- the hover thrust m g as a fraction of the engine's top (``thrust_max_n``, or 3 m0 g unbounded).
+- ``basic`` (4), from what every law is given: the filtered divergence D_f (NaN -> 0) and the
+  paper's TTC target D*(t) = -1 / max(tau0 - c2 t, tau_min), both scaled by 1 / ``D_SCALE``; their
+  difference D_f - D*, scaled by 1 / ``ERR_SCALE``; the hover thrust m g as a fraction of the
+  engine's top (``thrust_max_n``, or 3 m0 g unbounded);
+- ``efference`` (7): the four above, then the estimator's raw estimate D_hat of this step
+  (NaN -> 0) scaled by 1 / ``D_SCALE``, its confidence in [0, 1] (0 where there is none), and
+  the filter's altitude estimate as ln(max(z_hat, 1 m) / ``Z_REF_M``). It needs a filter that
+  gives an altitude (``efference``, ``efference_fit``); the loop hands the law the estimate
+  (:attr:`PolicyController.needs_estimate`).
 
-Action: thrust = sigmoid(net(obs)) x the engine's top, clamped to the controller's bounds. A
-missing filtered estimate holds the last command (or hovers), as the other laws do.
+Action (``controller.policy.base``):
+
+- ``none``: thrust = sigmoid(net(obs)) x the engine's top, clamped to the controller's bounds;
+- ``div_gs``: a residual on ``div_gs`` (its constants from ``controller.div_gs``): thrust =
+  u_div_gs + m g tanh(net(obs)), clamped. The network's output layer starts at zero, so the
+  untrained policy flies exactly ``div_gs``.
+
+A missing filtered estimate holds the last command (or hovers), as the other laws do. A
+checkpoint records its observation and base; flying it under other settings is refused, naming
+the key.
 
 Params :class:`~dvsland.control.base.LawParams` whose ``options`` is a :class:`PolicyOptions`
 (the network and the observation's constants), state
@@ -25,51 +38,84 @@ from typing import NamedTuple, Optional, Tuple
 import torch
 from torch import nn
 
+from dvsland.config.schema import DivGSConfig
 from dvsland.estimators.state_dict_check import check_state_dict, read_checkpoint_file, short_path
 
 from .base import (ControlOutput, Controller, HoldLastState, LawParams, check_bounds, clamp_thrust,
                    divergence_law_finish, hold_last_init, law_inputs, law_params)
+from .div_gs import div_gs_step
 from .registry import register_controller
 
 Tensor = torch.Tensor
 
-#: observation scales: divergence 1/s, tracking error 1/s
-D_SCALE, ERR_SCALE = 0.05, 0.01
+#: observation scales: divergence 1/s, tracking error 1/s, reference altitude m (of ln z_hat / Z_REF_M)
+D_SCALE, ERR_SCALE, Z_REF_M = 0.05, 0.01, 100.0
 #: ``kind`` of a policy checkpoint
 POLICY_KIND = "dvsland-loop-policy"
+#: observation name -> its width
+OBSERVATIONS = {"basic": 4, "efference": 7}
+#: laws a policy can be a residual on (``controller.policy.base``)
+BASES = ("none", "div_gs")
 
 
 class PolicyNet(nn.Module):
-    """obs (B, 4) float64 -> thrust-fraction logit (B,); initialised near hover (1/3 of the top)."""
+    """obs (B, n_obs) float64 -> (B,) float64: the thrust-fraction logit (``base="none"``; starts near
+    hover, 1/3 of the top) or the residual's pre-tanh output (``base="div_gs"``; starts at exactly 0).
 
-    def __init__(self, hidden: int = 32, hover_fraction: float = 1.0 / 3.0):
+    Args:
+        hidden: hidden tanh units.
+        hover_fraction: the untrained thrust fraction of ``base="none"``.
+        observation: a key of :data:`OBSERVATIONS` (the input width).
+        base: one of :data:`BASES`.
+    """
+
+    def __init__(self, hidden: int = 32, hover_fraction: float = 1.0 / 3.0, observation: str = "basic",
+                 base: str = "none"):
         super().__init__()
         if not (isinstance(hidden, int) and hidden >= 1):
             raise ValueError(f"controller.policy.hidden must be an integer >= 1, got {hidden!r}")
-        self.hidden = hidden
-        self.net = nn.Sequential(nn.Linear(4, hidden), nn.Tanh(), nn.Linear(hidden, 1)).double()
+        if observation not in OBSERVATIONS:
+            raise ValueError(f"controller.policy.observation must be one of {list(OBSERVATIONS)}, got {observation!r}")
+        if base not in BASES:
+            raise ValueError(f"controller.policy.base must be one of {list(BASES)}, got {base!r}")
+        self.hidden, self.observation, self.base = hidden, observation, base
+        self.net = nn.Sequential(nn.Linear(OBSERVATIONS[observation], hidden), nn.Tanh(),
+                                 nn.Linear(hidden, 1)).double()
         with torch.no_grad():
-            self.net[2].weight.mul_(0.1)
-            self.net[2].bias.fill_(math.log(hover_fraction / (1.0 - hover_fraction)))
+            if base == "none":
+                self.net[2].weight.mul_(0.1)
+                self.net[2].bias.fill_(math.log(hover_fraction / (1.0 - hover_fraction)))
+            else:  # a residual starts as its base law, exactly
+                self.net[2].weight.zero_()
+                self.net[2].bias.zero_()
 
     def forward(self, obs: Tensor) -> Tensor:
         return self.net(obs).squeeze(-1)
 
 
 class PolicyOptions(NamedTuple):
-    """The ``policy`` law's own params: the network, the engine's top (B,) N and tau_min (s)."""
+    """The ``policy`` law's own params: the network, the engine's top (B,) N, tau_min (s) and, for
+    ``base="div_gs"``, the base law's params (:class:`LawParams` with :class:`DivGSConfig` options)."""
 
     net: PolicyNet
     thrust_high_n: Tensor
     tau_min_s: float
+    base: Optional[LawParams] = None
 
 
-def load_policy(path, param: str = "controller.policy.checkpoint") -> PolicyNet:
-    """The :class:`PolicyNet` of a ``dvsland train-loop --what policy`` checkpoint.
+def load_policy(path, param: str = "controller.policy.checkpoint", observation: Optional[str] = None,
+                base: Optional[str] = None) -> PolicyNet:
+    """The :class:`PolicyNet` of a ``dvsland train-loop --what policy`` checkpoint. A checkpoint
+    without ``observation`` / ``base`` (written before they existed) is ``basic`` / ``none``.
+
+    Args:
+        observation, base: the flown config's ``controller.policy.observation`` / ``.base``
+            (None: take the checkpoint's).
 
     Raises:
         ValueError: naming ``param`` and the file: missing, unreadable, another kind of file, or
-            weights that do not fit or are not finite.
+            weights that do not fit or are not finite; naming ``controller.policy.observation`` /
+            ``.base`` when the checkpoint was trained with another one.
     """
     hint = "write one with dvsland train-loop CONFIG --what policy"
     ck = read_checkpoint_file(path, param, "dvsland policy checkpoint", hint)
@@ -80,34 +126,75 @@ def load_policy(path, param: str = "controller.policy.checkpoint") -> PolicyNet:
     hidden = ck.get("hidden")
     if not (isinstance(hidden, int) and 1 <= hidden <= 4096):
         raise ValueError(f"{where}: 'hidden' must be an integer in [1, 4096], got {hidden!r}")
-    net = PolicyNet(hidden)
+    got = {"observation": ck.get("observation", "basic"), "base": ck.get("base", "none")}
+    for key, want, known in (("observation", observation, OBSERVATIONS), ("base", base, BASES)):
+        if got[key] not in known:
+            raise ValueError(f"{where}: {key} {got[key]!r} is not one of {list(known)}")
+        if want is not None and want != got[key]:
+            raise ValueError(f"controller.policy.{key} is {want!r} but {where} was trained with {key} "
+                             f"{got[key]!r}; set --set controller.policy.{key}={got[key]}")
+    net = PolicyNet(hidden, observation=got["observation"], base=got["base"])
     check_state_dict(ck.get("state_dict"), net, where)
     net.load_state_dict(ck["state_dict"])
     return net
 
 
-def policy_observation(p: LawParams, t_s, d: Tensor, m: Tensor) -> Tensor:
-    """The observation (B, 4) float64 (see the module doc) of filtered divergence ``d`` (B,) 1/s
-    (NaN allowed) and mass ``m`` (B,) kg at flight time ``t_s`` (B,) s."""
+def policy_observation(p: LawParams, t_s, d: Tensor, m: Tensor, altitude_m: Optional[Tensor] = None,
+                       estimate: Optional[Tuple[Tensor, Tensor]] = None) -> Tuple[Tensor, Tensor]:
+    """The observation (see the module doc) and the target D*(t) (B,) float64 1/s.
+
+    Args:
+        p: the law's params (``p.options.net.observation`` picks the observation).
+        t_s: (B,) float64 flight time, s.
+        d: (B,) float64 filtered divergence, 1/s (NaN allowed).
+        m: (B,) float64 mass, kg.
+        altitude_m: (B,) the filter's altitude estimate z_hat, m (``efference`` only).
+        estimate: (D_hat (B,) 1/s NaN = none, confidence (B,) in [0, 1]) of this step (``efference`` only).
+
+    Returns:
+        (obs (B, 4) or (B, 7) float64, D* (B,) float64 1/s).
+    """
     o = p.options
     d_star = -1.0 / (p.tau0_s - p.c2 * t_s).clamp_min(o.tau_min_s)
     d0 = torch.nan_to_num(d, nan=0.0)
     hover = m * p.g_mps2 / o.thrust_high_n
-    return torch.stack((d0 / D_SCALE, d_star / D_SCALE, (d0 - d_star) / ERR_SCALE, hover), dim=1), d_star
+    cols = [d0 / D_SCALE, d_star / D_SCALE, (d0 - d_star) / ERR_SCALE, hover]
+    if o.net.observation == "efference":
+        if altitude_m is None or estimate is None:
+            raise ValueError("controller.policy.observation=efference needs the filter's altitude and the "
+                             "estimate (fly it in the loop with controller.filter=efference_fit or efference)")
+        d_hat, conf = estimate
+        d_hat = d_hat.to(d.dtype)
+        ok = torch.isfinite(d_hat)
+        z = altitude_m.to(d.dtype).clamp_min(1.0)
+        cols += [torch.where(ok, d_hat, 0.0) / D_SCALE,
+                 torch.where(ok, torch.nan_to_num(conf.to(d.dtype), nan=0.0), 0.0).clamp(0.0, 1.0),
+                 torch.log(z / Z_REF_M)]
+    return torch.stack(cols, dim=1), d_star
 
 
 def policy_law_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
-                    active: Optional[Tensor], altitude_m: Optional[Tensor] = None
-                    ) -> Tuple[HoldLastState, ControlOutput]:
+                    active: Optional[Tensor], altitude_m: Optional[Tensor] = None,
+                    estimate: Optional[Tuple[Tensor, Tensor]] = None) -> Tuple[HoldLastState, ControlOutput]:
     """Pure step of ``policy``: (next state, :class:`ControlOutput`); inputs as for every law
-    (t_s (B,) s, d_filtered (B,) 1/s NaN = none, mass_kg (B,) kg, active (B,) bool or None).
-    The command keeps its autograd graph to the network's weights and the inputs."""
+    (t_s (B,) s, d_filtered (B,) 1/s NaN = none, mass_kg (B,) kg, active (B,) bool or None,
+    altitude_m (B,) m the filter's z_hat), and ``estimate`` = (D_hat (B,) 1/s, confidence (B,))
+    for the ``efference`` observation. The command keeps its autograd graph to the network's
+    weights and the inputs."""
     d, m, mg, t_s = law_inputs(p, t_s, d_filtered, mass_kg)
     if not isinstance(t_s, Tensor):
         t_s = torch.full_like(d, float(t_s))
-    obs, d_star = policy_observation(p, t_s, d, m)
-    u = clamp_thrust(p, torch.sigmoid(p.options.net(obs)) * p.options.thrust_high_n)
-    return divergence_law_finish(p, state, d, u, mg, active, -1.0 / d_star)
+    o = p.options
+    obs, d_star = policy_observation(p, t_s, d, m, altitude_m, estimate)
+    out = o.net(obs)
+    if o.base is None:
+        u = clamp_thrust(p, torch.sigmoid(out) * o.thrust_high_n)
+        tau_target = -1.0 / d_star
+    else:  # residual on div_gs: its command where it has one, plus m g tanh(net)
+        _, base = div_gs_step(o.base, state, t_s, d_filtered, mass_kg, active, altitude_m)
+        u = clamp_thrust(p, base.thrust_n + mg * torch.tanh(out))
+        tau_target = base.tau_target_s
+    return divergence_law_finish(p, state, d, u, mg, active, tau_target)
 
 
 @register_controller("policy")
@@ -124,24 +211,47 @@ class PolicyController(Controller):
         checkpoint: a policy checkpoint's path ('' = none).
         hidden: hidden units of an untrained network.
         tau_min_s: lowest TTC of the observed target, s.
+        observation: ``basic`` or ``efference`` (see the module doc).
+        base: ``none`` or ``div_gs`` (a residual on div_gs).
+        base_options: the base law's constants (``controller.div_gs`` as a dict; None = its defaults).
     """
 
     def __init__(self, tau0_s: Tensor, c2: float, g_mps2: float, m0_kg: Tensor, thrust_min_n: float = 0.0,
                  thrust_max_n: Optional[float] = None, missing_policy: str = "hold", net: Optional[PolicyNet] = None,
-                 checkpoint: str = "", hidden: int = 32, tau_min_s: float = 4.0):
+                 checkpoint: str = "", hidden: int = 32, tau_min_s: float = 4.0, observation: str = "basic",
+                 base: str = "none", base_options: Optional[dict] = None):
         check_bounds(thrust_min_n, thrust_max_n, missing_policy)
         if not (isinstance(tau_min_s, (int, float)) and tau_min_s > 0):
             raise ValueError(f"controller.policy.tau_min_s must be > 0 s, got {tau_min_s!r}")
+        if observation not in OBSERVATIONS:
+            raise ValueError(f"controller.policy.observation must be one of {list(OBSERVATIONS)}, got {observation!r}")
+        if base not in BASES:
+            raise ValueError(f"controller.policy.base must be one of {list(BASES)}, got {base!r}")
         if net is None:  # frozen in flight: a loop that flies it keeps no graph (training unfreezes it)
-            net = load_policy(checkpoint) if str(checkpoint).strip() else PolicyNet(int(hidden))
+            if str(checkpoint).strip():
+                net = load_policy(checkpoint, observation=observation, base=base)
+            else:
+                net = PolicyNet(int(hidden), observation=observation, base=base)
             net.requires_grad_(False)
+        elif (net.observation, net.base) != (observation, base):
+            raise ValueError(f"controller.policy.observation/base {observation!r}/{base!r} do not match the "
+                             f"network's {net.observation!r}/{net.base!r}")
         tau0 = torch.as_tensor(tau0_s, dtype=torch.float64)
         m0 = torch.as_tensor(m0_kg, dtype=torch.float64, device=tau0.device).expand_as(tau0)
         high = torch.full_like(tau0, float(thrust_max_n)) if thrust_max_n is not None else 3.0 * m0 * g_mps2
         net = net.to(tau0.device)
+        base_p = None
+        if base == "div_gs":
+            if not 0 < c2 < 1:
+                raise ValueError(f"c2 must be in (0, 1), got {c2}")
+            gs = DivGSConfig(**(base_options or {}))
+            base_p = law_params(None, tau0, c2, g_mps2, thrust_min_n, thrust_max_n, missing_policy, gs)
         self.params = law_params(None, tau0, c2, g_mps2, thrust_min_n, thrust_max_n, missing_policy,
-                                 PolicyOptions(net, high, float(tau_min_s)))
+                                 PolicyOptions(net, high, float(tau_min_s), base_p))
         self.checkpoint = str(checkpoint)
+        #: the loop gives the law the filter's altitude / this step's (D_hat, confidence) when True
+        self.needs_altitude = observation == "efference" or base != "none"
+        self.needs_estimate = observation == "efference"
         self._template = self.init_state()
         self.state = self.init_state()
 
@@ -159,11 +269,12 @@ class PolicyController(Controller):
         return hold_last_init(self.params)
 
     def step_state(self, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
-                   active: Optional[Tensor] = None, altitude_m: Optional[Tensor] = None):
+                   active: Optional[Tensor] = None, altitude_m: Optional[Tensor] = None,
+                   estimate: Optional[Tuple[Tensor, Tensor]] = None):
         """Pure step (:func:`policy_law_step`)."""
         self._check(state)
-        return policy_law_step(self.params, state, t_s, d_filtered, mass_kg, active, altitude_m)
+        return policy_law_step(self.params, state, t_s, d_filtered, mass_kg, active, altitude_m, estimate)
 
 
 __all__ = ["PolicyNet", "PolicyOptions", "PolicyController", "policy_law_step", "policy_observation", "load_policy",
-           "POLICY_KIND", "D_SCALE", "ERR_SCALE"]
+           "POLICY_KIND", "D_SCALE", "ERR_SCALE", "Z_REF_M", "OBSERVATIONS", "BASES"]

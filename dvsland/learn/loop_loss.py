@@ -10,6 +10,10 @@ controller and ``loop_step(..., grad=True)``; the loss is the batch mean of, per
   a landing's v is read where the step crosses the success altitude (:func:`crossing_speed`);
 - ``fail`` (a constant) when it ends other than landed (crash, ascent, timeout);
 - ``fuel`` x the propellant burnt, in % of the initial mass;
+- ``track_gs`` x sum over steps of ((D - D*_gs) / 0.01 1/s)^2 dt (clipped at 30), D and z the true
+  divergence and altitude after the step and D*_gs = div_gs's target at the true altitude (its TTC
+  profile, then -max(d_final, v_min / z); ``controller.div_gs``'s constants): dense shaping towards
+  the descent ``div_gs`` would fly with perfect sensing (0 by default);
 - ``filter`` x sum over steps of ((D_f - D) / 0.01 1/s)^2 dt (clipped at 30), D_f the filter's output
   and D the true divergence at the step's start (dense: how well the filter knows the divergence the
   loop flies; ``--what filter``'s default beside the landing terms, 0 otherwise).
@@ -39,6 +43,7 @@ class LossWeights:
     fail: float = 25.0
     fuel: float = 0.0
     filter: float = 0.0
+    track_gs: float = 0.0
 
     def check(self) -> "LossWeights":
         for name, v in vars(self).items():
@@ -67,6 +72,19 @@ def ttc_target(stages, t_s: torch.Tensor) -> torch.Tensor:
     return -1.0 / (p.tau0_s - p.c2 * t_s).clamp_min(2.0 / stages.settings.crash_divergence)
 
 
+def div_gs_target(stages, t_s: torch.Tensor, z_m: torch.Tensor) -> torch.Tensor:
+    """D*_gs (B,) float64 1/s: ``div_gs``'s target (``controller.div_gs``'s constants) at flight time
+    ``t_s`` (B,) s and altitude ``z_m`` (B,) m (the true one, for the ``track_gs`` term)."""
+    from dvsland.control.div_gs import divergence_target
+
+    o, p = stages.cfg.controller.div_gs, stages.params
+    d_star, coef = divergence_target(t_s, p.tau0_s, p.c2, float(o.d_final_per_s))
+    if o.v_min_mps > 0:
+        floor = -float(o.v_min_mps) / z_m.clamp_min(1.0)
+        d_star = torch.where((coef == 1.0) & (floor < d_star), floor, d_star)
+    return d_star
+
+
 def crossing_speed(before, after, z_s: float) -> torch.Tensor:
     """(B,) float64 m/s: the speed where the step from ``before`` to ``after`` crosses altitude ``z_s``
     (linear in the step). Its gradient counts the change of the crossing time: the termination
@@ -92,6 +110,9 @@ def step_terms(stages, before, after, out, w: LossWeights) -> Dict[str, torch.Te
             "fail": w.fail * (ended & ~landed).to(zero.dtype),
             "fuel": w.fuel * 100.0 * torch.where(flying, before.m_kg - after.m_kg, zero) / m0,
             "_landed": landed.to(zero.dtype), "_ended": ended.to(zero.dtype)}
+    if w.track_gs:
+        e_gs = (d - div_gs_target(stages, out.t_flight_s + dt, after.z_m)) / ERR_SCALE
+        terms["track_gs"] = w.track_gs * torch.where(flying, e_gs.clamp(-30, 30) ** 2 * dt, zero)
     if w.filter:  # only when weighted: a missing output (NaN) must not reach the graph as 0 x NaN
         f_err = (out.d_filtered - out.d_true) / ERR_SCALE
         ok = flying & torch.isfinite(f_err)
@@ -134,4 +155,5 @@ def window_loss(stages, state, window: int, w: LossWeights) -> Tuple[torch.Tenso
     return loss, terms, state
 
 
-__all__ = ["LossWeights", "window_loss", "gradient_mode", "step_terms", "crossing_speed", "ttc_target", "ERR_SCALE"]
+__all__ = ["LossWeights", "window_loss", "gradient_mode", "step_terms", "crossing_speed", "ttc_target", "div_gs_target",
+           "ERR_SCALE"]

@@ -164,14 +164,22 @@ class PolicyWeights(Trainable):
         controller.params = controller.params._replace(options=controller.params.options._replace(net=self.net))
 
     def describe(self) -> dict:
-        return {"hidden": self.net.hidden, "parameters": sum(p.numel() for p in self.net.parameters())}
+        return {"hidden": self.net.hidden, "observation": self.net.observation, "base": self.net.base,
+                "parameters": sum(p.numel() for p in self.net.parameters())}
 
     def checkpoint_fields(self) -> dict:
-        return {"hidden": self.net.hidden, "state_dict": self.net.state_dict()}
+        """``hidden``, ``observation``, ``base`` and the weights (a checkpoint without ``observation`` /
+        ``base`` is ``basic`` / ``none``)."""
+        return {"hidden": self.net.hidden, "observation": self.net.observation, "base": self.net.base,
+                "state_dict": self.net.state_dict()}
 
     def load_checkpoint_fields(self, ck: dict, where: str) -> None:
         if ck.get("hidden") != self.net.hidden:
             raise ValueError(f"{where}: hidden {ck.get('hidden')!r} != controller.policy.hidden {self.net.hidden}")
+        for key, default in (("observation", "basic"), ("base", "none")):
+            if ck.get(key, default) != getattr(self.net, key):
+                raise ValueError(f"{where}: {key} {ck.get(key, default)!r} != controller.policy.{key} "
+                                 f"{getattr(self.net, key)!r}")
         check_state_dict(ck.get("state_dict"), self.net, where)
         self.net.load_state_dict(ck["state_dict"])
 

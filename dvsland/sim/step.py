@@ -263,8 +263,9 @@ def act(stages, state: LoopState, est: Estimate) -> Tuple[Any, Any, Command]:
     f_st, f_out = fns.filter.step_state(state.stage_state.filter, est.d_hat, state.active, accel, thrust_accel,
                                         est.confidence)
     d_f, n_used, z_hat = f_out[0], f_out[1], f_out[2]
+    kw = {"estimate": (est.d_hat, est.confidence)} if getattr(fns.controller, "needs_estimate", False) else {}
     c_st, ctl = call_plugin(fns.controller_name, "__call__", fns.controller.step_state, state.stage_state.controller,
-                            flight_time_s(stages, state), d_f, state.m_kg, state.active, z_hat)
+                            flight_time_s(stages, state), d_f, state.m_kg, state.active, z_hat, **kw)
     checked_thrust_out(ctl, state.batch_size, state.z_m.device, fns.controller_name)
     if isinstance(fns.controller, ObjectStage):  # a plug-in law: its command is checked (one host sync)
         check_no_nan_thrust(ctl.thrust_n, fns.controller_name)
