@@ -372,3 +372,15 @@ def test_a_table_is_refused_for_another_checkpoint():
     cfg = load_config("paper", ["estimator.calibration=realistic", "estimator.learned.checkpoint=cnn_realistic"])
     with pytest.raises(ValueError, match="estimator.calibration: 'realistic' was fitted on the checkpoint learned_cnn.pt"):
         make_estimator(cfg, 2, "cpu", name="learned")
+
+
+def test_a_table_fitted_with_other_parameters_warns():
+    cfg = load_config("paper", ["estimator.calibration=ideal"])
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        make_estimator(cfg, 2, "cpu", name="cmax")  # the parameters it was fitted with: silent
+    cfg = load_config("paper", ["estimator.calibration=ideal", "estimator.cmax.n_grid=31"])
+    with pytest.warns(RuntimeWarning, match=r"estimator.calibration: 'ideal' was fitted with n_grid=21; this cmax runs with n_grid=31"):
+        make_estimator(cfg, 2, "cpu", name="cmax")

@@ -204,6 +204,21 @@ def _spec_names(specs) -> dict:
     return out
 
 
+def _spec_params(cfg, specs) -> dict:
+    """{label: the estimator's parameters as it ran (its config section with the spec's overrides)}."""
+    from dvsland.estimators.factory import estimator_params
+    from dvsland.evaluate.run import parse_estimator_spec, variant_config
+
+    out = {}
+    for item in specs:
+        label, name, over = item if isinstance(item, tuple) else parse_estimator_spec(item)
+        try:
+            out[label] = estimator_params(variant_config(cfg, name, over, label), name)
+        except (ValueError, TypeError):  # a spec the evaluation itself refuses is reported there
+            out[label] = {}
+    return out
+
+
 def _check_calibration_key(cfg, specs, fit: bool) -> None:
     """``estimator.calibration`` resolved for every estimator named, before the run folder exists
     (its errors name the key); ``--fit-calibration`` needs raw confidences."""
@@ -230,7 +245,8 @@ def _write_calibration_fit(res, run_dir, cfg, args, specs, quiet: bool) -> dict:
     if getattr(res, "recording", None) is not None or not getattr(res, "confidence", None):
         return {}
     meta = {"config": cfg.name, "seed": int(cfg.simulation.seed), "overrides": list(args.overrides or []),
-            "estimators": _spec_names(specs), "calibration": str(getattr(cfg.estimator, "calibration", "none")),
+            "estimators": _spec_names(specs), "estimator_params": _spec_params(cfg, specs),
+            "calibration": str(getattr(cfg.estimator, "calibration", "none")),
             "checkpoints": {k: checkpoint_text(v) for k, v in (getattr(res, "checkpoints", None) or {}).items()}}
     paths = {"calibration_sample": write_calibration_sample(res, run_dir, meta)}
     if not args.fit_calibration:

@@ -57,8 +57,26 @@ def apply_calibration(est, cfg: Config, name: str) -> None:
 
     _, spec = split_alias(name)
     found = resolve_calibration(value, name, checkpoint_text(estimator_checkpoint(cfg, spec, est)) or None)
-    if found is not None:
-        est.calibration = found[0]
+    if found is None:
+        return
+    est.calibration = found[0]
+    fitted = (found[1].get("fit") or {}).get("estimator_params") or {}
+    own = estimator_params(cfg, name)
+    diff = sorted(k for k in fitted if k in own and _differs(fitted[k], own[k]))
+    if diff:
+        import warnings
+
+        warnings.warn(f"estimator.calibration: {value!r} was fitted with "
+                      + ", ".join(f"{k}={fitted[k]!r}" for k in diff) + f"; this {spec} runs with "
+                      + ", ".join(f"{k}={own[k]!r}" for k in diff) + ": its coverage may not hold (refit it)",
+                      RuntimeWarning, stacklevel=2)
+
+
+def _differs(a, b) -> bool:
+    """Whether two parameter values differ (numbers compared as floats, as JSON stores them)."""
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool) and not isinstance(b, bool):
+        return float(a) != float(b)
+    return a != b
 
 
 def apply_abstain(est, section) -> None:

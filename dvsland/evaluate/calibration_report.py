@@ -152,6 +152,14 @@ def read_calibration_sample(path) -> dict:
     with np.load(p) as z:
         out = {k: z[k] for k in z.files}
     out["meta"] = json.loads(str(out.get("meta", np.array("{}"))))
+    cfg_file = p.parent / "config.yaml"
+    if "estimator_params" not in out["meta"] and cfg_file.is_file():  # a sample written without them
+        from dvsland.config import load_config
+        from dvsland.estimators.factory import estimator_params
+
+        cfg = load_config(cfg_file)
+        names = out["meta"].get("estimators") or {}
+        out["meta"]["estimator_params"] = {lab: estimator_params(cfg, n) for lab, n in names.items()}
     return out
 
 
@@ -176,6 +184,8 @@ def fit_from_samples(samples, label: str, estimator: Optional[str] = None, featu
         estimator: the estimator the table is for (default: the label's name in the first sample).
         feature, sigma_bins, feature_bins, min_count: :func:`~dvsland.estimators.calibrate.fit_calibration`.
     """
+    import json
+
     from dvsland.estimators.calibrate import apply_calibration_np, calibration_to_json, fit_calibration
 
     parts, metas = [], []
@@ -197,10 +207,14 @@ def fit_from_samples(samples, label: str, estimator: Optional[str] = None, featu
     names = [m.get("estimators", {}).get(label, label) for m in metas]
     est = estimator or names[0]
     ck = [m.get("checkpoints", {}).get(label) for m in metas]
+    prm = [json.dumps((m.get("estimator_params") or {}).get(label), sort_keys=True) for m in metas]
+    if len(set(prm)) > 1:
+        raise ValueError(f"the samples ran {label!r} with different parameters: fit one table per setting")
     fit = {"configs": sorted({str(m.get("config", "?")) for m in metas}),
            "seeds": sorted({int(m["seed"]) for m in metas if m.get("seed") is not None}),
            "overrides": [m.get("overrides", []) for m in metas], "estimator_label": label,
-           "checkpoint": next((x for x in ck if x), None), "feature": feature, "sigma_bins": sigma_bins,
+           "checkpoint": next((x for x in ck if x), None),
+           "estimator_params": (metas[0].get("estimator_params") or {}).get(label), "feature": feature, "sigma_bins": sigma_bins,
            "feature_bins": feature_bins if feature != "none" else 1, "min_count": min_count,
            "n_estimates": info["n_estimates"], "cell_counts": info["cell_counts"],
            "coverage_before": _coverage_rows(dt, dh, c, site), "coverage_after_in_sample": _coverage_rows(dt, dh, after, site)}
