@@ -127,12 +127,15 @@ def _fly_recorded(name):
 def _digest(rec) -> str:
     """SHA-256 of every step's D_hat, confidence and diagnostics (NaN written as -7); the
     motion-evidence factor, which came later, is checked to be 1 (these events show motion) and
-    left out."""
+    left out, and so is the structure over the noise floor, which also came later (checked to lie
+    above ``structure_full``, where the noise-floor test leaves the estimate as it was)."""
     h = hashlib.sha256()
     for d, c, g in rec:
         g = dict(g)
         ev = g.pop(EVIDENCE_KEY, None)
         assert ev is None or (ev == 1).all(), ev
+        st = g.pop("structure")
+        assert (st[torch.isfinite(d)] >= 0.4).all(), st
         for name, v in [("d", d), ("c", c)] + sorted(g.items()):
             v = v.detach().cpu()
             if v.is_floating_point():

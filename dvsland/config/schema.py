@@ -271,6 +271,11 @@ class CMaxConfig:
                                        "element's mean count per active pixel (hot pixels; 0 = off)", rng=(0.0, 1e6))
     trend_tol: float = opt(0.15, "use the extrapolate trend only where its line fits tau to this RMS fraction "
                                  "of the mean tau (0 = always)", rng=(0.0, 1e3))
+    structure_none: float = opt(0.15, "noise floor of the score: an estimate whose score exceeds that of "
+                                      "structureless events by at most this fraction is no estimate (NaN)",
+                                rng=(0.0, 1e3))
+    structure_full: float = opt(0.4, "... by at least this fraction it keeps its confidence (linear between; "
+                                     "0 = no noise-floor test; needs dither)", rng=(0.0, 1e3))
 
 
 @dataclass
