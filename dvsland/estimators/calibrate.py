@@ -473,9 +473,34 @@ def resolve_calibration(value: str, estimator: str, checkpoint: Optional[str] = 
 
 
 def _sha(text: str) -> str:
-    """The sha256 digits of a checkpoint text ``"file sha256:abc..."`` (the text itself without one)."""
+    """The sha256 digits of a checkpoint text ``"file sha256:abc..."`` (the text itself without one),
+    cut to the 12 digits the reports keep."""
     t = str(text)
-    return t.split("sha256:", 1)[1].strip() if "sha256:" in t else t.strip()
+    return (t.split("sha256:", 1)[1].strip() if "sha256:" in t else t.strip())[:12]
+
+
+_SHA_CACHE: Dict[tuple, str] = {}
+
+
+def checkpoint_sha256(estimator) -> Optional[str]:
+    """``"<file> sha256:<12 hex digits>"`` of the checkpoint file a built estimator reads (its
+    ``checkpoint`` attribute), None when it reads none."""
+    import hashlib
+    import os
+
+    ck = getattr(estimator, "checkpoint", None)
+    if not isinstance(ck, (str, os.PathLike)) or not str(ck) or not Path(ck).is_file():
+        return None
+    p = Path(ck)
+    st = p.stat()
+    key = (str(p.resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _SHA_CACHE:
+        h = hashlib.sha256()
+        with open(p, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        _SHA_CACHE[key] = h.hexdigest()
+    return f"{p.name} sha256:{_SHA_CACHE[key][:12]}"
 
 
 __all__ = ["FEATURES", "RAW_KEY", "CONFIG_KEY", "SHIPPED_SETS", "CalibrationParams", "identity_params", "check_params",

@@ -51,12 +51,10 @@ def apply_calibration(est, cfg: Config, name: str) -> None:
     value = getattr(cfg.estimator, "calibration", "none")
     if str(value).strip().lower() in ("", "none"):
         return
-    from dvsland.report.checkpoint import checkpoint_text, estimator_checkpoint
-
-    from .calibrate import resolve_calibration
+    from .calibrate import checkpoint_sha256, resolve_calibration
 
     _, spec = split_alias(name)
-    found = resolve_calibration(value, name, checkpoint_text(estimator_checkpoint(cfg, spec, est)) or None)
+    found = resolve_calibration(value, name, checkpoint_sha256(est))
     if found is None:
         return
     est.calibration = found[0]
