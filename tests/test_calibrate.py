@@ -384,3 +384,21 @@ def test_a_table_fitted_with_other_parameters_warns():
     cfg = load_config("paper", ["estimator.calibration=ideal", "estimator.cmax.n_grid=31"])
     with pytest.warns(RuntimeWarning, match=r"estimator.calibration: 'ideal' was fitted with n_grid=21; this cmax runs with n_grid=31"):
         make_estimator(cfg, 2, "cpu", name="cmax")
+
+
+def test_no_host_sync():
+    """The map reads nothing back to the host (counted on the CPU, dvsland.bench.syncs), alone and
+    in the loop: a calibrated estimator syncs as often per step as the uncalibrated one."""
+    from dvsland.bench.syncs import SyncCounter, loop_syncs
+    from dvsland.estimators.base import EstimateOut
+
+    p = _table([[0.8, 0.4, 0.1], [0.3, 0.2, 0.0]], (-2.0, -1.5, -1.0), (2.0, 3.5), "events")
+    ev = Events(torch.tensor([0, 0, 2]), torch.tensor([1, 2, 3]), torch.tensor([1, 2, 3]),
+                torch.tensor([1, 2, 3]), torch.tensor([1, 1, -1], dtype=torch.int8))
+    out = EstimateOut(torch.tensor([-0.1, float("nan"), -0.2]), torch.tensor([0.5, 0.0, 0.9]), {})
+    with SyncCounter() as c:
+        calibrate_output(out, ev, 3, p)
+    assert c.calls == {}
+    raw = loop_syncs("learned", steps=3, sites="D")
+    cal = loop_syncs("learned", steps=3, sites="D", overrides=["estimator.calibration=ideal"])
+    assert cal["syncs_per_step"] == raw["syncs_per_step"] and cal["by_call"] == raw["by_call"]

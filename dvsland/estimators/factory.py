@@ -57,7 +57,9 @@ def apply_calibration(est, cfg: Config, name: str) -> None:
     found = resolve_calibration(value, name, checkpoint_sha256(est))
     if found is None:
         return
-    est.calibration = found[0]
+    from .calibrate import params_to
+
+    est.calibration = params_to(found[0], getattr(est, "device", "cpu"))  # on the estimator's device: no copy per step
     fitted = (found[1].get("fit") or {}).get("estimator_params") or {}
     own = estimator_params(cfg, name)
     diff = sorted(k for k in fitted if k in own and _differs(fitted[k], own[k]))
