@@ -34,11 +34,14 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 from typing import Dict, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
+
+from .state_dict_check import file_sha256
 
 #: the features a table may use besides the raw confidence
 FEATURES = ("none", "events", "abs_d_hat")
@@ -225,15 +228,22 @@ def calibrate_output(out, events, batch_size: int, params: Optional[CalibrationP
 
 
 # ---------------------------------------------------------------------------------------------- fitting
-def _z0(d_true, d_hat, conf):
-    """|D_hat - D| over the raw predicted sigma (the report's scale max(|D_hat|, |D|)), the raw
-    log10 relative sigma, and the answered mask (D_hat finite, c > 0), as float64 NumPy (N,)."""
+def flat_sample(d_true, d_hat, confidence) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(d_true, d_hat, confidence) of a calibration sample as flat float64 NumPy arrays (N,);
+    ValueError naming them when their lengths differ."""
     d_true = np.asarray(d_true, dtype=np.float64).ravel()
     d_hat = np.asarray(d_hat, dtype=np.float64).ravel()
-    conf = np.asarray(conf, dtype=np.float64).ravel()
+    conf = np.asarray(confidence, dtype=np.float64).ravel()
     if not (d_true.shape == d_hat.shape == conf.shape):
         raise ValueError(f"d_true, d_hat and confidence must have the same length, got {d_true.size}, "
                          f"{d_hat.size}, {conf.size}")
+    return d_true, d_hat, conf
+
+
+def _z0(d_true, d_hat, conf):
+    """|D_hat - D| over the raw predicted sigma (the report's scale max(|D_hat|, |D|)), the raw
+    log10 relative sigma, and the answered mask (D_hat finite, c > 0), as float64 NumPy (N,)."""
+    d_true, d_hat, conf = flat_sample(d_true, d_hat, conf)
     ans = np.isfinite(d_hat) & np.isfinite(d_true) & (conf > 0) & np.isfinite(conf)
     with np.errstate(divide="ignore", invalid="ignore"):
         x = np.maximum(0.5 * np.log10((1.0 - conf) / conf) - 1.0, LOG10_SIGMA_FLOOR)
@@ -479,28 +489,13 @@ def _sha(text: str) -> str:
     return (t.split("sha256:", 1)[1].strip() if "sha256:" in t else t.strip())[:12]
 
 
-_SHA_CACHE: Dict[tuple, str] = {}
-
-
 def checkpoint_sha256(estimator) -> Optional[str]:
     """``"<file> sha256:<12 hex digits>"`` of the checkpoint file a built estimator reads (its
     ``checkpoint`` attribute), None when it reads none."""
-    import hashlib
-    import os
-
     ck = getattr(estimator, "checkpoint", None)
     if not isinstance(ck, (str, os.PathLike)) or not str(ck) or not Path(ck).is_file():
         return None
-    p = Path(ck)
-    st = p.stat()
-    key = (str(p.resolve()), st.st_size, st.st_mtime_ns)
-    if key not in _SHA_CACHE:
-        h = hashlib.sha256()
-        with open(p, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                h.update(block)
-        _SHA_CACHE[key] = h.hexdigest()
-    return f"{p.name} sha256:{_SHA_CACHE[key][:12]}"
+    return f"{Path(ck).name} sha256:{file_sha256(ck)}"
 
 
 __all__ = ["FEATURES", "RAW_KEY", "CONFIG_KEY", "SHIPPED_SETS", "CalibrationParams", "identity_params", "check_params",

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from dvsland.control.efference import confidence_rel_sigma
+from dvsland.estimators.calibrate import flat_sample
 from dvsland.estimators.snn.data import SITE_TYPES
 
 #: Gaussian coverage of +-1 sigma and +-2 sigma
@@ -80,12 +81,7 @@ def predicted_sigma(confidence, d_hat, d_true) -> np.ndarray:
 
 
 def _check(d_true, d_hat, confidence):
-    d_true = np.asarray(d_true, dtype=np.float64).ravel()
-    d_hat = np.asarray(d_hat, dtype=np.float64).ravel()
-    conf = np.asarray(confidence, dtype=np.float64).ravel()
-    if not (d_true.shape == d_hat.shape == conf.shape):
-        raise ValueError(f"d_true, d_hat and confidence must have the same length, got {d_true.size}, "
-                         f"{d_hat.size}, {conf.size}")
+    d_true, d_hat, conf = flat_sample(d_true, d_hat, confidence)
     if not np.isfinite(d_true).all():
         raise ValueError("d_true must be finite (the scored steps' true divergence)")
     return d_true, d_hat, conf

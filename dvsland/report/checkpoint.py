@@ -10,37 +10,11 @@ reads (an instance's own ``checkpoint`` attribute first), :func:`checkpoint_iden
 
 from __future__ import annotations
 
-import hashlib
 import os
 from pathlib import Path
-from typing import Dict, Optional, Tuple
+from typing import Optional
 
-#: hex digits of the SHA-256 kept in reports
-HASH_DIGITS = 12
-
-_CACHE: Dict[Tuple[str, int, int], str] = {}
-
-
-def file_sha256(path, digits: int = HASH_DIGITS) -> str:
-    """The first ``digits`` hex digits of the SHA-256 of the file's bytes (read in 1 MiB blocks;
-    cached per path, size and modification time).
-
-    Raises:
-        ValueError: the file cannot be read (the message names it).
-    """
-    path = Path(path)
-    try:
-        st = os.stat(path)
-        key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
-        if key not in _CACHE:
-            h = hashlib.sha256()
-            with open(path, "rb") as fh:
-                for block in iter(lambda: fh.read(1 << 20), b""):
-                    h.update(block)
-            _CACHE[key] = h.hexdigest()
-    except OSError as exc:
-        raise ValueError(f"cannot read the checkpoint {path}: {exc.strerror or exc}") from None
-    return _CACHE[key][:digits]
+from dvsland.estimators.state_dict_check import HASH_DIGITS, file_sha256  # noqa: F401 (re-exported)
 
 
 def checkpoint_identity(path) -> dict:
