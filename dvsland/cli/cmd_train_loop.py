@@ -52,7 +52,8 @@ def register(subparsers) -> None:
                    help="Adam learning rate (default: policy 3e-3, law and filter 2e-2, estimator 1e-4)")
     p.add_argument("--loss", default="", metavar="NAME=W,...",
                    help="loss weights over the defaults: policy " + WHAT_DEFAULTS["policy"][1] + "; law "
-                        + WHAT_DEFAULTS["law"][1] + "; filter and estimator " + WHAT_DEFAULTS["filter"][1])
+                        + WHAT_DEFAULTS["law"][1] + "; filter and estimator " + WHAT_DEFAULTS["filter"][1]
+                        + "; track_gs (div_gs's target at the true altitude, docs/train_loop.md) is 0 unless given")
     p.add_argument("--seed", type=int, default=0, help="seed of the training's dispersed restarts")
     p.add_argument("--val-seed", type=int, default=999, help="simulation.seed of the validation descents")
     p.add_argument("--val-seeds", type=int, default=None, metavar="N",
