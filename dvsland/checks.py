@@ -1,6 +1,7 @@
 """Argument checks with messages that name the parameter and what is allowed (in the spirit of
 kornia's ``KORNIA_CHECK``). Used by the config validation, the site specs and the stage classes,
-so that one range is written once (in the config schema) and read everywhere.
+so that one range is written once (in the config schema) and read everywhere. Also the content
+hash that names a checkpoint file in every report (:func:`file_sha256`).
 
 Example::
 
@@ -12,8 +13,11 @@ Example::
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
-from typing import Any, Iterable, List, Optional, Type
+import os
+from pathlib import Path
+from typing import Any, Dict, Iterable, List, Optional, Tuple, Type
 
 
 def range_text(lo: Optional[float], hi: Optional[float], open_lo: bool = False, open_hi: bool = False) -> str:
@@ -144,5 +148,33 @@ def check_device(name, param: str = "simulation.device"):
                      f"available on this machine: {', '.join(avail)}")
 
 
+#: hex digits of a checkpoint's SHA-256 kept in reports (``learned_cnn.pt sha256:1a2b3c4d5e6f``)
+HASH_DIGITS = 12
+
+_SHA_CACHE: Dict[Tuple[str, int, int], str] = {}
+
+
+def file_sha256(path, digits: int = HASH_DIGITS) -> str:
+    """The first ``digits`` hex digits of the SHA-256 of the file's bytes (read in 1 MiB blocks;
+    cached per path, size and modification time).
+
+    Raises:
+        ValueError: the file cannot be read (the message names it).
+    """
+    path = Path(path)
+    try:
+        st = os.stat(path)
+        key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+        if key not in _SHA_CACHE:
+            h = hashlib.sha256()
+            with open(path, "rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(block)
+            _SHA_CACHE[key] = h.hexdigest()
+    except OSError as exc:
+        raise ValueError(f"cannot read the checkpoint {path}: {exc.strerror or exc}") from None
+    return _SHA_CACHE[key][:digits]
+
+
 __all__ = ["check_range", "check_choice", "check_keys", "check_fields", "field_bounds", "in_range", "range_text",
-           "available_devices", "check_device"]
+           "available_devices", "check_device", "HASH_DIGITS", "file_sha256"]

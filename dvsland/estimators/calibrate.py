@@ -41,7 +41,7 @@ from typing import Dict, NamedTuple, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from .state_dict_check import file_sha256
+from dvsland.checks import file_sha256
 
 #: the features a table may use besides the raw confidence
 FEATURES = ("none", "events", "abs_d_hat")

@@ -8,41 +8,10 @@ wrong: nothing is loaded, trained or written from a damaged, foreign or diverged
 
 from __future__ import annotations
 
-import hashlib
 import math
-import os
 from pathlib import Path
-from typing import Dict, Tuple
 
 import torch
-
-#: hex digits of a checkpoint's SHA-256 kept in reports (``learned_cnn.pt sha256:1a2b3c4d5e6f``)
-HASH_DIGITS = 12
-
-_SHA_CACHE: Dict[Tuple[str, int, int], str] = {}
-
-
-def file_sha256(path, digits: int = HASH_DIGITS) -> str:
-    """The first ``digits`` hex digits of the SHA-256 of the file's bytes (read in 1 MiB blocks;
-    cached per path, size and modification time).
-
-    Raises:
-        ValueError: the file cannot be read (the message names it).
-    """
-    path = Path(path)
-    try:
-        st = os.stat(path)
-        key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
-        if key not in _SHA_CACHE:
-            h = hashlib.sha256()
-            with open(path, "rb") as fh:
-                for block in iter(lambda: fh.read(1 << 20), b""):
-                    h.update(block)
-            _SHA_CACHE[key] = h.hexdigest()
-    except OSError as exc:
-        raise ValueError(f"cannot read the checkpoint {path}: {exc.strerror or exc}") from None
-    return _SHA_CACHE[key][:digits]
-
 
 def short_path(path) -> str:
     """``path`` as text, middle elided past 120 characters (an error message stays one short line)."""

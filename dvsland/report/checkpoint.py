@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 from typing import Optional
 
-from dvsland.estimators.state_dict_check import HASH_DIGITS, file_sha256  # noqa: F401 (re-exported)
+from dvsland.checks import HASH_DIGITS, file_sha256  # noqa: F401 (re-exported)
 
 
 def checkpoint_identity(path) -> dict:
