@@ -8,6 +8,7 @@ from typing import Any
 from dvsland.config import Config
 
 from .abstain import DEFAULT_ABSTAIN, AbstainParams, check_abstain_params
+from .calibrate import checkpoint_sha256, params_to, resolve_calibration
 from .registry import get_estimator, split_alias
 
 
@@ -51,14 +52,10 @@ def apply_calibration(est, cfg: Config, name: str) -> None:
     value = getattr(cfg.estimator, "calibration", "none")
     if str(value).strip().lower() in ("", "none"):
         return
-    from .calibrate import checkpoint_sha256, resolve_calibration
-
     _, spec = split_alias(name)
     found = resolve_calibration(value, name, checkpoint_sha256(est))
     if found is None:
         return
-    from .calibrate import params_to
-
     est.calibration = params_to(found[0], getattr(est, "device", "cpu"))  # on the estimator's device: no copy per step
     fitted = (found[1].get("fit") or {}).get("estimator_params") or {}
     own = estimator_params(cfg, name)

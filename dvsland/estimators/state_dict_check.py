@@ -13,6 +13,7 @@ from pathlib import Path
 
 import torch
 
+
 def short_path(path) -> str:
     """``path`` as text, middle elided past 120 characters (an error message stays one short line)."""
     text = str(path)

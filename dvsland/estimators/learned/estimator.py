@@ -36,9 +36,9 @@ from .models import VoxelCNN
 from .fast import RingCNN
 from .inputs import InputSpec, camera_map, coord_channels, events_voxel_grid, pixel_cells, row_counts
 
-#: the shipped checkpoints (trained by `dvsland train`, commands in docs/learning.md)
-#: the shipped checkpoints by name: the CNN, the CNN fine-tuned on events of the realistic pixel as
-#: well (docs/learning.md, "Through a realistic pixel"), the spiking model
+#: the shipped checkpoints by name (trained by `dvsland train`, commands in docs/learning.md): the CNN,
+#: the CNN fine-tuned on events of the realistic pixel as well ("Through a realistic pixel"), the
+#: spiking model
 SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"),
            "cnn_realistic": Path(__file__).with_name("learned_cnn_realistic.pt"),
            "spiking": Path(__file__).with_name("learned_spiking.pt")}
