@@ -38,6 +38,7 @@ from typing import NamedTuple, Optional, Tuple
 import torch
 from torch import nn
 
+from dvsland.checks import check_choice
 from dvsland.config.schema import DivGSConfig
 from dvsland.estimators.state_dict_check import check_state_dict, read_checkpoint_file, short_path
 
@@ -58,6 +59,12 @@ OBSERVATIONS = {"basic": 4, "efference": 7}
 BASES = ("none", "div_gs")
 
 
+def _check_kind(observation: str, base: str) -> None:
+    """ValueError naming ``controller.policy.observation`` / ``.base`` when either is not allowed."""
+    check_choice("controller.policy.observation", observation, OBSERVATIONS)
+    check_choice("controller.policy.base", base, BASES)
+
+
 class PolicyNet(nn.Module):
     """obs (B, n_obs) float64 -> (B,) float64: the thrust-fraction logit (``base="none"``; starts near
     hover, 1/3 of the top) or the residual's pre-tanh output (``base="div_gs"``; starts at exactly 0).
@@ -74,10 +81,7 @@ class PolicyNet(nn.Module):
         super().__init__()
         if not (isinstance(hidden, int) and hidden >= 1):
             raise ValueError(f"controller.policy.hidden must be an integer >= 1, got {hidden!r}")
-        if observation not in OBSERVATIONS:
-            raise ValueError(f"controller.policy.observation must be one of {list(OBSERVATIONS)}, got {observation!r}")
-        if base not in BASES:
-            raise ValueError(f"controller.policy.base must be one of {list(BASES)}, got {base!r}")
+        _check_kind(observation, base)
         self.hidden, self.observation, self.base = hidden, observation, base
         self.net = nn.Sequential(nn.Linear(OBSERVATIONS[observation], hidden), nn.Tanh(),
                                  nn.Linear(hidden, 1)).double()
@@ -223,10 +227,7 @@ class PolicyController(Controller):
         check_bounds(thrust_min_n, thrust_max_n, missing_policy)
         if not (isinstance(tau_min_s, (int, float)) and tau_min_s > 0):
             raise ValueError(f"controller.policy.tau_min_s must be > 0 s, got {tau_min_s!r}")
-        if observation not in OBSERVATIONS:
-            raise ValueError(f"controller.policy.observation must be one of {list(OBSERVATIONS)}, got {observation!r}")
-        if base not in BASES:
-            raise ValueError(f"controller.policy.base must be one of {list(BASES)}, got {base!r}")
+        _check_kind(observation, base)
         if net is None:  # frozen in flight: a loop that flies it keeps no graph (training unfreezes it)
             if str(checkpoint).strip():
                 net = load_policy(checkpoint, observation=observation, base=base)
