@@ -61,6 +61,26 @@ def divergence_target(t_s, tau0_s: Tensor, c2: float, d_final_per_s: float):
     return d_star, coef
 
 
+def floored_target(t_s, tau0_s: Tensor, c2: float, d_final_per_s: float, v_min_mps: float, z_m: Tensor):
+    """:func:`divergence_target` with the final approach floored at the sink rate ``v_min_mps``
+    (m/s; 0 = no floor): where the final approach's d_final z is below it the target becomes
+    -v_min / z (constant velocity, coef 0).
+
+    Args:
+        z_m: (B,) float64 altitude, m, at least 1 m (the law's z_hat; the loss's true z).
+
+    Returns:
+        (d_star (B,) float64 1/s, coef (B,) float64), as :func:`divergence_target`.
+    """
+    d_star, coef = divergence_target(t_s, tau0_s, c2, d_final_per_s)
+    if v_min_mps > 0:  # final approach (coef 1) floored at v_min: constant velocity, a_ref = 0
+        floor = -v_min_mps / z_m
+        use = (coef == 1.0) & (floor < d_star)
+        d_star = torch.where(use, floor, d_star)
+        coef = torch.where(use, 0.0, coef)
+    return d_star, coef
+
+
 def div_gs_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
                 active: Optional[Tensor], altitude_m: Optional[Tensor]) -> Tuple[HoldLastState, ControlOutput]:
     """Pure step of ``div_gs``: (next state, :class:`ControlOutput`).
@@ -77,12 +97,7 @@ def div_gs_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor, mas
     o = p.options
     d, m, mg, t_s = law_inputs(p, t_s, d_filtered, mass_kg)
     z = altitude_m.to(torch.float64).clamp_min(1.0)
-    d_star, coef = divergence_target(t_s, p.tau0_s, p.c2, o.d_final_per_s)
-    if o.v_min_mps > 0:  # final approach (coef 1) floored at v_min: constant velocity, a_ref = 0
-        floor = -o.v_min_mps / z
-        use = (coef == 1.0) & (floor < d_star)
-        d_star = torch.where(use, floor, d_star)
-        coef = torch.where(use, 0.0, coef)
+    d_star, coef = floored_target(t_s, p.tau0_s, p.c2, o.d_final_per_s, o.v_min_mps, z)
     usable = ~torch.isnan(d)
     a_ref = coef * d_star * d_star * z
     u = m * (p.g_mps2 + a_ref) + o.lambda_per_s * m * z * (d_star - torch.where(usable, d, 0.0))

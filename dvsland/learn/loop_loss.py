@@ -26,6 +26,7 @@ from typing import Dict, Tuple
 
 import torch
 
+from dvsland.control.div_gs import floored_target
 from dvsland.pytree import tree_map
 from dvsland.sim import loop_step
 from dvsland.sim.termination import SUCCESS
@@ -75,14 +76,8 @@ def ttc_target(stages, t_s: torch.Tensor) -> torch.Tensor:
 def div_gs_target(stages, t_s: torch.Tensor, z_m: torch.Tensor) -> torch.Tensor:
     """D*_gs (B,) float64 1/s: ``div_gs``'s target (``controller.div_gs``'s constants) at flight time
     ``t_s`` (B,) s and altitude ``z_m`` (B,) m (the true one, for the ``track_gs`` term)."""
-    from dvsland.control.div_gs import divergence_target
-
     o, p = stages.cfg.controller.div_gs, stages.params
-    d_star, coef = divergence_target(t_s, p.tau0_s, p.c2, float(o.d_final_per_s))
-    if o.v_min_mps > 0:
-        floor = -float(o.v_min_mps) / z_m.clamp_min(1.0)
-        d_star = torch.where((coef == 1.0) & (floor < d_star), floor, d_star)
-    return d_star
+    return floored_target(t_s, p.tau0_s, p.c2, float(o.d_final_per_s), float(o.v_min_mps), z_m.clamp_min(1.0))[0]
 
 
 def crossing_speed(before, after, z_s: float) -> torch.Tensor:
