@@ -107,6 +107,22 @@ class PolicyOptions(NamedTuple):
     base: Optional[LawParams] = None
 
 
+def checkpoint_observation_base(ck: dict, where: str, observation: Optional[str] = None,
+                                base: Optional[str] = None) -> dict:
+    """``{"observation": ..., "base": ...}`` of a policy checkpoint's dict ``ck`` (``basic`` / ``none``
+    when it predates them), checked: ValueError naming ``where`` for an unknown value, and naming
+    ``controller.policy.<key>`` when ``observation`` / ``base`` (the flown config's; None = any)
+    differ from the checkpoint's."""
+    got = {"observation": ck.get("observation", "basic"), "base": ck.get("base", "none")}
+    for key, want, known in (("observation", observation, OBSERVATIONS), ("base", base, BASES)):
+        if got[key] not in known:
+            raise ValueError(f"{where}: {key} {got[key]!r} is not one of {list(known)}")
+        if want is not None and want != got[key]:
+            raise ValueError(f"controller.policy.{key} is {want!r} but {where} was trained with {key} "
+                             f"{got[key]!r}; set --set controller.policy.{key}={got[key]}")
+    return got
+
+
 def load_policy(path, param: str = "controller.policy.checkpoint", observation: Optional[str] = None,
                 base: Optional[str] = None) -> PolicyNet:
     """The :class:`PolicyNet` of a ``dvsland train-loop --what policy`` checkpoint. A checkpoint
@@ -130,13 +146,7 @@ def load_policy(path, param: str = "controller.policy.checkpoint", observation: 
     hidden = ck.get("hidden")
     if not (isinstance(hidden, int) and 1 <= hidden <= 4096):
         raise ValueError(f"{where}: 'hidden' must be an integer in [1, 4096], got {hidden!r}")
-    got = {"observation": ck.get("observation", "basic"), "base": ck.get("base", "none")}
-    for key, want, known in (("observation", observation, OBSERVATIONS), ("base", base, BASES)):
-        if got[key] not in known:
-            raise ValueError(f"{where}: {key} {got[key]!r} is not one of {list(known)}")
-        if want is not None and want != got[key]:
-            raise ValueError(f"controller.policy.{key} is {want!r} but {where} was trained with {key} "
-                             f"{got[key]!r}; set --set controller.policy.{key}={got[key]}")
+    got = checkpoint_observation_base(ck, where, observation, base)
     net = PolicyNet(hidden, observation=got["observation"], base=got["base"])
     check_state_dict(ck.get("state_dict"), net, where)
     net.load_state_dict(ck["state_dict"])
@@ -278,4 +288,4 @@ class PolicyController(Controller):
 
 
 __all__ = ["PolicyNet", "PolicyOptions", "PolicyController", "policy_law_step", "policy_observation", "load_policy",
-           "POLICY_KIND", "D_SCALE", "ERR_SCALE", "Z_REF_M", "OBSERVATIONS", "BASES"]
+           "checkpoint_observation_base", "POLICY_KIND", "D_SCALE", "ERR_SCALE", "Z_REF_M", "OBSERVATIONS", "BASES"]

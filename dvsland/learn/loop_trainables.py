@@ -25,6 +25,7 @@ from typing import Dict, Sequence, Tuple
 import torch
 from torch import nn
 
+from dvsland.control.policy import checkpoint_observation_base
 from dvsland.estimators.state_dict_check import check_state_dict
 
 #: law -> constants that can be trained by name (the first ones are the default set)
@@ -176,10 +177,7 @@ class PolicyWeights(Trainable):
     def load_checkpoint_fields(self, ck: dict, where: str) -> None:
         if ck.get("hidden") != self.net.hidden:
             raise ValueError(f"{where}: hidden {ck.get('hidden')!r} != controller.policy.hidden {self.net.hidden}")
-        for key, default in (("observation", "basic"), ("base", "none")):
-            if ck.get(key, default) != getattr(self.net, key):
-                raise ValueError(f"{where}: {key} {ck.get(key, default)!r} != controller.policy.{key} "
-                                 f"{getattr(self.net, key)!r}")
+        checkpoint_observation_base(ck, where, self.net.observation, self.net.base)
         check_state_dict(ck.get("state_dict"), self.net, where)
         self.net.load_state_dict(ck["state_dict"])
 
