@@ -222,12 +222,12 @@ def _spec_params(cfg, specs) -> dict:
 def _check_calibration_key(cfg, specs, fit: bool) -> None:
     """``estimator.calibration`` resolved for every estimator named, before the run folder exists
     (its errors name the key); ``--fit-calibration`` needs raw confidences."""
-    from dvsland.estimators.calibrate import resolve_calibration
+    from dvsland.estimators.calibrate import calibration_off, resolve_calibration
 
     value = getattr(cfg.estimator, "calibration", "none")
     for name in _spec_names(specs).values():
         resolve_calibration(value, name)
-    if fit and str(value).strip().lower() not in ("", "none"):
+    if fit and not calibration_off(value):
         raise ValueError(f"--fit-calibration fits raw confidences: run it with estimator.calibration=none "
                          f"(got {value!r})")
 

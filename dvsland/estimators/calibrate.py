@@ -443,6 +443,11 @@ def _base_name(name: str) -> str:
     return s.split("[")[0].strip()
 
 
+def calibration_off(value) -> bool:
+    """Whether an ``estimator.calibration`` value asks for no table (``none``, empty or None)."""
+    return value is None or str(value).strip().lower() in ("", "none")
+
+
 def resolve_calibration(value: str, estimator: str, checkpoint: Optional[str] = None) -> Optional[Tuple[CalibrationParams, dict]]:
     """The table that ``estimator.calibration = value`` selects for ``estimator``, or None.
 
@@ -452,9 +457,9 @@ def resolve_calibration(value: str, estimator: str, checkpoint: Optional[str] = 
     ``"<file> sha256:<digits>"`` of the checkpoint the estimator reads) for another checkpoint, is
     refused. Errors (ValueError) name ``estimator.calibration``, and list the shipped names.
     """
-    v = str(value if value is not None else "none").strip()
-    if v.lower() in ("", "none"):
+    if calibration_off(value):
         return None
+    v = str(value).strip()
     est = _base_name(estimator)
     shipped = shipped_calibrations()
     names = ", ".join(sorted(shipped)) or "none"

@@ -8,7 +8,7 @@ from typing import Any
 from dvsland.config import Config
 
 from .abstain import DEFAULT_ABSTAIN, AbstainParams, check_abstain_params
-from .calibrate import checkpoint_sha256, params_to, resolve_calibration
+from .calibrate import calibration_off, checkpoint_sha256, params_to, resolve_calibration
 from .registry import get_estimator, split_alias
 
 
@@ -50,7 +50,7 @@ def apply_calibration(est, cfg: Config, name: str) -> None:
     :func:`~.calibrate.resolve_calibration`, whose errors name the key). ``none`` leaves the
     estimator's own setting."""
     value = getattr(cfg.estimator, "calibration", "none")
-    if str(value).strip().lower() in ("", "none"):
+    if calibration_off(value):  # the default: no checkpoint is hashed
         return
     _, spec = split_alias(name)
     found = resolve_calibration(value, name, checkpoint_sha256(est))

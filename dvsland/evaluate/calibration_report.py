@@ -127,15 +127,14 @@ def write_calibration_sample(res, run_dir: Path, meta: dict) -> Path:
     import io
     import json
 
-    from dvsland.report.results import to_json
+    from dvsland.report.results import atomic_write_bytes, to_json
 
     path = Path(run_dir) / SAMPLE_FILE
     buf = io.BytesIO()
     np.savez_compressed(buf, meta=np.array(to_json(meta, indent=None)), **calibration_sample(res))
-    tmp = path.with_suffix(".tmp")
-    tmp.write_bytes(buf.getvalue())
-    tmp.replace(path)
-    json.loads(str(np.load(path)["meta"]))  # a file that reads back
+    atomic_write_bytes(path, buf.getbuffer())  # a full disk: one clear error, no temporary file left
+    with np.load(path) as z:
+        json.loads(str(z["meta"]))  # a file that reads back
     return path
 
 
@@ -186,7 +185,7 @@ def fit_from_samples(samples, label: str, estimator: Optional[str] = None, featu
     """
     import json
 
-    from dvsland.estimators.calibrate import apply_calibration_np, calibration_to_json, fit_calibration
+    from dvsland.estimators.calibrate import apply_calibration_np, calibration_off, calibration_to_json, fit_calibration
 
     parts, metas = [], []
     for s in samples:
@@ -195,7 +194,7 @@ def fit_from_samples(samples, label: str, estimator: Optional[str] = None, featu
             raise ValueError(f"estimator {label!r} is not in this calibration sample (it has {', '.join(labels)})")
         i = labels.index(label)
         meta = dict(s.get("meta") or {})
-        if meta.get("calibration", "none") not in ("none", "", None):
+        if not calibration_off(meta.get("calibration", "none")):
             raise ValueError(f"this sample was evaluated with estimator.calibration={meta['calibration']!r}: fit on "
                              f"raw confidences (estimator.calibration=none)")
         parts.append((s["d_true"], s[f"d_hat_{i}"], s[f"confidence_{i}"], s["n_events"], s["site"]))
