@@ -43,32 +43,28 @@ FIX=(--set dispersion.terrain_variants=1 --set 'dispersion.sun_elevation_deg={ki
 [[ $PARTS == *" 2 "* ]] && timeout 100 python3 -m dvsland.bench.throughput --device cuda --batches 8192 --estimators learned --steps 10 \
   "${FIX[@]}" --set simulation.compile=true 2>&1 | tail -3 | tee -a "$OUT/throughput.log"
 # 3. where a large step's device time goes
-[[ $PARTS == *" 3 "* ]] && timeout 60 python3 scripts/gpu_profile_step.py --device cuda --batch 4608 --estimator learned --steps 3 --rows 25 \
-  > "$OUT/profile.txt" 2>&1; tail -5 "$OUT/profile.txt"
-# 4. the 450-descent cmax campaign on the card, wall time (set-up included)
-if [[ $PARTS == *" 4 "* ]]; then
-s=$SECONDS
-timeout 100 python3 -m dvsland.cli.main campaign montecarlo_efference --estimator cmax --n-seeds 50 --quiet \
-  --set simulation.device=cuda "${FIX[@]}" --out /tmp/camp > "$OUT/campaign.log" 2>&1
-echo "campaign rc=$? wall_s=$((SECONDS - s))" | tee -a "$OUT/campaign.log"
-cp /tmp/camp/table.md "$OUT/campaign_table.md" 2>/dev/null
-python3 - <<'PY' 2>&1 | tee -a "$OUT/campaign.log"
-import json, collections
-r = json.load(open("/tmp/camp/results.json"))
-print(r.get("status"), collections.Counter(x.get("outcome") for x in r.get("runs", [])), r.get("session", ""), "shards", r.get("n_shards"))
-PY
+if [[ $PARTS == *" 3 "* ]]; then
+  timeout 60 python3 scripts/gpu_profile_step.py --device cuda --batch 4608 --estimator learned --steps 3 --rows 25 \
+    > "$OUT/profile.txt" 2>&1; tail -5 "$OUT/profile.txt"
 fi
+# one campaign on the card: campaign LABEL ESTIMATOR N_SEEDS TIMEOUT_S -> $OUT/LABEL.log (wall time with
+# set-up, the outcomes, the session's descents per minute) and $OUT/LABEL_table.md
+campaign() {
+  local label=$1 est=$2 seeds=$3 limit=$4 s=$SECONDS
+  timeout "$limit" python3 -m dvsland.cli.main campaign montecarlo_efference --estimator "$est" --n-seeds "$seeds" \
+    --quiet --set simulation.device=cuda "${FIX[@]}" --out "/tmp/$label" > "$OUT/$label.log" 2>&1
+  echo "$label rc=$? wall_s=$((SECONDS - s))" | tee -a "$OUT/$label.log"
+  cp "/tmp/$label/table.md" "$OUT/${label}_table.md" 2>/dev/null
+  python3 - "/tmp/$label/results.json" <<'PY' 2>&1 | tee -a "$OUT/$label.log"
+import json, collections, sys
+r = json.load(open(sys.argv[1]))
+print(r.get("status"), collections.Counter(x.get("outcome") for x in r.get("runs", [])), r.get("session", ""),
+      "shards", r.get("n_shards"))
+PY
+}
+# 4. the 450-descent cmax campaign on the card, wall time (set-up included)
+[[ $PARTS == *" 4 "* ]] && campaign campaign cmax 50 100
 # 5. whole learned descents per minute: LEARNED_SEEDS x 9 sites flown to the end in one batch (set-up
 #    included in the wall time, reported apart by the campaign); the issue's goal is 20,000 per minute
-if [[ $PARTS == *" 5 "* ]]; then
-s=$SECONDS
-timeout 150 python3 -m dvsland.cli.main campaign montecarlo_efference --estimator learned \
-  --n-seeds "${LEARNED_SEEDS:-1000}" --quiet --set simulation.device=cuda "${FIX[@]}" --out /tmp/camp_learned \
-  > "$OUT/campaign_learned.log" 2>&1
-echo "learned campaign rc=$? wall_s=$((SECONDS - s))" | tee -a "$OUT/campaign_learned.log"
-python3 - <<'PY' 2>&1 | tee -a "$OUT/campaign_learned.log"
-import json, collections
-r = json.load(open("/tmp/camp_learned/results.json"))
-print(r.get("status"), collections.Counter(x.get("outcome") for x in r.get("runs", [])), r.get("session", ""), "shards", r.get("n_shards"))
-PY
-fi
+[[ $PARTS == *" 5 "* ]] && campaign campaign_learned learned "${LEARNED_SEEDS:-1000}" 150
+exit 0
