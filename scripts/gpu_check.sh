@@ -9,7 +9,7 @@
 # Here, once: `bash scripts/gpu_check.sh --wheels` downloads the packages the device machine lacks
 # into .whl/ (git-ignored through .git/info/exclude). Then, with the device tool:
 #   run(command="bash scripts/gpu_check.sh", carry=[".whl"], timeout_s=570)
-# PARTS="1 2 3 4 5" (the default) picks the parts to run.
+# PARTS="1 2 3 4 5" (the default) picks the parts to run; part 6 (by-function profiles) runs when named.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 if [ "${1:-}" = "--wheels" ]; then
@@ -67,4 +67,12 @@ PY
 # 5. whole learned descents per minute: LEARNED_SEEDS x 9 sites flown to the end in one batch (set-up
 #    included in the wall time, reported apart by the campaign); the issue's goal is 20,000 per minute
 [[ $PARTS == *" 5 "* ]] && campaign campaign_learned learned "${LEARNED_SEEDS:-1000}" 150
+# 6. where a step's time goes, by dvsland function (device time, the host's own time, launches): cmax at
+#    the campaign's size and at a large one, learned at a large one
+if [[ $PARTS == *" 6 "* ]]; then
+  for eb in cmax:576 cmax:4608 learned:4608; do
+    timeout 90 python3 scripts/gpu_profile_step.py --device cuda --batch "${eb#*:}" --estimator "${eb%:*}" --steps 3 \
+      --rows 20 --lines 40 > "$OUT/lines_${eb%:*}_${eb#*:}.txt" 2>&1; head -45 "$OUT/lines_${eb%:*}_${eb#*:}.txt"
+  done
+fi
 exit 0
