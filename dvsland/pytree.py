@@ -150,9 +150,15 @@ _M1, _M2 = 0x7FEB352D, 0x846CA68B
 _MASK32 = 0xFFFFFFFF
 
 
-def _mix32(x: torch.Tensor) -> torch.Tensor:
-    """A 32-bit integer finaliser (lowbias32) on int64 tensors holding values in [0, 2^32); a new
-    tensor (the input is not written), worked in place on one temporary."""
+def _mix32(x):
+    """A 32-bit integer finaliser (lowbias32) on int64 tensors holding values in [0, 2^32), or on a
+    Python int in that range (the same bits); a tensor input is not written (one temporary is)."""
+    if isinstance(x, int):
+        x ^= x >> 16
+        x = (x * _M1) & _MASK32
+        x ^= x >> 15
+        x = (x * _M2) & _MASK32
+        return x ^ (x >> 16)
     x = x ^ (x >> 16)
     x.mul_(_M1).bitwise_and_(_MASK32)
     x.bitwise_xor_(x >> 15)
@@ -160,20 +166,34 @@ def _mix32(x: torch.Tensor) -> torch.Tensor:
     return x.bitwise_xor_(x >> 16)
 
 
+def _fold(h, part):
+    """The hash ``h`` (None at the start) with one more 32-bit ``part`` folded in; ints stay ints."""
+    return _mix32(part ^ 0x9E3779B9) if h is None else _mix32(h ^ _mix32(part + 0x632BE5AB))
+
+
 def hash_bits(*keys: torch.Tensor) -> torch.Tensor:
     """32 random bits per element (int64 in [0, 2^32)) from integer keys, broadcast together.
 
     The same keys give the same bits on every device and batch size: the draws of a descent are a
     function of its keys only (seed, step, pixel, stream tag), never of its batch-mates. Keys are
-    int64 tensors (or ints); each is folded in 32-bit halves.
+    int64 tensors or Python ints (an int key is hashed on the host: no tensor operation, nothing
+    launched on a GPU); each is folded in 32-bit halves.
     """
-    h = None
+    return _as_bits(_fold_keys(None, keys))
+
+
+def _fold_keys(h, keys):
+    """``h`` with ``keys`` folded in, half by half (:func:`hash_bits` without the final tensor)."""
     for k in keys:
-        k = torch.as_tensor(k, dtype=torch.int64)
-        lo, hi = k & _MASK32, (k >> 32) & _MASK32
-        for part in (lo, hi):
-            h = _mix32(part ^ 0x9E3779B9) if h is None else _mix32(h ^ _mix32(part + 0x632BE5AB))
+        if not isinstance(k, int):
+            k = torch.as_tensor(k, dtype=torch.int64)
+        for part in (k & _MASK32, (k >> 32) & _MASK32):
+            h = _fold(h, part)
     return h
+
+
+def _as_bits(h) -> torch.Tensor:
+    return torch.as_tensor(h, dtype=torch.int64) if isinstance(h, int) else h
 
 
 def hash_uniform(*keys: torch.Tensor, dtype: torch.dtype = torch.float64) -> torch.Tensor:
@@ -183,8 +203,8 @@ def hash_uniform(*keys: torch.Tensor, dtype: torch.dtype = torch.float64) -> tor
 
 def hash_normal(*keys: torch.Tensor, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """Standard normal draws from integer keys (Box-Muller over two hashed uniforms)."""
-    u1 = hash_uniform(*keys, 1, dtype=dtype)
-    u2 = hash_uniform(*keys, 2, dtype=dtype)
+    h = _fold_keys(None, keys)  # the keys' hash once, then the two draws' own tags
+    u1, u2 = ((_as_bits(_fold_keys(h, (i,))).to(dtype) + 0.5) * (1.0 / 4294967296.0) for i in (1, 2))
     return torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * torch.pi * u2)
 
 

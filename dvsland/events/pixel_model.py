@@ -173,8 +173,9 @@ def stream_keys(seed: torch.Tensor, step, tag: int, stream: int = 0) -> torch.Te
     event's rank within its descent, hashed once more (:func:`keyed_uniform`): the draws of a
     descent depend on its own (seed, step, tag, stream, index) only, on every device.
     """
-    step = torch.as_tensor(step, dtype=torch.int64, device=seed.device)
-    return hash_bits(seed, step, tag, stream) << 32
+    if not isinstance(step, int):
+        step = torch.as_tensor(step, dtype=torch.int64, device=seed.device)
+    return hash_bits(seed, step, int(tag), int(stream)) << 32
 
 
 def keyed_uniform(keys: torch.Tensor) -> torch.Tensor:
