@@ -4,7 +4,7 @@
     python scripts/gpu_profile_step.py --device cuda --batch 4608 --estimator learned --steps 3
 
 Prints the operators sorted by device time (self), then by CPU time, for the ``montecarlo_efference``
-preset with the terrain variants and the sun fixed (short set-up). With ``--lines N`` it also prints
+preset (``--preset``) with the terrain variants and the sun fixed (short set-up). With ``--lines N`` it also prints
 the N dvsland functions that cost the most (self device time, self CPU time and operator calls
 per step, each operator charged to the innermost dvsland function that called it), and the step's wall
 time against its device time: a step whose wall time is well above its device time is bound by the
@@ -49,6 +49,7 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--batch", type=int, default=576)
     ap.add_argument("--estimator", default="learned")
+    ap.add_argument("--preset", default="montecarlo_efference")
     ap.add_argument("--steps", type=int, default=3)
     ap.add_argument("--rows", type=int, default=30)
     ap.add_argument("--lines", type=int, default=0, help="also print the N costliest dvsland functions")
@@ -59,7 +60,7 @@ def main(argv=None) -> int:
     from dvsland.sim import init_state, loop_step
     from dvsland.stages import build_stages
 
-    cfg = load_config("montecarlo_efference", [f"estimator.name={a.estimator}", "render.threads=1",
+    cfg = load_config(a.preset, [f"estimator.name={a.estimator}", "render.threads=1",
                                                f"simulation.device={a.device}", "dispersion.terrain_variants=1",
                                                'dispersion.sun_elevation_deg={kind: "off"}'])
     stages = build_stages(cfg, fit_layout(cfg, None, a.batch), a.device)
