@@ -50,9 +50,11 @@ if [[ $PARTS == *" 2 "* ]]; then
   timeout 250 python3 -m dvsland.bench.throughput --device cuda --batches "${BATCHES:-576,4608,8192}" \
     --estimators learned,cmax --steps 10 --env-batches 4608 --env-steps 20 "${FIX[@]}" \
     --out "$RES" > "$RES/throughput.log" 2>&1; tail -14 "$RES/throughput.log" | tee -a "$SUM"
-  timeout 100 python3 -m dvsland.bench.throughput --device cuda --batches 8192 --estimators learned --steps 10 \
-    "${FIX[@]}" --set simulation.compile=true > "$RES/throughput_compiled.log" 2>&1
-  tail -3 "$RES/throughput_compiled.log" | tee -a "$SUM"
+  if [[ ${COMPILED:-1} == 1 ]]; then  # COMPILED=0 skips the compiled case (about a minute)
+    timeout 100 python3 -m dvsland.bench.throughput --device cuda --batches 8192 --estimators learned --steps 10 \
+      "${FIX[@]}" --set simulation.compile=true > "$RES/throughput_compiled.log" 2>&1
+    tail -3 "$RES/throughput_compiled.log" | tee -a "$SUM"
+  fi
   snapshot
 fi
 # one campaign on the card: campaign LABEL ESTIMATOR N_SEEDS WORKERS TIMEOUT_S -> $RES/LABEL.log (wall time
@@ -81,7 +83,7 @@ PY
 [[ $PARTS == *" 5 "* ]] && campaign campaign_learned learned "${LEARNED_SEEDS:-1000}" "${LEARNED_WORKERS:-2}" 200
 # 6. where a step's time goes, by dvsland function (device time, the host's own time, launches)
 if [[ $PARTS == *" 6 "* ]]; then
-  for eb in cmax:4608 learned:4608 cmax:576; do
+  for eb in ${PROFILES:-cmax:4608 learned:4608 cmax:576}; do
     timeout 90 python3 scripts/gpu_profile_step.py --device cuda --batch "${eb#*:}" --estimator "${eb%:*}" --steps 3 \
       --rows 25 --lines 40 > "$RES/profile_${eb%:*}_${eb#*:}.txt" 2>&1
     grep -m1 "^B = " "$RES/profile_${eb%:*}_${eb#*:}.txt" | tee -a "$SUM"
