@@ -98,38 +98,60 @@ def _ramp(v: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
 
 def _occupancy(events, B: int, W: int, H: int, dev) -> torch.Tensor:
     """(B, H + 2, W + 2) uint8 occupancy images with a zero border: 1 where a pixel holds at least
-    one event (events checked to lie on the sensor and in the batch; no host sync)."""
+    one event (events checked to lie on the sensor and in the batch; no host sync). The flat index
+    b (H + 2)(W + 2) + y (W + 2) + x is two fused multiply-adds, offset by the border (W + 3)."""
     b, x, y = events.b.to(dev), events.x.to(dev), events.y.to(dev)
-    occ = torch.zeros(B * (H + 2) * (W + 2), dtype=torch.uint8, device=dev)
-    occ[(b * (H + 2) + y + 1) * (W + 2) + x + 1] = 1
+    P = (H + 2) * (W + 2)
+    occ = torch.zeros(B * P, dtype=torch.uint8, device=dev)
+    occ[W + 3:].index_fill_(0, torch.add(torch.add(x, y, alpha=W + 2), b, alpha=P), 1)
     return occ.view(B, H + 2, W + 2)
 
 
 def _clustering(img: torch.Tensor, cell: int) -> torch.Tensor:
     """Clustering index (B,) float32 of the active pixels of ``img`` (B, H, W) uint8 over ``cell``
-    px cells (module doc)."""
+    px cells (module doc). The cell counts are integers: summed over the cell's rows first (whole
+    image rows, vectorised), then over its columns."""
     B, H, W = img.shape
     Hc, Wc = H // cell, W // cell
     if Hc * Wc < 2:  # too small a sensor to count cells: no clustering evidence either way
         return torch.zeros(B, dtype=torch.float32, device=img.device)
     acc = torch.uint8 if cell * cell <= 255 else torch.int32
-    c = img[:, :Hc * cell, :Wc * cell].reshape(B, Hc, cell, Wc, cell).sum(dim=4, dtype=acc).sum(dim=2, dtype=acc)
-    c = c.reshape(B, -1).to(torch.float32)
+    c = img[:, :Hc * cell, :Wc * cell].reshape(B, Hc, cell, Wc * cell).sum(dim=2, dtype=acc)
+    c = c.view(B, Hc * Wc, cell).sum(dim=2, dtype=acc).to(torch.float32)
     m = c.mean(dim=1)
     den = m * (1.0 - m / (cell * cell))
     return torch.where(den > 1e-6, c.var(dim=1) / den.clamp_min(1e-6), torch.zeros_like(m))
+
+
+def _neighbour_counts(padded: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """(active pixels, active pixels with an active 8-neighbour), (B,) float32 each (integers, exact),
+    of the occupancy images ``padded`` (B, H + 2, W + 2) uint8 with a zero border.
+
+    The 3 x 3 box sums run on the flat images (every shift a contiguous slice: a pixel's
+    neighbours are +-1 and +-(W + 2) away, and the zero borders keep images and rows apart);
+    the counts are float32 sums (exact below 2^24, and several times faster than integer ones)."""
+    B, o, L = padded.shape[0], padded.shape[2], padded.numel()
+    f = padded.view(-1)
+    r = f[:L - 2] + f[1:L - 1]  # r[i]: the row sum of the 3 pixels centred at i + 1 (uint8: <= 3)
+    r += f[2:]
+    box = r[:L - 2 - 2 * o] + r[o:L - 2 - o]  # box[k]: the 3 x 3 sum centred at k + 1 + o (<= 9)
+    box += r[2 * o:]
+    centre = f[1 + o:L - 1 - o]
+    has = torch.zeros(L, dtype=torch.uint8, device=f.device)  # read as bool (0/1 bytes): no conversions
+    inner = has[1 + o:L - 1 - o].view(torch.bool)
+    torch.gt(box, centre, out=inner)  # an active neighbour (the box holds the centre)
+    inner.logical_and_(centre.view(torch.bool))
+    with_nb = has.view(B, -1).to(torch.float32).sum(dim=1)
+    active = padded.view(B, -1).to(torch.float32).sum(dim=1)  # the border is 0
+    return active, with_nb
 
 
 def _neighbours(padded: torch.Tensor) -> torch.Tensor:
     """Neighbour excess (B,) float32 in standard errors (module doc) of the occupancy images
     ``padded`` (B, H + 2, W + 2) uint8 with a zero border: the share of active pixels with an
     active 8-neighbour against 1 - (1 - q)^8 for pixels active at random."""
-    B, H, W = padded.shape[0], padded.shape[1] - 2, padded.shape[2] - 2
-    r = padded[:, :, :-2] + padded[:, :, 1:-1] + padded[:, :, 2:]  # the 3 x 3 box sum (uint8: <= 9)
-    box = r[:, :-2] + r[:, 1:-1] + r[:, 2:]
-    img = padded[:, 1:-1, 1:-1]
-    with_nb = ((box - img).clamp_(max=1) * img).view(B, -1).sum(dim=1, dtype=torch.int32).to(torch.float32)
-    active = padded.view(B, -1).sum(dim=1, dtype=torch.int32).to(torch.float32)  # the border is 0
+    H, W = padded.shape[1] - 2, padded.shape[2] - 2
+    active, with_nb = _neighbour_counts(padded)
     obs = with_nb / active.clamp_min(1.0)
     q = active / float(H * W)
     exp = 1.0 - (1.0 - q) ** 8
@@ -139,13 +161,24 @@ def _neighbours(padded: torch.Tensor) -> torch.Tensor:
     return torch.where((active > 0) & (se > 0), (obs - exp) / se.clamp_min(1e-9), torch.zeros_like(q))
 
 
+def _row_sums(src: torch.Tensor, b: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+    """(k, B) float32 per-row sums of ``src`` (k, N) float32 over events of rows ``b`` (N,) int64
+    sorted ascending with ``n`` (B,) int64 events per row: each row's events added in their order
+    (the sums of ``zeros(k, B).index_add_(1, b, src)``, bit for bit, on a CPU). A CPU runs one
+    segment reduction per row (several times faster than the scatter); other devices scatter."""
+    if src.device.type != "cpu":
+        return torch.zeros(src.shape[0], n.shape[0], dtype=src.dtype, device=src.device).index_add_(1, b, src)
+    return torch.segment_reduce(src, "sum", lengths=n.expand(src.shape[0], -1), axis=1, unsafe=True)
+
+
 def _flicker(events, B: int, t_us: int, n: torch.Tensor, dev) -> torch.Tensor:
-    """|corr(polarity, time)| per descent, (B,) float32 (0 where undefined)."""
+    """|corr(polarity, time)| per descent, (B,) float32 (0 where undefined); ``n`` (B,) int64 the
+    events of each descent (events sorted by b)."""
     b = events.b.to(dev)
     t = (events.t.to(dev) - int(t_us)).to(torch.float32)
     t = t / t.abs().max().clamp_min(1.0)  # in [-1, 0]: float32 sums keep their precision
     p = events.p.to(dev).to(torch.float32)
-    sums = torch.zeros(4, B, dtype=torch.float32, device=dev).index_add_(1, b, torch.stack([t, p, t * t, p * t]))
+    sums = _row_sums(torch.stack([t, p, t * t, p * t]), b, n)
     nn = n.to(torch.float32).clamp_min(1.0)
     mt, mp = sums[0] / nn, sums[1] / nn
     vt, vp = sums[2] / nn - mt ** 2, 1.0 - mp ** 2  # p = +-1: E[p^2] = 1
@@ -174,9 +207,10 @@ def motion_evidence(events, batch_size: int, sensor_size: Tuple[int, int], t_us:
     """The motion-evidence test of the events of one step (module doc), all descents at once.
 
     Args:
-        events: :class:`dvsland.events.Events` of the step, checked (b in [0, B), x, y on the
-            sensor: :func:`dvsland.events.validate.checked_for_estimator`, which every estimator's
-            input passes), or None / empty (then nothing is judged: factor 1).
+        events: :class:`dvsland.events.Events` of the step, checked and sorted by (b, t) (b in
+            [0, B), x, y on the sensor: :func:`dvsland.events.validate.checked_for_estimator`,
+            which every estimator's input passes; the per-row counts and sums read each row's
+            events as one contiguous run), or None / empty (then nothing is judged: factor 1).
         batch_size: B.
         sensor_size: (W, H) px.
         t_us: end of the window, int µs (times are taken relative to it).
@@ -193,7 +227,9 @@ def motion_evidence(events, batch_size: int, sensor_size: Tuple[int, int], t_us:
         zf = torch.zeros(B, dtype=torch.float32, device=dev)
         return MotionEvidence(torch.ones_like(zf), zf, zf.clone(), zf.clone(),
                               torch.zeros(B, dtype=torch.int64, device=dev))
-    n = torch.bincount(events.b.to(dev), minlength=B)[:B]
+    b = events.b.to(dev)  # sorted: the events of a row are contiguous
+    edges = torch.searchsorted(b, torch.arange(B + 1, dtype=b.dtype, device=dev))
+    n = edges[1:] - edges[:-1]
     padded = _occupancy(events, B, W, H, dev)
     clus = _clustering(padded[:, 1:-1, 1:-1], max(2, int(params.cell_px)))
     nbx = _neighbours(padded)
