@@ -175,10 +175,14 @@ def _flicker(events, B: int, t_us: int, n: torch.Tensor, dev) -> torch.Tensor:
     """|corr(polarity, time)| per descent, (B,) float32 (0 where undefined); ``n`` (B,) int64 the
     events of each descent (events sorted by b)."""
     b = events.b.to(dev)
-    t = (events.t.to(dev) - int(t_us)).to(torch.float32)
-    t = t / t.abs().max().clamp_min(1.0)  # in [-1, 0]: float32 sums keep their precision
-    p = events.p.to(dev).to(torch.float32)
-    sums = _row_sums(torch.stack([t, p, t * t, p * t]), b, n)
+    src = torch.empty(4, b.shape[0], dtype=torch.float32, device=dev)  # rows t, p, t^2, p t
+    t, p = src[0], src[1]
+    torch.sub(events.t.to(dev), int(t_us), out=t)  # int64 difference, rounded once to float32
+    t.div_(t.abs().max().clamp_min(1.0))  # in [-1, 0]: float32 sums keep their precision
+    p.copy_(events.p.to(dev))
+    torch.mul(t, t, out=src[2])
+    torch.mul(p, t, out=src[3])
+    sums = _row_sums(src, b, n)
     nn = n.to(torch.float32).clamp_min(1.0)
     mt, mp = sums[0] / nn, sums[1] / nn
     vt, vp = sums[2] / nn - mt ** 2, 1.0 - mp ** 2  # p = +-1: E[p^2] = 1

@@ -150,11 +150,12 @@ def voxel_grid(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, frac: torch.Te
     P = spec.pool_px
     if P & (P - 1) == 0:  # a power of two: shifts (integer division is several times slower)
         sh = P.bit_length() - 1
-        cell = (y.long() >> sh) * w + (x.long() >> sh)
+        cx, cy = x.long() >> sh, y.long() >> sh
     else:
-        cell = (y.long() // P) * w + (x.long() // P)
+        cx, cy = x.long() // P, y.long() // P
     pol = p.to(torch.float32)
-    base = b.long() * (nb * h * w) + cell
+    # b (nb h w) + cy w + cx, as two fused multiply-adds
+    base = torch.add(torch.add(cx, cy, alpha=w), b.long(), alpha=nb * h * w)
     if spec.n_windows > 1:
         if nb > 1:
             base = base + (frac.to(torch.float32) * nb).long().clamp(0, nb - 1) * (h * w)
