@@ -7,7 +7,9 @@ scripts/measure_learned_zoom.py), through the config's emulator. For each mode o
 ``estimator.learned.fast`` (``""`` = the model as trained) the update is timed after its ring is
 full (the best of --repeat passes of --steps updates each: the machine is shared, the best pass is
 the least disturbed), with the parts: the estimators' shared input check (``events/validate.py``,
-run by every estimator's update), the voxel grid, and the network.
+run by every estimator's update), the shared motion-evidence test (``estimators/abstain.py``, run
+on every estimator's output), the voxel grid, the network, and the rest (the update less those:
+the ring's copy and write, the estimate, confidence and gating, per-call overhead).
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ def main(argv=None) -> int:
 
     from dvsland.config import load_config
     from dvsland.estimators import get_estimator
+    from dvsland.estimators.abstain import motion_evidence
     from dvsland.estimators.learned.estimator import ordered_ring
     from dvsland.estimators.learned.inputs import events_voxel_grid
     from dvsland.events.validate import checked_for_estimator
@@ -69,6 +72,8 @@ def main(argv=None) -> int:
 
             total = _best(step, a.steps, a.repeat)
             gate = _best(lambda: checked_for_estimator(ev, B, W, H), a.steps, a.repeat)
+            evc = checked_for_estimator(ev, B, W, H)
+            evid = _best(lambda: motion_evidence(evc, B, (W, H), t[0], est.abstain), a.steps, a.repeat)
             grid = _best(lambda: events_voxel_grid(ev, 0, 100_000, B, est.spec, est.cmap), a.steps, a.repeat)
             st, lc = est.state, torch.full((B,), 9.0)
             with torch.no_grad():
@@ -76,8 +81,10 @@ def main(argv=None) -> int:
                     net = _best(lambda: est.ring_net(st.ring, st.ring_abs, st.newest, lc), a.steps, a.repeat)
                 else:
                     net = _best(lambda: est.model(ordered_ring(st, est.spec), est.coords, lc), a.steps, a.repeat)
+            rest = total - gate - evid - grid - net
             print(f"D = {d:+.2f} 1/s, {len(ev) / B:7.0f} events/row, fast={mode!r:7s}: update {total:5.2f} ms CPU "
-                  f"(input check {gate:4.2f}, voxel grid {grid:4.2f}, network {net:4.2f}) at B = {B}", flush=True)
+                  f"(input check {gate:4.2f}, motion evidence {evid:4.2f}, voxel grid {grid:4.2f}, "
+                  f"network {net:4.2f}, rest {rest:4.2f}) at B = {B}", flush=True)
     return 0
 
 
