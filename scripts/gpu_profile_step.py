@@ -50,6 +50,7 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=576)
     ap.add_argument("--estimator", default="learned")
     ap.add_argument("--preset", default="montecarlo_efference")
+    ap.add_argument("--skip", type=int, default=3, help="steps flown before the timed ones")
     ap.add_argument("--steps", type=int, default=3)
     ap.add_argument("--rows", type=int, default=30)
     ap.add_argument("--lines", type=int, default=0, help="also print the N costliest dvsland functions")
@@ -65,7 +66,7 @@ def main(argv=None) -> int:
                                                'dispersion.sun_elevation_deg={kind: "off"}'])
     stages = build_stages(cfg, fit_layout(cfg, None, a.batch), a.device)
     state = init_state(stages)
-    for _ in range(3):
+    for _ in range(a.skip):
         state, _ = loop_step(stages, state)
     cuda = torch.device(a.device).type == "cuda"
     acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
