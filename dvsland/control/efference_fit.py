@@ -17,6 +17,9 @@ iteratively re-weighted least-squares rounds, warm-started from the last step, w
     w_k = 0 where |u_k| > gate_sigma or D_hat_k is NaN (or confidence 0),
     times exp(-age_k / forget_s) with ``forget_s`` > 0 (old estimates fade)
 
+(While ``gate_sigma`` is trained through the loop, the hard gate carries the gradient of a smooth
+one, :func:`gate_surrogate`; its values are unchanged.)
+
 R_k as in the ``efference`` EKF (fixed, or with ``meas_noise="confidence"`` the estimator's own
 error from its ``confidence()``), P the current posterior covariance of theta. Unlike a
 recursive filter, an estimate rejected early still counts once the fit moves towards it, and a
@@ -146,6 +149,22 @@ def _estimates(c: EfferenceConfig, d_hat: Tensor, confidence: Optional[Tensor], 
     return d, sig
 
 
+#: width of the gate's surrogate gradient, std. devs. of |u| (:func:`gate_surrogate`)
+GATE_SURROGATE_WIDTH = 0.5
+
+
+def gate_surrogate(u2: Tensor, gate_sigma: Tensor) -> Tensor:
+    """Zero in value, with the gradient of a smooth gate (straight-through): s - s.detach() with
+    s = sigmoid((gate_sigma - |u|) / GATE_SURROGATE_WIDTH), |u| = sqrt(u2) (any shape, float64).
+
+    The hard gate (an estimate's weight is 0 beyond ``gate_sigma`` std. devs.) has a zero gradient
+    almost everywhere. Added to the hard gate's 0/1 factor, this term leaves every weight as it is,
+    bit for bit, but gives ``gate_sigma`` the gradient of a sigmoid gate: an estimate within about
+    one ``GATE_SURROGATE_WIDTH`` of the gate pulls it out (or in) as its weight would change."""
+    soft = torch.sigmoid((gate_sigma - u2.clamp_min(0.0).sqrt()) / GATE_SURROGATE_WIDTH)
+    return soft - soft.detach()
+
+
 def _gn_round(p: EfferenceFitParams, cols, fade: Tensor, theta: Tensor, info: Tensor, mask: Tensor):
     """One robust Gauss-Newton round on theta over the history columns ``cols`` (each (N, B)):
     (theta (B, 2), info (B, 3), weights w (N, B), R (N, B)); descents not in ``mask`` keep theta, info."""
@@ -167,8 +186,11 @@ def _gn_round(p: EfferenceFitParams, cols, fade: Tensor, theta: Tensor, info: Te
     s = r + jz * jz * pzz + 2 * jz * jv * pzv + jv * jv * pvv
     res = d0 - h
     u2 = res * res / s
-    keep = have & (u2 <= c.gate_sigma ** 2) & torch.isfinite(sig_c) & torch.isfinite(u2)
+    usable = have & torch.isfinite(sig_c) & torch.isfinite(u2)
+    keep = usable & (u2 <= c.gate_sigma ** 2)
     w = torch.where(keep, 1.0 / (1.0 + u2 / c.cauchy_c ** 2) / r, 0.0)
+    if isinstance(c.gate_sigma, Tensor) and c.gate_sigma.requires_grad:  # a gate being trained
+        w = w + torch.where(usable, 1.0 / (1.0 + u2 / c.cauchy_c ** 2) / r, 0.0) * gate_surrogate(u2, c.gate_sigma)
     w_info = w * fade
     a = (w_info * jz * jz).sum(0) + iz
     b = (w_info * jz * jv).sum(0)

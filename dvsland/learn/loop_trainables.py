@@ -8,8 +8,10 @@ validation batch's controller before it flies.
 Law constants are positive and trained in log space: value = exp(raw). ``kp_scale`` multiplies every
 setting's gain Kp of ``tau_p`` and ``div_p``; ``div_gs`` trains ``lambda_per_s`` and ``d_final_per_s``.
 The ``efference_fit`` filter's constants (:class:`FilterConstants`, ``--what filter``) are trained the
-same way; its hard gates (``gate_sigma``, ``min_confidence``) have a zero gradient almost everywhere
-and are refused by name.
+same way. Its gate ``gate_sigma`` trains through a straight-through surrogate (the hard gate's values,
+a sigmoid gate's gradient: :func:`dvsland.control.efference_fit.gate_surrogate`); ``min_confidence``,
+a hard gate applied before the estimate enters the history, has a zero gradient almost everywhere
+and is refused by name.
 
 :meth:`Trainable.apply_to` puts the values into a :class:`~dvsland.stages.Stages` (the law's
 controller, or the filter).
@@ -33,12 +35,11 @@ LAW_CONSTANTS: Dict[str, Tuple[str, ...]] = {"div_gs": ("lambda_per_s", "d_final
                                              "tau_p": ("kp_scale",), "div_p": ("kp_scale",)}
 #: ``efference_fit`` constants that can be trained by name (the first four are the default set)
 FILTER_CONSTANTS: Tuple[str, ...] = ("meas_sigma_rel", "meas_sigma_abs", "cauchy_c", "prior_rel_sigma",
-                                     "prior_rel_sigma_v")
+                                     "prior_rel_sigma_v", "gate_sigma")
 FILTER_DEFAULT: Tuple[str, ...] = FILTER_CONSTANTS[:4]
 #: ``efference_fit`` constants whose gradient is zero almost everywhere (hard gates: a threshold moved by
 #: a little changes no weight), refused by ``--what filter``
 FILTER_ZERO_GRADIENT: Dict[str, str] = {
-    "gate_sigma": "a hard gate: an estimate's weight jumps to 0 beyond it",
     "min_confidence": "a hard gate on the estimator's confidence",
     "iterations": "an integer (Gauss-Newton rounds)",
     "forget_s": "the rows the fit reads are an integer cut of it (and 0, never, cannot start a log)",
