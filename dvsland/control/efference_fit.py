@@ -161,7 +161,7 @@ def gate_surrogate(u2: Tensor, gate_sigma: Tensor) -> Tensor:
     almost everywhere. Added to the hard gate's 0/1 factor, this term leaves every weight as it is,
     bit for bit, but gives ``gate_sigma`` the gradient of a sigmoid gate: an estimate within about
     one ``GATE_SURROGATE_WIDTH`` of the gate pulls it out (or in) as its weight would change."""
-    soft = torch.sigmoid((gate_sigma - u2.clamp_min(0.0).sqrt()) / GATE_SURROGATE_WIDTH)
+    soft = torch.sigmoid((gate_sigma - u2.clamp_min(1e-12).sqrt()) / GATE_SURROGATE_WIDTH)  # sqrt' finite
     return soft - soft.detach()
 
 
@@ -190,7 +190,8 @@ def _gn_round(p: EfferenceFitParams, cols, fade: Tensor, theta: Tensor, info: Te
     keep = usable & (u2 <= c.gate_sigma ** 2)
     w = torch.where(keep, 1.0 / (1.0 + u2 / c.cauchy_c ** 2) / r, 0.0)
     if isinstance(c.gate_sigma, Tensor) and c.gate_sigma.requires_grad:  # a gate being trained
-        w = w + torch.where(usable, 1.0 / (1.0 + u2 / c.cauchy_c ** 2) / r, 0.0) * gate_surrogate(u2, c.gate_sigma)
+        u2s = torch.where(usable, u2, 1.0)  # rows it cannot weigh: a finite stand-in (no NaN gradient)
+        w = w + torch.where(usable, 1.0 / (1.0 + u2s / c.cauchy_c ** 2) / r, 0.0) * gate_surrogate(u2s, c.gate_sigma)
     w_info = w * fade
     a = (w_info * jz * jz).sum(0) + iz
     b = (w_info * jz * jv).sum(0)
