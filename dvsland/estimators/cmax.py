@@ -291,15 +291,13 @@ def _prune(state: CMaxState, t_us: int) -> CMaxState:
     n_steps = state.step_tmax_packed.numel()
     if n_steps == 0:
         return state
-    keep_us = int(math.ceil(float(state.window_s.max()) * 1e6))
+    keep_us = torch.ceil(state.window_s.max() * 1e6).to(_I64)
     old = state.step_tmax_packed <= t_us - keep_us
-    n_pop = int(old.to(_I64).cumprod(0).sum())
+    n_pop_t = old.to(_I64).cumprod(0).sum()
+    starts = torch.cat([state.step_start_packed, state.step_start_packed.new_tensor([state.ev_b_packed.numel()])])
+    n_pop, lo = torch.stack([n_pop_t, starts[n_pop_t]]).tolist()  # one host sync: steps and events to drop
     if n_pop == 0:
         return state
-    if n_pop == n_steps:
-        lo = state.ev_b_packed.numel()
-    else:
-        lo = int(state.step_start_packed[n_pop])
     out = {f: getattr(state, f)[lo:] for f in _EVENT_FIELDS}
     return state._replace(step_start_packed=state.step_start_packed[n_pop:] - lo,
                           step_tmax_packed=state.step_tmax_packed[n_pop:], **out)
@@ -645,9 +643,10 @@ def cmax_step(p: CMaxConfig, state: CMaxState, events, t_us: int, setup: CMaxSet
     # shorter, simply hold what there is)
     filled = (t_us - t_start).to(_F64) * 2e-6 >= setup.window_us * 1e-6 - 1e-9
     ok = (n_per >= p.min_events) & filled
-    if not bool(ok.any()):
+    any_ok, all_ok = torch.stack([ok.any(), ok.all()]).tolist()  # one host sync for both
+    if not any_ok:
         return state, blank_out(state, n_per)
-    if not bool(ok.all()):
+    if not all_ok:
         sel = ok.index_select(0, b).nonzero().squeeze(1)
         b, xs, ys, t, key = (v.index_select(0, sel) for v in (b, xs, ys, t, key))
     d0, need, edge, sigma, sigma_step, contrast, bracketed, floor = _search(p, setup, state, (b, xs, ys, t, key),
