@@ -165,10 +165,12 @@ def _row_sums(src: torch.Tensor, b: torch.Tensor, n: torch.Tensor) -> torch.Tens
     """(k, B) float32 per-row sums of ``src`` (k, N) float32 over events of rows ``b`` (N,) int64
     sorted ascending with ``n`` (B,) int64 events per row: each row's events added in their order
     (the sums of ``zeros(k, B).index_add_(1, b, src)``, bit for bit, on a CPU). A CPU runs one
-    segment reduction per row (several times faster than the scatter); other devices scatter."""
+    segment reduction per row (about 1.5x faster than the scatter); other devices scatter."""
     if src.device.type != "cpu":
         return torch.zeros(src.shape[0], n.shape[0], dtype=src.dtype, device=src.device).index_add_(1, b, src)
-    return torch.segment_reduce(src, "sum", lengths=n.expand(src.shape[0], -1), axis=1, unsafe=True)
+    # lengths checked (>= 0, summing to N; read on the host, where they are): rows out of order
+    # (against the events' contract) give wrong sums or an error, never a read outside ``src``
+    return torch.segment_reduce(src, "sum", lengths=n.expand(src.shape[0], -1), axis=1, unsafe=False)
 
 
 def _flicker(events, B: int, t_us: int, n: torch.Tensor, dev) -> torch.Tensor:
@@ -231,7 +233,7 @@ def motion_evidence(events, batch_size: int, sensor_size: Tuple[int, int], t_us:
         zf = torch.zeros(B, dtype=torch.float32, device=dev)
         return MotionEvidence(torch.ones_like(zf), zf, zf.clone(), zf.clone(),
                               torch.zeros(B, dtype=torch.int64, device=dev))
-    b = events.b.to(dev)  # sorted: the events of a row are contiguous
+    b = events.b.to(dev).contiguous()  # sorted: the events of a row are contiguous
     edges = torch.searchsorted(b, torch.arange(B + 1, dtype=b.dtype, device=dev))
     n = edges[1:] - edges[:-1]
     padded = _occupancy(events, B, W, H, dev)
