@@ -9,7 +9,9 @@ full (the best of --repeat passes of --steps updates each: the machine is shared
 the least disturbed), with the parts: the estimators' shared input check (``events/validate.py``,
 run by every estimator's update), the shared motion-evidence test (``estimators/abstain.py``, run
 on every estimator's output), the voxel grid, the network, and the rest (the update less those:
-the ring's copy and write, the estimate, confidence and gating, per-call overhead).
+the ring's copy and write, the estimate, confidence and gating, per-call overhead, and the caches
+the other parts leave cold; each part is timed on its own, so on a busy machine the rest moves by
+the others' noise and can even read below 0).
 """
 
 from __future__ import annotations
