@@ -1,8 +1,8 @@
 """Count the host synchronisations of the loop's step: ``python -m dvsland.bench.syncs``.
 
 A host synchronisation is a call that needs a tensor's value on the host: ``item``, ``tolist``,
-``bool(t)``, ``int(t)``, ``float(t)``, ``nonzero``, ``cpu``, ``numpy``, and indexing with a bool
-mask (its result's size depends on the values). On CUDA each one stalls the stream; on CPU they
+``bool(t)``, ``int(t)``, ``float(t)``, ``nonzero``, ``cpu``, ``numpy``, ``repeat_interleave``
+without ``output_size``, and indexing with a bool mask (its result's size depends on the values). On CUDA each one stalls the stream; on CPU they
 are counted the same way (:class:`SyncCounter`, a :class:`torch.overrides.TorchFunctionMode`), so
 the count can be checked without a GPU. On CUDA, ``torch.cuda.set_sync_debug_mode("warn")`` shows
 the same calls.
@@ -40,7 +40,9 @@ class SyncCounter(TorchFunctionMode):
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         name = getattr(func, "__name__", "")
-        if name in SYNC_CALLS:
+        if name == "repeat_interleave" and (kwargs or {}).get("output_size") is not None:
+            pass  # sized by the caller: no sync
+        elif name in SYNC_CALLS:
             self.calls[name] += 1
         elif name == "__getitem__" and len(args) > 1 and _has_bool_mask(args[1]):
             self.calls["bool_index"] += 1

@@ -464,18 +464,21 @@ class _Step:
         self.spacing_may_bind = self.r_max > 0
         self.n_step = 0.0
 
-    def count(self, counts: torch.Tensor) -> None:
-        """Add (A,) per-pixel event counts to this step's total; ValueError above the cap."""
+    def count(self, counts: torch.Tensor) -> Optional[float]:
+        """Add (A,) per-pixel event counts to this step's total; ValueError above the cap. Returns
+        their sum (a host float: one sync per block), or None without a cap (no sync)."""
         cap = self.params.max_events_per_step
         if cap is None:
-            return
-        self.n_step += float(counts.sum())  # one sync per block
+            return None
+        n = float(counts.sum())  # one sync per block
+        self.n_step += n
         if self.n_step > cap:
             raise ValueError(
                 f"emulator.max_events_per_step: this step would emit at least {self.n_step:.4g} events, above "
                 f"the cap of {cap} (about {self.n_step * 48 / 2 ** 30:.3g} GiB at 48 B per "
                 f"event); raise emulator.threshold or lower the batch / sensor size, or raise the cap if the "
                 f"memory is there. The state given to the step is unchanged")
+        return n
 
 
 _LAYOUTS: dict = {}
@@ -687,7 +690,7 @@ def _log_keys(ctx: _Step, act, n_a, th_a, lref_a, l1_a, tl_a, r, code_a):
     dt, t_shift = ctx.dt, ctx.layout.t_shift
     cnt, first, step_us, tlast_new = _emitted_log(
         n_a, th_a, lref_a, ctx.state.l_prev.view(-1).index_select(0, act), l1_a, dt, tl_a, r, ctx.spacing_may_bind)
-    ctx.count(cnt)  # before any per-event allocation
+    n_cnt = ctx.count(cnt)  # before any per-event allocation
     # cnt holds whole numbers: compared as float64, converted only for the multi pixels
     sel = _nonzero_1d(cnt > 0)  # pixels with >= 1 emitted event (sync)
     all_sel = sel.numel() == act.numel()
@@ -698,7 +701,8 @@ def _log_keys(ctx: _Step, act, n_a, th_a, lref_a, l1_a, tl_a, r, code_a):
     # ... then the further events of the pixels with cnt >= 2
     multi = _nonzero_1d(cnt > 1)
     if multi.numel() > 0:
-        parts.append(_extra_keys(multi, cnt, first, step_us, code_a, dt, t_shift))
+        n_extra = None if n_cnt is None else int(n_cnt) - sel.numel()  # events beyond each pixel's first
+        parts.append(_extra_keys(multi, cnt, first, step_us, code_a, dt, t_shift, n_extra))
     return (torch.cat(parts) if len(parts) > 1 else parts[0]), sel, tlast_new
 
 
@@ -1046,15 +1050,17 @@ def _take(th, idx):
     return torch.full(idx.shape, th, dtype=torch.float64, device=idx.device)
 
 
-def _extra_keys(multi, cnt, first, step_us, code_a, dt: float, t_shift: int) -> torch.Tensor:
+def _extra_keys(multi, cnt, first, step_us, code_a, dt: float, t_shift: int,
+                n_extra: Optional[int] = None) -> torch.Tensor:
     """Keys of the 2nd, 3rd, ... events of the pixels ``multi`` (indices into the candidates):
     event i of pixel a is at first[a] + i * step_us[a], i = 1..cnt[a]-1. A function of its own
     so that its per-event temporaries are freed on return; in-place ops keep the number of
-    fresh (N,) allocations (page faults dominate at tens of millions of events) low."""
+    fresh (N,) allocations (page faults dominate at tens of millions of events) low. ``n_extra``,
+    their number where the caller knows it, spares the host sync of sizing the output."""
     reps = cnt.index_select(0, multi).to(torch.int64).sub_(1)  # cnt: (A,) float64 whole numbers
-    seg = multi.repeat_interleave(reps)  # candidate index per event
+    seg = multi.repeat_interleave(reps, output_size=n_extra)  # candidate index per event
     start = torch.cumsum(reps, 0).sub_(reps)
-    i = torch.arange(1, seg.numel() + 1, device=seg.device).sub_(start.repeat_interleave(reps))
+    i = torch.arange(1, seg.numel() + 1, device=seg.device).sub_(start.repeat_interleave(reps, output_size=seg.numel()))
     del start, reps
     tau = step_us.index_select(0, seg).mul_(i)
     del i
