@@ -63,9 +63,13 @@ class EventSource:
     renderer: Any
     emulator: Any
 
-    def render(self, altitude_m: torch.Tensor, site_idx: torch.Tensor) -> torch.Tensor:
-        """Frames (B, H, W) float32 at ``altitude_m`` (B,) m of sites ``site_idx`` (B,) int64."""
+    def render(self, altitude_m: torch.Tensor, site_idx: torch.Tensor, in_range: bool = False) -> torch.Tensor:
+        """Frames (B, H, W) float32 at ``altitude_m`` (B,) m of sites ``site_idx`` (B,) int64.
+        ``in_range``: the caller guarantees the inputs' range (the loop does), so a renderer that
+        offers ``render_in_range`` skips its checks (and their host sync)."""
         r = self.renderer
+        if in_range and hasattr(r, "render_in_range"):
+            return r.render_in_range(altitude_m, site_idx)
         return r.render(altitude_m, site_idx) if hasattr(r, "render") else r(altitude_m, site_idx)
 
     def reset(self, altitude_m: torch.Tensor, site_idx: torch.Tensor, t_us: int) -> torch.Tensor:

@@ -572,6 +572,8 @@ def emulator_step(params: EmulatorParams, state: EmulatorState, frames: torch.Te
     den = state.denoise
     if params.denoiser is not None:
         den, ev = dn.denoise(ev, den, t1, params.denoiser)
+    B, H, W = state.lref.shape
+    ev = ev.marked_checked(B, W, H)  # sorted and in range by construction: estimators need not read them
     new = state._replace(lref=ctx.lref, l_prev=l1, t_last=ctx.t_last, step=step,
                          t_us=torch.full_like(state.t_us, t1), irr_lo=lo, irr_hi=hi, l_lp=l_lp, denoise=den,
                          i_prev=f1 if params.interpolation == "linear" else None)

@@ -53,9 +53,14 @@ class Events:
 
     All fields live on one device. Shapes and dtypes are checked; values are not (use
     :meth:`validate`).
+
+    ``checked`` is None, or the (B, W, H) for which the events are known sorted by (b, t) with every
+    b, x, y in range: the built-in emulator marks its output so (:meth:`marked_checked`), and the
+    estimators' input check then trusts it without reading the values (no host sync). A new
+    :class:`Events` (a subset too) starts unmarked.
     """
 
-    __slots__ = _FIELDS
+    __slots__ = _FIELDS + ("checked",)
 
     def __init__(self, b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor,
                  p: torch.Tensor, sort: bool = False):
@@ -81,6 +86,13 @@ class Events:
             vals = {k: v[order] for k, v in vals.items()}
         for k, v in vals.items():
             object.__setattr__(self, k, v)
+        object.__setattr__(self, "checked", None)
+
+    def marked_checked(self, batch_size: int, width: int, height: int) -> "Events":
+        """These events (the same object) marked as sorted and in range for ``batch_size`` cameras
+        of ``width`` x ``height`` pixels: only for a producer that guarantees it by construction."""
+        object.__setattr__(self, "checked", (int(batch_size), int(width), int(height)))
+        return self
 
     # ----------------------------------------------------------------- basics
     @classmethod

@@ -117,6 +117,14 @@ class Renderer:
         altitude_m, site_idx = self.check_inputs(altitude_m, site_idx)
         return self._render(altitude_m, site_idx)
 
+    def render_in_range(self, altitude_m: torch.Tensor, site_idx: torch.Tensor) -> torch.Tensor:
+        """:meth:`render` for inputs the caller guarantees: (B,) altitudes finite and within
+        [render.min_altitude_m, render.max_altitude_m], (B,) integer site indices in range (the
+        loop clamps its altitudes and takes its indices from the layout). No value is checked, so
+        no host sync: a value out of range gives wrong frames, not an error."""
+        return self._render(altitude_m.to(device=self.device, dtype=torch.float32),
+                            site_idx.to(device=self.device, dtype=torch.int64))
+
     __call__ = render
 
     def _render(self, altitude_m: torch.Tensor, site_idx: torch.Tensor) -> torch.Tensor:

@@ -188,14 +188,17 @@ def render(stages, state: LoopState, all_active: Optional[bool] = None) -> Optio
     if stages.events is None:
         return None
     s = stages.settings
-    alt = state.z_m.detach().clamp(s.render_min_altitude_m, s.render_max_altitude_m)  # frames: inputs, no gradient
+    # frames are inputs (no gradient); clamped (NaN too), the altitudes are in the renderer's range and
+    # the scene indices come from the layout, so the renderer need not check them (no host sync)
+    alt = state.z_m.detach().nan_to_num(s.render_max_altitude_m).clamp(s.render_min_altitude_m,
+                                                                       s.render_max_altitude_m)
     if all_active is None:
         all_active = bool(state.active.all())
     if state.last_frames is None or all_active:
-        return stages.events.render(alt, state.scene_idx)
+        return stages.events.render(alt, state.scene_idx, in_range=True)
     idx = state.active.nonzero().squeeze(1)
     frames = state.last_frames.clone()
-    frames[idx] = stages.events.render(alt[idx], state.scene_idx[idx]).to(frames.dtype)
+    frames[idx] = stages.events.render(alt[idx], state.scene_idx[idx], in_range=True).to(frames.dtype)
     return frames
 
 
@@ -403,7 +406,10 @@ def active_events(events, active: torch.Tensor):
     if events is None or len(events) == 0:
         return events
     keep = active[events.b]
-    return events if bool(keep.all()) else events[keep]
+    if bool(keep.all()):
+        return events
+    sub = events[keep]  # a subset in the same order: as checked as the events it came from
+    return sub if events.checked is None else sub.marked_checked(*events.checked)
 
 
 def _checked_thrust(thrust, like: torch.Tensor) -> Optional[torch.Tensor]:
