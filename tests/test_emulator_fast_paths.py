@@ -125,3 +125,12 @@ def test_sort_choice_is_measured_once_and_is_a_bool():
     first = emu_mod._numpy_sorts_faster()
     assert isinstance(first, bool) and emu_mod._numpy_sorts_faster() is first
     assert emu_mod._numpy_sorts_faster.cache_info().misses == 1
+
+
+@pytest.mark.parametrize("n, p", [(0, 0.5), (1, 1.0), (7, 0.0), (7, 1.0), (1000, 0.3), (4097, 0.9)])
+def test_compact_equals_nonzero(n, p):
+    """The sync-free compaction of the GPU path: the indices nonzero gives, given their number."""
+    from dvsland.events.emulator import _compact
+
+    m = torch.rand(n, generator=torch.Generator().manual_seed(n)) < p
+    assert torch.equal(_compact(m, int(m.sum())), m.nonzero().squeeze(1))

@@ -467,10 +467,16 @@ class _Step:
     def count(self, counts: torch.Tensor) -> Optional[float]:
         """Add (A,) per-pixel event counts to this step's total; ValueError above the cap. Returns
         their sum (a host float: one sync per block), or None without a cap (no sync)."""
+        if self.params.max_events_per_step is None:
+            return None
+        return self.add(float(counts.sum()))  # one sync per block
+
+    def add(self, n: float) -> float:
+        """Add ``n`` events (a count already on the host) to this step's total; ValueError above the
+        cap (``max_events_per_step``); returns ``n``."""
         cap = self.params.max_events_per_step
         if cap is None:
-            return None
-        n = float(counts.sum())  # one sync per block
+            return n
         self.n_step += n
         if self.n_step > cap:
             raise ValueError(
@@ -692,16 +698,21 @@ def _log_keys(ctx: _Step, act, n_a, th_a, lref_a, l1_a, tl_a, r, code_a):
     dt, t_shift = ctx.dt, ctx.layout.t_shift
     cnt, first, step_us, tlast_new = _emitted_log(
         n_a, th_a, lref_a, ctx.state.l_prev.view(-1).index_select(0, act), l1_a, dt, tl_a, r, ctx.spacing_may_bind)
-    n_cnt = ctx.count(cnt)  # before any per-event allocation
     # cnt holds whole numbers: compared as float64, converted only for the multi pixels
-    sel = _nonzero_1d(cnt > 0)  # pixels with >= 1 emitted event (sync)
+    if _cpu_fast_path(cnt):
+        n_cnt = ctx.count(cnt)  # before any per-event allocation
+        sel = _nonzero_1d(cnt > 0)  # pixels with >= 1 emitted event
+        multi = _nonzero_1d(cnt > 1)
+    else:  # one host sync for the three sizes, then compactions of known size (no sync)
+        n_cnt, n_sel, n_multi = torch.stack([cnt.sum(), (cnt > 0).sum(), (cnt > 1).sum()]).tolist()
+        ctx.add(n_cnt)  # before any per-event allocation
+        sel, multi = _compact(cnt > 0, int(n_sel)), _compact(cnt > 1, int(n_multi))
     all_sel = sel.numel() == act.numel()
     # the first event of every pixel with cnt >= 1 (no per-event gather) ...
     f_sel = first if all_sel else first.index_select(0, sel)
     t_first = f_sel.add(0.5).floor_().clamp_(1.0, dt).to(torch.int64)
     parts = [t_first.bitwise_left_shift_(t_shift).add_(code_a if all_sel else code_a.index_select(0, sel))]
     # ... then the further events of the pixels with cnt >= 2
-    multi = _nonzero_1d(cnt > 1)
     if multi.numel() > 0:
         n_extra = None if n_cnt is None else int(n_cnt) - sel.numel()  # events beyond each pixel's first
         parts.append(_extra_keys(multi, cnt, first, step_us, code_a, dt, t_shift, n_extra))
@@ -1107,6 +1118,17 @@ def _nonzero_1d(mask: torch.Tensor) -> torch.Tensor:
     if _cpu_fast_path(mask):
         return torch.from_numpy(np.flatnonzero(mask.numpy()))
     return torch.nonzero(mask).squeeze(1)
+
+
+def _compact(mask: torch.Tensor, n: int) -> torch.Tensor:
+    """Indices (int64, ascending) of the ``n`` True entries of a 1-D bool ``mask``, ``n`` read by the
+    caller already: the same as ``nonzero`` without its host sync. A prefix sum ranks the True
+    entries first and the False ones after them, and one scatter of that permutation (every index
+    written once) puts each entry at its rank."""
+    csum = torch.cumsum(mask, 0)
+    i = torch.arange(mask.numel(), device=mask.device)
+    rank = torch.where(mask, csum - 1, n + i - csum)
+    return torch.empty_like(i).scatter_(0, rank, i)[:n]
 
 
 def _merge_sorted(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
