@@ -43,3 +43,24 @@ def test_throughput_case_reports_rates_stages_and_syncs():
     assert r["B"] == 4 and r["descent_steps_per_s"] > 0 and set(r["stage_ms"]) == set(STAGE_KEYS)
     assert r["syncs_per_step"] == 1 and r["stage_ms"]["render"] == 0.0
     assert "| oracle | 4 | cpu |" in table([r], {"cpu": "x"})
+
+
+#: host syncs per step of the torch path (the one a GPU runs: numpy and compiled CPU kernels off) on
+#: montecarlo_efference, counted on the CPU; the issue's aim is one. A change that adds a sync to the
+#: step's path must raise these on purpose
+TORCH_PATH_SYNC_BUDGET = {"learned": 9, "cmax": 14}
+
+
+@pytest.mark.parametrize("est", sorted(TORCH_PATH_SYNC_BUDGET))
+def test_torch_path_syncs_within_budget(est, monkeypatch):
+    from dvsland.estimators import native_cmax
+    from dvsland.events import denoise, emulator, native
+
+    monkeypatch.setattr(emulator, "CPU_FAST_PATHS", False)
+    monkeypatch.setattr(denoise, "CPU_FAST_PATHS", False)
+    monkeypatch.setattr(native, "_enabled", False)  # the compiled kernels off (use_native_sort(False))
+    monkeypatch.setattr(native_cmax, "_enabled", False)
+    assert not native.native_sort_enabled() and not native_cmax.enabled()
+    r = loop_syncs(est, steps=3, preset="montecarlo_efference", sites="A,D,I",
+                   overrides=["dispersion.terrain_variants=1"])
+    assert r["syncs_per_step"] <= TORCH_PATH_SYNC_BUDGET[est], r["by_call"]
