@@ -989,7 +989,10 @@ def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r, spacing_may_bind: b
         # the refractory rule can only bind where crossings are closer than r, or the first
         # one is within r of the last emitted event: apply the closed form there only
         near = first < tl_a + r
-        need = _nonzero_1d((spacing < r) | near if spacing_may_bind else near)
+        bind = (spacing < r) | near if spacing_may_bind else near
+        if not _cpu_fast_path(bind):  # the closed form everywhere, kept where it binds: no host sync
+            return _refractory_dense(bind, n_a, base, spacing, tl_a, r, first, step)
+        need = _nonzero_1d(bind)
         if need.numel() > 0:
             cnt, first, step = cnt.clone(), first.clone(), step.clone()
             sp, bs = spacing.index_select(0, need), base.index_select(0, need)
@@ -1004,6 +1007,19 @@ def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r, spacing_may_bind: b
             step.index_copy_(0, need, m.mul_(sp))
     tlast = first.addcmul(cnt - 1, step)
     return cnt, first, step, tlast
+
+
+def _refractory_dense(bind, n_a, base, spacing, tl_a, r, first, step):
+    """:func:`_emitted_log`'s refractory closed form on every candidate, kept where ``bind`` (A,)
+    bool: the same operations as on the compacted candidates, so the same values, with no host sync
+    (the GPU path; the CPU compacts first, where that is faster). Returns (cnt, first, step, tlast)."""
+    j0 = torch.ceil(tl_a.sub(base).add_(r).div_(spacing)).clamp_(min=1.0)
+    m = torch.ceil(r / spacing).clamp_(min=1.0)
+    c = torch.floor((n_a - j0).div_(m)).add_(1.0).clamp_(min=0.0).nan_to_num_(0.0, 0.0, 0.0)
+    cnt = torch.where(bind, c, n_a)
+    first = torch.where(bind, torch.addcmul(base, j0, spacing), first)
+    step = torch.where(bind, m.mul_(spacing), step)
+    return cnt, first, step, first.addcmul(cnt - 1, step)
 
 
 def _emitted_linear(n_a, th_a, lref_a, i0_a, i1_a, dt, tl_a, r, eps):
