@@ -731,7 +731,7 @@ def _background(ctx: _Step, step: torch.Tensor) -> torch.Tensor:
     rate = p.element_background_rate_hz
     rate = p.background_rate_hz if rate is None else rate.to(ctx.state.seed.device)
     flat, t_rel, off = pm.draw_background(ctx.state.seed, step, rate, H * W, int(ctx.dt))
-    ctx.count(torch.tensor([float(flat.numel())]))
+    ctx.add(float(flat.numel()))  # a size already on the host
     return _noise_keys(ctx, flat, t_rel, off)
 
 
