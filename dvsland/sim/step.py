@@ -409,7 +409,8 @@ def active_events(events, active: torch.Tensor):
     if bool(keep.all()):
         return events
     sub = events[keep]  # a subset in the same order: as checked as the events it came from
-    return sub if events.checked is None else sub.marked_checked(*events.checked)
+    mark = getattr(events, "checked", None)  # None too for events unpickled from before the mark
+    return sub if mark is None else sub.marked_checked(*mark)
 
 
 def _checked_thrust(thrust, like: torch.Tensor) -> Optional[torch.Tensor]:
