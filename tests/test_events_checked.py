@@ -49,3 +49,12 @@ def test_the_emulator_marks_what_it_emits():
     assert len(ev) > 0 and ev.checked == (3, 5, 6)  # (B, W, H)
     assert ev.is_sorted()
     assert int(ev.x.max()) < 5 and int(ev.y.max()) < 6 and int(ev.b.max()) < 3
+
+
+def test_dropping_finished_descents_keeps_the_mark():
+    from dvsland.sim.step import active_events
+
+    ev = _events().marked_checked(2, 8, 8)
+    sub = active_events(ev, torch.tensor([True, False]))
+    assert len(sub) == 2 and sub.checked == (2, 8, 8)
+    assert active_events(_events(), torch.tensor([True, False])).checked is None
