@@ -515,8 +515,10 @@ def _step_inputs(params: EmulatorParams, state: EmulatorState, frames, t_us):
         check_state(params, state, tuple(f.shape))
     th_min = state.th_min.min() if state.th_min is not None else lo.new_tensor(min(params.threshold,
                                                                                     params.threshold_off))
+    bg = _background_counts(params, state, t1) if params.background else None
     vals = torch.stack((lo.min(), hi.max(), state.irr_lo.min(), state.irr_hi.max(), th_min,
-                        state.t_us.min().to(torch.float64), state.t_us.max().to(torch.float64))).tolist()
+                        state.t_us.min().to(torch.float64), state.t_us.max().to(torch.float64),
+                        *(() if bg is None else (bg[1].sum().to(torch.float64),)))).tolist()
     _check_range(vals[0], vals[1])
     t0, t0_max = int(vals[5]), int(vals[6])
     if t0 != t0_max:
@@ -524,7 +526,18 @@ def _step_inputs(params: EmulatorParams, state: EmulatorState, frames, t_us):
                          f"shared instants), got {t0} to {t0_max}")
     if t1 <= t0:
         raise ValueError(f"t_us must increase: got {t1} after {t0}")
-    return t0, t1, f, lo, hi, vals
+    return t0, t1, f, lo, hi, vals, (None if bg is None else (*bg, int(vals[7])))
+
+
+def _background_counts(params: EmulatorParams, state: EmulatorState, t1: int):
+    """This step's background draw (keys, Poisson counts (B,)) of :func:`pixel_model.uniform_counts`,
+    with the interval read on the device (t1 - each descent's time), so that the total joins the
+    step's one read of its inputs."""
+    B, H, W = state.lref.shape
+    rate = params.element_background_rate_hz
+    rate = params.background_rate_hz if rate is None else rate.to(state.seed.device)
+    lam = pm.background_lam(state.seed, rate, H * W, (t1 - state.t_us).clamp_min(0))  # < 0: refused after the read
+    return pm.uniform_counts(state.seed, state.step + 1, lam, pm.TAG_BACKGROUND)
 
 
 def emulator_step(params: EmulatorParams, state: EmulatorState, frames: torch.Tensor, t_us: int,
@@ -545,7 +558,7 @@ def emulator_step(params: EmulatorParams, state: EmulatorState, frames: torch.Te
         ties by row-major pixel (exact ties of noise events with pixel events: by pixel, then OFF
         after ON), denoised where the params say so.
     """
-    t0, t1, f1, lo, hi, vals = _step_inputs(params, state, frames, t_us)
+    t0, t1, f1, lo, hi, vals, bg_counts = _step_inputs(params, state, frames, t_us)
     ctx = _Step(params, state, t0, t1, donate)
     pmp = params.pixel_model
     if ctx.r_max > 0 and not (pmp.lowpass or pmp.drift):
@@ -562,8 +575,8 @@ def emulator_step(params: EmulatorParams, state: EmulatorState, frames: torch.Te
         shot = _shot_noise(ctx, f1, step)
     l1, l_lp = _level(params, state, f1, alpha, t1)
     keys, pixel_order = _pixel_keys(ctx, l1, f1)
-    if params.background:
-        bg = _background(ctx, step)
+    if bg_counts is not None:  # params.background
+        bg = _background(ctx, step, bg_counts)
         keys, pixel_order = (bg if keys is None else torch.cat((keys, bg))), False
     if shot is not None:
         flat, shot_keys = shot
@@ -724,13 +737,14 @@ def _noise_keys(ctx: _Step, flat: torch.Tensor, t_rel: torch.Tensor, off: torch.
     return ctx.layout.pixel_key(flat, off, ctx.b_shift).add_(t_rel << ctx.layout.t_shift)
 
 
-def _background(ctx: _Step, step: torch.Tensor) -> torch.Tensor:
+def _background(ctx: _Step, step: torch.Tensor, counts) -> torch.Tensor:
     """Sort keys of this step's background events (:func:`pixel_model.draw_background`: Poisson count
-    per descent, uniform pixel, time and polarity, drawn from the descent's seed and step)."""
+    per descent, uniform pixel, time and polarity, drawn from the descent's seed and step);
+    ``counts`` the count draw of :func:`_background_counts` with its total, read already."""
     p, (B, H, W) = ctx.params, ctx.state.lref.shape
     rate = p.element_background_rate_hz
     rate = p.background_rate_hz if rate is None else rate.to(ctx.state.seed.device)
-    flat, t_rel, off = pm.draw_background(ctx.state.seed, step, rate, H * W, int(ctx.dt))
+    flat, t_rel, off = pm.draw_background(ctx.state.seed, step, rate, H * W, int(ctx.dt), counts)
     ctx.add(float(flat.numel()))  # a size already on the host
     return _noise_keys(ctx, flat, t_rel, off)
 

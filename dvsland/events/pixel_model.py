@@ -219,8 +219,15 @@ def poisson_inverse_cdf(lam: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
 _COUNT_INDEX = 0xFFFFFFFF
 
 
+def uniform_counts(seed: torch.Tensor, step: torch.Tensor, lam: torch.Tensor, tag: int):
+    """The first draw of :func:`uniform_events`: (the stream's keys (B,) int64, each descent's
+    Poisson event count (B,) int64), with no host sync (the total is the caller's to read)."""
+    base = stream_keys(seed, step, tag)
+    return base, poisson_inverse_cdf(lam, keyed_uniform(base | _COUNT_INDEX))
+
+
 def uniform_events(seed: torch.Tensor, step: torch.Tensor, lam: torch.Tensor, n_pix: int, dt_us: int,
-                   tag: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   tag: int, counts=None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Poisson events uniform in pixel and integer time, each descent its own mean count.
 
     Args:
@@ -230,6 +237,8 @@ def uniform_events(seed: torch.Tensor, step: torch.Tensor, lam: torch.Tensor, n_
             and time, i.e. independent Poisson counts per pixel of mean ``lam / n_pix``.
         n_pix: pixels per descent (< 2^31); dt_us: interval, µs.
         tag: the part's stream tag.
+        counts: (keys, counts, their total as an int) of :func:`uniform_counts` for these
+            arguments, when the caller has read the total already (no sync here); None = drawn here.
 
     Returns:
         (N,) each, on ``seed``'s device: flat index ``b * n_pix + pixel`` int64, time offset int64 µs
@@ -242,9 +251,11 @@ def uniform_events(seed: torch.Tensor, step: torch.Tensor, lam: torch.Tensor, n_
     has a resolution of dt_us / 2^32: 2.3e-5 at 100 ms). Independent of the batch-mates.
     """
     B, dev = seed.shape[0], seed.device
-    base = stream_keys(seed, step, tag)
-    n = poisson_inverse_cdf(lam, keyed_uniform(base | _COUNT_INDEX))
-    total = int(n.sum())  # sync: the events' count
+    if counts is None:
+        base, n = uniform_counts(seed, step, lam, tag)
+        total = int(n.sum())  # sync: the events' count
+    else:
+        base, n, total = counts
     if total == 0:
         e = torch.empty(0, dtype=torch.int64, device=dev)
         return e, e.clone(), torch.empty(0, dtype=torch.float64, device=dev)
@@ -258,11 +269,22 @@ def uniform_events(seed: torch.Tensor, step: torch.Tensor, lam: torch.Tensor, n_
     return flat, t.clamp_(max=int(dt_us) - 1).to(torch.int64).add_(1), u
 
 
-def draw_background(seed: torch.Tensor, step: torch.Tensor, rate_hz, n_pix: int, dt_us: int):
-    """Uniform background events (:func:`uniform_events` at ``rate_hz`` per pixel, a float or (B,)
-    float64): flat pixel index, time offset (µs, in [1, dt_us]), OFF flag (probability 1/2)."""
+def background_lam(seed: torch.Tensor, rate_hz, n_pix: int, dt_us) -> torch.Tensor:
+    """(B,) float64 mean background events of each descent over its ``n_pix`` pixels and ``dt_us``
+    (an int, or a (B,) int64 tensor: the same values, computed on the device)."""
     rate = torch.as_tensor(rate_hz, dtype=torch.float64, device=seed.device).expand(seed.shape[0])
-    flat, t_rel, u = uniform_events(seed, step, rate * (int(dt_us) * 1e-6 * n_pix), n_pix, dt_us, TAG_BACKGROUND)
+    if isinstance(dt_us, torch.Tensor):
+        return rate * (dt_us.to(torch.float64) * 1e-6 * n_pix)
+    return rate * (int(dt_us) * 1e-6 * n_pix)
+
+
+def draw_background(seed: torch.Tensor, step: torch.Tensor, rate_hz, n_pix: int, dt_us: int, counts=None):
+    """Uniform background events (:func:`uniform_events` at ``rate_hz`` per pixel, a float or (B,)
+    float64): flat pixel index, time offset (µs, in [1, dt_us]), OFF flag (probability 1/2).
+    ``counts``: :func:`uniform_counts` of :func:`background_lam` with ``TAG_BACKGROUND`` and its
+    total, where the caller read it already."""
+    flat, t_rel, u = uniform_events(seed, step, background_lam(seed, rate_hz, n_pix, dt_us), n_pix, dt_us,
+                                    TAG_BACKGROUND, counts)
     return flat, t_rel, u < 0.5
 
 
@@ -345,5 +367,6 @@ def draw_mismatch(seed: torch.Tensor, sigma: torch.Tensor, shape: Tuple[int, int
 
 __all__ = ["PixelModelParams", "element_seed", "photoreceptor_alpha", "photoreceptor_lowpass_",
            "shot_noise_rate_hz", "stream_keys", "keyed_uniform", "keyed_normal", "pixel_draws",
-           "poisson_inverse_cdf", "uniform_events", "draw_shot_noise", "draw_background", "draw_leak_state",
-           "draw_mismatch", "POISSON_EXACT_MAX", "TAG_SHOT", "TAG_LEAK", "TAG_BACKGROUND", "TAG_MISMATCH"]
+           "poisson_inverse_cdf", "uniform_counts", "uniform_events", "background_lam", "draw_shot_noise",
+           "draw_background", "draw_leak_state", "draw_mismatch", "POISSON_EXACT_MAX", "TAG_SHOT", "TAG_LEAK",
+           "TAG_BACKGROUND", "TAG_MISMATCH"]
