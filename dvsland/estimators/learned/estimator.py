@@ -37,10 +37,12 @@ from .fast import RingCNN
 from .inputs import InputSpec, camera_map, coord_channels, events_voxel_grid, pixel_cells, row_counts
 
 #: the shipped checkpoints by name (trained by `dvsland train`, commands in docs/learning.md): the CNN,
-#: the CNN fine-tuned on events of the realistic pixel as well ("Through a realistic pixel"), the
-#: spiking model
+#: the CNN fine-tuned on events of the realistic pixel as well ("Through a realistic pixel"), the CNN
+#: fine-tuned on the landing loss through the closed loop (`dvsland train-loop --what estimator`,
+#: docs/train_loop.md), the spiking model
 SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"),
            "cnn_realistic": Path(__file__).with_name("learned_cnn_realistic.pt"),
+           "cnn_landing": Path(__file__).with_name("learned_cnn_landing.pt"),
            "spiking": Path(__file__).with_name("learned_spiking.pt")}
 
 
@@ -211,7 +213,8 @@ def default_focal_px(sensor_size) -> float:
 
 def resolve_checkpoint(checkpoint: str) -> Path:
     """``""`` or ``"cnn"`` -> the shipped CNN, ``"cnn_realistic"`` -> the CNN fine-tuned through the
-    realistic pixel, ``"spiking"`` -> the shipped spiking model, else a path."""
+    realistic pixel, ``"cnn_landing"`` -> the CNN fine-tuned on the landing loss, ``"spiking"`` -> the
+    shipped spiking model, else a path."""
     key = str(checkpoint or "cnn")
     return SHIPPED.get(key, Path(key))
 
@@ -222,8 +225,9 @@ class LearnedEstimator(DivergenceEstimator):
 
     Args:
         checkpoint: path of a ``dvsland train --model`` checkpoint; ``""``/``"cnn"`` = the shipped
-            CNN, ``"cnn_realistic"`` = the CNN fine-tuned through the realistic pixel, ``"spiking"`` =
-            the shipped spiking model.
+            CNN, ``"cnn_realistic"`` = the CNN fine-tuned through the realistic pixel,
+            ``"cnn_landing"`` = the CNN fine-tuned on the landing loss through the closed loop,
+            ``"spiking"`` = the shipped spiking model.
         min_events: windows with fewer events give NaN, in [1, 1e9].
         principal_point_px: focus of expansion: the events are resampled about it onto the
             checkpoint's reference canvas (:mod:`.inputs`), whose centre it becomes.
