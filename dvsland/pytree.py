@@ -196,15 +196,20 @@ def _as_bits(h) -> torch.Tensor:
     return torch.as_tensor(h, dtype=torch.int64) if isinstance(h, int) else h
 
 
+def _uniform(bits: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """32 hashed bits (int64 in [0, 2^32)) as a uniform draw in (0, 1) of ``dtype``."""
+    return (bits.to(dtype) + 0.5) * (1.0 / 4294967296.0)
+
+
 def hash_uniform(*keys: torch.Tensor, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """Uniform draws in (0, 1) from integer keys (see :func:`hash_bits`), 32 bits of resolution."""
-    return (hash_bits(*keys).to(dtype) + 0.5) * (1.0 / 4294967296.0)
+    return _uniform(hash_bits(*keys), dtype)
 
 
 def hash_normal(*keys: torch.Tensor, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """Standard normal draws from integer keys (Box-Muller over two hashed uniforms)."""
     h = _fold_keys(None, keys)  # the keys' hash once, then the two draws' own tags
-    u1, u2 = ((_as_bits(_fold_keys(h, (i,))).to(dtype) + 0.5) * (1.0 / 4294967296.0) for i in (1, 2))
+    u1, u2 = (_uniform(_as_bits(_fold_keys(h, (i,))), dtype) for i in (1, 2))
     return torch.sqrt(-2.0 * torch.log(u1)) * torch.cos(2.0 * torch.pi * u2)
 
 

@@ -21,6 +21,11 @@ from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
 
+def _top_level_op(ev) -> bool:
+    """Whether ``ev`` is an operator called from Python (not one run inside another operator)."""
+    return ev.name.startswith("aten::") and not (ev.cpu_parent and ev.cpu_parent.name.startswith("aten::"))
+
+
 def by_line(events, steps: int, rows: int) -> str:
     """A table of the ``rows`` dvsland functions with the most self device (else CPU) time.
 
@@ -35,9 +40,8 @@ def by_line(events, steps: int, rows: int) -> str:
         if line is None:
             continue
         line = line.split("dvsland/", 1)[1]
-        top_op = ev.name.startswith("aten::") and not (ev.cpu_parent and ev.cpu_parent.name.startswith("aten::"))
         dev_us, cpu_us, n = acc.get(line, (0.0, 0.0, 0))
-        acc[line] = (dev_us + ev.self_device_time_total, cpu_us + ev.self_cpu_time_total, n + int(top_op))
+        acc[line] = (dev_us + ev.self_device_time_total, cpu_us + ev.self_cpu_time_total, n + _top_level_op(ev))
     top = sorted(acc.items(), key=lambda kv: (kv[1][0], kv[1][1]), reverse=True)[:rows]
     out = ["| dvsland function | device ms/step | CPU ms/step (self) | operators/step |", "|---|---|---|---|"]
     out += [f"| {k} | {d / 1e3 / steps:.3f} | {c / 1e3 / steps:.3f} | {n / steps:.0f} |" for k, (d, c, n) in top]
@@ -61,9 +65,8 @@ def main(argv=None) -> int:
     from dvsland.sim import init_state, loop_step
     from dvsland.stages import build_stages
 
-    cfg = load_config(a.preset, [f"estimator.name={a.estimator}", "render.threads=1",
-                                               f"simulation.device={a.device}", "dispersion.terrain_variants=1",
-                                               'dispersion.sun_elevation_deg={kind: "off"}'])
+    cfg = load_config(a.preset, [f"estimator.name={a.estimator}", "render.threads=1", f"simulation.device={a.device}",
+                                 "dispersion.terrain_variants=1", 'dispersion.sun_elevation_deg={kind: "off"}'])
     stages = build_stages(cfg, fit_layout(cfg, None, a.batch), a.device)
     state = init_state(stages)
     for _ in range(a.skip):
@@ -84,8 +87,7 @@ def main(argv=None) -> int:
         sync()
     ka = prof.key_averages()
     dev_ms = sum(e.self_device_time_total for e in prof.events() if e.device_type != DeviceType.CPU) / 1e3 / a.steps
-    n_ops = sum(ev.name.startswith("aten::") and not (ev.cpu_parent and ev.cpu_parent.name.startswith("aten::"))
-                for ev in prof.events())
+    n_ops = sum(_top_level_op(ev) for ev in prof.events())
     print(f"B = {stages.batch_size}, {a.estimator}: wall {wall_ms:.2f} ms per step unprofiled, device time "
           f"{dev_ms:.2f} ms per step, {n_ops / a.steps:.0f} top-level operator calls per step")
     if a.lines:

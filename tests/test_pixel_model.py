@@ -274,3 +274,17 @@ def test_property_noisy_events_valid_and_in_interval(seed, cutoff, shot, leak, h
         t += dt
         diff = emu._l_prev - emu.reference
         assert float(diff.max()) < 0.1 * (1 + 1e-6) and float(diff.min()) > -0.1 * (1 + 1e-6)
+
+
+def test_background_from_drawn_counts_equals_the_plain_draw():
+    """Counts drawn first (as the emulator does, the total read with its inputs) give the same
+    events as the plain draw; without counts a rate is required."""
+    seed, step = torch.arange(3, dtype=torch.int64) + 5, torch.full((3,), 4, dtype=torch.int64)
+    rate, n_pix, dt = torch.tensor([50.0, 0.0, 200.0], dtype=torch.float64), 40 * 30, 100_000
+    ref = pm.draw_background(seed, step, rate, n_pix, dt)
+    base, n = pm.uniform_counts(seed, step, pm.background_lam(seed, rate, n_pix, torch.full((3,), dt)),
+                                pm.TAG_BACKGROUND)
+    got = pm.draw_background(seed, step, None, n_pix, dt, (base, n, int(n.sum())))
+    assert len(ref[0]) > 0 and all(torch.equal(a, b) for a, b in zip(ref, got))
+    with pytest.raises(ValueError, match="rate_hz must be given"):
+        pm.draw_background(seed, step, None, n_pix, dt)

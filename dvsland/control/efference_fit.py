@@ -188,10 +188,14 @@ def _gn_round(p: EfferenceFitParams, cols, fade: Tensor, theta: Tensor, info: Te
     u2 = res * res / s
     usable = have & torch.isfinite(sig_c) & torch.isfinite(u2)
     keep = usable & (u2 <= c.gate_sigma ** 2)
-    w = torch.where(keep, 1.0 / (1.0 + u2 / c.cauchy_c ** 2) / r, 0.0)
+
+    def cauchy(u2_):  # an estimate's robust weight inside the gate
+        return 1.0 / (1.0 + u2_ / c.cauchy_c ** 2) / r
+
+    w = torch.where(keep, cauchy(u2), 0.0)
     if isinstance(c.gate_sigma, Tensor) and c.gate_sigma.requires_grad:  # a gate being trained
         u2s = torch.where(usable, u2, 1.0)  # rows it cannot weigh: a finite stand-in (no NaN gradient)
-        w = w + torch.where(usable, 1.0 / (1.0 + u2s / c.cauchy_c ** 2) / r, 0.0) * gate_surrogate(u2s, c.gate_sigma)
+        w = w + torch.where(usable, cauchy(u2s), 0.0) * gate_surrogate(u2s, c.gate_sigma)
     w_info = w * fade
     a = (w_info * jz * jz).sum(0) + iz
     b = (w_info * jz * jv).sum(0)

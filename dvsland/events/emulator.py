@@ -740,11 +740,10 @@ def _noise_keys(ctx: _Step, flat: torch.Tensor, t_rel: torch.Tensor, off: torch.
 def _background(ctx: _Step, step: torch.Tensor, counts) -> torch.Tensor:
     """Sort keys of this step's background events (:func:`pixel_model.draw_background`: Poisson count
     per descent, uniform pixel, time and polarity, drawn from the descent's seed and step);
-    ``counts`` the count draw of :func:`_background_counts` with its total, read already."""
-    p, (B, H, W) = ctx.params, ctx.state.lref.shape
-    rate = p.element_background_rate_hz
-    rate = p.background_rate_hz if rate is None else rate.to(ctx.state.seed.device)
-    flat, t_rel, off = pm.draw_background(ctx.state.seed, step, rate, H * W, int(ctx.dt), counts)
+    ``counts`` the count draw of :func:`_background_counts` with its total, read already (the
+    rate is in them)."""
+    H, W = ctx.state.lref.shape[1:]
+    flat, t_rel, off = pm.draw_background(ctx.state.seed, step, None, H * W, int(ctx.dt), counts)
     ctx.add(float(flat.numel()))  # a size already on the host
     return _noise_keys(ctx, flat, t_rel, off)
 

@@ -238,7 +238,8 @@ def uniform_events(seed: torch.Tensor, step: torch.Tensor, lam: torch.Tensor, n_
         n_pix: pixels per descent (< 2^31); dt_us: interval, µs.
         tag: the part's stream tag.
         counts: (keys, counts, their total as an int) of :func:`uniform_counts` for these
-            arguments, when the caller has read the total already (no sync here); None = drawn here.
+            arguments, when the caller has read the total already (no sync here; ``lam`` is then
+            not read and may be None); None = drawn here.
 
     Returns:
         (N,) each, on ``seed``'s device: flat index ``b * n_pix + pixel`` int64, time offset int64 µs
@@ -282,9 +283,15 @@ def draw_background(seed: torch.Tensor, step: torch.Tensor, rate_hz, n_pix: int,
     """Uniform background events (:func:`uniform_events` at ``rate_hz`` per pixel, a float or (B,)
     float64): flat pixel index, time offset (µs, in [1, dt_us]), OFF flag (probability 1/2).
     ``counts``: :func:`uniform_counts` of :func:`background_lam` with ``TAG_BACKGROUND`` and its
-    total, where the caller read it already."""
-    flat, t_rel, u = uniform_events(seed, step, background_lam(seed, rate_hz, n_pix, dt_us), n_pix, dt_us,
-                                    TAG_BACKGROUND, counts)
+    total, where the caller read it already; the rate is then in the counts (``rate_hz`` may be
+    None, and no mean is computed again)."""
+    if counts is None:
+        if rate_hz is None:
+            raise ValueError("draw_background: rate_hz must be given without counts")
+        lam = background_lam(seed, rate_hz, n_pix, dt_us)
+    else:
+        lam = None  # the counts are drawn: uniform_events reads no mean
+    flat, t_rel, u = uniform_events(seed, step, lam, n_pix, dt_us, TAG_BACKGROUND, counts)
     return flat, t_rel, u < 0.5
 
 
