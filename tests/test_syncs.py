@@ -53,9 +53,11 @@ TORCH_PATH_SYNC_BUDGET = {"learned": 6, "cmax": 11}
 
 @pytest.mark.parametrize("est", sorted(TORCH_PATH_SYNC_BUDGET))
 def test_torch_path_syncs_within_budget(est, monkeypatch):
+    from dvsland.control import efference_fit
     from dvsland.estimators import native_cmax
     from dvsland.events import denoise, emulator, native
 
+    monkeypatch.setattr(efference_fit, "CPU_COMPACT", False)  # the filter's CPU-only compaction reads the mask
     monkeypatch.setattr(emulator, "CPU_FAST_PATHS", False)
     monkeypatch.setattr(denoise, "CPU_FAST_PATHS", False)
     monkeypatch.setattr(native, "_enabled", False)  # the compiled kernels off (use_native_sort(False))

@@ -31,7 +31,9 @@ assumes the dynamics of the simulator. Cost: O(steps so far) per element and ste
 kept, 40 bytes per element and step): on one torch thread of a loaded 2-core CPU (load 7), median
 0.9 / 3.7 / 17 ms per step for B = 18 after 300 / 900 / 1800 steps without forgetting
 (docs/controllers.md). With ``forget_s`` > 0 the fit reads only the last 12 forget_s of estimates
-(older ones weigh < exp(-12)), so the cost stops growing after 12 forget_s / dt steps.
+(older ones weigh < exp(-12)), so the cost stops growing after 12 forget_s / dt steps. On a CPU a
+finished descent (not ``active``) costs nothing: only the descents in flight are fitted
+(:data:`CPU_COMPACT`), with the same bits, because each descent's sums run over its own rows.
 
 Output per step: the filtered divergence v_hat / z_hat (B,) float64, whether this step's estimate
 got weight > 0.5 (B,) int64, and :attr:`altitude_m` / :attr:`velocity_mps`.
@@ -166,14 +168,16 @@ def gate_surrogate(u2: Tensor, gate_sigma: Tensor) -> Tensor:
 
 
 def _gn_round(p: EfferenceFitParams, cols, fade: Tensor, theta: Tensor, info: Tensor, mask: Tensor):
-    """One robust Gauss-Newton round on theta over the history columns ``cols`` (each (N, B)):
-    (theta (B, 2), info (B, 3), weights w (N, B), R (N, B)); descents not in ``mask`` keep theta, info."""
+    """One robust Gauss-Newton round on theta over the history columns ``cols`` (each (B, N), a
+    descent's rows along the last dim): (theta (B, 2), info (B, 3), weights w (B, N), R (B, N));
+    descents not in ``mask`` keep theta, info. Each descent's sums run over its own contiguous rows,
+    so they do not depend on the other descents (a compacted batch gives the same bits)."""
     c = p.cfg
     zdr, vdr, t, d0, sig_c, have = cols
     iz, iv = 1.0 / p.sz0 ** 2, 1.0 / p.sv0 ** 2
     dz, dv = theta[:, 0], theta[:, 1]
-    z = (zdr + dz + dv * t).clamp_min(c.min_altitude_m)
-    v = vdr + dv
+    z = (zdr + dz[:, None] + dv[:, None] * t).clamp_min(c.min_altitude_m)
+    v = vdr + dv[:, None]
     h = v / z
     jz = -v / (z * z)
     jv = (z - v * t) / (z * z)
@@ -182,7 +186,7 @@ def _gn_round(p: EfferenceFitParams, cols, fade: Tensor, theta: Tensor, info: Te
     r = r_fix + r_c
     # current posterior covariance of theta: inverse of [[a, b], [b, c]]
     det = (info[:, 0] * info[:, 2] - info[:, 1] ** 2).clamp_min(1e-300)
-    pzz, pzv, pvv = info[:, 2] / det, -info[:, 1] / det, info[:, 0] / det
+    pzz, pzv, pvv = (info[:, 2] / det)[:, None], (-info[:, 1] / det)[:, None], (info[:, 0] / det)[:, None]
     s = r + jz * jz * pzz + 2 * jz * jv * pzv + jv * jv * pvv
     res = d0 - h
     u2 = res * res / s
@@ -197,11 +201,11 @@ def _gn_round(p: EfferenceFitParams, cols, fade: Tensor, theta: Tensor, info: Te
         u2s = torch.where(usable, u2, 1.0)  # rows it cannot weigh: a finite stand-in (no NaN gradient)
         w = w + torch.where(usable, cauchy(u2s), 0.0) * gate_surrogate(u2s, c.gate_sigma)
     w_info = w * fade
-    a = (w_info * jz * jz).sum(0) + iz
-    b = (w_info * jz * jv).sum(0)
-    cc = (w_info * jv * jv).sum(0) + iv
-    gz = (w_info * jz * res).sum(0) - dz * iz
-    gv = (w_info * jv * res).sum(0) - dv * iv
+    a = (w_info * jz * jz).sum(1) + iz
+    b = (w_info * jz * jv).sum(1)
+    cc = (w_info * jv * jv).sum(1) + iv
+    gz = (w_info * jz * res).sum(1) - dz * iz
+    gv = (w_info * jv * res).sum(1) - dv * iv
     det = (a * cc - b * b).clamp_min(1e-300)
     step_z = (cc * gz - b * gv) / det
     step_v = (a * gv - b * gz) / det
@@ -217,7 +221,7 @@ def fit_rounds(p: EfferenceFitParams, rows: Tensor, t_now: Tensor, theta: Tensor
     """``cfg.iterations`` robust Gauss-Newton rounds on theta for the descents of ``mask``.
 
     Args:
-        rows: (5, N, B) float64 the history rows to fit (:data:`ROW_FIELDS`), oldest first.
+        rows: (5, B, N) float64 the history rows to fit (:data:`ROW_FIELDS`), oldest first along N.
         t_now: (B,) float64 flight time now, s (the age of a row for ``forget_s``).
         theta, info: (B, 2), (B, 3) float64 the fit so far.
 
@@ -229,12 +233,36 @@ def fit_rounds(p: EfferenceFitParams, rows: Tensor, t_now: Tensor, theta: Tensor
     have = torch.isfinite(d)
     d0 = torch.where(have, d, 0.0)
     zdr, vdr, t = torch.where(have, zdr, 1e3), torch.where(have, vdr, 0.0), torch.where(have, t, 0.0)
-    fade = (torch.exp(-(t_now.unsqueeze(0) - t).clamp_min(0.0) / c.forget_s)
+    fade = (torch.exp(-(t_now.unsqueeze(1) - t).clamp_min(0.0) / c.forget_s)
             if c.forget_s > 0 else torch.ones_like(d))
     w = r = torch.zeros_like(d)
     for _ in range(c.iterations):  # a fixed number of rounds: no data-dependent branch
         theta, info, w, r = _gn_round(p, (zdr, vdr, t, d0, sig_c, have), fade, theta, info, mask)
-    return theta, info, w[-1] * r[-1]
+    return theta, info, w[:, -1] * r[:, -1]
+
+
+#: on a CPU, fit only the descents in flight (reading the mask there is no device sync); off, or on
+#: other devices, every descent is fitted and the finished ones keep their fit: the same bits
+#: (:func:`_gn_round`'s sums are per descent). Tests turn it off to count the GPU path's syncs.
+CPU_COMPACT = True
+
+
+def _fit_active(p: EfferenceFitParams, rows: Tensor, t_now: Tensor, theta: Tensor, info: Tensor, mask: Tensor):
+    """:func:`fit_rounds` of the descents of ``mask`` (B,) bool; on a CPU (:data:`CPU_COMPACT`) only
+    theirs are computed, so a finished descent costs nothing (same outputs)."""
+    B = mask.shape[0]
+    if not (CPU_COMPACT and mask.device.type == "cpu"):
+        return fit_rounds(p, rows, t_now, theta, info, mask)
+    idx = mask.nonzero().squeeze(1)
+    k = int(idx.numel())
+    if k == B:
+        return fit_rounds(p, rows, t_now, theta, info, mask)
+    if k == 0:  # nothing in flight: every fit kept, no newest weight
+        return theta, info, torch.zeros(B, dtype=rows.dtype, device=rows.device)
+    sub = p._replace(z0_m=p.z0_m[idx], v0_mps=p.v0_mps[idx], sz0=p.sz0[idx], sv0=p.sv0[idx])
+    th, inf, w = fit_rounds(sub, rows[:, idx], t_now[idx], theta[idx], info[idx], mask[idx])
+    return (theta.index_copy(0, idx, th), info.index_copy(0, idx, inf),
+            torch.zeros(B, dtype=w.dtype, device=w.device).index_copy(0, idx, w))
 
 
 def efference_fit_step(p: EfferenceFitParams, state: EfferenceFitState, d_hat: Tensor,
@@ -259,16 +287,16 @@ def efference_fit_step(p: EfferenceFitParams, state: EfferenceFitState, d_hat: T
         t_s = torch.where(go, t_s + dt, t_s)
     d, sig = _estimates(c, d_hat, confidence, dev)
     row = torch.where(m.unsqueeze(1), torch.stack([zdr, vdr, t_s, d, sig], 1), float("nan"))  # (B, 5)
-    # the history in the fit's layout (5, L + 1, B), kept batch first as a (B, L + 1, 5) view of it
-    hist = torch.cat([state.rows_packed.permute(2, 1, 0), row.t().unsqueeze(1)], 1)
-    L = hist.shape[1]
+    # the history in the fit's layout (5, B, L + 1), kept batch first as a (B, L + 1, 5) view of it
+    hist = torch.cat([state.rows_packed.permute(2, 0, 1), row.t().unsqueeze(2)], 2)
+    L = hist.shape[2]
     lo = 0
     if c.forget_s > 0:  # rows older than cut_forget forget_s weigh < exp(-cut_forget): left out
         lo = max(0, L - int(math.ceil(p.cut_forget * c.forget_s / dt)))
-    theta, info, w_now = fit_rounds(p, hist[:, lo:], t_s, state.theta, state.info, m)
+    theta, info, w_now = _fit_active(p, hist[:, :, lo:], t_s, state.theta, state.info, m)
     fresh = m & torch.isfinite(d)
     new = EfferenceFitState(zdr, vdr, t_s, theta, info, state.n + m.to(torch.int64),
-                            state.n_rejected + (fresh & (w_now == 0)).to(torch.int64), hist.permute(2, 1, 0))
+                            state.n_rejected + (fresh & (w_now == 0)).to(torch.int64), hist.permute(1, 2, 0))
     z_hat = fit_altitude(p, new)
     return new, FilterOut(fit_velocity(new) / z_hat, (fresh & (w_now > 0.5)).to(torch.int64), z_hat)
 
