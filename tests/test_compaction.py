@@ -12,6 +12,15 @@ from dvsland.sim.step import active_events
 from dvsland.stages import build_stages
 
 
+@pytest.fixture(autouse=True)
+def _rows_step_always(monkeypatch):
+    """The emulator steps only the flying rows as soon as one descent has ended (the shipped share,
+    a quarter of the batch, is never reached by these batches of 2-3)."""
+    import dvsland.sim.step as step
+
+    monkeypatch.setattr(step, "EMULATOR_ROWS_SHARE", 1.0)
+
+
 def _stages(preset, est, sites, compact, extra=()):
     over = [f"estimator.name={est}", "render.threads=1", f"simulation.compact={str(compact).lower()}", *extra]
     if "montecarlo" in preset:
