@@ -167,30 +167,33 @@ def gate_surrogate(u2: Tensor, gate_sigma: Tensor) -> Tensor:
     return soft - soft.detach()
 
 
-def _gn_round(p: EfferenceFitParams, cols, fade: Tensor, theta: Tensor, info: Tensor, mask: Tensor):
-    """One robust Gauss-Newton round on theta over the history columns ``cols`` (each (B, N), a
-    descent's rows along the last dim): (theta (B, 2), info (B, 3), weights w (B, N), R (B, N));
-    descents not in ``mask`` keep theta, info. Each descent's sums run over its own contiguous rows,
-    so they do not depend on the other descents (a compacted batch gives the same bits)."""
+def _gn_round(p: EfferenceFitParams, cols, fade: Optional[Tensor], theta: Tensor, info: Tensor, mask: Tensor):
+    """One robust Gauss-Newton round on theta over the history columns ``cols`` (:func:`fit_rounds`;
+    each (B, N), a descent's rows along the last dim; ``fade`` None = 1): (theta (B, 2), info (B, 3),
+    weights w (B, N), R (B, N)); descents not in ``mask`` keep theta, info. Each descent's sums run
+    over its own contiguous rows, so they do not depend on the other descents (a compacted batch
+    gives the same bits)."""
     c = p.cfg
-    zdr, vdr, t, d0, sig_c, have = cols
+    zdr, vdr, t, d0, have_sig, sig0, d0_abs = cols
     iz, iv = 1.0 / p.sz0 ** 2, 1.0 / p.sv0 ** 2
     dz, dv = theta[:, 0], theta[:, 1]
     z = (zdr + dz[:, None] + dv[:, None] * t).clamp_min(c.min_altitude_m)
     v = vdr + dv[:, None]
     h = v / z
-    jz = -v / (z * z)
-    jv = (z - v * t) / (z * z)
-    r_fix = (c.meas_sigma_rel * h.abs() + c.meas_sigma_abs) ** 2
-    r_c = (torch.where(torch.isfinite(sig_c), sig_c, 0.0) * torch.maximum(d0.abs(), h.abs())) ** 2
-    r = r_fix + r_c
+    z2 = z * z
+    jz = -v / z2
+    jv = (z - v * t) / z2
+    h_abs = h.abs()
+    r = (c.meas_sigma_rel * h_abs + c.meas_sigma_abs) ** 2
+    if sig0 is not None:  # the estimator's own error (meas_noise "confidence"); else it adds 0
+        r = r + (sig0 * torch.maximum(d0_abs, h_abs)) ** 2
     # current posterior covariance of theta: inverse of [[a, b], [b, c]]
     det = (info[:, 0] * info[:, 2] - info[:, 1] ** 2).clamp_min(1e-300)
     pzz, pzv, pvv = (info[:, 2] / det)[:, None], (-info[:, 1] / det)[:, None], (info[:, 0] / det)[:, None]
     s = r + jz * jz * pzz + 2 * jz * jv * pzv + jv * jv * pvv
     res = d0 - h
     u2 = res * res / s
-    usable = have & torch.isfinite(sig_c) & torch.isfinite(u2)
+    usable = have_sig & torch.isfinite(u2)
     keep = usable & (u2 <= c.gate_sigma ** 2)
 
     def cauchy(u2_):  # an estimate's robust weight inside the gate
@@ -200,12 +203,13 @@ def _gn_round(p: EfferenceFitParams, cols, fade: Tensor, theta: Tensor, info: Te
     if isinstance(c.gate_sigma, Tensor) and c.gate_sigma.requires_grad:  # a gate being trained
         u2s = torch.where(usable, u2, 1.0)  # rows it cannot weigh: a finite stand-in (no NaN gradient)
         w = w + torch.where(usable, cauchy(u2s), 0.0) * gate_surrogate(u2s, c.gate_sigma)
-    w_info = w * fade
-    a = (w_info * jz * jz).sum(1) + iz
-    b = (w_info * jz * jv).sum(1)
-    cc = (w_info * jv * jv).sum(1) + iv
-    gz = (w_info * jz * res).sum(1) - dz * iz
-    gv = (w_info * jv * res).sum(1) - dv * iv
+    w_info = w if fade is None else w * fade
+    wz, wv = w_info * jz, w_info * jv
+    a = (wz * jz).sum(1) + iz
+    b = (wz * jv).sum(1)
+    cc = (wv * jv).sum(1) + iv
+    gz = (wz * res).sum(1) - dz * iz
+    gv = (wv * res).sum(1) - dv * iv
     det = (a * cc - b * b).clamp_min(1e-300)
     step_z = (cc * gz - b * gv) / det
     step_v = (a * gv - b * gz) / det
@@ -227,17 +231,23 @@ def fit_rounds(p: EfferenceFitParams, rows: Tensor, t_now: Tensor, theta: Tensor
 
     Returns:
         (theta (B, 2), info (B, 3), the robust weights in [0, 1] of the newest row (B,) float64).
+
+    What does not change between rounds is computed once here; a term that is exactly 0 or a factor
+    exactly 1 is left out (the confidence's noise under ``meas_noise="fixed"``, the fade without
+    ``forget_s``), so the rounds' values are those of the full expression, bit for bit.
     """
     c = p.cfg
     zdr, vdr, t, d, sig_c = rows.unbind(0)
     have = torch.isfinite(d)
     d0 = torch.where(have, d, 0.0)
     zdr, vdr, t = torch.where(have, zdr, 1e3), torch.where(have, vdr, 0.0), torch.where(have, t, 0.0)
-    fade = (torch.exp(-(t_now.unsqueeze(1) - t).clamp_min(0.0) / c.forget_s)
-            if c.forget_s > 0 else torch.ones_like(d))
+    fin_sig = torch.isfinite(sig_c)
+    sig0 = torch.where(fin_sig, sig_c, 0.0) if c.meas_noise == "confidence" else None
+    cols = (zdr, vdr, t, d0, have & fin_sig, sig0, d0.abs() if sig0 is not None else None)
+    fade = torch.exp(-(t_now.unsqueeze(1) - t).clamp_min(0.0) / c.forget_s) if c.forget_s > 0 else None
     w = r = torch.zeros_like(d)
     for _ in range(c.iterations):  # a fixed number of rounds: no data-dependent branch
-        theta, info, w, r = _gn_round(p, (zdr, vdr, t, d0, sig_c, have), fade, theta, info, mask)
+        theta, info, w, r = _gn_round(p, cols, fade, theta, info, mask)
     return theta, info, w[:, -1] * r[:, -1]
 
 
