@@ -92,8 +92,9 @@ def bench_filter(a) -> None:
             if k >= int(0.8 * K):
                 tail += time.process_time() - c1
             z, v = z + v * dt, v + acc * dt
+        tail_ms = 1e3 * tail / (K - int(0.8 * K))
         print(f"efference_fit, B = {B}, {K} steps, compaction {'on ' if compact else 'off'}: "
-              f"{time.process_time() - c0:.2f} CPU s, last 20 % of the steps {1e3 * tail / (K - int(0.8 * K)):.2f} ms/step")
+              f"{time.process_time() - c0:.2f} CPU s, last 20 % of the steps {tail_ms:.2f} ms/step")
     fit.CPU_COMPACT = True
 
 

@@ -24,6 +24,7 @@ from dvsland.pytree import tree_map
 from .emulator import EmulatorParams, EmulatorState, emulator_step
 from .events import Events
 
+
 def params_rows(params: EmulatorParams, rows: torch.Tensor) -> EmulatorParams:
     """``params`` of the descents ``rows`` (K,) int64: the per-descent values (B,) taken at those rows."""
     vals = params.element_values()
