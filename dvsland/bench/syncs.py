@@ -4,8 +4,8 @@ A host synchronisation is a call that needs a tensor's value on the host: ``item
 ``bool(t)``, ``int(t)``, ``float(t)``, ``nonzero``, ``cpu``, ``numpy``, ``repeat_interleave``
 without ``output_size``, and indexing with a bool mask (its result's size depends on the values).
 On CUDA each one stalls the stream; on CPU they are counted the same way (:class:`SyncCounter`, a
-:class:`torch.overrides.TorchFunctionMode`), so the count can be checked without a GPU. On CUDA, ``torch.cuda.set_sync_debug_mode("warn")`` shows
-the same calls.
+:class:`torch.overrides.TorchFunctionMode`), so the count can be checked without a GPU. On CUDA,
+``torch.cuda.set_sync_debug_mode("warn")`` shows the same calls.
 
     python -m dvsland.bench.syncs --estimators oracle,dpr,cmax,snn,learned --steps 5
 
