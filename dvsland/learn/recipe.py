@@ -137,12 +137,14 @@ class Clock:
     def cpu(self) -> float:
         return time.process_time() - self.c0
 
-    def share(self) -> float:
-        """The largest share of a cap spent (0 without caps; >= 1: time is up)."""
-        return max([spent / cap for spent, cap in zip((self.wall(), self.cpu()), self.caps) if cap] + [0.0])
+    def share(self, wall: Optional[float] = None, cpu: Optional[float] = None) -> float:
+        """The largest share of a cap spent (0 without caps; >= 1: time is up), now or at the readings
+        ``wall``, ``cpu`` (s, as recorded)."""
+        spent = (self.wall() if wall is None else wall, self.cpu() if cpu is None else cpu)
+        return max([x / cap for x, cap in zip(spent, self.caps) if cap] + [0.0])
 
-    def up(self) -> bool:
-        return self.share() >= 1.0
+    def up(self, wall: Optional[float] = None, cpu: Optional[float] = None) -> bool:
+        return self.share(wall, cpu) >= 1.0
 
 
 def _loss(mu, log_var, target, l1_weight: float):
@@ -313,8 +315,11 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
     writer = _writer(tb_dir)
     val_idx = _val_subset(va, s.val_max_samples)
     clock = Clock(s, run["seconds"], run["cpu_seconds"])
-    # a new run trains at least one batch; a resumed one whose budget is spent trains none
-    while run["epoch"] < s.epochs and run["bad_epochs"] < s.patience and not (clock.up() and run["history"]):
+    # a new run trains at least one batch; a resumed one whose budget is spent trains none. Between
+    # epochs the budget is judged on the time the run records (not on a later reading after the
+    # checkpoint's write), so a run stopped by its cap records at least the cap
+    while run["epoch"] < s.epochs and run["bad_epochs"] < s.patience and not (
+            clock.up(run["seconds"], run["cpu_seconds"]) and run["history"]):
         ep = run["epoch"]
         train_loss, lr = _run_epoch(net, opt, tr, spec, coords, s, ep, clock, progress)
         rec = _validate(net, va, val_idx, spec, coords, s, ep, train_loss, clock.wall())
