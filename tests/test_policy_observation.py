@@ -193,3 +193,82 @@ def test_track_gs_target_is_div_gs_s_target_at_the_true_altitude():
     late = tau0 / 0.25  # tau* <= 0: the final part, -max(d_final, v_min / z)
     assert torch.equal(div_gs_target(st, late, torch.full_like(tau0, 1000.0)), torch.full_like(tau0, -0.03))
     assert torch.allclose(div_gs_target(st, late, torch.full_like(tau0, 40.0)), torch.full_like(tau0, -2.0 / 40))
+
+
+# ------------------------------------------------------------------ the filter's doubt (efference_doubt)
+DOUBT = ["controller.name=policy", "controller.policy.observation=efference_doubt"]
+
+
+def test_doubt_observation_appends_the_clamped_offsets_and_rejected_share():
+    from dvsland.control.policy import DOUBT_CLAMP
+
+    ctl = _controller("efference_doubt")
+    t = torch.tensor([4.0, 8.0], dtype=torch.float64)
+    d = torch.tensor([-0.04, -0.03], dtype=torch.float64)
+    m = torch.tensor([9000.0, 8000.0], dtype=torch.float64)
+    z = torch.tensor([1000.0, 500.0], dtype=torch.float64)
+    est = (torch.tensor([-0.05, -0.02]), torch.tensor([0.7, 0.9]))
+    doubt = torch.tensor([[1.5, -0.5, 0.25], [-30.0, 12.0, 0.0]], dtype=torch.float64)
+    obs, _ = policy_observation(ctl.params, t, d, m, z, est, doubt)
+    base, _ = policy_observation(_controller("efference").params, t, d, m, z, est)
+    assert obs.shape == (2, 10) and obs.dtype == torch.float64
+    assert torch.equal(obs[:, :7], base)  # the efference observation first, unchanged
+    assert obs[0, 7:].tolist() == [1.5, -0.5, 0.25]
+    assert obs[1, 7:].tolist() == [-DOUBT_CLAMP, DOUBT_CLAMP, 0.0]
+    with pytest.raises(ValueError, match="controller.policy.observation=efference_doubt needs the filter's doubt"):
+        policy_observation(ctl.params, t, d, m, z, est)
+
+
+def test_the_fit_filter_s_doubt_is_its_offset_in_prior_sigmas():
+    from dvsland.control.efference_fit import EfferenceFitFilter
+
+    f = EfferenceFitFilter(torch.tensor([1000.0, 2000.0], dtype=torch.float64),
+                           torch.tensor([-40.0, -50.0], dtype=torch.float64), 0.1, prior_rel_sigma=0.1)
+    s = f.init_state()
+    accel = torch.zeros(2, dtype=torch.float64)
+    for k in range(30):  # both read a divergence 30 % faster than planned: the fit moves off the plan
+        d_plan = s.vdr / s.zdr
+        s, out = f.step_state(s, (1.3 * d_plan).to(torch.float32), None, accel)
+    assert out.doubt.shape == (2, 3) and out.doubt.dtype == torch.float64
+    p = f.params
+    assert torch.equal(out.doubt[:, 0], s.theta[:, 0] / p.sz0) and torch.equal(out.doubt[:, 1], s.theta[:, 1] / p.sv0)
+    assert (out.doubt[:, 0].abs() > 0.5).all()  # moved by more than half a prior sigma
+    assert torch.equal(out.doubt[:, 2], s.n_rejected.double() / s.n.double())
+
+
+def test_the_loop_hands_the_doubt_to_the_policy_and_other_filters_are_refused():
+    st = _stages(DOUBT)
+    assert st.controller.needs_doubt and st.controller.needs_estimate and st.controller.needs_altitude
+    seen = []
+    step = st.controller.step_state
+
+    def spy(*a, **kw):
+        seen.append(kw.get("doubt"))
+        return step(*a, **kw)
+
+    st.controller.step_state = spy
+    s, outs = fly_steps(st, init_state(st), 5)
+    assert all(torch.isfinite(o.thrust_n).all() for o in outs)
+    assert len(seen) == 5 and all(d is not None and d.shape == (1, 3) for d in seen)
+    with pytest.raises(ValueError, match="efference_doubt.*controller.filter=efference_fit"):
+        _stages(DOUBT + ["controller.filter=efference"])
+    assert not _stages(EFF).controller.needs_doubt
+
+
+def test_a_gradient_reaches_the_doubt_inputs_weights():
+    st = _stages(DOUBT + ["controller.policy.base=div_gs"])
+    tr = make_trainable(st, "policy")
+    with torch.no_grad():
+        tr.net.net[2].weight.fill_(0.05)
+    tr.apply(st.controller)
+    with torch.no_grad():
+        s, _ = fly_steps(st, init_state(st), 20)
+    loss = 0.0
+    for _ in range(10):
+        s, out = loop_step(st, s, grad=True)
+        loss = loss + out.thrust_n.sum() * 1e-4 + (s.v_mps ** 2).sum() * 1e-3
+    loss.backward()
+    g = tr.net.net[0].weight.grad
+    assert g is not None and torch.isfinite(g).all() and g.shape[1] == 10
+    for col in (7, 8):  # the offsets (the rejected share may be 0 throughout on an oracle)
+        assert float(g[:, col].abs().max()) > 0.0, col

@@ -395,8 +395,10 @@ class PolicyLawConfig:
                            rng=(0.0, 1e4), open_lo=True)
     observation: str = opt("basic", "what the network sees: basic (filtered D, D*(t), their difference, hover "
                            "fraction) or efference (also the raw estimate D_hat, its confidence and the filter's "
-                           "altitude; needs controller.filter=efference_fit or efference); a checkpoint records its "
-                           "own", choices=("basic", "efference"))
+                           "altitude; needs controller.filter=efference_fit or efference) or efference_doubt (also "
+                           "the efference_fit filter's offsets from its plan in prior sigmas and its rejected share; "
+                           "needs controller.filter=efference_fit); a checkpoint records its own",
+                           choices=("basic", "efference", "efference_doubt"))
     base: str = opt("none", "none: thrust = sigmoid(net) x top; div_gs: a residual on div_gs (controller.div_gs's "
                     "constants), thrust = u_div_gs + m g tanh(net), which starts as div_gs exactly",
                     choices=("none", "div_gs"))

@@ -138,6 +138,13 @@ def fit_velocity(s: EfferenceFitState) -> Tensor:
     return s.vdr + s.theta[:, 1]
 
 
+def fit_doubt(p: EfferenceFitParams, s: EfferenceFitState) -> Tensor:
+    """(B, 3) float64: the fitted offset (dz, dv) in prior standard deviations (dz / sz0, dv / sv0)
+    and the share of the descent's estimates rejected so far (``FilterOut.doubt``)."""
+    rejected = s.n_rejected.to(torch.float64) / s.n.clamp_min(1).to(torch.float64)
+    return torch.stack([s.theta[:, 0] / p.sz0, s.theta[:, 1] / p.sv0, rejected], 1)
+
+
 def _estimates(c: EfferenceConfig, d_hat: Tensor, confidence: Optional[Tensor], dev) -> Tuple[Tensor, Tensor]:
     """(D_hat (B,) float64, NaN where not to be used; sigma_c (B,) float64, 0 unless ``meas_noise="confidence"``)."""
     d = d_hat.to(device=dev, dtype=torch.float64)
@@ -308,7 +315,8 @@ def efference_fit_step(p: EfferenceFitParams, state: EfferenceFitState, d_hat: T
     new = EfferenceFitState(zdr, vdr, t_s, theta, info, state.n + m.to(torch.int64),
                             state.n_rejected + (fresh & (w_now == 0)).to(torch.int64), hist.permute(1, 2, 0))
     z_hat = fit_altitude(p, new)
-    return new, FilterOut(fit_velocity(new) / z_hat, (fresh & (w_now > 0.5)).to(torch.int64), z_hat)
+    return new, FilterOut(fit_velocity(new) / z_hat, (fresh & (w_now > 0.5)).to(torch.int64), z_hat,
+                          fit_doubt(p, new))
 
 
 def fit_reset_where(p: EfferenceFitParams, state: EfferenceFitState, mask: Tensor) -> EfferenceFitState:
@@ -355,6 +363,8 @@ class EfferenceFitFilter(PlannedStartFilter):
     """
 
     provides_altitude = True
+    #: its :class:`FilterOut` carries ``doubt`` (the ``efference_doubt`` policy observation reads it)
+    provides_doubt = True
 
     def __init__(self, z0_m: Tensor, v0_mps: Tensor, dt_s: float, prior_rel_sigma: float = 0.1,
                  prior_rel_sigma_v: Optional[float] = None, meas_sigma_rel: float = 0.05,

@@ -70,4 +70,7 @@ def make_filter(cfg, params: DescentParams, controller=None):
     if getattr(controller, "needs_altitude", False) and not getattr(filt, "provides_altitude", False):
         raise ValueError(f"controller {cfg.controller.name!r} needs an altitude estimate; controller.filter="
                          f"{name!r} gives none: use 'efference' (or 'auto')")
+    if getattr(controller, "needs_doubt", False) and not getattr(filt, "provides_doubt", False):
+        raise ValueError(f"controller.policy.observation=efference_doubt needs the filter's doubt; controller.filter="
+                         f"{name!r} gives none: use controller.filter=efference_fit")
     return filt

@@ -33,11 +33,16 @@ class FilterOut(NamedTuple):
             filters: 1 where this step's estimate was fused).
         altitude_m: (B,) float64 the filter's altitude estimate, m, or None (no estimate: the moving
             average).
+        doubt: (B, 3) float64 how far the filter has moved from its plan, or None (only
+            ``efference_fit`` gives it): the fitted offsets of the initial altitude and velocity in
+            prior standard deviations (dz / sigma_z0, dv / sigma_v0), and the share of this descent's
+            estimates the fit rejected (weight 0) so far, in [0, 1].
     """
 
     d_filtered: Tensor
     n_used: Tensor
     altitude_m: Optional[Tensor]
+    doubt: Optional[Tensor] = None
 
 
 class DivergenceFilter:

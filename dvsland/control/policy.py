@@ -1,7 +1,7 @@
 """A thrust law that is a small network (controller ``policy``), trained through the closed loop
 (``dvsland train-loop --what policy``) and flown by path like any other law.
 
-Observation, float64 (B, 4) or (B, 7) per descent (``controller.policy.observation``):
+Observation, float64 (B, 4), (B, 7) or (B, 10) per descent (``controller.policy.observation``):
 
 - ``basic`` (4), from what every law is given: the filtered divergence D_f (NaN -> 0) and the
   paper's TTC target D*(t) = -1 / max(tau0 - c2 t, tau_min), both scaled by 1 / ``D_SCALE``; their
@@ -11,7 +11,13 @@ Observation, float64 (B, 4) or (B, 7) per descent (``controller.policy.observati
   (NaN -> 0) scaled by 1 / ``D_SCALE``, its confidence in [0, 1] (0 where there is none), and
   the filter's altitude estimate as ln(max(z_hat, 1 m) / ``Z_REF_M``). It needs a filter that
   gives an altitude (``efference``, ``efference_fit``); the loop hands the law the estimate
-  (:attr:`PolicyController.needs_estimate`).
+  (:attr:`PolicyController.needs_estimate`);
+- ``efference_doubt`` (10): the seven above, then how far the ``efference_fit`` filter has moved
+  from its plan (``FilterOut.doubt``): the fitted offsets of the initial altitude and velocity in
+  prior standard deviations, each clamped to +-``DOUBT_CLAMP``, and the share of the descent's
+  estimates the fit rejected. A fit that has walked several prior sigmas from the dead-reckoned
+  start is one that biased estimates have pulled; the other inputs cannot show that. It needs
+  ``controller.filter=efference_fit`` (:attr:`PolicyController.needs_doubt`).
 
 Action (``controller.policy.base``):
 
@@ -53,8 +59,10 @@ Tensor = torch.Tensor
 D_SCALE, ERR_SCALE, Z_REF_M = 0.05, 0.01, 100.0
 #: ``kind`` of a policy checkpoint
 POLICY_KIND = "dvsland-loop-policy"
+#: the doubt's offsets (prior standard deviations) are clamped to +- this in the observation
+DOUBT_CLAMP = 10.0
 #: observation name -> its width
-OBSERVATIONS = {"basic": 4, "efference": 7}
+OBSERVATIONS = {"basic": 4, "efference": 7, "efference_doubt": 10}
 #: laws a policy can be a residual on (``controller.policy.base``)
 BASES = ("none", "div_gs")
 
@@ -154,7 +162,8 @@ def load_policy(path, param: str = "controller.policy.checkpoint", observation: 
 
 
 def policy_observation(p: LawParams, t_s, d: Tensor, m: Tensor, altitude_m: Optional[Tensor] = None,
-                       estimate: Optional[Tuple[Tensor, Tensor]] = None) -> Tuple[Tensor, Tensor]:
+                       estimate: Optional[Tuple[Tensor, Tensor]] = None,
+                       doubt: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
     """The observation (see the module doc) and the target D*(t) (B,) float64 1/s.
 
     Args:
@@ -163,20 +172,23 @@ def policy_observation(p: LawParams, t_s, d: Tensor, m: Tensor, altitude_m: Opti
         d: (B,) float64 filtered divergence, 1/s (NaN allowed).
         m: (B,) float64 mass, kg.
         altitude_m: (B,) the filter's altitude estimate z_hat, m (``efference`` only).
-        estimate: (D_hat (B,) 1/s NaN = none, confidence (B,) in [0, 1]) of this step (``efference`` only).
+        estimate: (D_hat (B,) 1/s NaN = none, confidence (B,) in [0, 1]) of this step (``efference``,
+            ``efference_doubt``).
+        doubt: (B, 3) float64 the filter's ``FilterOut.doubt`` (``efference_doubt`` only).
 
     Returns:
-        (obs (B, 4) or (B, 7) float64, D* (B,) float64 1/s).
+        (obs (B, 4), (B, 7) or (B, 10) float64, D* (B,) float64 1/s).
     """
     o = p.options
     d_star = -1.0 / (p.tau0_s - p.c2 * t_s).clamp_min(o.tau_min_s)
     d0 = torch.nan_to_num(d, nan=0.0)
     hover = m * p.g_mps2 / o.thrust_high_n
     cols = [d0 / D_SCALE, d_star / D_SCALE, (d0 - d_star) / ERR_SCALE, hover]
-    if o.net.observation == "efference":
+    if o.net.observation in ("efference", "efference_doubt"):
         if altitude_m is None or estimate is None:
-            raise ValueError("controller.policy.observation=efference needs the filter's altitude and the "
-                             "estimate (fly it in the loop with controller.filter=efference_fit or efference)")
+            raise ValueError(f"controller.policy.observation={o.net.observation} needs the filter's altitude and "
+                             "the estimate (fly it in the loop with controller.filter=efference_fit"
+                             + (")" if o.net.observation == "efference_doubt" else " or efference)"))
         d_hat, conf = estimate
         d_hat = d_hat.to(d.dtype)
         ok = torch.isfinite(d_hat)
@@ -184,22 +196,30 @@ def policy_observation(p: LawParams, t_s, d: Tensor, m: Tensor, altitude_m: Opti
         cols += [torch.where(ok, d_hat, 0.0) / D_SCALE,
                  torch.where(ok, torch.nan_to_num(conf.to(d.dtype), nan=0.0), 0.0).clamp(0.0, 1.0),
                  torch.log(z / Z_REF_M)]
+    if o.net.observation == "efference_doubt":
+        if doubt is None:
+            raise ValueError("controller.policy.observation=efference_doubt needs the filter's doubt (fly it in the "
+                             "loop with controller.filter=efference_fit)")
+        doubt = doubt.to(d.dtype)
+        cols += [doubt[:, 0].clamp(-DOUBT_CLAMP, DOUBT_CLAMP), doubt[:, 1].clamp(-DOUBT_CLAMP, DOUBT_CLAMP),
+                 doubt[:, 2]]
     return torch.stack(cols, dim=1), d_star
 
 
 def policy_law_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
                     active: Optional[Tensor], altitude_m: Optional[Tensor] = None,
-                    estimate: Optional[Tuple[Tensor, Tensor]] = None) -> Tuple[HoldLastState, ControlOutput]:
+                    estimate: Optional[Tuple[Tensor, Tensor]] = None,
+                    doubt: Optional[Tensor] = None) -> Tuple[HoldLastState, ControlOutput]:
     """Pure step of ``policy``: (next state, :class:`ControlOutput`); inputs as for every law
     (t_s (B,) s, d_filtered (B,) 1/s NaN = none, mass_kg (B,) kg, active (B,) bool or None,
     altitude_m (B,) m the filter's z_hat), and ``estimate`` = (D_hat (B,) 1/s, confidence (B,))
-    for the ``efference`` observation. The command keeps its autograd graph to the network's
-    weights and the inputs."""
+    for the ``efference`` observations, and the filter's ``doubt`` (B, 3) for ``efference_doubt``. The
+    command keeps its autograd graph to the network's weights and the inputs."""
     d, m, mg, t_s = law_inputs(p, t_s, d_filtered, mass_kg)
     if not isinstance(t_s, Tensor):
         t_s = torch.full_like(d, float(t_s))
     o = p.options
-    obs, d_star = policy_observation(p, t_s, d, m, altitude_m, estimate)
+    obs, d_star = policy_observation(p, t_s, d, m, altitude_m, estimate, doubt)
     out = o.net(obs)
     if o.base is None:
         u = clamp_thrust(p, torch.sigmoid(out) * o.thrust_high_n)
@@ -225,7 +245,7 @@ class PolicyController(Controller):
         checkpoint: a policy checkpoint's path ('' = none).
         hidden: hidden units of an untrained network.
         tau_min_s: lowest TTC of the observed target, s.
-        observation: ``basic`` or ``efference`` (see the module doc).
+        observation: ``basic``, ``efference`` or ``efference_doubt`` (see the module doc).
         base: ``none`` or ``div_gs`` (a residual on div_gs).
         base_options: the base law's constants (``controller.div_gs`` as a dict; None = its defaults).
     """
@@ -260,9 +280,11 @@ class PolicyController(Controller):
         self.params = law_params(None, tau0, c2, g_mps2, thrust_min_n, thrust_max_n, missing_policy,
                                  PolicyOptions(net, high, float(tau_min_s), base_p))
         self.checkpoint = str(checkpoint)
-        #: the loop gives the law the filter's altitude / this step's (D_hat, confidence) when True
-        self.needs_altitude = observation == "efference" or base != "none"
-        self.needs_estimate = observation == "efference"
+        #: the loop gives the law the filter's altitude / this step's (D_hat, confidence) / the
+        #: filter's doubt (``FilterOut.doubt``) when True
+        self.needs_altitude = observation != "basic" or base != "none"
+        self.needs_estimate = observation != "basic"
+        self.needs_doubt = observation == "efference_doubt"
         self._template = self.init_state()
         self.state = self.init_state()
 
@@ -281,11 +303,12 @@ class PolicyController(Controller):
 
     def step_state(self, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
                    active: Optional[Tensor] = None, altitude_m: Optional[Tensor] = None,
-                   estimate: Optional[Tuple[Tensor, Tensor]] = None):
+                   estimate: Optional[Tuple[Tensor, Tensor]] = None, doubt: Optional[Tensor] = None):
         """Pure step (:func:`policy_law_step`)."""
         self._check(state)
-        return policy_law_step(self.params, state, t_s, d_filtered, mass_kg, active, altitude_m, estimate)
+        return policy_law_step(self.params, state, t_s, d_filtered, mass_kg, active, altitude_m, estimate, doubt)
 
 
 __all__ = ["PolicyNet", "PolicyOptions", "PolicyController", "policy_law_step", "policy_observation", "load_policy",
-           "checkpoint_observation_base", "POLICY_KIND", "D_SCALE", "ERR_SCALE", "Z_REF_M", "OBSERVATIONS", "BASES"]
+           "checkpoint_observation_base", "POLICY_KIND", "D_SCALE", "ERR_SCALE", "Z_REF_M", "DOUBT_CLAMP", "OBSERVATIONS",
+           "BASES"]
