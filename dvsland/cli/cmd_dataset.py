@@ -1,12 +1,15 @@
 """``dvsland dataset build CONFIG --n-seeds N --out DIR [--sites A,D] [--shard-size S]
 [--estimator NAME] [--workers K] [--compression gzip|lzf|none] [--max-shards M] [--set key=value ...]
-[--quiet]`` and ``dvsland dataset info DIR``: datasets of labelled event windows (docs/learning.md).
+[--quiet]``, ``dvsland dataset zoom CONFIG --n-descents N --out DIR [--steps K] [--d-range LO,HI]
+[--z-range LO,HI] [--seed S] [--shard-size S]`` and ``dvsland dataset info DIR``: datasets of labelled
+event windows (docs/learning.md).
 
 ``build`` flies dispersed descents through the closed loop (by default with the ``oracle``
 estimator: the configured law and filter flown on the true divergence) and writes one sample per
 control step and descent (the events since the previous step, with the true D, tau, z, v) into
 resumable HDF5 shards and a manifest; the same command again resumes an interrupted build.
-``info`` prints a folder's shards, samples, bytes per sample and samples per split.
+``zoom`` writes the same kind of dataset from procedural textures zoomed at known divergences over
+a wide range (:mod:`dvsland.data.zoom`), through the config's pixel. ``info`` prints a folder's shards, samples, bytes per sample and samples per split.
 """
 
 from __future__ import annotations
@@ -38,6 +41,23 @@ def register(subparsers) -> None:
     b.add_argument("--compression", default="gzip", choices=("gzip", "lzf", "none"), help="HDF5 compression")
     b.add_argument("--max-shards", type=ranged(int, 1, 1_000_000, "--max-shards"), default=None, metavar="M", help="build at most M missing shards")
     b.set_defaults(func=run_build)
+    z = sub.add_parser("zoom", help="event windows of procedural textures zoomed at known divergences",
+                       description="Render a new procedural texture per descent (renderer 'textures': 1/f fields and "
+                                   "sharp ellipses, none of the terrains), zoom it at a divergence going linearly from "
+                                   "D0 to D1 (|D| log-uniform in --d-range), turn the frames into events through "
+                                   "CONFIG's emulator, and write one sample per step and descent, in the format of "
+                                   "'dataset build' (train with --data DIR). The same command again resumes.")
+    add_config_args(z)
+    z.add_argument("--n-descents", type=ranged(int, 1, 10_000_000, "--n-descents"), required=True, metavar="N")
+    z.add_argument("--steps", type=ranged(int, 2, 100_000, "--steps"), default=40, metavar="K",
+                   help="control steps per descent (default 40)")
+    z.add_argument("--d-range", default="0.004,0.6", metavar="LO,HI", help="|D| range, 1/s (default 0.004,0.6)")
+    z.add_argument("--z-range", default="150,6000", metavar="LO,HI", help="start altitude range, m (default 150,6000)")
+    z.add_argument("--seed", type=ranged(int, 0, 2 ** 31 - 1, "--seed"), default=0, metavar="S")
+    z.add_argument("--shard-size", type=ranged(int, 1, 100_000, "--shard-size"), default=50, metavar="S",
+                   help="descents per shard (default 50)")
+    z.add_argument("--compression", default="gzip", choices=("gzip", "lzf", "none"), help="HDF5 compression")
+    z.set_defaults(func=run_zoom)
     i = sub.add_parser("info", help="shards, samples, bytes per sample and split sizes of a dataset folder")
     i.add_argument("folder", metavar="DIR")
     i.set_defaults(func=run_info)
@@ -72,6 +92,29 @@ def run_build(args) -> int:
     print(f"{res.status}: {n_done}/{res.n_shards} shards ({res.n_shards_built} built now: "
           f"{res.n_samples_built} samples in {res.seconds:.1f} s{rate}{bps}) -> {res.root}")
     return 0 if res.status == "complete" else 1
+
+
+def _pair(text: str, param: str) -> tuple:
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"{param} must be two numbers LO,HI, got {text!r}") from None
+    return lo, hi
+
+
+def run_zoom(args) -> int:
+    from dvsland.data.zoom import ZoomRequest, build_zoom_dataset
+
+    if args.out is None:
+        raise ValueError("dvsland dataset zoom: --out DIR is required (the dataset folder; the same DIR resumes)")
+    (d_lo, d_hi), (z_lo, z_hi) = _pair(args.d_range, "--d-range"), _pair(args.z_range, "--z-range")
+    req = ZoomRequest(n_descents=args.n_descents, steps=args.steps, d_min=d_lo, d_max=d_hi, z_min=z_lo, z_max=z_hi,
+                      seed=args.seed, shard_size=args.shard_size)
+    m = build_zoom_dataset(config_from_args(args), req, args.out, quiet=args.quiet,
+                           compression=None if args.compression == "none" else args.compression)
+    n = sum(e.get("n_samples", 0) for e in m["shards"])
+    print(f"complete: {len(m['shards'])} shards, {n} samples -> {args.out}")
+    return 0
 
 
 def run_info(args) -> int:

@@ -4,6 +4,7 @@ Public names: :class:`Renderer` (interface), :func:`get_renderer`, :func:`availa
 :func:`register_renderer`, :class:`FastRenderer`.
 
 ``"fast"``: batched torch renderer over prepared levels of detail (:mod:`dvsland.render.fast`).
+``"textures"``: procedural scale-free ground that is none of the terrains (:mod:`dvsland.render.textures`).
 ``"pyrender"``: the 3-D reference (:mod:`dvsland.render.pyrender_ref`), imported lazily because
 importing pyrender sets OpenGL environment variables.
 """
@@ -16,8 +17,9 @@ from dvsland.config import CameraConfig, RenderConfig
 
 from .base import Renderer
 from .fast import FastRenderer
+from .textures import TextureRenderer
 
-_REGISTRY: Dict[str, Callable] = {"fast": FastRenderer}
+_REGISTRY: Dict[str, Callable] = {"fast": FastRenderer, "textures": TextureRenderer}
 _LAZY = {"pyrender": ("dvsland.render.pyrender_ref", "PyrenderRenderer")}
 
 
@@ -48,4 +50,4 @@ def get_renderer(name: str, site_names: Sequence[str], camera: Optional[CameraCo
     return _REGISTRY[name](site_names, camera, render, device=device, **kwargs)
 
 
-__all__ = ["Renderer", "FastRenderer", "get_renderer", "available_renderers", "register_renderer"]
+__all__ = ["Renderer", "FastRenderer", "TextureRenderer", "get_renderer", "available_renderers", "register_renderer"]
