@@ -1,5 +1,6 @@
 """Generalisation check of divergence estimators on a scene that is not a terrain: random textures
-(:class:`dvsland.evaluate.ZoomTextureFrames`) zoomed at a known constant divergence, through the
+(:class:`dvsland.evaluate.ZoomTextureFrames`, or with ``--scene textures`` the procedural ground of
+the ``textures`` renderer) zoomed at a known constant divergence, through the
 config's emulator, and each estimator's median |relative error| and time per update.
 
     python scripts/measure_learned_zoom.py --estimators learned,learned[checkpoint=spiking],cmax,snn \
@@ -7,6 +8,11 @@ config's emulator, and each estimator's median |relative error| and time per upd
 
 B textures per divergence (seeded); the descent starts at --z0 m and follows z = z0 exp(D t);
 the first --warmup steps are not scored. One torch thread.
+
+The textures are resolved to a finite texel (about 12 m), so a faster zoom from the same --z0 also
+flies lower, onto blurrier ground with fewer events: the divergences are then not compared on the
+same scene. ``--z-mid M`` starts each divergence where its scored steps are centred on altitude M
+(z0 = M exp(-D t_mid)), so that every divergence sees the textures at the same scales.
 
 Any camera of the config (``--set camera.sensor=davis346``); an off-centre principal point
 (``--set "camera.principal_point_px=[140.5,150.5]"``) is recorded as the dataset build records it
@@ -18,15 +24,21 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 
 import torch
 
 
-def _frames(cam, d: float, B: int, steps: int, z0: float, seed: int):
-    from dvsland.evaluate import ZoomTextureFrames
+def _frames(cam, d: float, B: int, steps: int, z0: float, seed: int, scene: str = "blobs"):
+    if scene == "textures":  # the renderer's procedural ground (dvsland.render.textures): no texel limit
+        from dvsland.render import TextureRenderer
 
-    src = ZoomTextureFrames(B, (cam.width_px, cam.height_px), cam.fov_deg, seed=seed)
+        src = TextureRenderer([f"A~{i + 1}" for i in range(B)], cam, seed=seed).render
+    else:
+        from dvsland.evaluate import ZoomTextureFrames
+
+        src = ZoomTextureFrames(B, (cam.width_px, cam.height_px), cam.fov_deg, seed=seed)
     idx = torch.arange(B)
     return [src(torch.full((B,), z0 * float(torch.exp(torch.tensor(d * 0.1 * k)))), idx) for k in range(steps + 1)]
 
@@ -98,7 +110,12 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--warmup", type=int, default=10)
     ap.add_argument("--z0", type=float, default=1000.0)
+    ap.add_argument("--z-mid", type=float, default=None, metavar="M",
+                    help="start each divergence so that its scored steps are centred on altitude M, m (instead of --z0)")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--scene", choices=("blobs", "textures"), default="blobs",
+                    help="blobs: dvsland.evaluate.ZoomTextureFrames (random blobs, ~12 m texels); textures: the "
+                         "'textures' renderer (1/f fields and ellipses, every scale resolved)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -110,10 +127,13 @@ def main(argv=None) -> int:
     cam, crop = recording_camera(cfg.camera)
     rows = []
     for d in (float(v) for v in a.d.split(",")):
-        events = _events(cfg, _frames(cam, d, a.batch, a.steps, a.z0, a.seed), crop)
+        t_mid = 0.1 * (a.warmup + 1 + a.steps) / 2  # s: the middle of the scored steps
+        z0 = a.z0 if a.z_mid is None else a.z_mid * math.exp(-d * t_mid)
+        events = _events(cfg, _frames(cam, d, a.batch, a.steps, z0, a.seed, a.scene), crop)
         for spec in a.estimators.split(","):
             r = _run(load_config(a.config, a.set), spec, events, a.batch, d, a.warmup)
             rows.append(r)
+            r["z0_m"] = z0
             print(f"D = {d:+.2f} 1/s  {spec:32s} median |rel err| {100 * r['median_rel_error']:6.2f} %  "
                   f"finite {100 * r['finite_share']:5.1f} %  {r['ms_per_update_wall']:6.2f} ms wall "
                   f"{r['ms_per_update_cpu']:6.2f} ms CPU per update (B = {a.batch})"

@@ -306,6 +306,8 @@ class LearnedConfig:
     checkpoint: str = opt("", "checkpoint of `dvsland train --model ...`; empty or 'cnn' = the shipped CNN, "
                               "'cnn_realistic' = the shipped CNN fine-tuned through the realistic pixel too, "
                               "'cnn_landing' = the shipped CNN fine-tuned on the landing loss in the closed loop, "
+                              "'cnn_wide' = the shipped CNN fine-tuned through both pixels on terrains and on "
+                              "procedural textures zoomed at |D| up to 0.6 1/s (dvsland dataset zoom), "
                               "'spiking' = the shipped spiking model")
     min_events: int = opt(20, "windows with fewer events give no estimate (NaN)", rng=(1, 1000000000))
 

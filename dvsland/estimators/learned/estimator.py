@@ -43,6 +43,7 @@ from .inputs import InputSpec, camera_map, coord_channels, events_voxel_grid, pi
 SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"),
            "cnn_realistic": Path(__file__).with_name("learned_cnn_realistic.pt"),
            "cnn_landing": Path(__file__).with_name("learned_cnn_landing.pt"),
+           "cnn_wide": Path(__file__).with_name("learned_cnn_wide.pt"),
            "spiking": Path(__file__).with_name("learned_spiking.pt")}
 
 
