@@ -159,11 +159,11 @@ def test_an_untrained_residual_flies_div_gs_bit_for_bit():
 
 
 # ------------------------------------------------------------------ gradients
-@pytest.mark.parametrize("base", ["none", "div_gs"])
-def test_a_gradient_reaches_the_new_inputs_weights(base):
-    st = _stages(EFF + [f"controller.policy.base={base}"])
+def _first_layer_grad(extra, open_output: bool):
+    """The gradient of the first layer's weights after 10 closed-loop steps of a toy loss."""
+    st = _stages(extra)
     tr = make_trainable(st, "policy")
-    if base == "div_gs":  # the residual's output layer starts at 0: open it so the first layer sees a gradient
+    if open_output:  # the residual's output layer starts at 0: open it so the first layer sees a gradient
         with torch.no_grad():
             tr.net.net[2].weight.fill_(0.05)
     tr.apply(st.controller)
@@ -174,11 +174,16 @@ def test_a_gradient_reaches_the_new_inputs_weights(base):
         s, out = loop_step(st, s, grad=True)
         loss = loss + out.thrust_n.sum() * 1e-4 + (s.v_mps ** 2).sum() * 1e-3
     loss.backward()
-    g = tr.net.net[0].weight.grad
+    assert float(tr.net.net[2].weight.grad.abs().max()) > 0.0
+    return tr.net.net[0].weight.grad
+
+
+@pytest.mark.parametrize("base", ["none", "div_gs"])
+def test_a_gradient_reaches_the_new_inputs_weights(base):
+    g = _first_layer_grad(EFF + [f"controller.policy.base={base}"], base == "div_gs")
     assert g is not None and torch.isfinite(g).all()
     for col in (4, 5, 6):  # D_hat, confidence, ln z_hat
         assert float(g[:, col].abs().max()) > 0.0, col
-    assert float(tr.net.net[2].weight.grad.abs().max()) > 0.0
 
 
 # ------------------------------------------------------------------ the track_gs loss term
@@ -256,19 +261,7 @@ def test_the_loop_hands_the_doubt_to_the_policy_and_other_filters_are_refused():
 
 
 def test_a_gradient_reaches_the_doubt_inputs_weights():
-    st = _stages(DOUBT + ["controller.policy.base=div_gs"])
-    tr = make_trainable(st, "policy")
-    with torch.no_grad():
-        tr.net.net[2].weight.fill_(0.05)
-    tr.apply(st.controller)
-    with torch.no_grad():
-        s, _ = fly_steps(st, init_state(st), 20)
-    loss = 0.0
-    for _ in range(10):
-        s, out = loop_step(st, s, grad=True)
-        loss = loss + out.thrust_n.sum() * 1e-4 + (s.v_mps ** 2).sum() * 1e-3
-    loss.backward()
-    g = tr.net.net[0].weight.grad
+    g = _first_layer_grad(DOUBT + ["controller.policy.base=div_gs"], True)
     assert g is not None and torch.isfinite(g).all() and g.shape[1] == 10
     for col in (7, 8):  # the offsets (the rejected share may be 0 throughout on an oracle)
         assert float(g[:, col].abs().max()) > 0.0, col
