@@ -24,8 +24,9 @@ B = 3  # descents per batch: the seeds of one window kind run side by side
 #: (name, extra params): every shipped estimator that takes events, both shipped learned models
 SHIPPED = [("cmax", {}), ("dpr", {}), ("dpr", {"baseline_steps": 5}), ("snn", {}), ("learned", {}),
            ("learned", {"checkpoint": "spiking"}), ("learned", {"checkpoint": "cnn_landing"}),
-           ("learned", {"checkpoint": "cnn_wide"})]
-IDS = ["cmax", "dpr", "dpr5", "snn", "learned-cnn", "learned-spiking", "learned-cnn-landing", "learned-cnn-wide"]
+           ("learned", {"checkpoint": "cnn_wide"}), ("learned", {"checkpoint": "cnn_dagger"})]
+IDS = ["cmax", "dpr", "dpr5", "snn", "learned-cnn", "learned-spiking", "learned-cnn-landing", "learned-cnn-wide",
+       "learned-cnn-dagger"]
 
 
 def build(name: str, extra: dict, batch: int = B, cfg=None) -> DivergenceEstimator:

@@ -308,6 +308,8 @@ class LearnedConfig:
                               "'cnn_landing' = the shipped CNN fine-tuned on the landing loss in the closed loop, "
                               "'cnn_wide' = the shipped CNN fine-tuned through both pixels on terrains and on "
                               "procedural textures zoomed at |D| up to 0.6 1/s (dvsland dataset zoom), "
+                              "'cnn_dagger' = cnn_wide trained on its own closed-loop flights through the realistic "
+                              "pixel (two rounds), "
                               "'spiking' = the shipped spiking model")
     min_events: int = opt(20, "windows with fewer events give no estimate (NaN)", rng=(1, 1000000000))
 

@@ -44,6 +44,7 @@ SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"),
            "cnn_realistic": Path(__file__).with_name("learned_cnn_realistic.pt"),
            "cnn_landing": Path(__file__).with_name("learned_cnn_landing.pt"),
            "cnn_wide": Path(__file__).with_name("learned_cnn_wide.pt"),
+           "cnn_dagger": Path(__file__).with_name("learned_cnn_dagger.pt"),
            "spiking": Path(__file__).with_name("learned_spiking.pt")}
 
 
