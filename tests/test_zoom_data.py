@@ -87,7 +87,7 @@ def test_deterministic_and_resumes(built, tmp_path, cfg):
     build_zoom_dataset(cfg, REQ, again)  # rebuilds the missing shard, keeps the other
     assert (again / "shards" / "z000000.h5").stat().st_mtime_ns == before
     np.testing.assert_array_equal(_shards(again)[1]["samples"]["d_true"], _shards(built)[1]["samples"]["d_true"])
-    with pytest.raises(ValueError, match="another dataset"):
+    with pytest.raises(ValueError, match="holds a dataset of another request"):
         build_zoom_dataset(cfg, REQ._replace(seed=8), again)
 
 
@@ -111,3 +111,11 @@ def test_cli(tmp_path, capsys):
     assert main(["dataset", "zoom", "--n-descents", "2", "--out", str(tmp_path / "y"), "--d-range", "fast"]) == 2
     assert "--d-range must be two numbers" in capsys.readouterr().err
     assert math.isfinite(float(d[0]))
+
+
+def test_a_folder_of_other_files_is_refused_and_left_alone(tmp_path, cfg):
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep me")
+    with pytest.raises(ValueError, match="not a dataset"):
+        build_zoom_dataset(cfg, REQ, tmp_path / "mine")
+    assert sorted(p.name for p in (tmp_path / "mine").iterdir()) == ["notes.txt"]

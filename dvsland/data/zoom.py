@@ -26,7 +26,6 @@ command again resumes (complete shards are kept).
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import time
@@ -39,8 +38,8 @@ import torch
 from dvsland import __version__
 from dvsland.config import Config
 
-from .manifest import SHARDS_DIR, config_hash, load_manifest, save_manifest, shard_file
-from .shardfile import DESCENT_FIELDS, SAMPLE_FIELDS, ShardError, ShardWriter, read_index
+from .manifest import SHARDS_DIR, config_hash, save_manifest, shard_file
+from .shardfile import DESCENT_FIELDS, SAMPLE_FIELDS, ShardWriter
 
 #: terrain variants of the split rule (test 0, val 4, train 1-3)
 N_VARIANTS = 5
@@ -121,7 +120,7 @@ def _samples(ev, k: int, dt_s: float, prof: dict) -> tuple:
     return events, counts, {f: np.asarray(s[f], dtype=SAMPLE_FIELDS[f][0]) for f in SAMPLE_FIELDS}
 
 
-def _descents(first: int, prof: dict, dt_s: float) -> Dict[str, np.ndarray]:
+def _descents(first: int, prof: dict) -> Dict[str, np.ndarray]:
     n = prof["d"].shape[0]
     idx = np.arange(first, first + n)
     nan = np.full(n, np.nan)
@@ -152,7 +151,7 @@ def build_zoom_shard(cfg: Config, req: ZoomRequest, first: int, n: int, path, at
         for k in range(1, req.steps + 1):
             ev = emu.step(rend.render(torch.as_tensor(prof["z"][:, k]), idx), int(round(k * dt_s * 1e6)))
             writer.append(*_samples(ev.to("cpu"), k, dt_s, prof))
-        writer.finish(_descents(first, prof, dt_s))
+        writer.finish(_descents(first, prof))
     except BaseException:
         writer.abort()
         raise
@@ -175,55 +174,44 @@ def _manifest(cfg: Config, req: ZoomRequest) -> dict:
             "dvsland_version": __version__, "source": "zoom_textures", "shards": shards}
 
 
-def _complete(root: Path, entry: dict) -> bool:
-    try:
-        return entry.get("status") == "complete" and read_index(root / entry["file"]) is not None
-    except ShardError:
-        return False
-
-
 def build_zoom_dataset(cfg: Config, req: ZoomRequest, out, quiet: bool = True,
                        compression: Optional[str] = "gzip") -> dict:
-    """Build (or resume) a zoom dataset (module doc) in folder ``out``; returns its manifest.
+    """Build (or resume) a zoom dataset (module doc) in folder ``out``; returns its manifest. The folder
+    is handled as ``dataset build`` handles its own (:func:`dvsland.data.build.build_dataset`: a
+    folder of other files or of another request refused, a lock, config.yaml, damaged entries and
+    shards rebuilt).
 
     Raises:
-        ValueError: a field of ``req`` out of range (named); ``out`` holding another dataset.
+        ValueError: a field of ``req`` out of range (named); ``out`` holding other files or another
+            request (naming what differs).
     """
     from dvsland.runs import open_folder
 
+    from .build import _open_folder, _shard_ok
+
     req = req.check()
     root = open_folder(out, "--out", create=False)
-    cfg = copy.deepcopy(cfg)
     fresh = _manifest(cfg, req)
-    old = load_manifest(root, "--out", check_entries=False) if (root / "dataset.json").is_file() else None
-    if old is not None and old.get("config_hash") != fresh["config_hash"]:
-        raise ValueError(f"--out {str(root)!r} holds another dataset (config hash {old.get('config_hash')} there, "
-                         f"{fresh['config_hash']} now); use another folder")
-    manifest = fresh if old is None else old
-    (root / SHARDS_DIR).mkdir(parents=True, exist_ok=True)
-    (root / "config.yaml").write_text(_yaml(fresh["config"]))  # what the shards were made with
-    save_manifest(root, manifest)
-    attrs = {"sensor_size": fresh["sensor_size"], "principal_point_px": fresh["principal_point_px"],
-             "focal_px": fresh["focal_px"], "dt_s": fresh["dt_s"], "n_seeds": 0, "config_hash": fresh["config_hash"],
-             "estimator": "oracle"}
-    for e in manifest["shards"]:
-        if _complete(root, e):
-            continue
-        entry = build_zoom_shard(cfg, req, e["seed_offset"], e["n_seeds"], shard_file(root, e["id"]),
-                                 {**attrs, "shard_id": e["id"], "seed_offset": e["seed_offset"],
-                                  "n_seeds": e["n_seeds"]}, compression)
-        e.update(entry, status="complete")
-        save_manifest(root, manifest)
-        if not quiet:
-            print(f"shard {e['id']}: {entry['n_descents']} descents, {entry['n_samples']} samples, "
-                  f"{entry['n_events']} events, {entry['seconds']:.1f} s", flush=True)
+    manifest, lock = _open_folder(root, fresh, cfg)
+    try:
+        attrs = {"sensor_size": fresh["sensor_size"], "principal_point_px": fresh["principal_point_px"],
+                 "focal_px": fresh["focal_px"], "dt_s": fresh["dt_s"], "config_hash": fresh["config_hash"],
+                 "estimator": "oracle"}
+        for e in manifest["shards"]:
+            if _shard_ok(root, e, quiet):
+                continue
+            entry = build_zoom_shard(cfg, req, e["seed_offset"], e["n_seeds"], shard_file(root, e["id"]),
+                                     {**attrs, "shard_id": e["id"], "seed_offset": e["seed_offset"],
+                                      "n_seeds": e["n_seeds"]}, compression)
+            e.update(entry, status="complete")
+            save_manifest(root, manifest)
+            if not quiet:
+                print(f"shard {e['id']}: {entry['n_descents']} descents, {entry['n_samples']} samples, "
+                      f"{entry['n_events']} events, {entry['seconds']:.1f} s", flush=True)
+    finally:
+        if lock is not None:
+            lock.close()
     return manifest
-
-
-def _yaml(d: dict) -> str:
-    import yaml
-
-    return yaml.safe_dump(d, sort_keys=False)
 
 
 __all__ = ["ZoomRequest", "build_zoom_dataset", "build_zoom_shard", "descent_profiles", "N_VARIANTS"]
