@@ -185,3 +185,81 @@ def test_site_variant_renders_differently():
     f = r.render(torch.tensor([300.0, 300.0]), torch.tensor([0, 1]))
     assert torch.isfinite(f).all() and (f > 0).all()
     assert not torch.allclose(f[0], f[1])
+
+
+# ------------------------------------------------------------------ noise and stamps against plain references
+def _perlin_plain(x, y, seed):
+    """Gradient noise written the plain way (int64 lattice, the permutation table indexed, then the
+    gradient table): the reference of :func:`dvsland.terrain.noise.perlin`."""
+    import numpy as np
+
+    from dvsland.terrain.noise import _GRAD, _PERIOD, _fade
+
+    p = np.random.default_rng([0x5EED, int(seed) & 0xFFFFFFFF]).permutation(_PERIOD)
+    perm = torch.from_numpy(np.concatenate([p, p]).astype(np.int64))
+    x0, y0 = torch.floor(x), torch.floor(y)
+    fx, fy = (x - x0).to(torch.float32), (y - y0).to(torch.float32)
+    ix, iy = x0.to(torch.int64) & (_PERIOD - 1), y0.to(torch.int64) & (_PERIOD - 1)
+
+    def corner(px, dx, dy):
+        k = perm[px + iy + dy] & 15
+        return _GRAD[k, 0] * (fx - dx) + _GRAD[k, 1] * (fy - dy)
+
+    u, v = _fade(fx), _fade(fy)
+    n0 = torch.lerp(corner(perm[ix], 0, 0), corner(perm[ix + 1], 1, 0), u)
+    n1 = torch.lerp(corner(perm[ix], 0, 1), corner(perm[ix + 1], 1, 1), u)
+    return torch.lerp(n0, n1, v)
+
+
+@pytest.mark.parametrize("scale", [3.0, 300.0, 2.0e6])
+def test_perlin_equals_plain_reference(scale):
+    from dvsland.terrain.noise import perlin
+
+    g = torch.Generator().manual_seed(int(scale))
+    x = (torch.rand(64, 48, dtype=torch.float64, generator=g) - 0.5) * scale
+    y = (torch.rand(64, 48, dtype=torch.float64, generator=g) - 0.5) * scale
+    out = perlin(x, y, 4242)
+    assert out.dtype == torch.float32 and out.shape == (64, 48)
+    assert torch.equal(out, _perlin_plain(x, y, 4242))
+
+
+def test_perlin_refuses_points_beyond_int32_lattice():
+    from dvsland.terrain.noise import perlin
+
+    far = torch.tensor([3.0e9], dtype=torch.float64)
+    with pytest.raises(ValueError, match="2\\^31"):
+        perlin(far, far * 0, 1)
+
+
+def test_stamp_equals_whole_patch_evaluation():
+    """Stamps evaluate the profile only inside the reach: the same sums as evaluating whole
+    patches and masking (the former way), bit for bit."""
+    from dvsland.terrain.features import crater_profile
+    from dvsland.terrain.grid import Grid
+    from dvsland.terrain.stamp import stamp
+
+    grid = Grid.centered((3.0, -2.0), 40, 50, 0.5, angle_rad=0.3)
+    g = torch.Generator().manual_seed(5)
+    m = 30
+    x, y = (torch.rand(m, dtype=torch.float64, generator=g) - 0.5) * 30, (torch.rand(m, generator=g,
+                                                                             dtype=torch.float64) - 0.5) * 30
+    d = 0.5 + 6 * torch.rand(m, dtype=torch.float64, generator=g)
+    fresh, w = torch.rand(m, dtype=torch.float64, generator=g), torch.rand(m, dtype=torch.float64, generator=g)
+
+    def fn(r, dd, f):
+        return crater_profile(r, dd, f, 0.2, 0.04), r * f
+
+    out = [torch.zeros(40 * 50, dtype=torch.float64), torch.zeros(40 * 50, dtype=torch.float64)]
+    stamp(out, grid, x, y, d, fresh, w, 2.0, fn)
+    ref = [torch.zeros(40 * 50, dtype=torch.float64), torch.zeros(40 * 50, dtype=torch.float64)]
+    ci, cj = grid.texel(x, y)
+    ii = torch.arange(40, dtype=torch.float64)[:, None]
+    jj = torch.arange(50, dtype=torch.float64)[None, :]
+    for k in range(m):  # one feature at a time over the whole grid (in the stamps' order of features)
+        r = 0.5 * torch.sqrt((ii - ci[k]) ** 2 + (jj - cj[k]) ** 2) / (0.5 * d[k])
+        inside = r < 2.0
+        for o, v in zip(ref, fn(r[inside], d[k].expand(int(inside.sum())), fresh[k].expand(int(inside.sum())))):
+            o.view(40, 50)[inside] += v * w[k]
+    for o, r_ in zip(out, ref):
+        assert torch.allclose(o, r_, rtol=1e-12, atol=1e-12)
+    assert out[0].abs().sum() > 0

@@ -18,12 +18,16 @@ _GRAD = torch.stack([torch.cos(_ANG), torch.sin(_ANG)], dim=-1).to(torch.float32
 _PERMS: dict = {}
 
 
-def _perm(seed: int) -> torch.Tensor:
-    """Seeded permutation table of the lattice, (2 * _PERIOD,) int64 (numpy PCG64, cached)."""
+def _tables(seed: int):
+    """(perm (2 P,) int32, gx (2 P,) float32, gy (2 P,) float32) of ``seed``'s lattice, cached: the
+    permutation table and the gradient of the cell each of its entries names (``_GRAD[perm & 15]``),
+    so that a corner's gradient is one look-up (P = the lattice period)."""
     t = _PERMS.get(seed)
     if t is None:
         p = np.random.default_rng([0x5EED, int(seed) & 0xFFFFFFFF]).permutation(_PERIOD)
-        t = torch.from_numpy(np.concatenate([p, p]).astype(np.int64))
+        perm = torch.from_numpy(np.concatenate([p, p]).astype(np.int64))
+        g = _GRAD.index_select(0, perm & 15)
+        t = (perm.to(torch.int32), g[:, 0].contiguous(), g[:, 1].contiguous())
         _PERMS[seed] = t
     return t
 
@@ -33,29 +37,34 @@ def _fade(t: torch.Tensor) -> torch.Tensor:
 
 
 def perlin(x: torch.Tensor, y: torch.Tensor, seed: int) -> torch.Tensor:
-    """Gradient noise at lattice coordinates (x, y) (float64, any shape) -> float32, about [-0.7, 0.7]."""
+    """Gradient noise at lattice coordinates (x, y) (float64, any shape) -> float32, about [-0.7, 0.7].
+
+    Integer work in int32 and flat ``index_select`` look-ups (a third of the passes of indexing
+    ``perm`` and then the gradient table per corner; the same values bit for bit)."""
+    shape = x.shape
     x0 = torch.floor(x)
     y0 = torch.floor(y)
-    fx = (x - x0).to(torch.float32)  # fractions in float32: 4x less memory traffic
-    fy = (y - y0).to(torch.float32)
+    fx = (x - x0).to(torch.float32).reshape(-1)  # fractions in float32: 4x less memory traffic
+    fy = (y - y0).to(torch.float32).reshape(-1)
     m = _PERIOD - 1
-    ix = x0.to(torch.int64) & m
-    iy = y0.to(torch.int64) & m
-    perm = _perm(seed).to(x.device)
-    gx = _GRAD[:, 0].to(x.device)
-    gy = _GRAD[:, 1].to(x.device)
-    px0 = perm[ix]
-    px1 = perm[ix + 1]
+    if x0.numel() and max(float(x0.abs().max()), float(y0.abs().max())) >= 2.0 ** 31:
+        raise ValueError("perlin: lattice coordinates must lie within +-2^31 cells (a point too far away, "
+                         "or a wavelength too small for it)")
+    ix = x0.to(torch.int32).bitwise_and_(m).reshape(-1)  # exact below 2^31 cells (checked above)
+    iy = y0.to(torch.int32).bitwise_and_(m).reshape(-1)
+    perm, gxt, gyt = (t.to(x.device) for t in _tables(seed))
+    fx1, fy1 = fx - 1, fy - 1
 
-    def corner(px: torch.Tensor, dx: int, dy: int) -> torch.Tensor:
-        k = perm[px + iy + dy] & 15
-        return gx[k] * (fx - dx) + gy[k] * (fy - dy)
+    def corner(i: torch.Tensor, ax: torch.Tensor, ay: torch.Tensor) -> torch.Tensor:
+        # the gradient of lattice corner perm[i] dotted with the offset (ax, ay) from it
+        return gxt.index_select(0, i) * ax + gyt.index_select(0, i) * ay
 
+    j0 = perm.index_select(0, ix).add_(iy)  # perm[ix] + iy: corner (0, 0); + 1 for (0, 1)
+    j1 = perm.index_select(0, ix.add_(1)).add_(iy)  # perm[ix + 1] + iy: corner (1, 0)
     u = _fade(fx)
-    v = _fade(fy)
-    n0 = torch.lerp(corner(px0, 0, 0), corner(px1, 1, 0), u)
-    n1 = torch.lerp(corner(px0, 0, 1), corner(px1, 1, 1), u)
-    return torch.lerp(n0, n1, v)
+    n0 = torch.lerp(corner(j0, fx, fy), corner(j1, fx1, fy), u)
+    n1 = torch.lerp(corner(j0.add_(1), fx, fy1), corner(j1.add_(1), fx1, fy1), u)
+    return torch.lerp(n0, n1, _fade(fy)).view(shape)
 
 
 def band_weight(size_over_texel: torch.Tensor | float, lo: float, hi: float):

@@ -24,8 +24,9 @@ def stamp(outs: Sequence[torch.Tensor], grid: Grid, x_m: torch.Tensor, y_m: torc
         grid: the sampling grid.
         x_m, y_m, d_m, fresh, weight: (M,) float64 feature centre, diameter, freshness, weight.
         reach: influence radius in units of the radius D/2 (the profile is 0 beyond it).
-        fn: ``fn(r, d_m, fresh) -> tuple of tensors`` (one per field), r = distance / (D/2),
-            broadcasting (M, P, P) with (M, 1, 1).
+        fn: ``fn(r, d_m, fresh) -> tuple of tensors`` (one per field), elementwise: r = distance /
+            (D/2) (K,) float64 at the K texels within ``reach``, with each one's feature's d_m and
+            fresh (K,).
     """
     if d_m.numel() == 0:
         return
@@ -58,11 +59,23 @@ def stamp(outs: Sequence[torch.Tensor], grid: Grid, x_m: torch.Tensor, y_m: torc
             ii = i0[:, None, None] + ar_r[None, :, None]
             jj = j0[:, None, None] + ar_c[None, None, :]
             dist = s * torch.sqrt((ii - fi[:, None, None]) ** 2 + (jj - fj[:, None, None]) ** 2)
-            dd = d_m[idx][:, None, None]
-            r = dist / (0.5 * dd)
-            mask = r < reach
-            flat = (ii * nc + jj).expand_as(r)[mask]
-            vals = fn(r, dd, fresh[idx][:, None, None])
-            w = weight[idx][:, None, None]
-            for out, v in zip(outs, vals):
-                out.index_add_(0, flat, (v * w).expand_as(r)[mask])
+            r = dist / (0.5 * d_m[idx][:, None, None])
+            _stamp_inside(outs, fn, r, reach, idx, i0, j0, nc, d_m, fresh, weight)
+
+
+def _stamp_inside(outs, fn, r: torch.Tensor, reach: float, idx, i0, j0, n_cols: int, d_m, fresh, weight) -> None:
+    """Evaluate ``fn`` only at the texels of the patches ``r`` (M, wr, wc) float64 that lie within
+    ``reach`` and add them into ``outs`` (the same values, element by element, as evaluating the whole
+    patches and masking). idx (M,): the features' entries in d_m, fresh, weight; i0, j0 (M,) int64:
+    the patches' first row and column."""
+    m, wr, wc = r.shape
+    sel = (r < reach).view(-1).nonzero().squeeze(1)  # flat (feature, row, col) of the texels inside
+    feat = sel // (wr * wc)
+    rem = sel - feat * (wr * wc)
+    row = rem // wc
+    flat = (i0.index_select(0, feat) + row) * n_cols + j0.index_select(0, feat) + (rem - row * wc)
+    f_idx = idx.index_select(0, feat)
+    vals = fn(r.view(-1).index_select(0, sel), d_m.index_select(0, f_idx), fresh.index_select(0, f_idx))
+    w = weight.index_select(0, f_idx)
+    for out, v in zip(outs, vals):
+        out.index_add_(0, flat, v * w)
