@@ -29,6 +29,16 @@ def _gaussian_kernels(k: int, sigma_px: float, device: str, dtype: torch.dtype):
             kornia.filters.get_gaussian_kernel1d(k, sigma[:, 0].view(1, 1)))
 
 
+def _blur_depthwise(img: torch.Tensor, kx: torch.Tensor, ky: torch.Tensor) -> torch.Tensor:
+    """Separable blur of ``img`` (B, H, W) float32 with 1-d kernels kx, ky (1, k), zero border:
+    rows then columns, the B images as the B channels of a grouped convolution -> (B, H, W)."""
+    B = img.shape[0]
+    k = kx.shape[-1]
+    x = img.unsqueeze(0)
+    h = F.conv2d(x, kx.view(1, 1, 1, k).expand(B, 1, 1, k), padding=(0, k // 2), groups=B)
+    return F.conv2d(h, ky.view(1, 1, k, 1).expand(B, 1, k, 1), padding=(k // 2, 0), groups=B)[0]
+
+
 def _max_filter(x: torch.Tensor, k: int) -> torch.Tensor:
     """k x k running maximum of x (B, H, W), -inf outside: the same values as
     ``F.max_pool2d(x, k, stride=1, padding=k // 2)`` (max is exact), as separable shifted
@@ -75,10 +85,11 @@ def density_peaks(image: torch.Tensor, n_max: int, sigma_px: float = 2.0, nms_px
     img = image.to(torch.float32).unsqueeze(1)
     k = 2 * int(math.ceil(3.0 * sigma_px)) + 1
     if H * W < 256 * 256:
-        # what gaussian_blur2d runs for such images (filter2d_separable), with the 1-d kernels
-        # made once: same values, ~0.7 ms less per call on CPU
+        # kornia's gaussian_blur2d (filter2d_separable, zero border), with the 1-d kernels made once
+        # and the images as the channels of one depthwise convolution: the same values, 3-5x
+        # cheaper on a CPU than a batch of one-channel images
         kx, ky = _gaussian_kernels(k, float(sigma_px), str(img.device), img.dtype)
-        blurred = kornia.filters.filter2d_separable(img, kx, ky, "constant")[:, 0]
+        blurred = _blur_depthwise(img[:, 0], kx, ky)
     else:
         blurred = kornia.filters.gaussian_blur2d(img, (k, k), (float(sigma_px), float(sigma_px)),
                                                  border_type="constant")[:, 0]

@@ -47,7 +47,7 @@ def perlin(x: torch.Tensor, y: torch.Tensor, seed: int) -> torch.Tensor:
     fx = (x - x0).to(torch.float32).reshape(-1)  # fractions in float32: 4x less memory traffic
     fy = (y - y0).to(torch.float32).reshape(-1)
     m = _PERIOD - 1
-    if x0.numel() and max(float(x0.abs().max()), float(y0.abs().max())) >= 2.0 ** 31:
+    if x0.numel() and max(max(-float(v[0]), float(v[1])) for v in (torch.aminmax(x0), torch.aminmax(y0))) >= 2.0 ** 31:
         raise ValueError("perlin: lattice coordinates must lie within +-2^31 cells (a point too far away, "
                          "or a wavelength too small for it)")
     ix = x0.to(torch.int32).bitwise_and_(m).reshape(-1)  # exact below 2^31 cells (checked above)
