@@ -323,3 +323,21 @@ def test_dpr_hot_pixel_cap_keeps_hot_pixels_out_of_the_centroids():
     img = ests[4].state.window
     cap = 4 * img.sum() / (img > 0).sum()
     assert float(capped_window(img, 4.0).max()) == pytest.approx(float(cap))
+
+
+@pytest.mark.parametrize("batch", [1, 2, 5])
+@pytest.mark.parametrize("shape", [(128, 128), (31, 45)])
+def test_dpr_blur_equals_kornia(batch, shape):
+    """The DPR blur (one depthwise convolution over the batch) gives kornia's gaussian blur
+    (filter2d_separable, zero border) bit for bit."""
+    import kornia
+
+    from dvsland.estimators.density_peaks import _blur_depthwise, _gaussian_kernels
+
+    g = torch.Generator().manual_seed(batch)
+    img = torch.poisson(torch.rand(batch, *shape, generator=g) * 0.7, generator=g)
+    kx, ky = _gaussian_kernels(13, 2.0, "cpu", torch.float32)
+    ref = kornia.filters.gaussian_blur2d(img.unsqueeze(1), (13, 13), (2.0, 2.0), border_type="constant")[:, 0]
+    out = _blur_depthwise(img, kx, ky)
+    assert out.shape == img.shape
+    assert torch.equal(out, ref)
