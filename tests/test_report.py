@@ -115,3 +115,61 @@ def test_descent_figure_labels_and_thrust_unit(tmp_path, monkeypatch):
                               "flight time t [s]"]
     assert "loop gain λ = 200 1/s" in seen["title"]
     assert all(style.has_unit(label) for label in seen["labels"])
+
+
+def _two_descents():
+    """Traces of two runs (columns): run 0 flies 60 steps with the closed form, D estimates far
+    outside the axes and MN thrust; run 1 flies 25 steps, without z0 (no closed form), no outliers
+    and kN thrust. Times in s, altitudes in m, D in 1/s, thrust in N."""
+    n = 61
+    rng = np.random.default_rng(3)
+    t = np.arange(n) * 0.5
+    active = np.zeros((n, 2), bool)
+    active[:60, 0], active[:25, 1] = True, True
+    d_true = np.stack([np.linspace(-0.02, -0.05, n), np.linspace(-0.1, -0.2, n)], 1)
+    d_est = d_true + rng.normal(0.0, 0.003, (n, 2))
+    d_est[[5, 40], 0] = [3.0, -4.0]  # run 0 only: beyond the axes, marked on the edge
+    tr = {"t_s": np.stack([t, t], 1), "active": active, "d_true": d_true, "d_est": d_est, "d_filtered": d_est * 0.9,
+          "z_m": np.stack([np.linspace(1e4, 800, n), np.linspace(3e3, 2e3, n)], 1),
+          "v_mps": np.stack([np.linspace(-200, -20, n), np.linspace(-80, -60, n)], 1),
+          "thrust_n": np.stack([np.full(n, 2e6), np.full(n, 4e4)], 1)}
+    for k in ("z_m", "v_mps", "d_true", "d_est", "d_filtered", "thrust_n"):
+        tr[k][26:, 1] = np.nan  # run 1 ended
+    runs = [_run(run="A/x", estimator="dpr", outcome="ascent", t_end_s=30.0, lowest_altitude_m=800.0),
+            _run(run="B/y", estimator="dpr", outcome="crash", t_end_s=12.5, lowest_altitude_m=2000.0,
+                 loop_gain=None, z0_m=None)]
+    return tr, runs
+
+
+def test_reused_descent_figure_matches_a_fresh_one(tmp_path, monkeypatch):
+    """write_figures draws every descent on one reused figure: the second descent must not keep the
+    first one's lines, outside-the-axes markers, legend entries, colours or limits, and its PNG is
+    the one a fresh figure gives, pixel for pixel."""
+    from PIL import Image
+
+    from dvsland.report import figures
+
+    tr, runs = _two_descents()
+    seen = []
+    real_save = figures.save_atomic
+
+    def record(fig, path, **kw):
+        seen.append([([t.get_text() for t in a.get_legend().get_texts()], [ln.get_color() for ln in a.lines],
+                      a.get_xlim(), a.get_ylim(), a.get_ylabel()) for a in fig.axes])
+        return real_save(fig, path, **kw)
+
+    monkeypatch.setattr(figures, "save_atomic", record)
+    fig = figures._descent_axes()
+    try:
+        for b, run in enumerate(runs):
+            figures.descent_figure(tr, b, run, tmp_path / f"reused{b}.png", _fig=fig)
+    finally:
+        figures._plt().close(fig[0])
+    figures.descent_figure(tr, 1, runs[1], tmp_path / "fresh1.png")
+    first, reused, fresh = seen
+    assert any("beyond the axes" in t for t in first[2][0]) and "closed form" in first[0][0]
+    assert reused == fresh
+    assert reused[0][0] == ["altitude"] and reused[1][0] == ["velocity"] and reused[3][4] == "thrust [kN]"
+    assert not any("beyond the axes" in t for t in reused[2][0]) and reused[0][2][1] < 15.0
+    a, f = (np.asarray(Image.open(tmp_path / n)) for n in ("reused1.png", "fresh1.png"))
+    np.testing.assert_array_equal(a, f)

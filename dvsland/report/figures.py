@@ -37,6 +37,22 @@ def _descent_axes():
     return fig, ax
 
 
+def _reset_axes(ax) -> None:
+    """Empty a reused descent panel for the next run, as ``ax.cla()`` would for what the descent
+    figures draw: remove the data artists and the legend, restart the colour cycle (C0 first) and
+    autoscale both axes from no data (null data limits). Unlike ``cla()`` it keeps the axes' Tick
+    objects: rebuilding them on the next draw was about 40 % of a figure's CPU. The axis labels,
+    the grid and the figure title are set again by every figure."""
+    for artist in (*ax.lines, *ax.collections, *ax.patches, *ax.texts, *ax.images, *ax.artists, *ax.tables):
+        artist.remove()
+    ax.containers.clear()  # bar / errorbar groups: they would keep their legend entries
+    if ax.get_legend() is not None:
+        ax.get_legend().remove()
+    ax.set_prop_cycle(None)
+    ax.relim()
+    ax.set_autoscale_on(True)  # the D panel's set_ylim turned y autoscaling off
+
+
 def _divergence_panel(ax, t, d_true, d_est, d_filtered) -> None:
     """The D panel: the true D (black), every raw estimate (dots), the filtered D the law used
     (a line drawn above the dots) on limits that show the truth and the bulk of both series
@@ -63,7 +79,7 @@ def descent_figure(traces: Dict[str, np.ndarray], b: int, run: dict, path, c2: f
     t = traces["t_s"][rows, b]
     fig, ax = _fig if _fig is not None else _descent_axes()
     for a in ax:
-        a.cla()
+        _reset_axes(a)
     est = _estimator_label(run["estimator"])
     if run.get("checkpoint"):
         est += f", {checkpoint_text(run['checkpoint'])}"
