@@ -1,24 +1,31 @@
 """The build cache of dvsland's optional compiled kernels (the emulator's, ``cmax``'s).
 
-Each kernel module (:mod:`dvsland.events.native`, :mod:`dvsland.estimators.native_cmax`) keeps its
-own C++ source and its process state; this module holds what they share: the mode word read from
-an environment variable, the extension's name (a hash of source, flags, functions, torch and
-Python versions, so a stale build is never loaded), its folder in torch's extension cache, the
-import of a cached build and the compile. Nothing here compiles unless :func:`build_extension` is
-called.
+The kernels are plain C++ behind a C interface (raw pointers and sizes, no torch or Python headers),
+so a build is one call of the C++ compiler that takes a second or two, and the library does not
+depend on the torch or Python version. Each kernel module (:mod:`dvsland.events.native`,
+:mod:`dvsland.estimators.native_cmax`) keeps its own source, its ``ctypes`` bindings and its process
+state; this module holds what they share: the mode word read from an environment variable, the
+library's name (a hash of source, flags, compiler and machine, so a stale build is never loaded),
+its folder, the compile (atomic, under a lock) and the load.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import functools
 import hashlib
 import os
+import platform
+import shutil
+import subprocess
 import sys
 from pathlib import Path
-from typing import List, Optional
+from typing import Optional, Sequence
 
 ON, OFF, AUTO = "on", "off", "auto"
+#: bumped when the way a library is built or called changes (a part of every library's name)
+ABI = "dvsland-c-abi-1"
 
 
 def mode_from_env(env_var: str, chosen: Optional[bool]) -> str:
@@ -40,59 +47,55 @@ def mode_from_env(env_var: str, chosen: Optional[bool]) -> str:
     raise ValueError(f"{env_var} must be auto, 1/on/true/yes or 0/off/false/no, got {v!r}")
 
 
+def compiler() -> Optional[str]:
+    """The C++ compiler: ``$CXX``, else ``c++``, ``g++`` or ``clang++`` on the PATH; None when none is found."""
+    cxx = os.environ.get("CXX", "").strip()
+    if cxx:
+        return shutil.which(cxx) or cxx
+    for c in ("c++", "g++", "clang++"):
+        found = shutil.which(c)
+        if found:
+            return found
+    return None
+
+
 @functools.lru_cache(maxsize=8)
-def extension_name(prefix: str, src: str, flags: str, functions: str) -> str:
-    """``{prefix}_{hash}``: 16 hex digits of the SHA-256 of source, flags, functions, torch and Python."""
-    import torch
-
-    h = hashlib.sha256("\0".join([src, flags, functions, torch.__version__, sys.version]).encode()).hexdigest()[:16]
-    return f"{prefix}_{h}"
+def library_name(prefix: str, src: str, flags: str) -> str:
+    """``{prefix}_{hash}``: 16 hex digits of the SHA-256 of source, flags, compiler, machine and :data:`ABI`."""
+    parts = [src, flags, str(compiler()), platform.system(), platform.machine(), ABI]
+    return f"{prefix}_{hashlib.sha256(chr(0).join(parts).encode()).hexdigest()[:16]}"
 
 
-def extension_dir(name: str) -> Path:
-    """The build folder of extension ``name`` (torch's extension folder, ``TORCH_EXTENSIONS_DIR`` if set)."""
+def library_dir(name: str) -> Path:
+    """The build folder of library ``name``: ``$TORCH_EXTENSIONS_DIR/name`` if that is set, else
+    ``<user cache>/torch_extensions/dvsland/name`` (``$XDG_CACHE_HOME`` or ``~/.cache``)."""
     root = os.environ.get("TORCH_EXTENSIONS_DIR")
     if root is None:
-        import torch
-        from torch.utils.cpp_extension import get_default_build_root
-
-        acc = "cpu" if torch.version.cuda is None else f"cu{torch.version.cuda.replace('.', '')}"
-        if getattr(torch.version, "hip", None):
-            acc = f"rocm{torch.version.hip.replace('.', '')}"
-        py = f"py{sys.version_info.major}{sys.version_info.minor}{getattr(sys, 'abiflags', '')}"
-        root = os.path.join(get_default_build_root(), f"{py}_{acc}")
+        cache = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        root = os.path.join(cache, "torch_extensions", "dvsland")
     return Path(root) / name
 
 
-def extension_library(name: str) -> Path:
-    """The shared library a build of ``name`` leaves in :func:`extension_dir`."""
-    from torch.utils.cpp_extension import LIB_EXT
-
-    return extension_dir(name) / f"{name}{LIB_EXT}"
+def library_file(name: str) -> Path:
+    """The shared library a build of ``name`` leaves in :func:`library_dir`."""
+    return library_dir(name) / f"{name}.so"
 
 
-def extension_cached(name: str) -> bool:
+def library_cached(name: str) -> bool:
     """Whether the build of ``name`` (this exact source) is in the cache."""
     try:
-        return extension_library(name).is_file()
+        return library_file(name).is_file()
     except Exception:  # no home folder, ...
         return False
 
 
-def import_extension(name: str):
-    """Import the cached build of ``name`` (no compiler involved)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(name, str(extension_library(name)))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+def load_library(name: str) -> ctypes.CDLL:
+    """Load the cached build of ``name`` (no compiler involved)."""
+    return ctypes.CDLL(str(library_file(name)))
 
 
-#: torch's lock file in a build folder (torch.utils.file_baton: it waits while the file exists)
-TORCH_LOCK = "lock"
-#: dvsland's lock beside it: flock-ed for the whole build and holding the builder's pid; the
-#: kernel releases a flock when its process dies, even by SIGKILL
+#: the lock file in a build folder: flock-ed for the whole build and holding the builder's pid;
+#: the kernel releases a flock when its process dies, even by SIGKILL
 OWNER_LOCK = "dvsland-build.lock"
 
 
@@ -104,51 +107,32 @@ def _read_owner(fd: int) -> str:
         return ""
 
 
-def processes_in(d: Path) -> List[int]:
-    """Pids of the processes (other than this one) whose working folder is ``d``: torch runs ninja
-    and the compiler there, and they live on when the build's Python process is killed. Empty
-    where /proc cannot be read (not Linux)."""
-    target, out = os.path.realpath(d), []
+def _pid_alive(pid: int) -> bool:
     try:
-        entries = os.listdir("/proc")
-    except OSError:
-        return out
-    for e in entries:
-        if e.isdigit() and int(e) != os.getpid():
-            try:
-                if os.readlink(f"/proc/{e}/cwd") == target:
-                    out.append(int(e))
-            except OSError:  # gone, or another user's
-                pass
-    return out
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process
+        return True
+    return True
 
 
-def _wait_for_orphans(d: Path, poll_s: float = 0.5) -> None:
-    """Wait (interruptible by Ctrl-C) until no process works in ``d`` (:func:`processes_in`): a
-    killed build's ninja and compiler finish before the folder is built again."""
-    import time
-
-    told = False
-    while True:
-        pids = processes_in(d)
-        if not pids:
-            return
-        if not told:
-            print(f"dvsland: waiting for the compiler processes {pids} of an earlier build in {d} to end",
-                  file=sys.stderr, flush=True)
-            told = True
-        time.sleep(poll_s)
+def _remove_stale_partials(d: Path) -> None:
+    """Remove the partial libraries (``*.so.<pid>.tmp``) of builds whose process has ended (a build
+    killed mid-compile); a live build's are kept."""
+    for f in d.glob("*.so.*.tmp"):
+        pid = f.name.rsplit(".", 2)[-2]
+        if not pid.isdigit() or not _pid_alive(int(pid)):
+            f.unlink(missing_ok=True)
 
 
 @contextlib.contextmanager
 def build_lock(d: Path):
     """Hold folder ``d``'s build for this process (a flock on ``d/OWNER_LOCK``, this pid written in
-    it). Another live builder is waited for (interruptible by Ctrl-C). Once held, no live dvsland
-    build is running there, so torch's ``d/lock`` left behind is stale (a build killed mid-compile:
-    torch would wait on it forever): once the compiler processes that build left in ``d`` have
-    ended, it is removed with one RuntimeWarning naming the file."""
+    it). Another live builder is waited for (interruptible by Ctrl-C); a builder killed mid-compile
+    released its flock when it died, and its partial output (never the library's name: the compile
+    writes a temporary file that is renamed when complete) is removed."""
     import fcntl
-    import warnings
 
     fd = os.open(d / OWNER_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
     try:
@@ -158,43 +142,53 @@ def build_lock(d: Path):
             print(f"dvsland: waiting for the build of process {_read_owner(fd) or '?'} in {d} to end",
                   file=sys.stderr, flush=True)
             fcntl.flock(fd, fcntl.LOCK_EX)
-        previous = _read_owner(fd)
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        stale = d / TORCH_LOCK
-        if stale.exists():
-            _wait_for_orphans(d)
-            by = f"process {previous}" if previous else "a build"
-            warnings.warn(f"removed the stale build lock {stale}, left by {by} that ended without releasing "
-                          f"it (killed mid-compile); building anew", RuntimeWarning, stacklevel=3)
-            stale.unlink(missing_ok=True)
+        _remove_stale_partials(d)
         yield
     finally:
         os.close(fd)  # releases the flock
 
 
-def build_extension(name: str, src: str, functions: List[str], cflags: List[str], verbose: bool = False):
-    """Compile (when not cached) and load extension ``name``; the module. Raises on any build error.
-    The build holds :func:`build_lock` on its folder: a concurrent build is waited for, a stale
-    lock of a killed build removed (with a warning naming it)."""
-    from torch.utils.cpp_extension import load_inline
+def build_library(name: str, src: str, flags: Sequence[str], verbose: bool = False) -> Path:
+    """Compile library ``name`` from ``src`` (when not cached) with :func:`compiler` and ``flags``;
+    its path. The compile writes a temporary file renamed into place when complete, under
+    :func:`build_lock` (a concurrent build of the same library is waited for and not repeated).
 
-    d = extension_dir(name)
+    Raises:
+        RuntimeError: no C++ compiler, or the compile failed (its last lines of output in the message).
+    """
+    cxx = compiler()
+    if cxx is None:
+        raise RuntimeError("no C++ compiler found (install g++ or clang++, or set CXX)")
+    d = library_dir(name)
     d.mkdir(parents=True, exist_ok=True)
+    out = library_file(name)
     with build_lock(d):
-        return load_inline(name, cpp_sources=src, functions=functions, extra_cflags=cflags,
-                           build_directory=str(d), verbose=verbose)
+        if out.is_file():
+            return out
+        src_file = d / f"{name}.cpp"
+        src_file.write_text(src)
+        tmp = d / f"{name}.so.{os.getpid()}.tmp"
+        cmd = [cxx, *flags, "-shared", "-fPIC", "-o", str(tmp), str(src_file)]
+        if verbose:
+            print(" ".join(cmd), file=sys.stderr, flush=True)
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        if res.returncode != 0:
+            tmp.unlink(missing_ok=True)
+            tail = "\n".join((res.stderr or res.stdout).strip().splitlines()[-12:])
+            raise RuntimeError(f"{os.path.basename(cxx)} failed ({res.returncode}) on {src_file}:\n{tail}")
+        os.replace(tmp, out)
+    return out
 
 
-def load_or_warn(name: str, cached: bool, build, label: str):
-    """The cached build of ``name`` imported (``cached``: the caller's word that it is there), else
-    ``build()``'s module; None, with one
-    RuntimeWarning naming ``label``, when either fails (no compiler, no headers, a broken cache
-    entry, ...): the caller keeps its torch path."""
+def load_or_warn(make, label: str):
+    """``make()`` (build when needed, load and bind a library); None, with one RuntimeWarning naming
+    ``label``, when it fails (a compile error, a broken cache entry, ...): the caller keeps its torch path."""
     import warnings
 
     try:
-        return import_extension(name) if cached else build()
+        return make()
     except Exception as exc:
         warnings.warn(f"{label}: the compiled kernels could not be built or loaded ({exc}); using the torch path",
                       RuntimeWarning)
@@ -202,7 +196,7 @@ def load_or_warn(name: str, cached: bool, build, label: str):
 
 
 def timed_build(label: str, kernel_module) -> int:
-    """Build ``kernel_module``'s extension (a module with ``cached()``, ``build()`` and ``build_dir()``)
+    """Build ``kernel_module``'s library (a module with ``cached()``, ``build()`` and ``build_dir()``)
     and print whether it was already cached, the wall and CPU time (the compiler's included) and the
     folder; 0, or 1 with the error on stderr when it cannot be built."""
     import resource
@@ -223,5 +217,5 @@ def timed_build(label: str, kernel_module) -> int:
     return 0
 
 
-__all__ = ["load_or_warn", "timed_build", "ON", "OFF", "AUTO", "mode_from_env", "extension_name", "extension_dir", "extension_library",
-           "extension_cached", "import_extension", "build_extension", "build_lock"]
+__all__ = ["load_or_warn", "timed_build", "ON", "OFF", "AUTO", "ABI", "mode_from_env", "compiler", "library_name",
+           "library_dir", "library_file", "library_cached", "load_library", "build_library", "build_lock"]

@@ -2,7 +2,7 @@
 
 The kernel's image sums are integers (corner weights in 1 / WEIGHT_UNIT of an event), so it must give
 the torch path's scores and estimates exactly. The comparisons run where the kernel is built
-(``python -m dvsland.estimators.build_native``); the slow test builds it when it is not.
+(built here on first use, a second or two, where a C++ compiler is found; skipped without one).
 """
 
 from __future__ import annotations
@@ -95,8 +95,8 @@ def test_torch_path_scores_match_the_float_splat():
 
 
 def _need_kernel():
-    if not native_cmax.cached():
-        pytest.skip("the compiled cmax kernel is not built (build it with: dvsland build-native)")
+    if native_cmax.load(force=True) is None:
+        pytest.skip("no C++ compiler here")
 
 
 @pytest.mark.parametrize("seed,B,G", [(0, 7, 3), (1, 3, 21), (2, 1, 9)])
@@ -135,9 +135,8 @@ def test_kernel_estimates_equal_torch_path():
         assert torch.equal(g0[k].nan_to_num(), g1[k].nan_to_num()), k
 
 
-@pytest.mark.slow
 def test_kernel_builds_and_equals_torch_path():
-    """Builds the kernel when it is not cached (about a minute of compiler CPU), then compares."""
+    """Builds the kernel when it is not cached (a second or two of compiler CPU), then compares."""
     try:
         native_cmax.build()
     except Exception as exc:  # no compiler here: the torch path is what runs

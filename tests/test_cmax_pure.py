@@ -150,8 +150,8 @@ def _digest(rec) -> str:
 def test_estimates_and_diagnostics_as_recorded(name, native):
     """Bit for bit the estimates, confidences and diagnostics of cmax as it was before the stage contract
     (recorded with its torch path), on the torch path and the compiled kernel (where built)."""
-    if native and not native_cmax.cached():
-        pytest.skip("the compiled cmax kernel is not built")
+    if native and native_cmax.load(force=True) is None:
+        pytest.skip("no C++ compiler here")
     native_cmax.use_native_cmax(native)
     try:
         rec = _fly_recorded(name)

@@ -167,16 +167,15 @@ def test_emulator_hook_removes_isolated_noise():
     assert n_plain > 500 and n_filt < 0.1 * n_plain
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("neighbours", [4, 8])
 def test_native_filters_match_reference(neighbours, monkeypatch):
-    """The compiled loops (DVSLAND_NATIVE_SORT; slow: compiled on first use) against the by-hand
+    """The compiled loops (DVSLAND_NATIVE_SORT; compiled on first use) against the by-hand
     references, across steps, with windows that are not whole microseconds."""
     from dvsland.events import native
 
     monkeypatch.setattr(native, "_enabled", True)
     if native.load() is None:
-        pytest.skip("no C++ toolchain for torch.utils.cpp_extension")
+        pytest.skip("no C++ compiler here")
     rng = np.random.default_rng(9)
     B, H, W = 2, 5, 6
     state = dn.init_state(B, H, W, 0)

@@ -9,7 +9,7 @@ see docs/events.md) and point --v2e-dir at it. Without it, the dvsland rows are 
                                 [--rate 0.6] [--identical] [--v2e-dir bench_env/v2e] [--threads 1]
                                 [--json out.json]
 
-dvsland is timed on the torch path and, where built (python -m dvsland.events.build_native), on the
+dvsland is timed on the torch path and, where the compiled kernels can be built (a C++ compiler), on the
 compiled kernels; the noise table is given for each.
 """
 

@@ -1,18 +1,20 @@
-"""``dvsland build-native``: compile the optional C++ kernels (the emulator's and ``cmax``'s) once
-per machine and Python environment; afterwards every process uses them (mode auto), with events
-and estimates identical to the torch path."""
+"""``dvsland build-native``: compile the C++ kernels (the emulator's and ``cmax``'s) ahead of use.
+Every process builds them on first use anyway where a C++ compiler is found (a second or two,
+once per machine); this command does it now and reports the time and the folder, or the error."""
 
 from __future__ import annotations
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "build-native", help="compile the optional C++ kernels of the emulator and cmax (once, about a minute)",
-        description="Compile the emulator's and cmax's C++ kernels with torch's cpp_extension (needs a C++ "
-                    "compiler) into torch's extension cache (TORCH_EXTENSIONS_DIR if set). Every later process "
-                    "uses them where built (DVSLAND_NATIVE_SORT / DVSLAND_NATIVE_CMAX = auto, the default): "
-                    "the same events and estimates, cmax 2.5-3.5x and the emulator about 2x cheaper "
-                    "(docs/howto/devices.md). Nothing compiles without this command.")
+        "build-native", help="compile the C++ kernels of the emulator and cmax now (a second or two; "
+                             "otherwise done on first use)",
+        description="Compile the emulator's and cmax's C++ kernels (needs a C++ compiler: $CXX, c++, g++ or "
+                    "clang++) into the kernel cache (~/.cache/torch_extensions/dvsland, or $TORCH_EXTENSIONS_DIR). "
+                    "Every process builds them on first use anyway where a compiler is found "
+                    "(DVSLAND_NATIVE_SORT / DVSLAND_NATIVE_CMAX = auto, the default) and uses them: the same "
+                    "events and estimates as the torch path, cmax 2.5-3.5x and the emulator about 2x cheaper "
+                    "(docs/howto/devices.md). This command reports the build's time and folder, or its error.")
     p.set_defaults(func=run_build_native)
 
 

@@ -1,6 +1,6 @@
-"""``python -m dvsland.estimators.build_native``: compile ``cmax``'s splat kernel once (see
-:mod:`dvsland.estimators.native_cmax`); afterwards every process uses it (mode auto) without
-compiling. ``dvsland build-native`` builds this and the emulator's. Prints whether it was already
+"""``python -m dvsland.estimators.build_native``: compile ``cmax``'s splat kernel now (see
+:mod:`dvsland.estimators.native_cmax`; otherwise it is built on first use where a C++ compiler is
+found). ``dvsland build-native`` builds this and the emulator's. Prints whether it was already
 cached, the wall and CPU time and the folder; exit status 1 (and the error) when it cannot be built.
 """
 

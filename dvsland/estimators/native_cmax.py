@@ -11,80 +11,73 @@ torch path's exactly, in any order and on any number of threads; its float32 ari
 box test, corner weights) is the torch path's operation for operation (the exponential comes in
 from torch). Tests pin the two to equality.
 
-Compiled once with the C++ compiler through ``torch.utils.cpp_extension.load_inline`` into
-torch's extension folder, under a name that carries a hash of the source, flags and versions.
-``DVSLAND_NATIVE_CMAX`` (or :func:`use_native_cmax`) picks the mode:
+Plain C++ behind a C interface (no torch headers), called through ``ctypes`` on the tensors'
+memory, compiled with the system's C++ compiler in a second or two into a cache folder
+(:func:`dvsland.native_build.library_dir`), under a name that carries a hash of the source, the
+flags, the compiler and the machine. ``DVSLAND_NATIVE_CMAX`` (or :func:`use_native_cmax`) picks the mode:
 
-- ``auto`` (default, also when unset or empty): use the kernel when its build is cached (nothing
-  is compiled), else the torch path, silently.
-- ``1`` / ``on`` / ``true`` / ``yes``: build on first use when not cached, then use it.
+- ``auto`` (default, also when unset or empty): use the kernel; when it is not in the cache, build
+  it on first use if a C++ compiler is found, else run the torch path, silently.
+- ``1`` / ``on`` / ``true`` / ``yes``: the same, but a missing compiler is warned about.
 - ``0`` / ``off`` / ``false`` / ``no``: never use it.
 
-Build once with ``python -m dvsland.estimators.build_native``. Without a compiler (or on any build
-or load error) the torch path runs, with one warning.
+``python -m dvsland.estimators.build_native`` (or ``dvsland build-native``) builds it ahead. On any
+build or load error the torch path runs, with one warning.
 """
 
 from __future__ import annotations
 
+import ctypes
 import platform
 from pathlib import Path
 from typing import Optional
 
 import torch
 
-from dvsland.native_build import (AUTO, OFF, ON, build_extension, extension_cached, extension_dir, extension_name,
-                                  load_or_warn, mode_from_env)
+from dvsland.native_build import (AUTO, OFF, ON, build_library, compiler, library_cached, library_dir, library_name,
+                                  load_library, load_or_warn, mode_from_env)
 
 _SRC = r"""
-#include <torch/extension.h>
-#include <ATen/Parallel.h>
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <cstring>
+#include <thread>
 #include <vector>
+
+// f(lo, hi) over [0, n) split into n_threads contiguous ranges (one call when n_threads <= 1)
+template <class F> static void parallel_ranges(int64_t n, int64_t n_threads, F f) {
+  const int64_t k = std::min<int64_t>(std::max<int64_t>(n_threads, 1), std::max<int64_t>(n, 1));
+  if (k <= 1) { f(0, n); return; }
+  std::vector<std::thread> pool;
+  for (int64_t i = 0; i < k; ++i) pool.emplace_back(f, n * i / k, n * (i + 1) / k);
+  for (auto& t : pool) t.join();
+}
 
 // Per element b and candidate g: n[b,g,h] = sum of the integer corner weights of half h, and
 // s[b,g,:] = (sum_p I0^2, sum_p I1^2, sum_p I0 I1) over the canvas pixels p; see the module doc
 // of dvsland/estimators/native_cmax.py and split_contrast in contrast.py (the torch path).
-std::vector<torch::Tensor> splat_sums(torch::Tensor xc, torch::Tensor yc, torch::Tensor b, torch::Tensor half,
-                                      torch::Tensor scale, torch::Tensor ginv, torch::Tensor wt,
-                                      double cx, double cy, double x_lo, double x_hi, double y_lo, double y_hi,
-                                      int64_t Hc, int64_t Wc, double unit) {
-  auto f32 = torch::kFloat32;
-  TORCH_CHECK(xc.is_contiguous() && yc.is_contiguous() && wt.is_contiguous() && xc.scalar_type() == f32 &&
-              yc.scalar_type() == f32 && wt.scalar_type() == f32, "splat_sums: xc, yc, wt contiguous float32");
-  TORCH_CHECK(b.is_contiguous() && half.is_contiguous() && b.scalar_type() == torch::kInt64 &&
-              half.scalar_type() == torch::kInt64, "splat_sums: b, half contiguous int64");
-  TORCH_CHECK(scale.is_contiguous() && ginv.is_contiguous() && scale.scalar_type() == f32 &&
-              ginv.scalar_type() == f32 && scale.dim() == 2 && ginv.dim() == 2, "splat_sums: scale (G,E), ginv (G,B) float32");
-  const int64_t E = xc.numel(), G = scale.size(0), B = ginv.size(1), P = Hc * Wc;
-  TORCH_CHECK(scale.size(1) == E && ginv.size(0) == G && yc.numel() == E && b.numel() == E && half.numel() == E &&
-              wt.numel() == E && Hc >= 2 && Wc >= 2, "splat_sums: shapes");
-  const float* X = xc.data_ptr<float>();
-  const float* Y = yc.data_ptr<float>();
-  const float* S = scale.data_ptr<float>();
-  const float* GI = ginv.data_ptr<float>();
-  const float* W = wt.data_ptr<float>();
-  const int64_t* Bi = b.data_ptr<int64_t>();
-  const int64_t* Hf = half.data_ptr<int64_t>();
+// xc, yc, wt (E,) float32; b, half (E,) int64; scale (G, E) float32; ginv (G, B) float32; outputs
+// n (B, G, 2) and s (B, G, 3) int64, zeroed by the caller. Returns 0, or -1 when some b is out of
+// [0, B) or some half not 0 / 1 (nothing written).
+extern "C" int64_t cmax_splat_sums(const float* X, const float* Y, const int64_t* Bi, const int64_t* Hf,
+                                   const float* S, const float* GI, const float* W, int64_t E, int64_t G, int64_t B,
+                                   double cx, double cy, double x_lo, double x_hi, double y_lo, double y_hi,
+                                   int64_t Hc, int64_t Wc, double unit, int64_t n_threads, int64_t* N, int64_t* Sq) {
+  const int64_t P = Hc * Wc;
+  for (int64_t e = 0; e < E; ++e)
+    if (!(Bi[e] >= 0 && Bi[e] < B && (Hf[e] == 0 || Hf[e] == 1))) return -1;
   std::vector<int64_t> start(B + 1, 0), order(E);
-  for (int64_t e = 0; e < E; ++e) {
-    TORCH_CHECK(Bi[e] >= 0 && Bi[e] < B && (Hf[e] == 0 || Hf[e] == 1), "splat_sums: b out of [0, B) or half not 0/1");
-    start[Bi[e] + 1]++;
-  }
+  for (int64_t e = 0; e < E; ++e) start[Bi[e] + 1]++;
   for (int64_t i = 0; i < B; ++i) start[i + 1] += start[i];
   {
     std::vector<int64_t> pos(start.begin(), start.end() - 1);
     for (int64_t e = 0; e < E; ++e) order[pos[Bi[e]]++] = e;
   }
-  auto n = torch::zeros({B, G, 2}, torch::kInt64);
-  auto s = torch::zeros({B, G, 3}, torch::kInt64);
-  int64_t* N = n.data_ptr<int64_t>();
-  int64_t* Sq = s.data_ptr<int64_t>();
   const float fcx = (float)cx, fcy = (float)cy, uf = (float)unit;
   const float lox = (float)(x_lo - cx), hix = (float)(x_hi - cx), loy = (float)(y_lo - cy), hiy = (float)(y_hi - cy);
   const float xmax = (float)(Wc - 2), ymax = (float)(Hc - 2);
-  at::parallel_for(0, B, 1, [&](int64_t lo, int64_t hi) {
+  parallel_ranges(B, n_threads, [&](int64_t lo, int64_t hi) {
     std::vector<int32_t> canvas32(2 * P, 0);
     std::vector<int64_t> canvas64;
     std::vector<float> ex, ey, ew, es;
@@ -167,46 +160,45 @@ std::vector<torch::Tensor> splat_sums(torch::Tensor xc, torch::Tensor yc, torch:
       }
     }
   });
-  return {n, s};
+  return 0;
 }
 
 // For each event, how many events of its element lie on its pixel: bincount(b * n_px + px)[b * n_px + px]
 // computed element by element in a small canvas (b (E,) int64 in [0, B), px (E,) int64 in [0, n_px)).
-torch::Tensor pixel_counts(torch::Tensor b, torch::Tensor px, int64_t B, int64_t n_px) {
-  TORCH_CHECK(b.is_contiguous() && px.is_contiguous() && b.scalar_type() == torch::kInt64 &&
-              px.scalar_type() == torch::kInt64 && b.numel() == px.numel(), "pixel_counts: b, px contiguous int64 (E,)");
-  const int64_t E = b.numel();
-  const int64_t* Bi = b.data_ptr<int64_t>();
-  const int64_t* Px = px.data_ptr<int64_t>();
+// out (E,) int64. Returns 0, or -1 when some b or px is out of range (nothing written).
+static int64_t pixel_counts(const int64_t* Bi, const int64_t* Px, int64_t E, int64_t B, int64_t n_px, int64_t* O) {
+  for (int64_t e = 0; e < E; ++e)
+    if (!(Bi[e] >= 0 && Bi[e] < B && Px[e] >= 0 && Px[e] < n_px)) return -1;
   std::vector<int64_t> start(B + 1, 0), order(E);
-  for (int64_t e = 0; e < E; ++e) {
-    TORCH_CHECK(Bi[e] >= 0 && Bi[e] < B && Px[e] >= 0 && Px[e] < n_px, "pixel_counts: b or px out of range");
-    start[Bi[e] + 1]++;
-  }
+  for (int64_t e = 0; e < E; ++e) start[Bi[e] + 1]++;
   for (int64_t i = 0; i < B; ++i) start[i + 1] += start[i];
   {
     std::vector<int64_t> pos(start.begin(), start.end() - 1);
     for (int64_t e = 0; e < E; ++e) order[pos[Bi[e]]++] = e;
   }
-  auto out = torch::empty({E}, torch::kInt64);
-  int64_t* O = out.data_ptr<int64_t>();
   std::vector<int32_t> canvas(n_px, 0);
   for (int64_t bi = 0; bi < B; ++bi) {
     for (int64_t k = start[bi]; k < start[bi + 1]; ++k) canvas[Px[order[k]]]++;
     for (int64_t k = start[bi]; k < start[bi + 1]; ++k) O[order[k]] = canvas[Px[order[k]]];
     for (int64_t k = start[bi]; k < start[bi + 1]; ++k) canvas[Px[order[k]]] = 0;
   }
-  return out;
+  return 0;
+}
+
+extern "C" int64_t cmax_pixel_counts(const int64_t* Bi, const int64_t* Px, int64_t E, int64_t B, int64_t n_px,
+                                     int64_t* O) {
+  return pixel_counts(Bi, Px, E, B, n_px, O);
 }
 
 // cmax's hot-pixel weights (cmax.hot_pixel_weights, the torch path): c = events of the element on
 // the event's pixel; two rounds of mean = sum(keep) / sum(keep / c) per element (float64, summed in event order
 // as bincount does), keep = c <= factor * mean; weight = 1 where kept, else mean / c (as float32).
-torch::Tensor hot_weights(torch::Tensor b, torch::Tensor px, int64_t B, int64_t n_px, double factor) {
-  torch::Tensor cnt = pixel_counts(b, px, B, n_px);
-  const int64_t E = b.numel();
-  const int64_t* Bi = b.data_ptr<int64_t>();
-  const int64_t* C = cnt.data_ptr<int64_t>();
+// out (E,) float32. Returns 0, or -1 when some b or px is out of range (nothing written).
+extern "C" int64_t cmax_hot_weights(const int64_t* Bi, const int64_t* Px, int64_t E, int64_t B, int64_t n_px,
+                                    double factor, float* O) {
+  std::vector<int64_t> cnt(size_t(std::max<int64_t>(E, 1)));
+  if (pixel_counts(Bi, Px, E, B, n_px, cnt.data()) != 0) return -1;
+  const int64_t* C = cnt.data();
   std::vector<double> mean(B, 0.0), n_px_s(B), n_ev_s(B);
   std::vector<unsigned char> keep(E, 1);
   for (int round = 0; round < 2; ++round) {
@@ -220,10 +212,8 @@ torch::Tensor hot_weights(torch::Tensor b, torch::Tensor px, int64_t B, int64_t 
     for (int64_t i = 0; i < B; ++i) mean[i] = n_ev_s[i] / std::max(n_px_s[i], 1e-9);
     for (int64_t e = 0; e < E; ++e) keep[e] = (double)C[e] <= factor * mean[Bi[e]];
   }
-  auto out = torch::empty({E}, torch::kFloat32);
-  float* O = out.data_ptr<float>();
   for (int64_t e = 0; e < E; ++e) O[e] = keep[e] ? 1.0f : (float)(mean[Bi[e]] / (double)C[e]);
-  return out;
+  return 0;
 }
 
 // dvsland.estimators.contrast.event_hash for one event (int64 products wrap as uint64 ones; >> is arithmetic).
@@ -240,51 +230,126 @@ static inline int64_t event_hash1(int64_t b, int64_t x, int64_t y, int64_t t, in
 // cmax's store thinning (cmax.store_keep, the torch path): the indices of the events on the sensor and in the
 // batch whose hash (seed_terms[b] = element b's folded seed * 0x3C6EF372) passes (h & 0xFFFF) < p[b] 65536 with
 // p = min(cap[b] / max(n[b], 1), 1), n[b] the element's events on the sensor (float64, as bincount).
-torch::Tensor store_select(torch::Tensor b, torch::Tensor x, torch::Tensor y, torch::Tensor t, torch::Tensor cap,
-                           int64_t W, int64_t H, torch::Tensor seed_terms) {
-  auto i64 = torch::kInt64;
-  TORCH_CHECK(b.is_contiguous() && x.is_contiguous() && y.is_contiguous() && t.is_contiguous() &&
-              b.scalar_type() == i64 && x.scalar_type() == i64 && y.scalar_type() == i64 && t.scalar_type() == i64,
-              "store_select: b, x, y, t contiguous int64");
-  TORCH_CHECK(cap.is_contiguous() && cap.scalar_type() == torch::kFloat64, "store_select: cap contiguous float64 (B,)");
-  const int64_t E = b.numel(), B = cap.numel();
-  const int64_t *Bi = b.data_ptr<int64_t>(), *X = x.data_ptr<int64_t>(), *Y = y.data_ptr<int64_t>(),
-                *T = t.data_ptr<int64_t>();
-  TORCH_CHECK(seed_terms.is_contiguous() && seed_terms.scalar_type() == i64 && seed_terms.numel() == B,
-              "store_select: seed_terms contiguous int64 (B,)");
-  const double* C = cap.data_ptr<double>();
-  const int64_t* ST = seed_terms.data_ptr<int64_t>();
+// out (E,) int64: the kept indices, in order; returns how many.
+extern "C" int64_t cmax_store_select(const int64_t* Bi, const int64_t* X, const int64_t* Y, const int64_t* T, int64_t E,
+                                     const double* C, int64_t B, int64_t W, int64_t H, const int64_t* ST, int64_t* out) {
   std::vector<double> n(B, 0.0), p(B);
   for (int64_t e = 0; e < E; ++e)
     if (Bi[e] >= 0 && Bi[e] < B && X[e] >= 0 && X[e] < W && Y[e] >= 0 && Y[e] < H) n[Bi[e]] += 1.0;
   for (int64_t i = 0; i < B; ++i) p[i] = std::min(C[i] / std::max(n[i], 1.0), 1.0);
-  std::vector<int64_t> keep;
-  keep.reserve(size_t(E));
+  int64_t k = 0;
   for (int64_t e = 0; e < E; ++e) {
     if (!(Bi[e] >= 0 && Bi[e] < B && X[e] >= 0 && X[e] < W && Y[e] >= 0 && Y[e] < H)) continue;
     const int64_t h = event_hash1(Bi[e], X[e], Y[e], T[e], ST[Bi[e]]);
-    if ((double)(h & 0xFFFF) < p[Bi[e]] * 65536.0) keep.push_back(e);
+    if ((double)(h & 0xFFFF) < p[Bi[e]] * 65536.0) out[k++] = e;
   }
-  auto out = torch::empty({(int64_t)keep.size()}, i64);
-  if (!keep.empty()) std::memcpy(out.data_ptr<int64_t>(), keep.data(), keep.size() * sizeof(int64_t));
-  return out;
+  return k;
 }
 """
 
-_FUNCTIONS = ["splat_sums", "pixel_counts", "hot_weights", "store_select"]
 # SSE4.1 on x86-64 (every x86-64 CPU since about 2008): floor and round-to-nearest-even become one
 # instruction instead of a libm call each (the kernel is about 2x faster); the same IEEE results
-_CFLAGS = ["-O3", "-ffp-contract=off"] + (["-msse4.1"] if platform.machine().lower() in ("x86_64", "amd64") else [])
+_CFLAGS = (["-O3", "-ffp-contract=off", "-std=c++17", "-pthread"]
+           + (["-msse4.1"] if platform.machine().lower() in ("x86_64", "amd64") else []))
 _ENV = "DVSLAND_NATIVE_CMAX"
 _ON, _OFF, _AUTO = ON, OFF, AUTO
 _module = None
 _failed = False
 _enabled: Optional[bool] = None
 
+_I64, _F64, _P = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+#: the C functions' (argument types, result type)
+_SIGNATURES = {
+    "cmax_splat_sums": ([_P] * 7 + [_I64] * 3 + [_F64] * 6 + [_I64, _I64, _F64, _I64, _P, _P], _I64),
+    "cmax_pixel_counts": ([_P, _P, _I64, _I64, _I64, _P], _I64),
+    "cmax_hot_weights": ([_P, _P, _I64, _I64, _I64, _F64, _P], _I64),
+    "cmax_store_select": ([_P] * 4 + [_I64, _P, _I64, _I64, _I64, _P, _P], _I64),
+}
+
+
+def _ptr(t: torch.Tensor, dtype: torch.dtype, what: str) -> Optional[int]:
+    """The address of ``t``'s data (None when empty), after checking that it is a contiguous CPU
+    tensor of ``dtype`` (the kernel reads raw memory)."""
+    if t.dtype != dtype or t.device.type != "cpu" or not t.is_contiguous():
+        raise RuntimeError(f"{what} must be a contiguous {dtype} CPU tensor, got {t.dtype} on {t.device}"
+                           f"{'' if t.is_contiguous() else ' (not contiguous)'}")
+    return t.data_ptr() if t.numel() else None
+
+
+def _ok(status: int, what: str) -> None:
+    if status < 0:
+        raise RuntimeError(what)
+
+
+class Kernels:
+    """The loaded library's functions on torch tensors (CPU; each checks its inputs)."""
+
+    def __init__(self, lib: ctypes.CDLL):
+        for name, (args, res) in _SIGNATURES.items():
+            f = getattr(lib, name)
+            f.argtypes, f.restype = args, res
+        self._lib = lib
+
+    def splat_sums(self, xc, yc, b, half, scale, ginv, wt, cx: float, cy: float, x_lo: float, x_hi: float,
+                   y_lo: float, y_hi: float, Hc: int, Wc: int, unit: float):
+        """[n (B, G, 2) int64, s (B, G, 3) int64]: per element and candidate the integer weight of each
+        half and the sums (I0^2, I1^2, I0 I1) of the splatted images (module doc). xc, yc, wt (E,)
+        float32; b, half (E,) int64; scale (G, E), ginv (G, B) float32."""
+        f32, i64 = torch.float32, torch.int64
+        E = xc.numel()
+        if scale.dim() != 2 or ginv.dim() != 2:
+            raise RuntimeError("splat_sums: scale (G,E), ginv (G,B) float32")
+        G, B = ginv.shape
+        if not (scale.shape == (G, E) and yc.numel() == E and b.numel() == E and half.numel() == E
+                and wt.numel() == E and Hc >= 2 and Wc >= 2):
+            raise RuntimeError("splat_sums: shapes")
+        n = torch.zeros(B, G, 2, dtype=i64)
+        s = torch.zeros(B, G, 3, dtype=i64)
+        _ok(self._lib.cmax_splat_sums(
+            _ptr(xc, f32, "splat_sums: xc"), _ptr(yc, f32, "splat_sums: yc"), _ptr(b, i64, "splat_sums: b"),
+            _ptr(half, i64, "splat_sums: half"), _ptr(scale, f32, "splat_sums: scale"),
+            _ptr(ginv, f32, "splat_sums: ginv"), _ptr(wt, f32, "splat_sums: wt"), E, G, B, float(cx), float(cy),
+            float(x_lo), float(x_hi), float(y_lo), float(y_hi), int(Hc), int(Wc), float(unit),
+            torch.get_num_threads(), n.data_ptr(), s.data_ptr()), "splat_sums: b out of [0, B) or half not 0/1")
+        return [n, s]
+
+    def pixel_counts(self, b, px, B: int, n_px: int) -> torch.Tensor:
+        """For each event (E,) int64: the events of its element on its pixel."""
+        if b.numel() != px.numel():
+            raise RuntimeError("pixel_counts: b, px contiguous int64 (E,)")
+        out = torch.empty(b.numel(), dtype=torch.int64)
+        _ok(self._lib.cmax_pixel_counts(_ptr(b, torch.int64, "pixel_counts: b"), _ptr(px, torch.int64, "pixel_counts: px"),
+                                        b.numel(), int(B), int(n_px), out.data_ptr()),
+            "pixel_counts: b or px out of range")
+        return out
+
+    def hot_weights(self, b, px, B: int, n_px: int, factor: float) -> torch.Tensor:
+        """cmax's hot-pixel weights (E,) float32 (module source)."""
+        if b.numel() != px.numel():
+            raise RuntimeError("pixel_counts: b, px contiguous int64 (E,)")
+        out = torch.empty(b.numel(), dtype=torch.float32)
+        _ok(self._lib.cmax_hot_weights(_ptr(b, torch.int64, "hot_weights: b"), _ptr(px, torch.int64, "hot_weights: px"),
+                                       b.numel(), int(B), int(n_px), float(factor), out.data_ptr()),
+            "pixel_counts: b or px out of range")
+        return out
+
+    def store_select(self, b, x, y, t, cap, W: int, H: int, seed_terms) -> torch.Tensor:
+        """The indices (K,) int64 of the events cmax's store keeps (module source)."""
+        i64 = torch.int64
+        E, B = b.numel(), cap.numel()
+        if seed_terms.numel() != B:
+            raise RuntimeError("store_select: seed_terms contiguous int64 (B,)")
+        out = torch.empty(E, dtype=i64)
+        k = self._lib.cmax_store_select(_ptr(b, i64, "store_select: b"), _ptr(x, i64, "store_select: x"),
+                                        _ptr(y, i64, "store_select: y"), _ptr(t, i64, "store_select: t"), E,
+                                        _ptr(cap, torch.float64, "store_select: cap"), B, int(W), int(H),
+                                        _ptr(seed_terms, i64, "store_select: seed_terms"), out.data_ptr())
+        return out[:k].clone() if k < E else out
+
 
 def use_native_cmax(on: Optional[bool] = True) -> None:
-    """Pick the mode for this process: True = on (build when not cached), False = off, None = back
-    to ``DVSLAND_NATIVE_CMAX`` (default auto)."""
+    """Pick the mode for this process: True = on, False = off, None = back to ``DVSLAND_NATIVE_CMAX``
+    (default auto)."""
     global _enabled
     _enabled = None if on is None else bool(on)
 
@@ -299,53 +364,55 @@ def mode() -> str:
 
 
 def module_name() -> str:
-    """The extension's name: a hash of the source, flags, functions, torch and Python versions."""
-    return extension_name("dvsland_cmax_native", _SRC, " ".join(_CFLAGS), " ".join(_FUNCTIONS))
+    """The library's name: a hash of the source, flags, compiler and machine."""
+    return library_name("dvsland_cmax_native", _SRC, " ".join(_CFLAGS))
 
 
 def build_dir() -> Path:
-    """The folder of the build (torch's extension folder, ``TORCH_EXTENSIONS_DIR`` if set)."""
-    return extension_dir(module_name())
+    """The folder of the build (:func:`dvsland.native_build.library_dir`)."""
+    return library_dir(module_name())
 
 
 def cached() -> bool:
-    """Whether the build of this exact source is in the cache (so auto mode uses it)."""
-    return extension_cached(module_name())
+    """Whether the build of this exact source is in the cache."""
+    return library_cached(module_name())
 
 
 def enabled() -> bool:
-    """Whether ``cmax`` should use the kernel now: mode on, or auto with the build cached (or
-    loaded). Never compiles."""
+    """Whether ``cmax`` should use the kernel now: mode on; or auto with the build cached, loaded, or
+    a C++ compiler to build it with. Never compiles."""
     m = mode()
-    return m == _ON or (m == _AUTO and not _failed and (_module is not None or cached()))
+    return m == _ON or (m == _AUTO and not _failed and (_module is not None or cached() or compiler() is not None))
 
 
-def kernel_for(t: torch.Tensor, native: Optional[bool] = None):
-    """The compiled module for work on ``t``'s device, or None for the torch path: CPU tensors only;
-    ``native`` None = where :func:`enabled` (never compiles in auto mode), True = :func:`load` it
+def kernel_for(t: torch.Tensor, native: Optional[bool] = None) -> Optional[Kernels]:
+    """The kernels for work on ``t``'s device, or None for the torch path: CPU tensors only;
+    ``native`` None = where :func:`enabled` (built once when needed), True = :func:`load` them
     whatever the mode says, False = never."""
     if native is False or t.device.type != "cpu":
         return None
-    return load() if (native or enabled()) else None
+    return load(force=bool(native)) if (native or enabled()) else None
 
 
-def build(verbose: bool = False):
-    """Compile (when not cached) and load the kernel; the module. Raises on any build error."""
-    return build_extension(module_name(), _SRC, _FUNCTIONS, _CFLAGS, verbose)
+def build(verbose: bool = False) -> Kernels:
+    """Compile (when not cached) and load the kernel. Raises on any build error."""
+    build_library(module_name(), _SRC, _CFLAGS, verbose)
+    return Kernels(load_library(module_name()))
 
 
-def load():
-    """The compiled module, or None: mode off; auto without a cached build; or a failed build or
-    load (one warning, then the torch path for the rest of the process)."""
+def load(force: bool = False) -> Optional[Kernels]:
+    """The kernels, or None: mode off (unless ``force``); auto with neither a cached build nor a
+    compiler; or a failed build or load (one warning, then the torch path for the rest of the process)."""
     global _module, _failed
     if _module is not None or _failed:
         return _module
-    m = mode()
-    if m == _OFF or (m == _AUTO and not cached()):
+    if not (force or enabled()):
         return None
-    _module = load_or_warn(module_name(), cached(), build, "dvsland.estimators.native_cmax")
+    _module = load_or_warn(lambda: Kernels(load_library(module_name())) if cached() else build(),
+                           "dvsland.estimators.native_cmax")
     _failed = _module is None
     return _module
 
 
-__all__ = ["use_native_cmax", "enabled", "kernel_for", "mode", "cached", "build", "build_dir", "module_name", "load"]
+__all__ = ["Kernels", "use_native_cmax", "enabled", "kernel_for", "mode", "cached", "build", "build_dir",
+           "module_name", "load"]

@@ -166,11 +166,11 @@ def _time_log(frames: torch.Tensor, repeats: int = 30) -> Dict[str, float]:
 
 
 def _paths() -> list:
-    """The dvsland paths to time: torch always, compiled where its build is cached or loadable."""
+    """The dvsland paths to time: torch always, compiled where the kernels are cached or can be built."""
     from . import native
 
     paths = ["torch"]
-    if native.mode() != "off" and (native.cached() or native.mode() == "on"):
+    if native.kernels() is not None:
         paths.append("compiled")
     return paths
 

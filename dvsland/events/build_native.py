@@ -1,5 +1,5 @@
-"""``python -m dvsland.events.build_native``: compile the emulator's kernels once (see
-:mod:`dvsland.events.native`); afterwards every process uses them (mode auto) without compiling.
+"""``python -m dvsland.events.build_native``: compile the emulator's kernels now (see
+:mod:`dvsland.events.native`; otherwise they are built on first use where a C++ compiler is found).
 ``dvsland build-native`` builds these and ``cmax``'s. Prints whether they were already cached,
 the wall and CPU time and the folder; exit status 1 (and the error) when they cannot be built.
 """

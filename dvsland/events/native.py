@@ -6,54 +6,50 @@ operations are the same float64 ones in the same order; sorting integers has one
 pin it). On dense frames (B = 18, 128x128, 0.6 events per pixel) they make a step about 2-3x
 cheaper (docs/events.md, "Speed against v2e").
 
-They are compiled once with the C++ compiler through ``torch.utils.cpp_extension.load_inline``
-(about 1-2 min of CPU on a busy 2-core machine) into torch's extension folder, under a name that
-carries a hash of the source, the flags and the torch version, so a stale build is never loaded.
-The environment variable ``DVSLAND_NATIVE_SORT`` (or :func:`use_native_sort`) picks the mode:
+They are plain C++ behind a C interface (no torch headers), called through ``ctypes`` on the
+tensors' memory, and compiled with the system's C++ compiler in a second or two into a cache
+folder (:func:`dvsland.native_build.library_dir`), under a name that carries a hash of the source,
+the flags, the compiler and the machine, so a stale build is never loaded. The environment
+variable ``DVSLAND_NATIVE_SORT`` (or :func:`use_native_sort`) picks the mode:
 
-- ``auto`` (default, also when unset or empty): use the kernels when their build is already in
-  the cache (loaded in milliseconds, nothing is compiled); otherwise the torch path runs, silently.
-- ``1`` / ``on`` / ``true`` / ``yes``: build on first use when not cached, then use them.
+- ``auto`` (default, also when unset or empty): use the kernels; when they are not in the cache,
+  build them on first use if a C++ compiler is found (``$CXX``, ``c++``, ``g++`` or ``clang++``),
+  else run the torch path, silently.
+- ``1`` / ``on`` / ``true`` / ``yes``: the same, but a missing compiler is warned about.
 - ``0`` / ``off`` / ``false`` / ``no``: never use them.
 
-Build once with ``python -m dvsland.events.build_native`` (prints the time and the folder). Without a
-compiler (or on any build or load error) the torch path runs, with one warning.
+``python -m dvsland.events.build_native`` (or ``dvsland build-native``) builds them ahead and prints
+the time and the folder. On any build or load error the torch path runs, with one warning.
 
 Purity: the kernels that update per-pixel memories (``pixel_events``: the reference and last-event
 times; ``baf_keep`` / ``refractory_keep``: the filters' memories) write into the buffers they are
 given, and their callers give them fresh or cloned buffers, never a state's own tensors (unless the
-caller donated that state, :func:`dvsland.events.emulator.emulator_step`). ``shot_keys`` (the keys of
-the former generator-drawn, pre-sorted shot noise) is no longer called: the shot noise is a
-counter-based draw now (:mod:`dvsland.events.pixel_model`); it stays in the source so that an
-existing build keeps its name (dropping it means one rebuild).
+caller donated that state, :func:`dvsland.events.emulator.emulator_step`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 from pathlib import Path
 from typing import Optional
 
 import torch
 
-from dvsland.native_build import (AUTO, OFF, ON, build_extension, extension_cached, extension_dir, extension_name,
-                                  load_or_warn, mode_from_env)
+from dvsland.native_build import (AUTO, OFF, ON, build_library, compiler, library_cached, library_dir, library_name,
+                                  load_library, load_or_warn, mode_from_env)
 
 _SRC = r"""
-#include <torch/extension.h>
 #include <cmath>
+#include <cstdint>
 #include <cstring>
 #include <vector>
 
 // LSD radix sort of non-negative int64 keys below 2^bits by their bits lo_bit..bits-1, in place, stable;
 // 11-bit digits. With lo_bit = 0 the keys end fully sorted; with lo_bit > 0 keys equal in those bits
 // keep their input order (the emulator's keys come in pixel order, which is their low bits' order).
-void radix_sort_bits_(torch::Tensor keys, int64_t bits, int64_t lo_bit) {
-  TORCH_CHECK(keys.is_contiguous() && keys.scalar_type() == torch::kInt64 && keys.device().is_cpu(),
-              "radix_sort_: keys must be a contiguous int64 CPU tensor");
-  const int64_t n = keys.numel();
+static void radix_sort_bits(int64_t* a, int64_t n, int64_t bits, int64_t lo_bit) {
   if (n < 2) return;
-  int64_t* a = keys.data_ptr<int64_t>();
   // the work buffer is kept across calls up to 2^22 keys (32 MiB): no fresh pages per step
   static thread_local std::vector<int64_t> kept;
   std::vector<int64_t> once;
@@ -76,26 +72,16 @@ void radix_sort_bits_(torch::Tensor keys, int64_t bits, int64_t lo_bit) {
   if (src != a) std::memcpy(a, src, size_t(n) * sizeof(int64_t));
 }
 
-void radix_sort_(torch::Tensor keys, int64_t bits) { radix_sort_bits_(keys, bits, 0); }
+extern "C" void dvs_radix_sort(int64_t* keys, int64_t n, int64_t bits) { radix_sort_bits(keys, n, bits, 0); }
 
-// radix_sort_ then unpack the keys into the Events fields in one pass (see _KeyLayout):
-// b, x, y, t = t0 + t_rel (int64) and p = +1 / -1 (int8, OFF bit 1 = -1).
-// radix_sort_bits_ then merge in `more` (sorted, may be empty) and unpack all into the Events fields
-// in one pass (see _KeyLayout): b, x, y, t = t0 + t_rel (int64) and p = +1 / -1 (int8, OFF bit 1 = -1).
-// lo_bit: see radix_sort_bits_ (t_shift when the keys come in pixel order, else 0).
-std::vector<torch::Tensor> sort_decode(torch::Tensor keys, int64_t bits, int64_t lo_bit, torch::Tensor more,
-                                       int64_t b_shift, int64_t t_shift, int64_t y_shift, int64_t x_mask,
-                                       int64_t y_mask, int64_t t0) {
-  TORCH_CHECK(more.is_contiguous() && more.scalar_type() == torch::kInt64 && more.device().is_cpu(),
-              "sort_decode: more must be a contiguous int64 CPU tensor");
-  TORCH_CHECK(keys.is_contiguous() && keys.scalar_type() == torch::kInt64 && keys.device().is_cpu(),
-              "sort_decode: keys must be a contiguous int64 CPU tensor");
-  const int64_t na = keys.numel(), nb = more.numel(), n = na + nb;
-  auto opt = torch::TensorOptions().dtype(torch::kInt64);
-  auto b = torch::empty({n}, opt), x = torch::empty({n}, opt), y = torch::empty({n}, opt), t = torch::empty({n}, opt);
-  auto p = torch::empty({n}, torch::TensorOptions().dtype(torch::kInt8));
-  int64_t *pb = b.data_ptr<int64_t>(), *px = x.data_ptr<int64_t>(), *py = y.data_ptr<int64_t>(), *pt = t.data_ptr<int64_t>();
-  int8_t* pp = p.data_ptr<int8_t>();
+// radix_sort_bits (lo_bit: t_shift when the keys come in pixel order, else 0) then merge in `more`
+// (nb sorted keys, may be 0) and unpack all into the Events fields in one pass (see _KeyLayout):
+// b, x, y, t = t0 + t_rel (int64) and p = +1 / -1 (int8, OFF bit 1 = -1); outputs of na + nb entries.
+extern "C" void dvs_sort_decode(int64_t* keys, int64_t na, int64_t bits, int64_t lo_bit, const int64_t* more,
+                                int64_t nb, int64_t b_shift, int64_t t_shift, int64_t y_shift, int64_t x_mask,
+                                int64_t y_mask, int64_t t0, int64_t* pb, int64_t* px, int64_t* py, int64_t* pt,
+                                int8_t* pp) {
+  const int64_t n = na + nb;
   const int64_t t_mask = (int64_t(1) << (b_shift - t_shift)) - 1;
   auto put = [&](int64_t w, int64_t v) {
     pp[w] = (v & 1) ? -1 : 1;
@@ -104,64 +90,24 @@ std::vector<torch::Tensor> sort_decode(torch::Tensor keys, int64_t bits, int64_t
     pt[w] = ((v >> t_shift) & t_mask) + t0;
     pb[w] = v >> b_shift;
   };
-  radix_sort_bits_(keys, bits, lo_bit);
-  const int64_t* ka = keys.data_ptr<int64_t>();
-  const int64_t* kb = more.data_ptr<int64_t>();
+  radix_sort_bits(keys, na, bits, lo_bit);
   int64_t i = 0, j = 0;
   const uint64_t END = ~uint64_t(0);  // above every key (keys are < 2^63)
   for (int64_t w = 0; w < n; ++w) {
     // branch-free merge step (the two streams interleave at random)
-    const uint64_t va = i < na ? uint64_t(ka[i]) : END, vb = j < nb ? uint64_t(kb[j]) : END;
+    const uint64_t va = i < na ? uint64_t(keys[i]) : END, vb = j < nb ? uint64_t(more[j]) : END;
     const bool from_a = va <= vb;
     const int64_t v = int64_t(from_a ? va : vb);
     i += from_a;
     j += !from_a;
     put(w, v);
   }
-  return {b, x, y, t, p};
-}
-
-// Shot-noise candidates (slot, elem, u as pixel_model.sorted_candidates draws them, in (element, time,
-// pixel) order) thinned and keyed as pixel_model.draw_shot_noise and EventEmulator.step do, the same
-// float64 operations in the same order: q = min(I / I_full, 1) * c + a with I the pixel's irradiance
-// (float64); kept when u < q (only if thin), OFF when u < q / 2; key = ((slot + 2^(t_shift-1)) << 1)
-// | (elem << b_shift) | OFF. Returns {flat pixel index, key} of the kept ones, in order (sorted keys).
-std::vector<torch::Tensor> shot_keys(torch::Tensor slot_t, torch::Tensor elem_t, torch::Tensor u_t, torch::Tensor irr_t,
-                                     int64_t H, int64_t W, int64_t x_bits, int64_t y_bits, double inv_full, double a,
-                                     double c, bool thin, int64_t t_shift, int64_t b_shift) {
-  TORCH_CHECK(irr_t.scalar_type() == torch::kFloat64 && irr_t.is_contiguous() && u_t.scalar_type() == torch::kFloat64,
-              "shot_keys: irradiance and u must be contiguous float64");
-  const int64_t n = slot_t.numel();
-  const int64_t *slot = slot_t.data_ptr<int64_t>(), *elem = elem_t.data_ptr<int64_t>();
-  const double *u = u_t.data_ptr<double>(), *irr = irr_t.data_ptr<double>();
-  auto flat_t = torch::empty({n}, torch::kInt64), keys_t = torch::empty({n}, torch::kInt64);
-  int64_t *flat = flat_t.data_ptr<int64_t>(), *keys = keys_t.data_ptr<int64_t>();
-  const int64_t xm = (int64_t(1) << x_bits) - 1, ym = (int64_t(1) << y_bits) - 1, t_one = int64_t(1) << (t_shift - 1);
-  int64_t w = 0;
-  for (int64_t i = 0; i < n; ++i) {
-    const int64_t s = slot[i];
-    const int64_t f = (((s >> x_bits) & ym) + elem[i] * H) * W + (s & xm);
-    double q = irr[f] * inv_full;
-    q = q > 1.0 ? 1.0 : q;
-    q = q * c + a;
-    // written always, kept by advancing w: no branch on the random u (half of them mispredicted)
-    flat[w] = f;
-    keys[w] = (((s + t_one) << 1) | (elem[i] << b_shift)) | int64_t(u[i] < q * 0.5);
-    w += int64_t(!thin || u[i] < q);
-  }
-  return {flat_t.narrow(0, 0, w), keys_t.narrow(0, 0, w)};
 }
 
 // The front-end filters of dvsland.events.denoise as tonic writes them: one loop over the events
 // in stream order with a per-pixel memory of the last event time (mem, flat, in/out).
-torch::Tensor baf_keep(torch::Tensor pix_t, torch::Tensor x_t, torch::Tensor y_t, torch::Tensor t_t,
-                       torch::Tensor mem_t, int64_t H, int64_t W, int64_t window, int64_t neighbours) {
-  const int64_t n = pix_t.numel();
-  const int64_t *pix = pix_t.data_ptr<int64_t>(), *x = x_t.data_ptr<int64_t>(), *y = y_t.data_ptr<int64_t>();
-  const int64_t* t = t_t.data_ptr<int64_t>();
-  int64_t* mem = mem_t.data_ptr<int64_t>();
-  auto keep_t = torch::empty({n}, torch::TensorOptions().dtype(torch::kBool));
-  bool* keep = keep_t.data_ptr<bool>();
+extern "C" void dvs_baf_keep(const int64_t* pix, const int64_t* x, const int64_t* y, const int64_t* t, int64_t n,
+                             int64_t* mem, int64_t H, int64_t W, int64_t window, int64_t neighbours, bool* keep) {
   const int DX[8] = {-1, 1, 0, 0, -1, 1, -1, 1}, DY[8] = {0, 0, -1, 1, -1, -1, 1, 1};
   for (int64_t i = 0; i < n; ++i) {
     bool ok = false;
@@ -173,27 +119,21 @@ torch::Tensor baf_keep(torch::Tensor pix_t, torch::Tensor x_t, torch::Tensor y_t
     mem[pix[i]] = t[i];
     keep[i] = ok;
   }
-  return keep_t;
 }
 
-torch::Tensor refractory_keep(torch::Tensor pix_t, torch::Tensor t_t, torch::Tensor mem_t, int64_t period) {
-  const int64_t n = pix_t.numel();
-  const int64_t *pix = pix_t.data_ptr<int64_t>(), *t = t_t.data_ptr<int64_t>();
-  int64_t* mem = mem_t.data_ptr<int64_t>();
-  auto keep_t = torch::empty({n}, torch::TensorOptions().dtype(torch::kBool));
-  bool* keep = keep_t.data_ptr<bool>();
+extern "C" void dvs_refractory_keep(const int64_t* pix, const int64_t* t, int64_t n, int64_t* mem, int64_t period,
+                                    bool* keep) {
   for (int64_t i = 0; i < n; ++i) {
     keep[i] = t[i] - mem[pix[i]] > period;
     mem[pix[i]] = t[i];
   }
-  return keep_t;
 }
 
 // The ideal pixel's step (log interpolation, scalar thresholds and refractory period) in one pass
 // over the pixels, the same float64 operations in the same order as EventEmulator._pixel_events /
 // _emitted_log / _extra_keys (torch's addcmul is a fused multiply-add: std::fma here). Updates
-// lref and t_last in place; returns the unsorted event keys, or an empty tensor and the count in
-// n_out[0] when the count exceeds cap (cap < 0: no cap).
+// lref and t_last in place; dvs_pixel_scan returns the count of events (their candidates are kept
+// for dvs_pixel_write, which writes their unsorted keys).
 static inline double clamp_lo(double x, double lo) { return x < lo ? lo : x; }  // NaN stays NaN, as torch
 static inline double clamp_lohi(double x, double lo, double hi) { x = x < lo ? lo : x; return x > hi ? hi : x; }
 
@@ -277,48 +217,122 @@ DVS_CLONES static void write_keys(const std::vector<Cand>& cand, double dt, int6
   }
 }
 
-// th_on_map, th_off_map, r_elem: empty tensors for the scalars, else contiguous float64 (see scan_pixels).
-torch::Tensor pixel_events(torch::Tensor l1_t, torch::Tensor lref_t, torch::Tensor l0_t, torch::Tensor tlast_t,
-                           torch::Tensor code_t, double th_on, double th_off, torch::Tensor th_on_map,
-                           torch::Tensor th_off_map, double r, torch::Tensor r_elem, int64_t hw, double t0,
-                           double dt, bool spacing_may_bind, int64_t t_shift, int64_t cap, torch::Tensor n_out) {
-  auto ptr = [](const torch::Tensor& x) -> const double* {
-    if (x.numel() == 0) return nullptr;
-    TORCH_CHECK(x.is_contiguous() && x.scalar_type() == torch::kFloat64, "pixel_events: maps must be contiguous float64");
-    return x.data_ptr<double>();
-  };
-  const int64_t P = l1_t.numel();
-  static thread_local std::vector<Cand> kept;  // kept across calls (no fresh pages per step)
-  std::vector<Cand>& cand = kept;
-  cand.clear();
-  if (cand.capacity() < size_t(P / 2)) cand.reserve(size_t(P / 2));
-  const double total = scan_pixels(l1_t.data_ptr<double>(), lref_t.data_ptr<double>(), l0_t.data_ptr<double>(),
-                                   tlast_t.data_ptr<double>(), code_t.data_ptr<int64_t>(), P, th_on, th_off,
-                                   ptr(th_on_map), ptr(th_off_map), r, ptr(r_elem), hw, t0, dt, spacing_may_bind,
-                                   cand);
-  n_out.data_ptr<double>()[0] = total;
-  if (cap >= 0 && total > double(cap)) return torch::empty({0}, torch::kInt64);
-  auto keys = torch::empty({int64_t(total)}, torch::kInt64);
-  write_keys(cand, dt, t_shift, keys.data_ptr<int64_t>());
-  if (cand.capacity() > (size_t(1) << 22)) std::vector<Cand>().swap(cand);  // do not keep huge buffers
-  return keys;
+static thread_local std::vector<Cand> g_cand;  // kept across calls (no fresh pages per step)
+
+// th_on_map, th_off_map, r_elem: null for the scalars (see scan_pixels). Returns the events' count.
+extern "C" double dvs_pixel_scan(const double* l1, double* lref, const double* l0, double* tlast, const int64_t* code,
+                                 int64_t P, double th_on, double th_off, const double* th_on_map,
+                                 const double* th_off_map, double r, const double* r_elem, int64_t hw, double t0,
+                                 double dt, int64_t spacing_may_bind) {
+  g_cand.clear();
+  if (g_cand.capacity() < size_t(P / 2)) g_cand.reserve(size_t(P / 2));
+  return scan_pixels(l1, lref, l0, tlast, code, P, th_on, th_off, th_on_map, th_off_map, r, r_elem, hw, t0, dt,
+                     spacing_may_bind != 0, g_cand);
+}
+
+// The keys of the last dvs_pixel_scan's events (as many as it counted) into out.
+extern "C" void dvs_pixel_write(double dt, int64_t t_shift, int64_t* out) {
+  write_keys(g_cand, dt, t_shift, out);
+  if (g_cand.capacity() > (size_t(1) << 22)) std::vector<Cand>().swap(g_cand);  // do not keep huge buffers
 }
 """
 
-_FUNCTIONS = ["radix_sort_", "pixel_events", "sort_decode", "shot_keys", "baf_keep", "refractory_keep"]
-_CFLAGS = ["-O3", "-ffp-contract=off"]
+# x86-64: the AVX2/FMA clone of the pixel scan needs the ifunc resolver of the target_clones attribute
+_CFLAGS = ["-O3", "-ffp-contract=off", "-std=c++17"]
 
 _ON, _OFF, _AUTO = ON, OFF, AUTO
 _module = None
 _failed = False
-_absent = False  # auto mode found no cached build in this process (not looked for again)
+_absent = False  # auto mode found neither a cached build nor a compiler in this process (not looked for again)
 #: this process's choice (use_native_sort): True = on, False = off, None = the environment's
 _enabled: Optional[bool] = None
 
+_I64, _F64, _VOID, _P = ctypes.c_int64, ctypes.c_double, None, ctypes.c_void_p
+#: the C functions' (argument types, result type)
+_SIGNATURES = {
+    "dvs_radix_sort": ([_P, _I64, _I64], _VOID),
+    "dvs_sort_decode": ([_P, _I64, _I64, _I64, _P, _I64] + [_I64] * 6 + [_P] * 5, _VOID),
+    "dvs_baf_keep": ([_P] * 4 + [_I64, _P] + [_I64] * 4 + [_P], _VOID),
+    "dvs_refractory_keep": ([_P, _P, _I64, _P, _I64, _P], _VOID),
+    "dvs_pixel_scan": ([_P] * 5 + [_I64, _F64, _F64, _P, _P, _F64, _P, _I64, _F64, _F64, _I64], _F64),
+    "dvs_pixel_write": ([_F64, _I64, _P], _VOID),
+}
+
+
+def _ptr(t: torch.Tensor, dtype: torch.dtype, what: str) -> Optional[int]:
+    """The address of ``t``'s data (None for an empty tensor), after checking that it is a contiguous
+    CPU tensor of ``dtype`` (the kernels read raw memory)."""
+    if t.dtype != dtype or t.device.type != "cpu" or not t.is_contiguous():
+        raise RuntimeError(f"{what} must be a contiguous {dtype} CPU tensor, got {t.dtype} on {t.device}"
+                           f"{'' if t.is_contiguous() else ' (not contiguous)'}")
+    return t.data_ptr() if t.numel() else None
+
+
+class Kernels:
+    """The loaded library's functions on torch tensors (CPU; each checks its inputs' dtype and layout)."""
+
+    def __init__(self, lib: ctypes.CDLL):
+        for name, (args, res) in _SIGNATURES.items():
+            f = getattr(lib, name)
+            f.argtypes, f.restype = args, res
+        self._lib = lib
+
+    def radix_sort_(self, keys: torch.Tensor, bits: int) -> None:
+        """Sort ``keys`` ((N,) int64, values in [0, 2^bits)) in place."""
+        self._lib.dvs_radix_sort(_ptr(keys, torch.int64, "radix_sort_: keys"), keys.numel(), int(bits))
+
+    def sort_decode(self, keys: torch.Tensor, bits: int, lo_bit: int, more: torch.Tensor, b_shift: int, t_shift: int,
+                    y_shift: int, x_mask: int, y_mask: int, t0: int):
+        """Sort ``keys`` in place (by bits lo_bit..bits-1), merge in ``more`` (sorted) and unpack:
+        [b, x, y, t (N,) int64, p (N,) int8]."""
+        na, nb = keys.numel(), more.numel()
+        out = [torch.empty(na + nb, dtype=torch.int64) for _ in range(4)] + [torch.empty(na + nb, dtype=torch.int8)]
+        self._lib.dvs_sort_decode(_ptr(keys, torch.int64, "sort_decode: keys"), na, int(bits), int(lo_bit),
+                                  _ptr(more, torch.int64, "sort_decode: more"), nb, int(b_shift), int(t_shift),
+                                  int(y_shift), int(x_mask), int(y_mask), int(t0), *(o.data_ptr() for o in out))
+        return out
+
+    def baf_keep(self, pix, x, y, t, mem, H: int, W: int, window: int, neighbours: int) -> torch.Tensor:
+        """The background-activity filter's keep mask (N,) bool; updates ``mem`` in place."""
+        keep = torch.empty(pix.numel(), dtype=torch.bool)
+        args = [_ptr(v, torch.int64, f"baf_keep: {k}") for k, v in (("pix", pix), ("x", x), ("y", y), ("t", t))]
+        self._lib.dvs_baf_keep(*args, pix.numel(), _ptr(mem, torch.int64, "baf_keep: mem"), int(H), int(W),
+                               int(window), int(neighbours), keep.data_ptr())
+        return keep
+
+    def refractory_keep(self, pix, t, mem, period: int) -> torch.Tensor:
+        """The refractory filter's keep mask (N,) bool; updates ``mem`` in place."""
+        keep = torch.empty(pix.numel(), dtype=torch.bool)
+        self._lib.dvs_refractory_keep(_ptr(pix, torch.int64, "refractory_keep: pix"),
+                                      _ptr(t, torch.int64, "refractory_keep: t"), pix.numel(),
+                                      _ptr(mem, torch.int64, "refractory_keep: mem"), int(period), keep.data_ptr())
+        return keep
+
+    def pixel_events(self, l1, lref, l0, tlast, code, th_on: float, th_off: float, th_on_map, th_off_map, r: float,
+                     r_elem, hw: int, t0: float, dt: float, spacing_may_bind: bool, t_shift: int, cap: int,
+                     n_out: torch.Tensor) -> torch.Tensor:
+        """The ideal pixel's step over P pixels (float64 (P,) log intensities l1, l0, reference lref
+        and last event times tlast, the last two updated in place; int64 pixel codes): the unsorted
+        event keys (int64), or an empty tensor when their count (written to ``n_out[0]``) exceeds
+        ``cap`` (cap < 0: no cap). Empty maps / r_elem: the scalars."""
+        f64 = torch.float64
+        n = self._lib.dvs_pixel_scan(
+            _ptr(l1, f64, "pixel_events: l1"), _ptr(lref, f64, "pixel_events: lref"), _ptr(l0, f64, "pixel_events: l0"),
+            _ptr(tlast, f64, "pixel_events: tlast"), _ptr(code, torch.int64, "pixel_events: code"), l1.numel(),
+            float(th_on), float(th_off), _ptr(th_on_map, f64, "pixel_events: maps"),
+            _ptr(th_off_map, f64, "pixel_events: maps"), float(r), _ptr(r_elem, f64, "pixel_events: r_elem"), int(hw),
+            float(t0), float(dt), int(bool(spacing_may_bind)))
+        n_out[0] = n
+        if cap >= 0 and n > cap:
+            return torch.empty(0, dtype=torch.int64)
+        keys = torch.empty(int(n), dtype=torch.int64)
+        self._lib.dvs_pixel_write(float(dt), int(t_shift), keys.data_ptr())
+        return keys
+
 
 def use_native_sort(on: Optional[bool] = True) -> None:
-    """Pick the mode for this process: True = on (build when not cached), False = off, None = back
-    to ``DVSLAND_NATIVE_SORT`` (default auto)."""
+    """Pick the mode for this process: True = on, False = off, None = back to ``DVSLAND_NATIVE_SORT``
+    (default auto)."""
     global _enabled
     _enabled = None if on is None else bool(on)
 
@@ -346,24 +360,24 @@ def mode() -> str:
 
 
 def module_name() -> str:
-    """The extension's name: a hash of the source, flags, functions, torch and Python versions."""
-    return extension_name("dvsland_events_native", _SRC, " ".join(_CFLAGS), " ".join(_FUNCTIONS))
+    """The library's name: a hash of the source, flags, compiler and machine."""
+    return library_name("dvsland_events_native", _SRC, " ".join(_CFLAGS))
 
 
 def build_dir() -> Path:
-    """The folder of the build (torch's extension folder, ``TORCH_EXTENSIONS_DIR`` if set)."""
-    return extension_dir(module_name())
+    """The folder of the build (:func:`dvsland.native_build.library_dir`)."""
+    return library_dir(module_name())
 
 
 def cached() -> bool:
-    """Whether the build of this exact source is in the cache (so auto mode uses it)."""
-    return extension_cached(module_name())
+    """Whether the build of this exact source is in the cache."""
+    return library_cached(module_name())
 
 
 def native_sort_enabled() -> bool:
-    """Whether the emulator and the denoiser should use the kernels now: mode on, or auto with the
-    build cached (or already loaded). Never compiles. In auto mode the cache is looked at once per
-    process (a build made later by another process is used from the next process on)."""
+    """Whether the emulator and the denoiser should use the kernels now: mode on; or auto with the
+    build cached, loaded, or a C++ compiler to build it with. Never compiles. In auto mode the cache
+    and the compiler are looked for once per process."""
     global _absent
     m = mode()
     if m == _ON:
@@ -374,33 +388,34 @@ def native_sort_enabled() -> bool:
         return True
     if _absent:
         return False
-    if cached():
+    if cached() or compiler() is not None:
         return True
     _absent = True
     return False
 
 
-def kernels():
-    """The compiled module when the kernels are to be used now (:func:`native_sort_enabled`, then
-    :func:`load`), else None (the torch path). Never compiles in auto mode."""
+def kernels() -> Optional[Kernels]:
+    """The kernels when they are to be used now (:func:`native_sort_enabled`, then :func:`load`,
+    which builds them once when needed), else None (the torch path)."""
     return load() if native_sort_enabled() else None
 
 
-def build(verbose: bool = False):
-    """Compile (when not cached) and load the kernels; the module. Raises on any build error."""
-    return build_extension(module_name(), _SRC, _FUNCTIONS, _CFLAGS, verbose)
+def build(verbose: bool = False) -> Kernels:
+    """Compile (when not cached) and load the kernels. Raises on any build error."""
+    build_library(module_name(), _SRC, _CFLAGS, verbose)
+    return Kernels(load_library(module_name()))
 
 
-def load():
-    """The compiled module, or None: mode off; auto without a cached build; or a failed build or
-    load (one warning, then the torch path for the rest of the process)."""
+def load() -> Optional[Kernels]:
+    """The kernels, or None: mode off; auto with neither a cached build nor a compiler; or a failed
+    build or load (one warning, then the torch path for the rest of the process)."""
     global _module, _failed
     if _module is not None or _failed:
         return _module
-    m = mode()
-    if m == _OFF or (m == _AUTO and not native_sort_enabled()):
+    if not native_sort_enabled():
         return None
-    _module = load_or_warn(module_name(), cached(), build, "dvsland.events.native")
+    _module = load_or_warn(lambda: Kernels(load_library(module_name())) if cached() else build(),
+                           "dvsland.events.native")
     _failed = _module is None
     return _module
 
@@ -408,14 +423,12 @@ def load():
 def radix_sort_(keys: torch.Tensor, bits: int) -> bool:
     """Sort ``keys`` ((N,) int64 CPU, contiguous, values in [0, 2^bits)) in place with the compiled
     kernel; returns False (nothing done) when it is not enabled or not available."""
-    if not native_sort_enabled():
-        return False
-    mod = load()
+    mod = kernels()
     if mod is None:
         return False
     mod.radix_sort_(keys, int(bits))
     return True
 
 
-__all__ = ["use_native_sort", "native_sort_enabled", "mode", "cached", "build", "build_dir", "module_name",
-           "load", "radix_sort_"]
+__all__ = ["Kernels", "use_native_sort", "native_sort_enabled", "mode", "cached", "build", "build_dir",
+           "module_name", "load", "kernels", "radix_sort_"]
