@@ -1,7 +1,8 @@
 """The motion-evidence test's batched internals against the first (reference) implementation.
 
 ``motion_evidence`` counts rows by binary search and sums the flicker's moments by segment
-reduction over events sorted by (b, t), and runs the neighbour box on the flat images; the
+reduction over events sorted by (b, t), and runs the neighbour box on the flat images (or takes
+the counts and sums from the compiled kernel, in the same order); the
 reference below (the implementation these replaced: bincount, ``index_add_``, strided box sums)
 must give the same bits on random and structured windows, empty rows and odd sensor sizes.
 """
@@ -78,11 +79,19 @@ def _window(g, B, W, H, N, structured):
                                      (2, 7, 7, 10)])
 @pytest.mark.parametrize("structured", [False, True])
 @pytest.mark.parametrize("cell", [8, 3, 16])
-def test_motion_evidence_matches_reference_bit_for_bit(B, W, H, N, structured, cell):
+@pytest.mark.parametrize("compiled", [False, True])
+def test_motion_evidence_matches_reference_bit_for_bit(B, W, H, N, structured, cell, compiled):
+    """On the torch path and with the compiled counts (dvsland.events.native, where a compiler is found)."""
+    from dvsland.events import native
+
+    if compiled and native.load() is None:
+        pytest.skip("no C++ compiler here")
     g = torch.Generator().manual_seed(B * 1000 + N + cell + structured)
     ev = _window(g, B, W, H, N, structured)
     p = A.AbstainParams(cell_px=cell)
-    got, ref = A.motion_evidence(ev, B, (W, H), 100_000, p), _reference(ev, B, (W, H), 100_000, p)
+    with native.native_sort_mode(compiled):
+        got = A.motion_evidence(ev, B, (W, H), 100_000, p)
+    ref = _reference(ev, B, (W, H), 100_000, p)
     for name, a, r in zip(A.MotionEvidence._fields, got, ref):
         assert a.dtype == r.dtype and torch.equal(a, r), (name, a, r)
 

@@ -35,6 +35,8 @@ from typing import NamedTuple, Optional, Tuple
 
 import torch
 
+from dvsland.events import native
+
 
 class AbstainParams(NamedTuple):
     """Thresholds of the motion-evidence test (the defaults are the shipped behaviour).
@@ -117,7 +119,11 @@ def _clustering(img: torch.Tensor, cell: int) -> torch.Tensor:
         return torch.zeros(B, dtype=torch.float32, device=img.device)
     acc = torch.uint8 if cell * cell <= 255 else torch.int32
     c = img[:, :Hc * cell, :Wc * cell].reshape(B, Hc, cell, Wc * cell).sum(dim=2, dtype=acc)
-    c = c.view(B, Hc * Wc, cell).sum(dim=2, dtype=acc).to(torch.float32)
+    return _clustering_of_counts(c.view(B, Hc * Wc, cell).sum(dim=2, dtype=acc).to(torch.float32), cell)
+
+
+def _clustering_of_counts(c: torch.Tensor, cell: int) -> torch.Tensor:
+    """Clustering index (B,) float32 of the active pixels per cell ``c`` (B, cells) float32 (integers)."""
     m = c.mean(dim=1)
     den = m * (1.0 - m / (cell * cell))
     return torch.where(den > 1e-6, c.var(dim=1) / den.clamp_min(1e-6), torch.zeros_like(m))
@@ -151,7 +157,12 @@ def _neighbours(padded: torch.Tensor) -> torch.Tensor:
     ``padded`` (B, H + 2, W + 2) uint8 with a zero border: the share of active pixels with an
     active 8-neighbour against 1 - (1 - q)^8 for pixels active at random."""
     H, W = padded.shape[1] - 2, padded.shape[2] - 2
-    active, with_nb = _neighbour_counts(padded)
+    return _neighbours_of_counts(*_neighbour_counts(padded), H, W)
+
+
+def _neighbours_of_counts(active: torch.Tensor, with_nb: torch.Tensor, H: int, W: int) -> torch.Tensor:
+    """Neighbour excess (B,) float32 of the active pixels ``active`` (B,) and those of them with an
+    active 8-neighbour ``with_nb`` (B,), float32 integers, on an H x W sensor."""
     obs = with_nb / active.clamp_min(1.0)
     q = active / float(H * W)
     exp = 1.0 - (1.0 - q) ** 8
@@ -184,7 +195,12 @@ def _flicker(events, B: int, t_us: int, n: torch.Tensor, dev) -> torch.Tensor:
     p.copy_(events.p.to(dev))
     torch.mul(t, t, out=src[2])
     torch.mul(p, t, out=src[3])
-    sums = _row_sums(src, b, n)
+    return _flicker_of_sums(_row_sums(src, b, n), n)
+
+
+def _flicker_of_sums(sums: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+    """|corr(polarity, time)| (B,) float32 from the per-descent sums (4, B) float32 of (t, p, t^2, p t)
+    and the event counts ``n`` (B,) int64."""
     nn = n.to(torch.float32).clamp_min(1.0)
     mt, mp = sums[0] / nn, sums[1] / nn
     vt, vp = sums[2] / nn - mt ** 2, 1.0 - mp ** 2  # p = +-1: E[p^2] = 1
@@ -192,6 +208,22 @@ def _flicker(events, B: int, t_us: int, n: torch.Tensor, dev) -> torch.Tensor:
     ok = (vt > 1e-6) & (vp > 1e-6)
     r = cov.abs() / torch.sqrt((vt * vp).clamp_min(1e-12))
     return torch.where(ok, r, torch.zeros_like(r)).clamp(0.0, 1.0).to(torch.float32)
+
+
+def _statistics(events, B: int, W: int, H: int, t_us: int, n: torch.Tensor, cell: int, dev):
+    """(clustering, neighbours, flicker), each (B,) float32, of the checked events sorted by b: their
+    counts and sums from the compiled kernel where it runs (CPU; :mod:`dvsland.events.native`, the same
+    integers and the same float32 sums in the same order), else from torch; the statistics from torch."""
+    mod = native.kernels() if dev.type == "cpu" and events.b.device.type == "cpu" else None
+    if mod is None:
+        padded = _occupancy(events, B, W, H, dev)
+        return _clustering(padded[:, 1:-1, 1:-1], cell), _neighbours(padded), _flicker(events, B, t_us, n, dev)
+    with_cells = (H // cell) * (W // cell) >= 2
+    cells, active, with_nb, sums = mod.motion_counts(
+        *(v.to(torch.int64).contiguous() for v in (events.b, events.x, events.y, events.t)),
+        events.p.to(torch.int8).contiguous(), B, H, W, cell if with_cells else 0, int(t_us))
+    clus = _clustering_of_counts(cells, cell) if with_cells else torch.zeros(B, dtype=torch.float32)
+    return clus, _neighbours_of_counts(active, with_nb, H, W), _flicker_of_sums(sums, n)
 
 
 def check_abstain_params(p: AbstainParams) -> None:
@@ -236,10 +268,7 @@ def motion_evidence(events, batch_size: int, sensor_size: Tuple[int, int], t_us:
     b = events.b.to(dev).contiguous()  # sorted: the events of a row are contiguous
     edges = torch.searchsorted(b, torch.arange(B + 1, dtype=b.dtype, device=dev))
     n = edges[1:] - edges[:-1]
-    padded = _occupancy(events, B, W, H, dev)
-    clus = _clustering(padded[:, 1:-1, 1:-1], max(2, int(params.cell_px)))
-    nbx = _neighbours(padded)
-    flick = _flicker(events, B, t_us, n, dev)
+    clus, nbx, flick = _statistics(events, B, W, H, t_us, n, max(2, int(params.cell_px)), dev)
     motion = torch.maximum(_ramp(clus, params.clustering_none, params.clustering_full),
                            _ramp(nbx, params.neighbours_none, params.neighbours_full))
     motion = motion * _ramp(flick, params.flicker_none, params.flicker_full)

@@ -1,5 +1,6 @@
 """Compiled kernels of the emulator (CPU): the ideal pixel's step, an LSD radix sort of its int64
-event keys fused with their decoding, and the loops of the denoising filters.
+event keys fused with their decoding, the loops of the denoising filters, and the counts and sums
+of the estimators' motion-evidence test (:mod:`dvsland.estimators.abstain`).
 
 They give the same events and pixel state as the torch path, which stays the reference (the
 operations are the same float64 ones in the same order; sorting integers has one result; tests
@@ -40,6 +41,7 @@ from dvsland.native_build import (AUTO, OFF, ON, build_library, compiler, librar
                                   load_library, load_or_warn, mode_from_env)
 
 _SRC = r"""
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -126,6 +128,46 @@ extern "C" void dvs_refractory_keep(const int64_t* pix, const int64_t* t, int64_
   for (int64_t i = 0; i < n; ++i) {
     keep[i] = t[i] - mem[pix[i]] > period;
     mem[pix[i]] = t[i];
+  }
+}
+
+// The integer counts and float32 sums of the estimators' motion-evidence test
+// (dvsland.estimators.abstain), over n events sorted by element b (all on the B x H x W sensor):
+// per element the active pixels, those with an active 8-neighbour and, when cells is not null,
+// the active pixels of each cell x cell cell (H / cell rows, W / cell columns of cells, the sensor's
+// first rows and columns); and the sums of (t, p, t^2, p t) over its events in their order (float32,
+// as torch's segment sum adds them), t = (t_us_event - t_us) as float32 divided by the largest |t|
+// over all events (at least 1). Outputs zeroed by the caller.
+extern "C" void dvs_motion_counts(const int64_t* b, const int64_t* x, const int64_t* y, const int64_t* t,
+                                  const int8_t* p, int64_t n, int64_t B, int64_t H, int64_t W, int64_t cell,
+                                  int64_t t_us, float* cells, float* active, float* with_nb, float* sums) {
+  const int64_t Wp = W + 2, P = (H + 2) * Wp;
+  static thread_local std::vector<uint8_t> occ;  // occupancy with a zero border: 0 none, 1 active, 2 counted
+  occ.assign(size_t(B * P), 0);
+  uint8_t* o = occ.data();  // a local pointer: byte stores may alias the vector (a TLS look-up per access)
+  for (int64_t i = 0; i < n; ++i) o[b[i] * P + (y[i] + 1) * Wp + x[i] + 1] = 1;
+  const int64_t Hc = cell > 0 ? H / cell : 0, Wc = cell > 0 ? W / cell : 0;
+  const int64_t nb[8] = {-Wp - 1, -Wp, -Wp + 1, -1, 1, Wp - 1, Wp, Wp + 1};
+  for (int64_t i = 0; i < n; ++i) {
+    const int64_t k = b[i] * P + (y[i] + 1) * Wp + x[i] + 1;
+    if (o[k] != 1) continue;  // each active pixel once
+    o[k] = 2;
+    active[b[i]] += 1.0f;
+    bool any = false;
+    for (int j = 0; j < 8; ++j) any |= o[k + nb[j]] != 0;
+    with_nb[b[i]] += any ? 1.0f : 0.0f;
+    if (cells && y[i] < Hc * cell && x[i] < Wc * cell) cells[b[i] * Hc * Wc + (y[i] / cell) * Wc + x[i] / cell] += 1.0f;
+  }
+  float m = 0.0f;
+  for (int64_t i = 0; i < n; ++i) m = std::max(m, std::fabs(float(t[i] - t_us)));
+  m = std::max(m, 1.0f);
+  for (int64_t i = 0; i < n; ++i) {
+    const float tf = float(t[i] - t_us) / m, pf = float(p[i]);
+    float* s = sums + b[i];
+    s[0] += tf;
+    s[B] += pf;
+    s[2 * B] += tf * tf;
+    s[3 * B] += pf * tf;
   }
 }
 
@@ -256,6 +298,7 @@ _SIGNATURES = {
     "dvs_refractory_keep": ([_P, _P, _I64, _P, _I64, _P], _VOID),
     "dvs_pixel_scan": ([_P] * 5 + [_I64, _F64, _F64, _P, _P, _F64, _P, _I64, _F64, _F64, _I64], _F64),
     "dvs_pixel_write": ([_F64, _I64, _P], _VOID),
+    "dvs_motion_counts": ([_P] * 5 + [_I64] * 6 + [_P] * 4, _VOID),
 }
 
 
@@ -307,6 +350,21 @@ class Kernels:
                                       _ptr(t, torch.int64, "refractory_keep: t"), pix.numel(),
                                       _ptr(mem, torch.int64, "refractory_keep: mem"), int(period), keep.data_ptr())
         return keep
+
+    def motion_counts(self, b, x, y, t, p, B: int, H: int, W: int, cell: int, t_us: int):
+        """The motion-evidence test's counts of N events sorted by b (int64 b, x, y, t; int8 p; on the
+        B x H x W sensor): (cells (B, (H // cell) (W // cell)) float32 or None when cell < 1, active
+        (B,), with_nb (B,) float32, sums (4, B) float32); see the kernel's comment."""
+        i64 = torch.int64
+        cells = torch.zeros(B, (H // cell) * (W // cell), dtype=torch.float32) if cell >= 1 else None
+        active, with_nb = torch.zeros(B, dtype=torch.float32), torch.zeros(B, dtype=torch.float32)
+        sums = torch.zeros(4, B, dtype=torch.float32)
+        self._lib.dvs_motion_counts(
+            _ptr(b, i64, "motion_counts: b"), _ptr(x, i64, "motion_counts: x"), _ptr(y, i64, "motion_counts: y"),
+            _ptr(t, i64, "motion_counts: t"), _ptr(p, torch.int8, "motion_counts: p"), b.numel(), int(B), int(H),
+            int(W), int(cell) if cells is not None else 0, int(t_us), None if cells is None else cells.data_ptr(),
+            active.data_ptr(), with_nb.data_ptr(), sums.data_ptr())
+        return cells, active, with_nb, sums
 
     def pixel_events(self, l1, lref, l0, tlast, code, th_on: float, th_off: float, th_on_map, th_off_map, r: float,
                      r_elem, hw: int, t0: float, dt: float, spacing_may_bind: bool, t_shift: int, cap: int,
