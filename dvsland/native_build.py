@@ -195,6 +195,62 @@ def load_or_warn(make, label: str):
         return None
 
 
+class NativeLibrary:
+    """One compiled library's process state and mode: the C++ source, its flags, the environment
+    variable of its mode (:func:`mode_from_env`: auto, on or off) and ``bind``, which makes the
+    Python bindings of a loaded ``ctypes.CDLL``. Auto (the default) and on build it on first use
+    (when not cached) and load it; auto without a cached build or a compiler stays silent and off,
+    a failed build or load warns once; either way the caller runs its torch path."""
+
+    def __init__(self, prefix: str, src: str, flags: Sequence[str], env_var: str, label: str, bind):
+        self.prefix, self.src, self.flags, self.env_var, self.label, self.bind = prefix, src, list(flags), env_var, \
+            label, bind
+        self.chosen: Optional[bool] = None
+        self._bound = None
+        self._failed = False
+
+    def use(self, on: Optional[bool] = True) -> None:
+        """Pick the mode for this process: True = on, False = off, None = back to the environment's."""
+        self.chosen = None if on is None else bool(on)
+
+    def mode(self) -> str:
+        """``"on"``, ``"off"`` or ``"auto"`` (raises ValueError naming the environment variable)."""
+        return mode_from_env(self.env_var, self.chosen)
+
+    def name(self) -> str:
+        return library_name(self.prefix, self.src, " ".join(self.flags))
+
+    def build_dir(self) -> Path:
+        return library_dir(self.name())
+
+    def cached(self) -> bool:
+        return library_cached(self.name())
+
+    def enabled(self) -> bool:
+        """Whether the kernels should be used now: on; or auto with the build cached, loaded, or a
+        compiler to build it with. Never compiles."""
+        m = self.mode()
+        return m == ON or (m == AUTO and not self._failed and (self._bound is not None or self.cached()
+                                                               or compiler() is not None))
+
+    def build(self, verbose: bool = False):
+        """Compile (when not cached) and load; the bindings. Raises on any build error."""
+        build_library(self.name(), self.src, self.flags, verbose)
+        return self.bind(load_library(self.name()))
+
+    def load(self, force: bool = False):
+        """The bindings, or None: not :meth:`enabled` (unless ``force``), or a failed build or load
+        (one warning, then None for the rest of the process)."""
+        if self._bound is not None or self._failed:
+            return self._bound
+        if not (force or self.enabled()):
+            return None
+        self._bound = load_or_warn(lambda: self.bind(load_library(self.name())) if self.cached() else self.build(),
+                                   self.label)
+        self._failed = self._bound is None
+        return self._bound
+
+
 def timed_build(label: str, kernel_module) -> int:
     """Build ``kernel_module``'s library (a module with ``cached()``, ``build()`` and ``build_dir()``)
     and print whether it was already cached, the wall and CPU time (the compiler's included) and the
@@ -218,4 +274,5 @@ def timed_build(label: str, kernel_module) -> int:
 
 
 __all__ = ["load_or_warn", "timed_build", "ON", "OFF", "AUTO", "ABI", "mode_from_env", "compiler", "library_name",
-           "library_dir", "library_file", "library_cached", "load_library", "build_library", "build_lock"]
+           "library_dir", "library_file", "library_cached", "load_library", "build_library", "build_lock",
+           "NativeLibrary"]

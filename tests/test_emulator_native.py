@@ -176,17 +176,18 @@ def test_native_kernel_respects_the_event_cap(fresh):
 
 
 def test_cli_build_native_builds_both_kernels_and_reports(monkeypatch, capsys):
-    """`dvsland build-native` builds the emulator's and cmax's kernels (compile mocked here) and
+    """`dvsland build-native` builds the emulator's, cmax's and dpr's kernels (compile mocked here) and
     returns 1 when one cannot be built, naming it."""
     from dvsland.cli.main import main
-    from dvsland.estimators import native_cmax
+    from dvsland.estimators import native_cmax, native_dpr
 
     built = []
     monkeypatch.setattr(native, "build", lambda verbose=False: built.append("events"))
     monkeypatch.setattr(native_cmax, "build", lambda verbose=False: built.append("cmax"))
-    assert main(["build-native"]) == 0 and built == ["events", "cmax"]
+    monkeypatch.setattr(native_dpr.LIBRARY, "build", lambda verbose=False: built.append("dpr"))
+    assert main(["build-native"]) == 0 and built == ["events", "cmax", "dpr"]
     out = capsys.readouterr().out
-    assert "dvsland.events.native" in out and "dvsland.estimators.native_cmax" in out
+    assert all(f"dvsland.{m}" in out for m in ("events.native", "estimators.native_cmax", "estimators.native_dpr"))
 
     def broken(verbose=False):
         raise RuntimeError("no compiler")

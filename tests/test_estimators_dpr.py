@@ -341,3 +341,57 @@ def test_dpr_blur_equals_kornia(batch, shape):
     out = _blur_depthwise(img, kx, ky)
     assert out.shape == img.shape
     assert torch.equal(out, ref)
+
+
+def _meanshift_both(pad, seeds, valid, radius, tol, q):
+    from dvsland.estimators import native_dpr
+
+    out = []
+    for on in (True, False):
+        native_dpr.use_native_dpr(on)
+        try:
+            out.append(meanshift_flat(pad, seeds, valid, radius, 20, tol, image_pad_px=q))
+        finally:
+            native_dpr.use_native_dpr(None)
+    return out
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_meanshift_compiled_equals_torch_path(seed):
+    """The compiled mean-shift (dvsland.estimators.native_dpr, built here where a compiler is found)
+    gives the torch path's centroids, counts and iterations bit for bit on whole-number counts."""
+    from dvsland.estimators import native_dpr
+
+    if native_dpr._LIB.load(force=True) is None:
+        pytest.skip("no C++ compiler here")
+    g = torch.Generator().manual_seed(seed)
+    B, N, H, W = 3, 12, 40 + seed, 50 - seed
+    radius = [4.0, 2.5, 0.7, 5.3, 3.0, 1.0][seed]
+    q = math.ceil(radius) + 1 + seed % 2
+    img = torch.poisson(torch.rand(B, H, W, generator=g) * 2.0, generator=g)
+    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    img += (25 * torch.exp(-((xx - W / 3) ** 2 + (yy - H / 2) ** 2) / 15.0)).round()
+    pad = torch.nn.functional.pad(img, (q,) * 4)
+    seeds = torch.rand(B, N, 2, generator=g) * torch.tensor([W + 4.0, H + 4.0]) - 2
+    valid = torch.rand(B, N, generator=g) < 0.8
+    seeds[~valid] = float("nan")
+    for tol in (0.01, 0.0):
+        (c1, n1, i1), (c0, n0, i0) = _meanshift_both(pad, seeds, valid, radius, tol, q)
+        assert torch.equal(c1.nan_to_num(-7), c0.nan_to_num(-7)) and torch.equal(n1, n0) and int(i1) == int(i0)
+        assert torch.isfinite(c1).any()
+
+
+def test_meanshift_fractional_counts_take_the_torch_path():
+    """Counts that are not whole numbers (the hot-pixel cap) make the kernel decline: the torch path's result."""
+    from dvsland.estimators import native_dpr
+
+    kern = native_dpr._LIB.load(force=True)
+    if kern is None:
+        pytest.skip("no C++ compiler here")
+    img = torch.zeros(1, 20, 20)
+    img[0, 9:12, 9:12] = 2.5
+    pad = torch.nn.functional.pad(img, (5,) * 4)
+    seeds, valid = torch.tensor([[[9.0, 10.0]]]), torch.tensor([[True]])
+    assert kern.meanshift(pad, 5, 20, 20, seeds, valid, 4.0, 20, 0.01) is None
+    (c1, n1, _), (c0, n0, _) = _meanshift_both(pad, seeds, valid, 4.0, 0.01, 5)
+    assert torch.equal(c1, c0) and torch.equal(n1, n0) and torch.allclose(c0, torch.tensor([[[10.0, 10.0]]]))

@@ -14,6 +14,8 @@ from typing import Tuple
 import torch
 import torch.nn.functional as F
 
+from . import native_dpr
+
 
 def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor, radius_px: float,
                    iters: int = 20, tol_px: float = 0.01,
@@ -54,6 +56,14 @@ def meanshift_flat(image: torch.Tensor, seeds: torch.Tensor, valid: torch.Tensor
         raise ValueError(f"iters must be >= 1, got {iters}")
     N = seeds.shape[1]
     dev = image.device
+    if native_dpr.fits(radius_px, image_pad_px):
+        mod = native_dpr.kernel_for(image)
+        if mod is not None:  # the same iterations seed by seed, where the sums are exact (module doc there)
+            q = int(image_pad_px)
+            out = mod.meanshift(image, q, image.shape[2] - 2 * q, image.shape[1] - 2 * q, seeds, valid, radius_px,
+                                int(iters), tol_px)
+            if out is not None:
+                return out[0], out[1], torch.tensor(out[2])
     r_int = int(math.ceil(radius_px))
     P = 2 * r_int + 2  # patch side: covers [floor(c) - r_int, floor(c) + r_int + 1]
     q = r_int + 1  # zero border needed so that every patch lies inside the padded image

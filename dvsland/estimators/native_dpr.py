@@ -1,0 +1,165 @@
+"""Compiled flat-kernel mean-shift of ``dpr`` (CPU), identical to the torch path.
+
+:func:`dvsland.estimators.meanshift.meanshift_flat` moves each seed to the count-weighted mean of
+the pixels within R of it until it moves less than the tolerance. Its torch path runs a dozen small
+tensor operations per iteration, which on a CPU cost far more than the arithmetic. This kernel runs
+the same iterations seed by seed. It is used where the window's counts are whole numbers and every
+patch sum stays below 2^24 (the paper's settings: ``hot_pixel_factor = 0``): then every sum of the
+torch path is exact in float32, whatever its order, and the kernel's per-seed arithmetic is the
+torch path's operation for operation (float32 fractions, squared offsets, the division, the clamp,
+and the step length as ``sqrt(fma(dy, dy, dx dx))``, as torch's ``vector_norm`` computes it). Anywhere
+else (fractional counts from the hot-pixel cap, larger sums) it reports so and the torch path runs.
+Tests pin the two to equality.
+
+Plain C++ behind a C interface, compiled on first use where a C++ compiler is found (about a second;
+:class:`dvsland.native_build.NativeLibrary`). ``DVSLAND_NATIVE_DPR`` (or :func:`use_native_dpr`) picks
+the mode: ``auto`` (default), ``1`` / ``on``, ``0`` / ``off`` (as ``DVSLAND_NATIVE_CMAX``).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+from typing import Optional, Tuple
+
+import torch
+
+from dvsland.native_build import NativeLibrary
+
+_SRC = r"""
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+// The window of seed (cx, cy) on image img (Hp x Wp, float32): the sums (w, w dx, w dy) of the counts
+// of the P x P patch from row/column s0 + floor(c) whose pixel centres lie within r2 (squared, float32)
+// of c, as float32 (exact: checked whole numbers with |sums| < 2^24). Returns false where that does
+// not hold (the torch path then runs).
+static bool window(const float* img, int64_t Wp, int64_t s0, int64_t P, int64_t r_int, float cx, float cy, float r2,
+                   float out[3]) {
+  if (!(std::isfinite(cx) && std::isfinite(cy))) return false;
+  const float bx = std::floor(cx), by = std::floor(cy);
+  const float fx = cx - bx, fy = cy - by;
+  float d2x[64], d2y[64];
+  for (int64_t k = 0; k < P; ++k) {
+    const float off = float(k - r_int);
+    const float ex = off - fx, ey = off - fy;
+    d2x[k] = ex * ex;
+    d2y[k] = ey * ey;
+  }
+  const float* row0 = img + (s0 + int64_t(by)) * Wp + s0 + int64_t(bx);
+  double s = 0.0, sx = 0.0, sy = 0.0;
+  for (int64_t i = 0; i < P; ++i) {
+    const float* row = row0 + i * Wp;
+    for (int64_t j = 0; j < P; ++j) {
+      if (!(d2x[j] + d2y[i] <= r2)) continue;
+      const float v = row[j];
+      if (v != 0.0f && v != std::nearbyint(v)) return false;  // not a whole number
+      s += v;
+      sx += double(v) * double(j - r_int);
+      sy += double(v) * double(i - r_int);
+    }
+  }
+  const double lim = 16777216.0;  // 2^24
+  if (!(std::fabs(s) < lim && std::fabs(sx) < lim && std::fabs(sy) < lim)) return false;
+  out[0] = float(s); out[1] = float(sx); out[2] = float(sy);
+  return true;
+}
+
+// Mean-shift of B x N seeds (xy, float32, in/out) on B images of Hp x Wp (the sensor W x H inside a zero
+// border of `have` px); valid (B N) bytes; counts (B N) float32 out. Returns the iterations run, or -1
+// (outputs unspecified) where the window sums are not exact (see window).
+extern "C" int64_t dpr_meanshift(const float* img, int64_t B, int64_t Hp, int64_t Wp, int64_t have, int64_t W,
+                                 int64_t H, float* xy, const uint8_t* valid, int64_t N, double radius, int64_t iters,
+                                 double tol_px, float* counts) {
+  const int64_t r_int = int64_t(std::ceil(radius)), P = 2 * r_int + 2, s0 = have - r_int;
+  if (P > 64 || s0 < 1) return -1;
+  const float r2 = float(radius * radius), tol = float(tol_px), hx = float(W - 1), hy = float(H - 1);
+  const bool tol_pos = tol_px > 0;
+  auto clampc = [](float v, float hi) { v = v < 0.0f ? 0.0f : v; return v > hi ? hi : v; };
+  std::vector<int64_t> act, next;
+  for (int64_t k = 0; k < B * N; ++k) {
+    float* c = xy + 2 * k;
+    c[0] = valid[k] ? clampc(c[0], hx) : 0.0f;
+    c[1] = valid[k] ? clampc(c[1], hy) : 0.0f;
+    if (valid[k]) act.push_back(k);
+  }
+  int64_t n_iter = 0;
+  float m[3];
+  for (int64_t it = 0; it < iters && !act.empty(); ++it) {
+    ++n_iter;
+    next.clear();
+    for (const int64_t k : act) {
+      float* c = xy + 2 * k;
+      if (!window(img + (k / N) * Hp * Wp, Wp, s0, P, r_int, c[0], c[1], r2, m)) return -1;
+      const bool empty = m[0] <= 0.0f;
+      const float sc = m[0] < 1e-12f ? 1e-12f : m[0];
+      float nx = std::floor(c[0]) + m[1] / sc, ny = std::floor(c[1]) + m[2] / sc;
+      nx = empty ? c[0] : clampc(nx, hx);
+      ny = empty ? c[1] : clampc(ny, hy);
+      const float dx = nx - c[0], dy = ny - c[1];
+      const bool still = std::sqrt(std::fma(dy, dy, dx * dx)) >= tol && (tol_pos || !empty);
+      c[0] = nx; c[1] = ny;
+      if (still) next.push_back(k);
+    }
+    act.swap(next);
+  }
+  for (int64_t k = 0; k < B * N; ++k) {
+    float* c = xy + 2 * k;
+    if (!window(img + (k / N) * Hp * Wp, Wp, s0, P, r_int, c[0], c[1], r2, m)) return -1;
+    counts[k] = valid[k] ? m[0] : 0.0f;
+    if (!(valid[k] && counts[k] > 0.0f)) { c[0] = NAN; c[1] = NAN; }
+  }
+  return n_iter;
+}
+"""
+
+_CFLAGS = ["-O3", "-ffp-contract=off", "-std=c++17"]
+_I64, _F64, _P = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+
+
+class Kernels:
+    """The loaded library's mean-shift on torch tensors (CPU)."""
+
+    def __init__(self, lib: ctypes.CDLL):
+        f = lib.dpr_meanshift
+        f.argtypes, f.restype = [_P] + [_I64] * 6 + [_P, _P, _I64, _F64, _I64, _F64, _P], _I64
+        self._f = f
+
+    def meanshift(self, img: torch.Tensor, have: int, W: int, H: int, seeds: torch.Tensor, valid: torch.Tensor,
+                  radius_px: float, iters: int, tol_px: float) -> Optional[Tuple[torch.Tensor, torch.Tensor, int]]:
+        """:func:`~dvsland.estimators.meanshift.meanshift_flat` on ``img`` (B, Hp, Wp) float32 holding
+        the W x H sensor inside a zero border of ``have`` px; (centroids (B, N, 2), counts (B, N),
+        iterations), or None where the window sums are not exact (the torch path must run)."""
+        B, N = valid.shape
+        img = img.to(torch.float32).contiguous()
+        xy = seeds.to(torch.float32).contiguous().clone()
+        ok = valid.to(torch.uint8).contiguous()
+        counts = torch.empty(B, N, dtype=torch.float32)
+        n = self._f(img.data_ptr(), B, img.shape[1], img.shape[2], int(have), int(W), int(H), xy.data_ptr(),
+                    ok.data_ptr(), N, float(radius_px), int(iters), float(tol_px), counts.data_ptr())
+        return None if n < 0 else (xy, counts, int(n))
+
+
+#: the library (its mode, cache and build: ``LIBRARY.build()``, ``LIBRARY.cached()``, ``LIBRARY.build_dir()``)
+LIBRARY = _LIB = NativeLibrary("dvsland_dpr_native", _SRC, _CFLAGS, "DVSLAND_NATIVE_DPR",
+                               "dvsland.estimators.native_dpr", Kernels)
+
+
+def use_native_dpr(on: Optional[bool] = True) -> None:
+    """Pick the mode for this process: True = on, False = off, None = back to ``DVSLAND_NATIVE_DPR``."""
+    _LIB.use(on)
+
+
+def kernel_for(t: torch.Tensor) -> Optional[Kernels]:
+    """The kernel for work on ``t``'s device where enabled (built once when needed), else None."""
+    return _LIB.load() if t.device.type == "cpu" and _LIB.enabled() else None
+
+
+def fits(radius_px: float, image_pad_px: int) -> bool:
+    """Whether the kernel takes this radius and border (patches up to 64 px, a border of ceil(R) + 1 px)."""
+    r_int = int(math.ceil(radius_px))
+    return 2 * r_int + 2 <= 64 and image_pad_px >= r_int + 1
+
+
+__all__ = ["Kernels", "LIBRARY", "use_native_dpr", "kernel_for", "fits"]
