@@ -48,12 +48,17 @@ def mode_from_env(env_var: str, chosen: Optional[bool]) -> str:
 
 
 def compiler() -> Optional[str]:
-    """The C++ compiler: ``$CXX``, else ``c++``, ``g++`` or ``clang++`` on the PATH; None when none is found."""
-    cxx = os.environ.get("CXX", "").strip()
+    """The C++ compiler: ``$CXX``, else ``c++``, ``g++`` or ``clang++`` on the PATH; None when none is found
+    (looked up once per value of ``$CXX`` and ``$PATH``)."""
+    return _find_compiler(os.environ.get("CXX", "").strip(), os.environ.get("PATH", ""))
+
+
+@functools.lru_cache(maxsize=8)
+def _find_compiler(cxx: str, path: str) -> Optional[str]:
     if cxx:
-        return shutil.which(cxx) or cxx
+        return shutil.which(cxx, path=path) or cxx
     for c in ("c++", "g++", "clang++"):
-        found = shutil.which(c)
+        found = shutil.which(c, path=path)
         if found:
             return found
     return None
@@ -208,6 +213,7 @@ class NativeLibrary:
         self.chosen: Optional[bool] = None
         self._bound = None
         self._failed = False
+        self._absent = False  # auto found neither a cached build nor a compiler (not looked for again)
 
     def use(self, on: Optional[bool] = True) -> None:
         """Pick the mode for this process: True = on, False = off, None = back to the environment's."""
@@ -228,10 +234,17 @@ class NativeLibrary:
 
     def enabled(self) -> bool:
         """Whether the kernels should be used now: on; or auto with the build cached, loaded, or a
-        compiler to build it with. Never compiles."""
+        compiler to build it with. Never compiles. In auto mode the cache and the compiler are looked
+        for once per process."""
         m = self.mode()
-        return m == ON or (m == AUTO and not self._failed and (self._bound is not None or self.cached()
-                                                               or compiler() is not None))
+        if m == ON:
+            return True
+        if m == OFF or self._failed or self._absent:
+            return False
+        if self._bound is not None or self.cached() or compiler() is not None:
+            return True
+        self._absent = True
+        return False
 
     def build(self, verbose: bool = False):
         """Compile (when not cached) and load; the bindings. Raises on any build error."""

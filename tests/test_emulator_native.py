@@ -16,10 +16,9 @@ from dvsland.events.emulator import EventEmulator
 @pytest.fixture
 def fresh(monkeypatch):
     """No module loaded, no failure recorded, the environment's mode."""
-    monkeypatch.setattr(native, "_module", None)
-    monkeypatch.setattr(native, "_failed", False)
-    monkeypatch.setattr(native, "_absent", False)
-    monkeypatch.setattr(native, "_enabled", None)
+    lib = native.LIBRARY
+    for k, v in (("_bound", None), ("_failed", False), ("_absent", False), ("chosen", None)):
+        monkeypatch.setattr(lib, k, v)
     return monkeypatch
 
 
@@ -39,11 +38,11 @@ def _events(frames, elem=None, **kw):
 
 def test_auto_without_a_build_or_a_compiler_is_silent(fresh):
     fresh.delenv("DVSLAND_NATIVE_SORT", raising=False)
-    fresh.setattr(native, "cached", lambda: False)
-    fresh.setattr(native, "compiler", lambda: None)
-    fresh.setattr(native, "build", _no_build)
+    fresh.setattr(native.LIBRARY, "cached", lambda: False)
+    fresh.setattr("dvsland.native_build.compiler", lambda: None)
+    fresh.setattr(native.LIBRARY, "build", _no_build)
     assert native.mode() == "auto" and not native.native_sort_enabled() and native.load() is None
-    fresh.setattr(native, "cached", lambda: pytest.fail("looked at the cache again"))
+    fresh.setattr(native.LIBRARY, "cached", lambda: pytest.fail("looked at the cache again"))
     assert not native.native_sort_enabled()  # once per process
     frames = smooth_frames(2, 20, 24, 3, omega=0.5)
     with warnings.catch_warnings():
@@ -66,7 +65,7 @@ def test_auto_builds_on_first_use_into_the_cache(fresh, tmp_path):
                                                             if p.suffix in (".so", ".cpp")) == [".cpp", ".so"]
     frames = smooth_frames(2, 20, 24, 3, omega=0.5)
     ev, _ = _events(frames)
-    fresh.setattr(native, "_enabled", False)
+    fresh.setattr(native.LIBRARY, "chosen", False)
     assert ev == _events(frames)[0]
 
 
@@ -79,9 +78,9 @@ def test_mode_from_the_environment(fresh, value, mode):
 
 def test_off_never_loads_and_bad_values_are_named(fresh):
     fresh.setenv("DVSLAND_NATIVE_SORT", "0")
-    fresh.setattr(native, "cached", lambda: True)
-    fresh.setattr(native, "load_library", _no_build)
-    fresh.setattr(native, "build", _no_build)
+    fresh.setattr(native.LIBRARY, "cached", lambda: True)
+    fresh.setattr("dvsland.native_build.load_library", _no_build)
+    fresh.setattr(native.LIBRARY, "build", _no_build)
     assert not native.native_sort_enabled() and native.load() is None
     fresh.setenv("DVSLAND_NATIVE_SORT", "maybe")
     with pytest.raises(ValueError, match="DVSLAND_NATIVE_SORT"):
@@ -91,22 +90,22 @@ def test_off_never_loads_and_bad_values_are_named(fresh):
 def test_the_build_name_follows_the_source(fresh):
     name = native.module_name()
     assert name.startswith("dvsland_events_native_") and native.build_dir().name == name
-    fresh.setattr(native, "_SRC", native._SRC + "\n// changed\n")
+    fresh.setattr(native.LIBRARY, "src", native._SRC + "\n// changed\n")
     assert native.module_name() != name  # an edited kernel is never loaded from an old build
 
 
 def test_build_failure_falls_back_to_the_torch_path(fresh):
-    fresh.setattr(native, "_enabled", True)
-    fresh.setattr(native, "cached", lambda: False)
+    fresh.setattr(native.LIBRARY, "chosen", True)
+    fresh.setattr(native.LIBRARY, "cached", lambda: False)
 
     def broken(*a, **k):
         raise RuntimeError("no compiler here")
 
-    fresh.setattr(native, "build", broken)
+    fresh.setattr(native.LIBRARY, "build", broken)
     frames = smooth_frames(2, 20, 24, 3, omega=0.5)
     with pytest.warns(RuntimeWarning, match="could not be built"):
         ev, _ = _events(frames)
-    fresh.setattr(native, "_enabled", False)
+    fresh.setattr(native.LIBRARY, "chosen", False)
     ref, _ = _events(frames)
     assert ev == ref and sum(len(e) for e in ev) > 0
 
@@ -116,7 +115,7 @@ def _compare_with_torch_path(monkeypatch, configs, frame_sets):
         for frames in frame_sets:
             out, state = {}, {}
             for on in (True, False):
-                monkeypatch.setattr(native, "_enabled", on)
+                monkeypatch.setattr(native.LIBRARY, "chosen", on)
                 out[on], emu = _events(frames, **kw)
                 state[on] = (emu.reference.clone(), emu._t_last.clone())
             for a, b in zip(out[True], out[False]):
@@ -149,7 +148,7 @@ def test_kernels_give_the_torch_paths_events(fresh):
 
 
 def test_native_kernels_give_the_same_events(fresh):
-    fresh.setattr(native, "_enabled", True)
+    fresh.setattr(native.LIBRARY, "chosen", True)
     if native.load() is None:
         pytest.skip("no C++ compiler here")
     rng = np.random.default_rng(0)
@@ -165,7 +164,7 @@ def test_native_kernels_give_the_same_events(fresh):
 
 
 def test_native_kernel_respects_the_event_cap(fresh):
-    fresh.setattr(native, "_enabled", True)
+    fresh.setattr(native.LIBRARY, "chosen", True)
     if native.load() is None:
         pytest.skip("no C++ compiler here")
     frames = smooth_frames(2, 40, 48, 3, omega=0.8)

@@ -54,15 +54,16 @@ TORCH_PATH_SYNC_BUDGET = {"learned": 6, "cmax": 11}
 @pytest.mark.parametrize("est", sorted(TORCH_PATH_SYNC_BUDGET))
 def test_torch_path_syncs_within_budget(est, monkeypatch):
     from dvsland.control import efference_fit
-    from dvsland.estimators import native_cmax
+    from dvsland.estimators import native_cmax, native_dpr
     from dvsland.events import denoise, emulator, native
 
     monkeypatch.setattr(efference_fit, "CPU_COMPACT", False)  # the filter's CPU-only compaction reads the mask
     monkeypatch.setattr(emulator, "CPU_FAST_PATHS", False)
     monkeypatch.setattr(denoise, "CPU_FAST_PATHS", False)
-    monkeypatch.setattr(native, "_enabled", False)  # the compiled kernels off (use_native_sort(False))
-    monkeypatch.setattr(native_cmax, "_enabled", False)
-    assert not native.native_sort_enabled() and not native_cmax.enabled()
+    monkeypatch.setattr(native.LIBRARY, "chosen", False)  # the compiled kernels off (use_native_sort(False))
+    monkeypatch.setattr(native_cmax.LIBRARY, "chosen", False)
+    monkeypatch.setattr(native_dpr.LIBRARY, "chosen", False)
+    assert not native.native_sort_enabled() and not native_cmax.enabled() and not native_dpr.LIBRARY.enabled()
     r = loop_syncs(est, steps=3, preset="montecarlo_efference", sites="A,D,I",
                    overrides=["dispersion.terrain_variants=1"])
     assert r["syncs_per_step"] <= TORCH_PATH_SYNC_BUDGET[est], r["by_call"]

@@ -34,8 +34,7 @@ from typing import Optional
 
 import torch
 
-from dvsland.native_build import (AUTO, OFF, ON, build_library, compiler, library_cached, library_dir, library_name,
-                                  load_library, load_or_warn, mode_from_env)
+from dvsland.native_build import NativeLibrary
 
 _SRC = r"""
 #include <algorithm>
@@ -231,8 +230,9 @@ static inline int64_t event_hash1(int64_t b, int64_t x, int64_t y, int64_t t, in
 // batch whose hash (seed_terms[b] = element b's folded seed * 0x3C6EF372) passes (h & 0xFFFF) < p[b] 65536 with
 // p = min(cap[b] / max(n[b], 1), 1), n[b] the element's events on the sensor (float64, as bincount).
 // out (E,) int64: the kept indices, in order; returns how many.
-extern "C" int64_t cmax_store_select(const int64_t* Bi, const int64_t* X, const int64_t* Y, const int64_t* T, int64_t E,
-                                     const double* C, int64_t B, int64_t W, int64_t H, const int64_t* ST, int64_t* out) {
+extern "C" int64_t cmax_store_select(const int64_t* Bi, const int64_t* X, const int64_t* Y, const int64_t* T,
+                                     int64_t E, const double* C, int64_t B, int64_t W, int64_t H, const int64_t* ST,
+                                     int64_t* out) {
   std::vector<double> n(B, 0.0), p(B);
   for (int64_t e = 0; e < E; ++e)
     if (Bi[e] >= 0 && Bi[e] < B && X[e] >= 0 && X[e] < W && Y[e] >= 0 && Y[e] < H) n[Bi[e]] += 1.0;
@@ -252,10 +252,6 @@ extern "C" int64_t cmax_store_select(const int64_t* Bi, const int64_t* X, const 
 _CFLAGS = (["-O3", "-ffp-contract=off", "-std=c++17", "-pthread"]
            + (["-msse4.1"] if platform.machine().lower() in ("x86_64", "amd64") else []))
 _ENV = "DVSLAND_NATIVE_CMAX"
-_ON, _OFF, _AUTO = ON, OFF, AUTO
-_module = None
-_failed = False
-_enabled: Optional[bool] = None
 
 _I64, _F64, _P = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 #: the C functions' (argument types, result type)
@@ -318,8 +314,9 @@ class Kernels:
         if b.numel() != px.numel():
             raise RuntimeError("pixel_counts: b, px contiguous int64 (E,)")
         out = torch.empty(b.numel(), dtype=torch.int64)
-        _ok(self._lib.cmax_pixel_counts(_ptr(b, torch.int64, "pixel_counts: b"), _ptr(px, torch.int64, "pixel_counts: px"),
-                                        b.numel(), int(B), int(n_px), out.data_ptr()),
+        _ok(self._lib.cmax_pixel_counts(_ptr(b, torch.int64, "pixel_counts: b"),
+                                        _ptr(px, torch.int64, "pixel_counts: px"), b.numel(), int(B), int(n_px),
+                                        out.data_ptr()),
             "pixel_counts: b or px out of range")
         return out
 
@@ -347,11 +344,14 @@ class Kernels:
         return out[:k].clone() if k < E else out
 
 
+#: the library (its mode, cache and build)
+LIBRARY = _LIB = NativeLibrary("dvsland_cmax_native", _SRC, _CFLAGS, _ENV, "dvsland.estimators.native_cmax", Kernels)
+
+
 def use_native_cmax(on: Optional[bool] = True) -> None:
     """Pick the mode for this process: True = on, False = off, None = back to ``DVSLAND_NATIVE_CMAX``
     (default auto)."""
-    global _enabled
-    _enabled = None if on is None else bool(on)
+    _LIB.use(on)
 
 
 def mode() -> str:
@@ -360,29 +360,28 @@ def mode() -> str:
     Raises:
         ValueError naming ``DVSLAND_NATIVE_CMAX`` when it holds another word.
     """
-    return mode_from_env(_ENV, _enabled)
+    return _LIB.mode()
 
 
 def module_name() -> str:
     """The library's name: a hash of the source, flags, compiler and machine."""
-    return library_name("dvsland_cmax_native", _SRC, " ".join(_CFLAGS))
+    return _LIB.name()
 
 
 def build_dir() -> Path:
     """The folder of the build (:func:`dvsland.native_build.library_dir`)."""
-    return library_dir(module_name())
+    return _LIB.build_dir()
 
 
 def cached() -> bool:
     """Whether the build of this exact source is in the cache."""
-    return library_cached(module_name())
+    return _LIB.cached()
 
 
 def enabled() -> bool:
     """Whether ``cmax`` should use the kernel now: mode on; or auto with the build cached, loaded, or
     a C++ compiler to build it with. Never compiles."""
-    m = mode()
-    return m == _ON or (m == _AUTO and not _failed and (_module is not None or cached() or compiler() is not None))
+    return _LIB.enabled()
 
 
 def kernel_for(t: torch.Tensor, native: Optional[bool] = None) -> Optional[Kernels]:
@@ -396,23 +395,14 @@ def kernel_for(t: torch.Tensor, native: Optional[bool] = None) -> Optional[Kerne
 
 def build(verbose: bool = False) -> Kernels:
     """Compile (when not cached) and load the kernel. Raises on any build error."""
-    build_library(module_name(), _SRC, _CFLAGS, verbose)
-    return Kernels(load_library(module_name()))
+    return _LIB.build(verbose)
 
 
 def load(force: bool = False) -> Optional[Kernels]:
     """The kernels, or None: mode off (unless ``force``); auto with neither a cached build nor a
     compiler; or a failed build or load (one warning, then the torch path for the rest of the process)."""
-    global _module, _failed
-    if _module is not None or _failed:
-        return _module
-    if not (force or enabled()):
-        return None
-    _module = load_or_warn(lambda: Kernels(load_library(module_name())) if cached() else build(),
-                           "dvsland.estimators.native_cmax")
-    _failed = _module is None
-    return _module
+    return _LIB.load(force)
 
 
-__all__ = ["Kernels", "use_native_cmax", "enabled", "kernel_for", "mode", "cached", "build", "build_dir",
+__all__ = ["Kernels", "LIBRARY", "use_native_cmax", "enabled", "kernel_for", "mode", "cached", "build", "build_dir",
            "module_name", "load"]

@@ -37,8 +37,7 @@ from typing import Optional
 
 import torch
 
-from dvsland.native_build import (AUTO, OFF, ON, build_library, compiler, library_cached, library_dir, library_name,
-                                  load_library, load_or_warn, mode_from_env)
+from dvsland.native_build import NativeLibrary
 
 _SRC = r"""
 #include <algorithm>
@@ -282,13 +281,6 @@ extern "C" void dvs_pixel_write(double dt, int64_t t_shift, int64_t* out) {
 # x86-64: the AVX2/FMA clone of the pixel scan needs the ifunc resolver of the target_clones attribute
 _CFLAGS = ["-O3", "-ffp-contract=off", "-std=c++17"]
 
-_ON, _OFF, _AUTO = ON, OFF, AUTO
-_module = None
-_failed = False
-_absent = False  # auto mode found neither a cached build nor a compiler in this process (not looked for again)
-#: this process's choice (use_native_sort): True = on, False = off, None = the environment's
-_enabled: Optional[bool] = None
-
 _I64, _F64, _VOID, _P = ctypes.c_int64, ctypes.c_double, None, ctypes.c_void_p
 #: the C functions' (argument types, result type)
 _SIGNATURES = {
@@ -388,24 +380,26 @@ class Kernels:
         return keys
 
 
+#: the library (its mode, cache and build)
+LIBRARY = NativeLibrary("dvsland_events_native", _SRC, _CFLAGS, "DVSLAND_NATIVE_SORT", "dvsland.events.native", Kernels)
+
+
 def use_native_sort(on: Optional[bool] = True) -> None:
     """Pick the mode for this process: True = on, False = off, None = back to ``DVSLAND_NATIVE_SORT``
     (default auto)."""
-    global _enabled
-    _enabled = None if on is None else bool(on)
+    LIBRARY.use(on)
 
 
 @contextlib.contextmanager
 def native_sort_mode(on: Optional[bool]):
     """:func:`use_native_sort` (``on``) inside the block, the process's earlier choice after it
     (how the benchmarks time the torch and the compiled path in one process)."""
-    global _enabled
-    saved = _enabled
+    saved = LIBRARY.chosen
     use_native_sort(on)
     try:
         yield
     finally:
-        _enabled = saved
+        LIBRARY.chosen = saved
 
 
 def mode() -> str:
@@ -414,68 +408,45 @@ def mode() -> str:
     Raises:
         ValueError naming ``DVSLAND_NATIVE_SORT`` when it holds another word.
     """
-    return mode_from_env("DVSLAND_NATIVE_SORT", _enabled)
+    return LIBRARY.mode()
 
 
 def module_name() -> str:
     """The library's name: a hash of the source, flags, compiler and machine."""
-    return library_name("dvsland_events_native", _SRC, " ".join(_CFLAGS))
+    return LIBRARY.name()
 
 
 def build_dir() -> Path:
     """The folder of the build (:func:`dvsland.native_build.library_dir`)."""
-    return library_dir(module_name())
+    return LIBRARY.build_dir()
 
 
 def cached() -> bool:
     """Whether the build of this exact source is in the cache."""
-    return library_cached(module_name())
+    return LIBRARY.cached()
 
 
 def native_sort_enabled() -> bool:
     """Whether the emulator and the denoiser should use the kernels now: mode on; or auto with the
-    build cached, loaded, or a C++ compiler to build it with. Never compiles. In auto mode the cache
-    and the compiler are looked for once per process."""
-    global _absent
-    m = mode()
-    if m == _ON:
-        return True
-    if m == _OFF or _failed:
-        return False
-    if _module is not None:
-        return True
-    if _absent:
-        return False
-    if cached() or compiler() is not None:
-        return True
-    _absent = True
-    return False
+    build cached, loaded, or a C++ compiler to build it with. Never compiles."""
+    return LIBRARY.enabled()
 
 
 def kernels() -> Optional[Kernels]:
     """The kernels when they are to be used now (:func:`native_sort_enabled`, then :func:`load`,
     which builds them once when needed), else None (the torch path)."""
-    return load() if native_sort_enabled() else None
+    return LIBRARY.load() if LIBRARY.enabled() else None
 
 
 def build(verbose: bool = False) -> Kernels:
     """Compile (when not cached) and load the kernels. Raises on any build error."""
-    build_library(module_name(), _SRC, _CFLAGS, verbose)
-    return Kernels(load_library(module_name()))
+    return LIBRARY.build(verbose)
 
 
 def load() -> Optional[Kernels]:
     """The kernels, or None: mode off; auto with neither a cached build nor a compiler; or a failed
     build or load (one warning, then the torch path for the rest of the process)."""
-    global _module, _failed
-    if _module is not None or _failed:
-        return _module
-    if not native_sort_enabled():
-        return None
-    _module = load_or_warn(lambda: Kernels(load_library(module_name())) if cached() else build(),
-                           "dvsland.events.native")
-    _failed = _module is None
-    return _module
+    return LIBRARY.load()
 
 
 def radix_sort_(keys: torch.Tensor, bits: int) -> bool:
@@ -488,5 +459,5 @@ def radix_sort_(keys: torch.Tensor, bits: int) -> bool:
     return True
 
 
-__all__ = ["Kernels", "use_native_sort", "native_sort_enabled", "mode", "cached", "build", "build_dir",
+__all__ = ["Kernels", "LIBRARY", "use_native_sort", "native_sort_enabled", "mode", "cached", "build", "build_dir",
            "module_name", "load", "kernels", "radix_sort_"]
