@@ -99,6 +99,24 @@ def load_library(name: str) -> ctypes.CDLL:
     return ctypes.CDLL(str(library_file(name)))
 
 
+def bind_functions(lib: ctypes.CDLL, signatures: dict) -> ctypes.CDLL:
+    """``lib`` with the argument and result types of its functions set from ``signatures``
+    (name -> (list of ctypes argument types, ctypes result type or None))."""
+    for name, (args, res) in signatures.items():
+        f = getattr(lib, name)
+        f.argtypes, f.restype = args, res
+    return lib
+
+
+def tensor_address(t, dtype, what: str) -> Optional[int]:
+    """The address of torch tensor ``t``'s data (None for an empty tensor), after checking that it is
+    a contiguous CPU tensor of ``dtype`` (the kernels read raw memory); RuntimeError naming ``what``."""
+    if t.dtype != dtype or t.device.type != "cpu" or not t.is_contiguous():
+        raise RuntimeError(f"{what} must be a contiguous {dtype} CPU tensor, got {t.dtype} on {t.device}"
+                           f"{'' if t.is_contiguous() else ' (not contiguous)'}")
+    return t.data_ptr() if t.numel() else None
+
+
 #: the lock file in a build folder: flock-ed for the whole build and holding the builder's pid;
 #: the kernel releases a flock when its process dies, even by SIGKILL
 OWNER_LOCK = "dvsland-build.lock"
@@ -288,4 +306,4 @@ def timed_build(label: str, kernel_module) -> int:
 
 __all__ = ["load_or_warn", "timed_build", "ON", "OFF", "AUTO", "ABI", "mode_from_env", "compiler", "library_name",
            "library_dir", "library_file", "library_cached", "load_library", "build_library", "build_lock",
-           "NativeLibrary"]
+           "NativeLibrary", "bind_functions", "tensor_address"]

@@ -34,7 +34,7 @@ from typing import Optional
 
 import torch
 
-from dvsland.native_build import NativeLibrary
+from dvsland.native_build import NativeLibrary, bind_functions, tensor_address as _ptr
 
 _SRC = r"""
 #include <algorithm>
@@ -263,15 +263,6 @@ _SIGNATURES = {
 }
 
 
-def _ptr(t: torch.Tensor, dtype: torch.dtype, what: str) -> Optional[int]:
-    """The address of ``t``'s data (None when empty), after checking that it is a contiguous CPU
-    tensor of ``dtype`` (the kernel reads raw memory)."""
-    if t.dtype != dtype or t.device.type != "cpu" or not t.is_contiguous():
-        raise RuntimeError(f"{what} must be a contiguous {dtype} CPU tensor, got {t.dtype} on {t.device}"
-                           f"{'' if t.is_contiguous() else ' (not contiguous)'}")
-    return t.data_ptr() if t.numel() else None
-
-
 def _ok(status: int, what: str) -> None:
     if status < 0:
         raise RuntimeError(what)
@@ -281,10 +272,7 @@ class Kernels:
     """The loaded library's functions on torch tensors (CPU; each checks its inputs)."""
 
     def __init__(self, lib: ctypes.CDLL):
-        for name, (args, res) in _SIGNATURES.items():
-            f = getattr(lib, name)
-            f.argtypes, f.restype = args, res
-        self._lib = lib
+        self._lib = bind_functions(lib, _SIGNATURES)
 
     def splat_sums(self, xc, yc, b, half, scale, ginv, wt, cx: float, cy: float, x_lo: float, x_hi: float,
                    y_lo: float, y_hi: float, Hc: int, Wc: int, unit: float):

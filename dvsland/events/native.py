@@ -37,7 +37,7 @@ from typing import Optional
 
 import torch
 
-from dvsland.native_build import NativeLibrary
+from dvsland.native_build import NativeLibrary, bind_functions, tensor_address as _ptr
 
 _SRC = r"""
 #include <algorithm>
@@ -294,23 +294,11 @@ _SIGNATURES = {
 }
 
 
-def _ptr(t: torch.Tensor, dtype: torch.dtype, what: str) -> Optional[int]:
-    """The address of ``t``'s data (None for an empty tensor), after checking that it is a contiguous
-    CPU tensor of ``dtype`` (the kernels read raw memory)."""
-    if t.dtype != dtype or t.device.type != "cpu" or not t.is_contiguous():
-        raise RuntimeError(f"{what} must be a contiguous {dtype} CPU tensor, got {t.dtype} on {t.device}"
-                           f"{'' if t.is_contiguous() else ' (not contiguous)'}")
-    return t.data_ptr() if t.numel() else None
-
-
 class Kernels:
     """The loaded library's functions on torch tensors (CPU; each checks its inputs' dtype and layout)."""
 
     def __init__(self, lib: ctypes.CDLL):
-        for name, (args, res) in _SIGNATURES.items():
-            f = getattr(lib, name)
-            f.argtypes, f.restype = args, res
-        self._lib = lib
+        self._lib = bind_functions(lib, _SIGNATURES)
 
     def radix_sort_(self, keys: torch.Tensor, bits: int) -> None:
         """Sort ``keys`` ((N,) int64, values in [0, 2^bits)) in place."""
