@@ -135,8 +135,9 @@ extern "C" void dvs_refractory_keep(const int64_t* pix, const int64_t* t, int64_
 // per element the active pixels, those with an active 8-neighbour and, when cells is not null,
 // the active pixels of each cell x cell cell (H / cell rows, W / cell columns of cells, the sensor's
 // first rows and columns); and the sums of (t, p, t^2, p t) over its events in their order (float32,
-// as torch's segment sum adds them), t = (t_us_event - t_us) as float32 divided by the largest |t|
-// over all events (at least 1). Outputs zeroed by the caller.
+// as torch's segment sum adds them: the events must come sorted by b, one run per element),
+// t = (t_us_event - t_us) as float32 divided by the largest |t| over all events (at least 1).
+// Outputs zeroed by the caller.
 extern "C" void dvs_motion_counts(const int64_t* b, const int64_t* x, const int64_t* y, const int64_t* t,
                                   const int8_t* p, int64_t n, int64_t B, int64_t H, int64_t W, int64_t cell,
                                   int64_t t_us, float* cells, float* active, float* with_nb, float* sums) {
@@ -147,26 +148,41 @@ extern "C" void dvs_motion_counts(const int64_t* b, const int64_t* x, const int6
   for (int64_t i = 0; i < n; ++i) o[b[i] * P + (y[i] + 1) * Wp + x[i] + 1] = 1;
   const int64_t Hc = cell > 0 ? H / cell : 0, Wc = cell > 0 ? W / cell : 0;
   const int64_t nb[8] = {-Wp - 1, -Wp, -Wp + 1, -1, 1, Wp - 1, Wp, Wp + 1};
+  // per run of equal b (one run per element: the events come sorted by b), counts in registers
+  int64_t n_act = 0, n_nb = 0;
   for (int64_t i = 0; i < n; ++i) {
     const int64_t k = b[i] * P + (y[i] + 1) * Wp + x[i] + 1;
-    if (o[k] != 1) continue;  // each active pixel once
-    o[k] = 2;
-    active[b[i]] += 1.0f;
-    bool any = false;
-    for (int j = 0; j < 8; ++j) any |= o[k + nb[j]] != 0;
-    with_nb[b[i]] += any ? 1.0f : 0.0f;
-    if (cells && y[i] < Hc * cell && x[i] < Wc * cell) cells[b[i] * Hc * Wc + (y[i] / cell) * Wc + x[i] / cell] += 1.0f;
+    if (o[k] == 1) {  // each active pixel once
+      o[k] = 2;
+      ++n_act;
+      bool any = false;
+      for (int j = 0; j < 8; ++j) any |= o[k + nb[j]] != 0;
+      n_nb += any;
+      if (cells && y[i] < Hc * cell && x[i] < Wc * cell)
+        cells[b[i] * Hc * Wc + (y[i] / cell) * Wc + x[i] / cell] += 1.0f;
+    }
+    if (i + 1 == n || b[i + 1] != b[i]) {
+      active[b[i]] += float(n_act);
+      with_nb[b[i]] += float(n_nb);
+      n_act = n_nb = 0;
+    }
   }
   float m = 0.0f;
   for (int64_t i = 0; i < n; ++i) m = std::max(m, std::fabs(float(t[i] - t_us)));
   m = std::max(m, 1.0f);
+  // the sums of one element's events in their order (a run of equal b), added to its zeroed entries
+  float s0 = 0.0f, s1 = 0.0f, s2 = 0.0f, s3 = 0.0f;
   for (int64_t i = 0; i < n; ++i) {
     const float tf = float(t[i] - t_us) / m, pf = float(p[i]);
-    float* s = sums + b[i];
-    s[0] += tf;
-    s[B] += pf;
-    s[2 * B] += tf * tf;
-    s[3 * B] += pf * tf;
+    s0 += tf;
+    s1 += pf;
+    s2 += tf * tf;
+    s3 += pf * tf;
+    if (i + 1 == n || b[i + 1] != b[i]) {
+      float* s = sums + b[i];
+      s[0] += s0; s[B] += s1; s[2 * B] += s2; s[3 * B] += s3;
+      s0 = s1 = s2 = s3 = 0.0f;
+    }
   }
 }
 
