@@ -205,16 +205,18 @@ def build_library(name: str, src: str, flags: Sequence[str], verbose: bool = Fal
     return out
 
 
-def load_or_warn(make, label: str):
+def load_or_warn(make, label: str, env_var: Optional[str] = None):
     """``make()`` (build when needed, load and bind a library); None, with one RuntimeWarning naming
-    ``label``, when it fails (a compile error, a broken cache entry, ...): the caller keeps its torch path."""
+    ``label`` (and how to skip or relocate the build), when it fails (a compile error, a read-only
+    cache folder, a broken cache entry, ...): the caller keeps its torch path."""
     import warnings
 
     try:
         return make()
     except Exception as exc:
-        warnings.warn(f"{label}: the compiled kernels could not be built or loaded ({exc}); using the torch path",
-                      RuntimeWarning)
+        hint = f" (set {env_var}=0 to skip them, or TORCH_EXTENSIONS_DIR to a writable folder)" if env_var else ""
+        warnings.warn(f"{label}: the compiled kernels could not be built or loaded ({exc}); using the torch path"
+                      f"{hint}", RuntimeWarning)
         return None
 
 
@@ -277,7 +279,7 @@ class NativeLibrary:
         if not (force or self.enabled()):
             return None
         self._bound = load_or_warn(lambda: self.bind(load_library(self.name())) if self.cached() else self.build(),
-                                   self.label)
+                                   self.label, self.env_var)
         self._failed = self._bound is None
         return self._bound
 

@@ -194,3 +194,21 @@ def test_cli_build_native_builds_both_kernels_and_reports(monkeypatch, capsys):
     monkeypatch.setattr(native_cmax, "build", broken)
     assert main(["build-native"]) == 1
     assert "could not build the cmax kernel" in capsys.readouterr().err
+
+
+def test_unwritable_kernel_folder_warns_once_and_runs_the_torch_path(fresh, tmp_path):
+    """A kernel cache that cannot be written (here: a folder path below a file) gives one warning
+    that names the mode variable and the folder variable, then the torch path's events."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    fresh.delenv("DVSLAND_NATIVE_SORT", raising=False)
+    fresh.setenv("TORCH_EXTENSIONS_DIR", str(blocker / "kernels"))
+    fresh.setattr("dvsland.native_build.compiler", lambda: "/usr/bin/c++")
+    frames = smooth_frames(2, 20, 24, 3, omega=0.5)
+    with pytest.warns(RuntimeWarning, match="DVSLAND_NATIVE_SORT=0 .*TORCH_EXTENSIONS_DIR"):
+        ev, _ = _events(frames)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once per process
+        assert native.load() is None
+    fresh.setattr(native.LIBRARY, "chosen", False)
+    assert ev == _events(frames)[0]
