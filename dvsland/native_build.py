@@ -1,12 +1,13 @@
-"""The build cache of dvsland's optional compiled kernels (the emulator's, ``cmax``'s).
+"""The build cache of dvsland's compiled kernels (the emulator's, ``cmax``'s, ``dpr``'s).
 
 The kernels are plain C++ behind a C interface (raw pointers and sizes, no torch or Python headers),
 so a build is one call of the C++ compiler that takes a second or two, and the library does not
 depend on the torch or Python version. Each kernel module (:mod:`dvsland.events.native`,
-:mod:`dvsland.estimators.native_cmax`) keeps its own source, its ``ctypes`` bindings and its process
-state; this module holds what they share: the mode word read from an environment variable, the
-library's name (a hash of source, flags, compiler and machine, so a stale build is never loaded),
-its folder, the compile (atomic, under a lock) and the load.
+:mod:`dvsland.estimators.native_cmax`, :mod:`dvsland.estimators.native_dpr`) keeps its own source
+and its ``ctypes`` bindings; this module holds what they share: :class:`NativeLibrary` (a library's
+mode word read from an environment variable and its process state), the library's name (a hash of
+source, flags, compiler and machine, so a stale build is never loaded), its folder, the compile
+(atomic, under a lock), the load and the binding helpers.
 """
 
 from __future__ import annotations
@@ -272,12 +273,13 @@ class NativeLibrary:
         return self.bind(load_library(self.name()))
 
     def load(self, force: bool = False):
-        """The bindings, or None: not :meth:`enabled` (unless ``force``), or a failed build or load
-        (one warning, then None for the rest of the process)."""
-        if self._bound is not None or self._failed:
-            return self._bound
+        """The bindings, built once when needed, or None: not :meth:`enabled` now (unless ``force``;
+        a mode switched off after a load gives None too), or a failed build or load (one warning,
+        then None for the rest of the process)."""
         if not (force or self.enabled()):
             return None
+        if self._bound is not None or self._failed:
+            return self._bound
         self._bound = load_or_warn(lambda: self.bind(load_library(self.name())) if self.cached() else self.build(),
                                    self.label, self.env_var)
         self._failed = self._bound is None

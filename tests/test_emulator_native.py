@@ -212,3 +212,15 @@ def test_unwritable_kernel_folder_warns_once_and_runs_the_torch_path(fresh, tmp_
         assert native.load() is None
     fresh.setattr(native.LIBRARY, "chosen", False)
     assert ev == _events(frames)[0]
+
+
+def test_a_mode_switched_off_after_a_load_gives_the_torch_path(fresh):
+    """``load()`` and ``kernels()`` follow the mode as it is now, also after the kernels were loaded."""
+    fresh.setattr(native.LIBRARY, "chosen", True)
+    if native.load() is None:
+        pytest.skip("no C++ compiler here")
+    fresh.setattr(native.LIBRARY, "chosen", False)
+    assert native.load() is None and native.kernels() is None and native.radix_sort_(torch.tensor([2, 1]), 2) is False
+    fresh.setattr(native.LIBRARY, "chosen", None)
+    fresh.delenv("DVSLAND_NATIVE_SORT", raising=False)
+    assert native.load() is not None

@@ -378,7 +378,7 @@ def kernel_for(t: torch.Tensor, native: Optional[bool] = None) -> Optional[Kerne
     whatever the mode says, False = never."""
     if native is False or t.device.type != "cpu":
         return None
-    return load(force=bool(native)) if (native or enabled()) else None
+    return load(force=bool(native))
 
 
 def build(verbose: bool = False) -> Kernels:

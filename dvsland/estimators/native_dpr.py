@@ -24,7 +24,7 @@ from typing import Optional, Tuple
 
 import torch
 
-from dvsland.native_build import NativeLibrary
+from dvsland.native_build import NativeLibrary, bind_functions
 
 _SRC = r"""
 #include <cmath>
@@ -116,15 +116,15 @@ extern "C" int64_t dpr_meanshift(const float* img, int64_t B, int64_t Hp, int64_
 
 _CFLAGS = ["-O3", "-ffp-contract=off", "-std=c++17"]
 _I64, _F64, _P = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+#: the C function's (argument types, result type)
+_SIGNATURES = {"dpr_meanshift": ([_P] + [_I64] * 6 + [_P, _P, _I64, _F64, _I64, _F64, _P], _I64)}
 
 
 class Kernels:
     """The loaded library's mean-shift on torch tensors (CPU)."""
 
     def __init__(self, lib: ctypes.CDLL):
-        f = lib.dpr_meanshift
-        f.argtypes, f.restype = [_P] + [_I64] * 6 + [_P, _P, _I64, _F64, _I64, _F64, _P], _I64
-        self._f = f
+        self._f = bind_functions(lib, _SIGNATURES).dpr_meanshift
 
     def meanshift(self, img: torch.Tensor, have: int, W: int, H: int, seeds: torch.Tensor, valid: torch.Tensor,
                   radius_px: float, iters: int, tol_px: float) -> Optional[Tuple[torch.Tensor, torch.Tensor, int]]:
@@ -153,7 +153,7 @@ def use_native_dpr(on: Optional[bool] = True) -> None:
 
 def kernel_for(t: torch.Tensor) -> Optional[Kernels]:
     """The kernel for work on ``t``'s device where enabled (built once when needed), else None."""
-    return _LIB.load() if t.device.type == "cpu" and _LIB.enabled() else None
+    return _LIB.load() if t.device.type == "cpu" else None
 
 
 def fits(radius_px: float, image_pad_px: int) -> bool:

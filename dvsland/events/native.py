@@ -294,7 +294,8 @@ extern "C" void dvs_pixel_write(double dt, int64_t t_shift, int64_t* out) {
 }
 """
 
-# x86-64: the AVX2/FMA clone of the pixel scan needs the ifunc resolver of the target_clones attribute
+# no contraction into fused multiply-adds beyond the explicit std::fma calls: the torch path's float64
+# results bit for bit (the pixel scan's AVX2/FMA clone comes from its target_clones attribute)
 _CFLAGS = ["-O3", "-ffp-contract=off", "-std=c++17"]
 
 _I64, _F64, _VOID, _P = ctypes.c_int64, ctypes.c_double, None, ctypes.c_void_p
@@ -437,9 +438,9 @@ def native_sort_enabled() -> bool:
 
 
 def kernels() -> Optional[Kernels]:
-    """The kernels when they are to be used now (:func:`native_sort_enabled`, then :func:`load`,
-    which builds them once when needed), else None (the torch path)."""
-    return LIBRARY.load() if LIBRARY.enabled() else None
+    """The kernels when they are to be used now (:func:`native_sort_enabled`; built once when
+    needed), else None (the torch path). The same as :func:`load`."""
+    return LIBRARY.load()
 
 
 def build(verbose: bool = False) -> Kernels:
@@ -448,8 +449,8 @@ def build(verbose: bool = False) -> Kernels:
 
 
 def load() -> Optional[Kernels]:
-    """The kernels, or None: mode off; auto with neither a cached build nor a compiler; or a failed
-    build or load (one warning, then the torch path for the rest of the process)."""
+    """The kernels (built once when needed), or None: mode off; auto with neither a cached build nor
+    a compiler; or a failed build or load (one warning, then the torch path for the rest of the process)."""
     return LIBRARY.load()
 
 

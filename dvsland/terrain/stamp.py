@@ -68,7 +68,7 @@ def _stamp_inside(outs, fn, r: torch.Tensor, reach: float, idx, i0, j0, n_cols: 
     ``reach`` and add them into ``outs`` (the same values, element by element, as evaluating the whole
     patches and masking). idx (M,): the features' entries in d_m, fresh, weight; i0, j0 (M,) int64:
     the patches' first row and column."""
-    m, wr, wc = r.shape
+    _, wr, wc = r.shape
     sel = (r < reach).view(-1).nonzero().squeeze(1)  # flat (feature, row, col) of the texels inside
     feat = sel // (wr * wc)
     rem = sel - feat * (wr * wc)
