@@ -224,3 +224,29 @@ def test_a_mode_switched_off_after_a_load_gives_the_torch_path(fresh):
     fresh.setattr(native.LIBRARY, "chosen", None)
     fresh.delenv("DVSLAND_NATIVE_SORT", raising=False)
     assert native.load() is not None
+
+
+@pytest.mark.parametrize("B, n, sorted_by_b", [(18, 60_000, True), (300, 2_000, True), (3, 5, True), (7, 4_000, False)])
+def test_sort_decode_in_pixel_order_sorts_each_descent_alone(fresh, B, n, sorted_by_b):
+    """Keys in pixel order (lo_bit = t_shift): each descent's run is sorted alone, short runs by
+    insertion; the order is a stable sort by (b, t) either way, also when the keys are not ordered by
+    descent (the kernel then falls back to the whole sort)."""
+    fresh.setattr(native.LIBRARY, "chosen", True)
+    kern = native.load()
+    if kern is None:
+        pytest.skip("no C++ compiler here")
+    g = torch.Generator().manual_seed(B)
+    b = torch.randint(0, B, (n,), generator=g)
+    if sorted_by_b:
+        b = torch.sort(b).values
+    t = torch.randint(1, 100_000, (n,), generator=g)
+    t[: n // 3] = t[0]  # many equal times: the order among them must be the input's
+    pix = torch.randint(0, 1 << 15, (n,), generator=g)
+    bb = max(1, (B - 1).bit_length())
+    keys = (b << 32) | (t << 15) | pix
+    ref = keys[torch.sort(keys >> 15, stable=True).indices]
+    out_b, out_x, out_y, out_t, out_p = kern.sort_decode(keys.clone(), 32 + bb, 15, keys.new_empty(0), 32, 15, 8,
+                                                         127, 127, 10)
+    assert torch.equal(out_b, ref >> 32) and torch.equal(out_t, ((ref >> 15) & ((1 << 17) - 1)) + 10)
+    assert torch.equal(out_x, (ref >> 1) & 127) and torch.equal(out_y, (ref >> 8) & 127)
+    assert torch.equal(out_p, 1 - 2 * (ref & 1).to(torch.int8))

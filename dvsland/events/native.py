@@ -75,6 +75,81 @@ static void radix_sort_bits(int64_t* a, int64_t n, int64_t bits, int64_t lo_bit)
 
 extern "C" void dvs_radix_sort(int64_t* keys, int64_t n, int64_t bits) { radix_sort_bits(keys, n, bits, 0); }
 
+// One run of keys equal in their bits >= seg_bit, sorted by their bits lo_bit..seg_bit-1 (LSD, stable):
+// insertion sort for short runs, else passes of at most 9-bit digits with every pass's histogram
+// taken in one read. buf holds at least n keys.
+static void sort_run(int64_t* a, int64_t n, int64_t seg_bit, int64_t lo_bit, int64_t* buf) {
+  if (n < 2) return;
+  if (n <= 24) {
+    for (int64_t i = 1; i < n; ++i) {  // the keys' high bits are equal: comparing them whole is stable
+      const int64_t v = a[i];
+      int64_t j = i;
+      for (; j > 0 && (a[j - 1] >> lo_bit) > (v >> lo_bit); --j) a[j] = a[j - 1];
+      a[j] = v;
+    }
+    return;
+  }
+  const int64_t w = seg_bit - lo_bit;
+  const int passes = int((w + 8) / 9);
+  const int D = int((w + passes - 1) / passes);
+  const int64_t M = (int64_t(1) << D) - 1, K = int64_t(1) << D;
+  if (passes == 2 && n < (int64_t(1) << 31)) {  // the emulator's case (17 bits of time): two plain passes
+    uint32_t c0[512], c1[512];
+    std::memset(c0, 0, sizeof(uint32_t) * size_t(K));
+    std::memset(c1, 0, sizeof(uint32_t) * size_t(K));
+    for (int64_t i = 0; i < n; ++i) { const int64_t v = a[i] >> lo_bit; c0[v & M]++; c1[(v >> D) & M]++; }
+    uint32_t s0 = 0, s1 = 0;
+    for (int64_t d = 0; d < K; ++d) {
+      uint32_t t = c0[d]; c0[d] = s0; s0 += t;
+      t = c1[d]; c1[d] = s1; s1 += t;
+    }
+    for (int64_t i = 0; i < n; ++i) { const int64_t v = a[i]; buf[c0[(v >> lo_bit) & M]++] = v; }
+    const int64_t sh = lo_bit + D;
+    for (int64_t i = 0; i < n; ++i) { const int64_t v = buf[i]; a[c1[(v >> sh) & M]++] = v; }
+    return;
+  }
+  int64_t cnt[4][512];
+  std::memset(cnt, 0, sizeof(int64_t) * size_t(passes) * 512);
+  for (int64_t i = 0; i < n; ++i) {
+    const int64_t v = a[i] >> lo_bit;
+    for (int q = 0; q < passes; ++q) cnt[q][(v >> (q * D)) & M]++;
+  }
+  int64_t* src = a;
+  int64_t* dst = buf;
+  for (int q = 0; q < passes; ++q) {
+    const int64_t sh = lo_bit + int64_t(q) * D;
+    int64_t* c = cnt[q];
+    if (c[(src[0] >> sh) & M] == n) continue;  // one digit value: this pass changes nothing
+    int64_t s = 0;
+    for (int64_t d = 0; d < K; ++d) { const int64_t t = c[d]; c[d] = s; s += t; }
+    for (int64_t i = 0; i < n; ++i) dst[c[(src[i] >> sh) & M]++] = src[i];
+    std::swap(src, dst);
+  }
+  if (src != a) std::memcpy(a, src, size_t(n) * sizeof(int64_t));
+}
+
+// The same order as radix_sort_bits(a, n, bits, lo_bit) for keys that come ordered by their bits
+// >= seg_bit (the descent, as the pixel kernel emits them): each descent's run sorted alone, in
+// cache. Falls back to radix_sort_bits where the keys are not so ordered.
+static void radix_sort_runs(int64_t* a, int64_t n, int64_t bits, int64_t seg_bit, int64_t lo_bit) {
+  if (n < 2) return;
+  if (seg_bit - lo_bit > 36 || seg_bit <= lo_bit) { radix_sort_bits(a, n, bits, lo_bit); return; }
+  for (int64_t i = 1; i < n; ++i) {
+    if ((a[i] >> seg_bit) < (a[i - 1] >> seg_bit)) { radix_sort_bits(a, n, bits, lo_bit); return; }
+  }
+  static thread_local std::vector<int64_t> buf;
+  int64_t i = 0;
+  while (i < n) {
+    const int64_t hi = a[i] >> seg_bit;
+    int64_t j = i + 1;
+    while (j < n && (a[j] >> seg_bit) == hi) ++j;
+    if (int64_t(buf.size()) < j - i) buf.resize(size_t(j - i));
+    sort_run(a + i, j - i, seg_bit, lo_bit, buf.data());
+    i = j;
+  }
+  if (buf.size() > (size_t(1) << 22)) std::vector<int64_t>().swap(buf);  // do not keep huge buffers
+}
+
 // radix_sort_bits (lo_bit: t_shift when the keys come in pixel order, else 0) then merge in `more`
 // (nb sorted keys, may be 0) and unpack all into the Events fields in one pass (see _KeyLayout):
 // b, x, y, t = t0 + t_rel (int64) and p = +1 / -1 (int8, OFF bit 1 = -1); outputs of na + nb entries.
@@ -91,7 +166,8 @@ extern "C" void dvs_sort_decode(int64_t* keys, int64_t na, int64_t bits, int64_t
     pt[w] = ((v >> t_shift) & t_mask) + t0;
     pb[w] = v >> b_shift;
   };
-  radix_sort_bits(keys, na, bits, lo_bit);
+  // keys in pixel order (lo_bit > 0) come ordered by descent: each descent's run is sorted alone
+  if (lo_bit > 0) radix_sort_runs(keys, na, bits, b_shift, lo_bit); else radix_sort_bits(keys, na, bits, 0);
   int64_t i = 0, j = 0;
   const uint64_t END = ~uint64_t(0);  // above every key (keys are < 2^63)
   for (int64_t w = 0; w < n; ++w) {
@@ -205,58 +281,75 @@ struct Cand { int64_t code; double cnt, first, step; };  // one pixel with >= 1 
 #endif
 
 // th_on_map / th_off_map: per-pixel thresholds (or null: the scalars th_on / th_off); r_elem: per-
-// element refractory periods (or null: the scalar r), element = pixel / hw. As the torch path: with
-// maps the candidate bounds are th_on * shrink and th_off * -shrink and the general ON/OFF count;
-// per-element r is divided as r / spacing, a scalar r as (1 / spacing) * r (torch's scalar / tensor).
-DVS_CLONES static double scan_pixels(const double* l1, double* lref, const double* l0, double* tlast,
-                                     const int64_t* code, int64_t P, double th_on_s, double th_off_s,
+// element refractory periods (or null: the scalar r). As the torch path: with maps the candidate
+// bounds are th_on * shrink and th_off * -shrink and the general ON/OFF count; per-element r is
+// divided as r / spacing, a scalar r as (1 / spacing) * r (torch's scalar / tensor).
+// The pixels are (B, H, W) in row-major order; lref_in / tlast_in are read and lref_out / tlast_out
+// written for every pixel (the same buffers when the state is donated, else the step's new ones: the
+// copy of the state is this pass). A pixel's key bits are (b << b_shift) | (y << y_shift) | (x << 1).
+DVS_CLONES static double scan_pixels(const double* l1, const double* lref_in, double* lref_out, const double* l0,
+                                     const double* tlast_in, double* tlast_out, int64_t B, int64_t H, int64_t W,
+                                     int64_t b_shift, int64_t y_shift, double th_on_s, double th_off_s,
                                      const double* th_on_map, const double* th_off_map, double r_s,
-                                     const double* r_elem, int64_t hw, double t0, double dt,
-                                     bool spacing_may_bind, std::vector<Cand>& out) {
+                                     const double* r_elem, double t0, double dt, bool spacing_may_bind,
+                                     std::vector<Cand>& out) {
   const double TOL = 1e-9, shrink = 1.0 - 2 * TOL;
   const bool maps = th_on_map != nullptr;
   const bool same = !maps && th_on_s == th_off_s;
   double total = 0.0;
-  for (int64_t k = 0; k < P; ++k) {
-    const double d = l1[k] - lref[k];
-    const double th_on = maps ? th_on_map[k] : th_on_s, th_off = maps ? th_off_map[k] : th_off_s;
-    if (same ? !(std::fabs(d) >= th_on * shrink)
-             : !(d >= th_on * shrink || d <= (maps ? th_off * -shrink : -(th_off * shrink)))) continue;
-    double n, th;
-    if (same) {
-      n = std::floor(std::fabs(d / th_on) + TOL);
-      th = (d > 0 ? 1.0 : (d < 0 ? -1.0 : 0.0)) * th_on;
-    } else {
-      const double n_on = clamp_lo(std::floor(d / th_on + TOL), 0.0);
-      const double n_off = clamp_lo(std::floor(-d / th_off + TOL), 0.0);
-      n = n_on + n_off;
-      th = d > 0 ? th_on : -th_off;
-    }
-    const double r = r_elem ? r_elem[k / hw] : r_s;
-    const double tl = tlast[k] - t0;
-    // _emitted_log
-    const double dl = l1[k] - l0[k];
-    const double scale = (1.0 / dl) * dt;  // torch: scalar / tensor = tensor.reciprocal() * scalar
-    const double spacing = th * scale;
-    const double base = (lref[k] - l0[k]) * scale;
-    double cnt = n, first = base + spacing, step = spacing;
-    if (r_elem || r > 0) {
-      const bool near = first < tl + r;
-      if (spacing_may_bind ? ((spacing < r) || near) : near) {
-        const double j0 = clamp_lo(std::ceil(((tl - base) + r) / spacing), 1.0);
-        const double m = clamp_lo(std::ceil(r_elem ? r / spacing : (1.0 / spacing) * r), 1.0);  // as torch
-        double c = clamp_lo(std::floor((n - j0) / m) + 1.0, 0.0);
-        if (!std::isfinite(c)) c = 0.0;
-        cnt = c;
-        first = std::fma(j0, spacing, base);
-        step = m * spacing;
+  int64_t k = 0;
+  for (int64_t b = 0; b < B; ++b) {
+    const double r = r_elem ? r_elem[b] : r_s;
+    for (int64_t y = 0; y < H; ++y) {
+      const int64_t row_code = (b << b_shift) | (y << y_shift);
+      for (int64_t x = 0; x < W; ++x, ++k) {
+        const double lr = lref_in[k], tlk = tlast_in[k];
+        const double d = l1[k] - lr;
+        const double th_on = maps ? th_on_map[k] : th_on_s, th_off = maps ? th_off_map[k] : th_off_s;
+        if (same ? !(std::fabs(d) >= th_on * shrink)
+                 : !(d >= th_on * shrink || d <= (maps ? th_off * -shrink : -(th_off * shrink)))) {
+          lref_out[k] = lr;
+          tlast_out[k] = tlk;
+          continue;
+        }
+        double n, th;
+        if (same) {
+          n = std::floor(std::fabs(d / th_on) + TOL);
+          th = (d > 0 ? 1.0 : (d < 0 ? -1.0 : 0.0)) * th_on;
+        } else {
+          const double n_on = clamp_lo(std::floor(d / th_on + TOL), 0.0);
+          const double n_off = clamp_lo(std::floor(-d / th_off + TOL), 0.0);
+          n = n_on + n_off;
+          th = d > 0 ? th_on : -th_off;
+        }
+        const double tl = tlk - t0;
+        // _emitted_log
+        const double dl = l1[k] - l0[k];
+        const double scale = (1.0 / dl) * dt;  // torch: scalar / tensor = tensor.reciprocal() * scalar
+        const double spacing = th * scale;
+        const double base = (lr - l0[k]) * scale;
+        double cnt = n, first = base + spacing, step = spacing;
+        if (r_elem || r > 0) {
+          const bool near = first < tl + r;
+          if (spacing_may_bind ? ((spacing < r) || near) : near) {
+            const double j0 = clamp_lo(std::ceil(((tl - base) + r) / spacing), 1.0);
+            const double m = clamp_lo(std::ceil(r_elem ? r / spacing : (1.0 / spacing) * r), 1.0);  // as torch
+            double c = clamp_lo(std::floor((n - j0) / m) + 1.0, 0.0);
+            if (!std::isfinite(c)) c = 0.0;
+            cnt = c;
+            first = std::fma(j0, spacing, base);
+            step = m * spacing;
+          }
+        }
+        lref_out[k] = std::fma(n, th, lr);
+        if (cnt > 0) {
+          tlast_out[k] = std::fma(cnt - 1.0, step, first) + t0;
+          out.push_back({row_code | (x << 1) | (std::signbit(th) ? 1 : 0), cnt, first, step});
+          total += cnt;
+        } else {
+          tlast_out[k] = tlk;
+        }
       }
-    }
-    lref[k] = std::fma(n, th, lref[k]);
-    if (cnt > 0) {
-      tlast[k] = std::fma(cnt - 1.0, step, first) + t0;
-      out.push_back({code[k] | (std::signbit(th) ? 1 : 0), cnt, first, step});
-      total += cnt;
     }
   }
   return total;
@@ -277,14 +370,16 @@ DVS_CLONES static void write_keys(const std::vector<Cand>& cand, double dt, int6
 static thread_local std::vector<Cand> g_cand;  // kept across calls (no fresh pages per step)
 
 // th_on_map, th_off_map, r_elem: null for the scalars (see scan_pixels). Returns the events' count.
-extern "C" double dvs_pixel_scan(const double* l1, double* lref, const double* l0, double* tlast, const int64_t* code,
-                                 int64_t P, double th_on, double th_off, const double* th_on_map,
-                                 const double* th_off_map, double r, const double* r_elem, int64_t hw, double t0,
-                                 double dt, int64_t spacing_may_bind) {
+extern "C" double dvs_pixel_scan(const double* l1, const double* lref_in, double* lref_out, const double* l0,
+                                 const double* tlast_in, double* tlast_out, int64_t B, int64_t H, int64_t W,
+                                 int64_t b_shift, int64_t y_shift, double th_on, double th_off,
+                                 const double* th_on_map, const double* th_off_map, double r, const double* r_elem,
+                                 double t0, double dt, int64_t spacing_may_bind) {
   g_cand.clear();
+  const int64_t P = B * H * W;
   if (g_cand.capacity() < size_t(P / 2)) g_cand.reserve(size_t(P / 2));
-  return scan_pixels(l1, lref, l0, tlast, code, P, th_on, th_off, th_on_map, th_off_map, r, r_elem, hw, t0, dt,
-                     spacing_may_bind != 0, g_cand);
+  return scan_pixels(l1, lref_in, lref_out, l0, tlast_in, tlast_out, B, H, W, b_shift, y_shift, th_on, th_off,
+                     th_on_map, th_off_map, r, r_elem, t0, dt, spacing_may_bind != 0, g_cand);
 }
 
 // The keys of the last dvs_pixel_scan's events (as many as it counted) into out.
@@ -305,7 +400,7 @@ _SIGNATURES = {
     "dvs_sort_decode": ([_P, _I64, _I64, _I64, _P, _I64] + [_I64] * 6 + [_P] * 5, _VOID),
     "dvs_baf_keep": ([_P] * 4 + [_I64, _P] + [_I64] * 4 + [_P], _VOID),
     "dvs_refractory_keep": ([_P, _P, _I64, _P, _I64, _P], _VOID),
-    "dvs_pixel_scan": ([_P] * 5 + [_I64, _F64, _F64, _P, _P, _F64, _P, _I64, _F64, _F64, _I64], _F64),
+    "dvs_pixel_scan": ([_P] * 6 + [_I64] * 5 + [_F64, _F64, _P, _P, _F64, _P, _F64, _F64, _I64], _F64),
     "dvs_pixel_write": ([_F64, _I64, _P], _VOID),
     "dvs_motion_counts": ([_P] * 5 + [_I64] * 6 + [_P] * 4, _VOID),
 }
@@ -363,19 +458,29 @@ class Kernels:
             active.data_ptr(), with_nb.data_ptr(), sums.data_ptr())
         return cells, active, with_nb, sums
 
-    def pixel_events(self, l1, lref, l0, tlast, code, th_on: float, th_off: float, th_on_map, th_off_map, r: float,
-                     r_elem, hw: int, t0: float, dt: float, spacing_may_bind: bool, t_shift: int, cap: int,
-                     n_out: torch.Tensor) -> torch.Tensor:
-        """The ideal pixel's step over P pixels (float64 (P,) log intensities l1, l0, reference lref
-        and last event times tlast, the last two updated in place; int64 pixel codes): the unsorted
-        event keys (int64), or an empty tensor when their count (written to ``n_out[0]``) exceeds
-        ``cap`` (cap < 0: no cap). Empty maps / r_elem: the scalars."""
+    def pixel_events(self, l1, lref, l0, tlast, shape, b_shift: int, y_shift: int, th_on: float, th_off: float,
+                     th_on_map, th_off_map, r: float, r_elem, t0: float, dt: float, spacing_may_bind: bool,
+                     t_shift: int, cap: int, n_out: torch.Tensor, lref_out=None, tlast_out=None) -> torch.Tensor:
+        """The ideal pixel's step over the B x H x W pixels of ``shape`` (float64 (P,) log intensities
+        l1, l0, reference lref and last event times tlast, P = B H W, row-major): the unsorted event
+        keys (int64; a pixel's key bits are (b << b_shift) | (y << y_shift) | (x << 1) | OFF), or an empty
+        tensor when their count (written to ``n_out[0]``) exceeds ``cap`` (cap < 0: no cap). The new
+        reference and last event times go to ``lref_out`` / ``tlast_out`` ((P,) float64; None: in place
+        into lref / tlast). Empty maps / r_elem ((B,) float64): the scalars."""
         f64 = torch.float64
+        B, H, W = (int(v) for v in shape)
+        lref_out = lref if lref_out is None else lref_out
+        tlast_out = tlast if tlast_out is None else tlast_out
+        for name, v in (("l1", l1), ("lref", lref), ("l0", l0), ("tlast", tlast), ("lref_out", lref_out),
+                        ("tlast_out", tlast_out)):
+            if v.numel() != B * H * W:
+                raise RuntimeError(f"pixel_events: {name} must hold B * H * W = {B * H * W} values, got {v.numel()}")
         n = self._lib.dvs_pixel_scan(
-            _ptr(l1, f64, "pixel_events: l1"), _ptr(lref, f64, "pixel_events: lref"), _ptr(l0, f64, "pixel_events: l0"),
-            _ptr(tlast, f64, "pixel_events: tlast"), _ptr(code, torch.int64, "pixel_events: code"), l1.numel(),
-            float(th_on), float(th_off), _ptr(th_on_map, f64, "pixel_events: maps"),
-            _ptr(th_off_map, f64, "pixel_events: maps"), float(r), _ptr(r_elem, f64, "pixel_events: r_elem"), int(hw),
+            _ptr(l1, f64, "pixel_events: l1"), _ptr(lref, f64, "pixel_events: lref"),
+            _ptr(lref_out, f64, "pixel_events: lref_out"), _ptr(l0, f64, "pixel_events: l0"),
+            _ptr(tlast, f64, "pixel_events: tlast"), _ptr(tlast_out, f64, "pixel_events: tlast_out"), B, H, W,
+            int(b_shift), int(y_shift), float(th_on), float(th_off), _ptr(th_on_map, f64, "pixel_events: maps"),
+            _ptr(th_off_map, f64, "pixel_events: maps"), float(r), _ptr(r_elem, f64, "pixel_events: r_elem"),
             float(t0), float(dt), int(bool(spacing_may_bind)))
         n_out[0] = n
         if cap >= 0 and n > cap:
