@@ -108,3 +108,38 @@ def test_collapse_on_a_slow_noisy_zoom_is_abstained(slow_zoom_realistic):
     assert got < 0.3, got
     assert CMaxConfig().structure_none < CMaxConfig().structure_full  # the shipped defaults run the test
     assert NOISE_FLOOR_SCORE == pytest.approx(4 / 9)
+
+
+def _zoom_structure(size: int, steps: int = 30, d: float = -0.1):
+    """Median structure and |relative error| of cmax over the last half of a constant-D zoom of one
+    texture on a size x size sensor (the same lens angle and texels per pixel, ideal pixel)."""
+    src = ZoomTextureFrames(1, (size, size), 40.0, ground_m=2400.0 * 128 / size, seed=2)
+    idx = torch.zeros(1, dtype=torch.long)
+    emu = EventEmulator()
+    emu.reset(src(torch.tensor([800.0]), idx), 0)
+    est = get_estimator("cmax", 1, (size, size), "cpu", dt_s=0.1)
+    s, e = [], []
+    for k in range(1, steps + 1):
+        z = 800.0 * float(torch.exp(torch.tensor(d * 0.1 * k)))
+        dh = float(est.update(emu.step(src(torch.tensor([z]), idx), 100_000 * k), 100_000 * k)[0])
+        if k > steps // 2:
+            s.append(float(est.diagnostics()["structure"][0]))
+            e.append(abs(dh - d) / abs(d))
+    return float(torch.tensor(s).median()), float(torch.tensor(e).median())
+
+
+def test_structure_is_measured_at_the_128_pixel_density():
+    """A sensor with 4x the pixels (the same scene, lens and texels per pixel) spreads its 2x more
+    warped events thinner, which halves S / S0 - 1; the structure is multiplied by sensor_scale (2
+    here), so the same scene scores about the same at either size, and 128 x 128 or smaller is
+    unchanged."""
+    from dvsland.estimators.cmax import sensor_scale
+
+    assert sensor_scale((128, 128)) == 1.0 and sensor_scale((64, 32)) == 1.0
+    assert sensor_scale((640, 360)) == pytest.approx(3.75)
+    s128, e128 = _zoom_structure(128)
+    s256, e256 = _zoom_structure(256)
+    assert e128 < 0.05 and e256 < 0.05, (e128, e256)
+    assert 0.7 < s256 / s128 < 1.5, (s128, s256)
+    assert (s256 / 2) / s128 < 0.7  # unscaled, the larger sensor would read about half the structure
+    assert s256 > CMaxConfig().structure_none

@@ -42,7 +42,9 @@ Per update and batch element, all elements at once:
    square-sum to (2/3)^2 on average; w the event weights). The structure of the estimate is
    S / S0 - 1 (``diagnostics()["structure"]``; 1.2-20 on the rendered sites through the ideal pixel,
    below 0.15 on three quarters of the estimates that were 50 % off or worse through the realistic
-   one). At or below ``structure_none`` the estimate is NaN, the window goes back to ``window_ms``
+   one). It grows with the events per pixel, so on a sensor larger than 128 x 128, whose windows
+   hold more events spread thinner (``max_events`` x :func:`sensor_scale`), it is multiplied by
+   :func:`sensor_scale` (a binned 1280 x 720 sensor: 0.17 -> 0.64 on a correct estimate). At or below ``structure_none`` the estimate is NaN, the window goes back to ``window_ms``
    and the next update searches globally (a wild estimate cannot shrink its own window into a trap
    of few, noise-dominated events); from ``structure_full`` on the confidence is unchanged, linear
    between.
@@ -176,6 +178,15 @@ def _parabola_offset(s_left: torch.Tensor, s_mid: torch.Tensor, s_right: torch.T
 
 
 # ------------------------------------------------------------------ setup and state
+def sensor_scale(sensor_size: Tuple[int, int]) -> float:
+    """max(1, sqrt(W H) / 128) of a (W, H) sensor: how much longer (in pixels) a scene's edges are than
+    on the 128 x 128 sensor the defaults were set on. ``max_events`` grows by it, and so the events
+    per pixel of a full window fall by it; the structure (module doc, step 6), which grows with the
+    events per pixel, is multiplied by it (1 on 128 x 128 and smaller: the same bits there)."""
+    W, H = int(sensor_size[0]), int(sensor_size[1])
+    return max(1.0, math.sqrt(W * H) / 128.0)
+
+
 def make_setup(p: CMaxConfig, batch_size: int, sensor_size: Tuple[int, int], centre: Tuple[float, float],
                dt_s: float, device: Any) -> CMaxSetup:
     """The :class:`CMaxSetup` of params ``p`` for B descents on a (W, H) sensor with FoE ``centre``."""
@@ -185,7 +196,7 @@ def make_setup(p: CMaxConfig, batch_size: int, sensor_size: Tuple[int, int], cen
     # events come from the scene's edges, whose length in pixels grows with the sensor's linear
     # size: a sensor larger than 128 x 128 keeps max_events x sqrt(W H) / 128 per element
     # (a 640 x 360 sensor with 4000 events had too few per edge pixel to show any structure)
-    max_events = int(round(int(p.max_events) * max(1.0, math.sqrt(W * H) / 128.0)))
+    max_events = int(round(int(p.max_events) * sensor_scale((W, H))))
     n_rbins, rbin, per_bin = 0, None, None
     if p.radial_bin_px > 0:  # sensor pixels per annulus about the FoE
         yy, xx = torch.meshgrid(torch.arange(H, dtype=_F64), torch.arange(W, dtype=_F64), indexing="ij")
@@ -653,6 +664,9 @@ def cmax_step(p: CMaxConfig, state: CMaxState, events, t_us: int, setup: CMaxSet
                                                                             ok, t_us)
     win_s = state.window_s
     structure = torch.where(ok, contrast.to(_F64) / floor - 1.0, torch.full_like(floor, float("nan")))
+    scale = sensor_scale(setup.sensor_size)
+    if scale != 1.0:  # the events per pixel of a 128 x 128 sensor's window (sensor_scale)
+        structure = structure * scale
     factor = structure_factor(p, structure)
     floored = ok & (factor <= 0)  # at the noise floor: no estimate, and not trusted (step 6)
     good = ok & (d0 >= p.d_min) & (d0 <= p.d_max) & ~(need & edge) & ~floored
