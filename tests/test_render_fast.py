@@ -84,6 +84,40 @@ def test_chunking_is_invisible(renderer):
         renderer.chunk = old
 
 
+def test_sub_batches_stop_growing_with_the_batch(renderer):
+    """Up to 32 x chunk frames a render call takes at most 8 sub-batches (of up to 4 x chunk frames):
+    its operator calls (cProfile) are the same at 8 x chunk and 32 x chunk frames, and the frames are
+    bit for bit those of one sub-batch, an uneven last one included."""
+    import cProfile
+    import pstats
+
+    from dvsland.render.fast import sub_batch
+
+    assert [sub_batch(b, 32) for b in (1, 63, 256, 257, 576, 1024, 5000)] == [32, 32, 32, 33, 72, 128, 128]
+    g = torch.Generator().manual_seed(0)
+    renderer.chunk, old = 2, renderer.chunk
+    try:
+        def calls(b):
+            alt = 20.0 + 3000.0 * torch.rand(b, generator=g, dtype=torch.float64)
+            idx = torch.randint(0, 4, (b,), generator=g)
+            renderer.render(alt, idx)  # warm
+            prof = cProfile.Profile()
+            prof.enable()
+            frames = renderer.render(alt, idx)
+            prof.disable()
+            renderer.chunk = 1000
+            try:
+                assert torch.equal(frames, renderer.render(alt, idx))
+            finally:
+                renderer.chunk = 2
+            return pstats.Stats(prof).total_calls
+
+        assert calls(16) == calls(64)
+        assert calls(61) <= calls(64) + 8  # 8 sub-batches, the last one shorter (its own grid buffer)
+    finally:
+        renderer.chunk = old
+
+
 def test_preparation_deterministic(monkeypatch):
     """Same seed -> the same levels bit for bit (fresh computation, no caches)."""
     from dvsland.terrain import load_site

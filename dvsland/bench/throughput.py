@@ -67,13 +67,14 @@ def run_case(estimator: str, batch_size: int, device: str, steps: int, warmup: i
     _sync(cuda)
     with SyncCounter() as sc:
         state, _ = loop_step(stages, state)
+    calls = python_calls(lambda: loop_step(stages, state), 2)
     B = stages.batch_size
     row = {"estimator": estimator, "B": B, "device": str(device), "setup_s": round(setup_s, 2), "steps": steps,
            "descent_steps_per_s": round(B * steps / wall), "wall_ms_per_step": round(1e3 * wall / steps, 2),
            "cpu_ms_per_step": round(1e3 * cpu / steps, 2),
            "us_per_descent_step": round(1e6 * wall / (steps * B), 3),
            "stage_ms": {k: round(1e3 * timer.seconds.get(k, 0.0) / n_timed, 2) for k in STAGE_KEYS},
-           "syncs_per_step": sc.total, "syncs_by_call": dict(sorted(sc.calls.items())),
+           "syncs_per_step": sc.total, "syncs_by_call": dict(sorted(sc.calls.items())), "calls_per_step": calls,
            "active": int(state.active.sum()),
            "memory_estimate_gib": round(estimate_run_bytes(cfg, batch_size=B) / 2 ** 30, 2)}
     if cuda:
@@ -114,6 +115,21 @@ def run_env_case(batch_size: int, device: str, steps: int, preset: str, override
             "wall_ms_per_step": round(1e3 * wall / steps, 2)}
 
 
+def python_calls(step, n: int) -> float:
+    """Function calls per call of ``step`` (Python functions and the C functions they call, as
+    cProfile counts them: torch operators included) over ``n`` calls; the state is not advanced
+    (``step``'s results are dropped)."""
+    import cProfile
+    import pstats
+
+    prof = cProfile.Profile()
+    prof.enable()
+    for _ in range(n):
+        step()
+    prof.disable()
+    return round(pstats.Stats(prof).total_calls / n, 1)
+
+
 def _sync(cuda: bool) -> None:
     if cuda:
         torch.cuda.synchronize()
@@ -132,11 +148,11 @@ def machine() -> Dict:
 def table(rows: List[Dict], info: Dict, env_rows: Sequence[Dict] = ()) -> str:
     """The markdown tables of ``rows`` (and ``env_rows``) with the machine line."""
     head = ("| estimator | B | device | set-up s | descent-steps/s | µs per descent-step | render | emulate | "
-            "estimate | control | dynamics | syncs/step | memory GiB (estimate) |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+            "estimate | control | dynamics | syncs/step | calls/step | memory GiB (estimate) |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     body = "".join(f"| {r['estimator']} | {r['B']} | {r['device']} | {r['setup_s']} | {r['descent_steps_per_s']:,} | "
                    f"{r['us_per_descent_step']} | " + " | ".join(f"{r['stage_ms'][k]}" for k in STAGE_KEYS)
-                   + f" | {r['syncs_per_step']} | {r.get('peak_memory_gib', '–')} ({r.get('memory_estimate_gib', '–')}) |\n"
+                   + f" | {r['syncs_per_step']} | {r.get('calls_per_step', '–')} | {r.get('peak_memory_gib', '–')} ({r.get('memory_estimate_gib', '–')}) |\n"
                    for r in rows)
     text = (f"Machine: {json.dumps(info)}; descent-steps/s from plain steps; stage columns in ms per step, "
             "each stage synchronised.\n\n" + head + body)
