@@ -254,3 +254,66 @@ def test_dvsland_events_files_read_as_recordings(tmp_path, events, suffix):
         want = events.select_batch(b)
         assert rec.events == Events(torch.zeros_like(want.b), want.x, want.y, want.t, want.p)
         assert rec.sensor_size == (30, 20) and rec.meta["layout"] == "dvsland"
+
+
+def test_bin_recording_pixels_order_and_errors():
+    """Binning F x F: x // F, y // F on a (W // F, H // F) sensor, the partial last column dropped, times,
+    polarities and order kept, the factor recorded; a principal point moves to the larger pixels."""
+    from dvsland.events import Recording, bin_recording, binned_pixel
+
+    x = torch.tensor([0, 1, 2, 5, 6, 6, 3])
+    y = torch.tensor([0, 3, 1, 2, 0, 5, 4])
+    t = torch.arange(7, dtype=torch.int64) * 10
+    p = torch.tensor([1, -1, 1, 1, -1, 1, -1], dtype=torch.int8)
+    rec = Recording(Events(torch.zeros(7, dtype=torch.int64), x, y, t, p), (7, 6), source="array")
+    got = bin_recording(rec, 2)
+    assert got.sensor_size == (3, 3) and got.meta["bin_factor"] == 2
+    keep = x < 6  # column 6 is the partial bin of a 7-px-wide sensor
+    assert torch.equal(got.events.x, (x // 2)[keep]) and torch.equal(got.events.y, (y // 2)[keep])
+    assert torch.equal(got.events.t, t[keep]) and torch.equal(got.events.p, p[keep])
+    assert bin_recording(got, 3).meta["bin_factor"] == 6 and bin_recording(rec, 1).events == rec.events
+    assert binned_pixel((0.5, 2.5), 2) == (0.0, 1.0) and binned_pixel((3.0, 3.0), 1) == (3.0, 3.0)
+    for bad in (0, -2, 1.5, True):
+        with pytest.raises(ValueError, match="factor must be an integer"):
+            bin_recording(rec, bad)
+    with pytest.raises(ValueError, match="no whole bin"):
+        bin_recording(rec, 7)
+
+
+def test_evaluate_a_binned_recording(tmp_path):
+    """The shipped 64 x 48 recording binned 2x: evaluated on a 32 x 24 sensor with the principal point
+    moved (the oracle stays exact; the CLI's --bin F and --bin dvs128 report the binning), and bad
+    --bin values give exit status 2."""
+    import dataclasses
+    import json
+
+    from dvsland.cli.main import main
+    from dvsland.config import load_config
+    from dvsland.evaluate import evaluate_recording
+    from dvsland.evaluate.recording import _sized_config, dvs128_bin_factor
+    from dvsland.events import bin_recording
+
+    cfg = load_config("paper")
+    rec = bin_recording(read_recording(DATA / "descent_A.npz"), 2)
+    res = evaluate_recording(cfg, rec, ["cmax", "oracle"], warmup_steps=5, max_steps=20, progress=False)
+    assert res.summary["sensor_size"] == [32, 24] and res.summary["bin_factor"] == 2
+    assert res.summary["estimators"]["oracle"]["all_sites"]["median_abs_rel_err"] < 1e-6
+    cam = dataclasses.replace(cfg.camera, principal_point_px=[40.5, 20.5])
+    sized = _sized_config(dataclasses.replace(cfg, camera=cam), rec).camera
+    assert (sized.width_px, sized.height_px) == (32, 24) and sized.principal_point_px == [20.0, 10.0]
+    assert sized.fov_deg == cfg.camera.fov_deg
+    assert dvs128_bin_factor(cfg, (128, 128)) == 1 and dvs128_bin_factor(cfg, (1280, 720)) == 10
+    assert dvs128_bin_factor(dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, fov_deg=120.0)),
+                             (1280, 720)) == 5
+    out = tmp_path / "run"
+    assert main(["evaluate", "paper", "--recording", str(DATA / "descent_A.npz"), "--bin", "2", "--estimators",
+                 "oracle", "--max-steps", "12", "--out", str(out), "--no-figures", "--quiet"]) == 0
+    js = json.loads((out / "evaluation.json").read_text())
+    assert js["sensor_size"] == [32, 24] and js["bin_factor"] == 2
+    assert "binned 2x2" in (out / "table.txt").read_text()
+    assert main(["evaluate", "paper", "--recording", str(DATA / "descent_A.npz"), "--bin", "dvs128", "--estimators",
+                 "oracle", "--max-steps", "12", "--out", str(tmp_path / "r2"), "--no-figures", "--quiet"]) == 0
+    for bad in ("0", "x", "49"):
+        assert main(["evaluate", "paper", "--recording", str(DATA / "descent_A.npz"), "--bin", bad, "--quiet",
+                     "--out", str(tmp_path / "bad")]) == 2
+    assert main(["evaluate", "paper", "--bin", "2", "--quiet"]) == 2

@@ -62,6 +62,10 @@ def register(subparsers) -> None:
     p.add_argument("--element", type=ranged(int, 0, 65_535, "--element"), default=0, metavar="B",
                    help="with --recording: the batch element b of a dvsland events file with several (dvsland "
                         "events --sites A,B writes b = 0, 1; default 0)")
+    p.add_argument("--bin", default=None, metavar="F|dvs128",
+                   help="with --recording: bin the pixels F x F (events at (x // F, y // F) of a W // F x H // F "
+                        "sensor; a principal point in camera.principal_point_px moves with them), or 'dvs128' for "
+                        "about the DVS128's pixel angle (60 deg / 128 px) from camera.fov_deg")
     p.add_argument("--t-unit", default=None, choices=("ns", "us", "ms", "s"),
                    help="with --recording: unit of the time column (default: integers = us, fractions = s)")
     p.set_defaults(func=run_evaluate)
@@ -109,11 +113,11 @@ def estimator_specs(text: str) -> list:
 
 
 def _read_recording(cfg, args, specs):
-    """The ``--recording`` file (with ``--ground-truth``, ``--t-unit``, ``--element``), read and its
-    implied sizes checked (:func:`dvsland.evaluate.recording.check_recording_size`) before the run
+    """The ``--recording`` file (with ``--ground-truth``, ``--t-unit``, ``--element``), read, binned
+    (``--bin``) and its implied sizes checked (:func:`dvsland.evaluate.recording.check_recording_size`) before the run
     folder is made: a missing file is a ValueError naming the flag."""
     from dvsland.evaluate.recording import check_recording_size
-    from dvsland.events import read_recording
+    from dvsland.events import bin_recording, read_recording
 
     from .common import check_input_file
 
@@ -121,9 +125,28 @@ def _read_recording(cfg, args, specs):
     if args.ground_truth is not None:
         check_input_file(args.ground_truth, "--ground-truth")
     recording = read_recording(args.recording, ground_truth=args.ground_truth, t_unit=args.t_unit, b=args.element)
+    if args.bin is not None:
+        recording = bin_recording(recording, _bin_factor(cfg, args.bin, recording.sensor_size))
     if len(recording.events):
         check_recording_size(cfg, recording, specs, args.max_steps)
     return recording
+
+
+def _bin_factor(cfg, text: str, sensor_size) -> int:
+    """``--bin``'s factor: an integer >= 1, or 'dvs128' (:func:`dvsland.evaluate.recording.dvs128_bin_factor`)."""
+    from dvsland.evaluate.recording import dvs128_bin_factor
+
+    W, H = sensor_size
+    if str(text).strip().lower() == "dvs128":
+        return dvs128_bin_factor(cfg, sensor_size)
+    try:
+        f = int(str(text).strip())
+    except ValueError:
+        f = 0
+    if f < 1 or f > min(W, H):
+        raise ValueError(f"--bin must be an integer in [1, {min(W, H)}] (the recording is {W} x {H} px) or "
+                         f"'dvs128', got {text!r}")
+    return f
 
 
 def run_evaluate(args) -> int:
@@ -136,8 +159,8 @@ def run_evaluate(args) -> int:
     if args.recording and (args.sites or args.segment_steps or args.stride != 1 or args.scenarios):
         raise ValueError("--sites, --segment-steps, --stride and --scenarios select rendered descents; they do "
                          "not apply to --recording")
-    if not args.recording and (args.ground_truth or args.t_unit or args.element):
-        raise ValueError("--ground-truth, --t-unit and --element need --recording PATH")
+    if not args.recording and (args.ground_truth or args.t_unit or args.element or args.bin is not None):
+        raise ValueError("--ground-truth, --t-unit, --element and --bin need --recording PATH")
     if args.element < 0:
         raise ValueError(f"--element must be >= 0, got {args.element}")
     if args.scenarios is not None:

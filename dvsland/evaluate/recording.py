@@ -21,7 +21,7 @@ import torch
 
 from dvsland.config import Config
 from dvsland.estimators import Truth
-from dvsland.events import Recording, read_recording
+from dvsland.events import Recording, binned_pixel, read_recording
 from dvsland.report.checkpoint import estimator_checkpoint
 from dvsland.stages import build_estimator
 
@@ -56,12 +56,24 @@ STEP_BYTES_PER_ESTIMATOR = 16
 
 
 def _sized_config(cfg: Config, recording: Recording) -> Config:
-    """``cfg`` with the camera set to the recording's sensor (a custom sensor of its W x H px)."""
+    """``cfg`` with the camera set to the recording's sensor (a custom sensor of its W x H px, the
+    same field of view). A binned recording (:func:`~dvsland.events.bin_recording`) moves a given
+    principal point (in the full sensor's pixels) and pixel pitch to its larger pixels."""
     W, H = recording.sensor_size
+    f = int(recording.meta.get("bin_factor", 1))
+    pitch = cfg.camera.pixel_pitch_um if cfg.camera.sensor == "custom" else None
+    pp = cfg.camera.principal_point_px
     cam = dataclasses.replace(cfg.camera, sensor="custom", width_px=int(W), height_px=int(H),
-                              pixel_pitch_um=cfg.camera.pixel_pitch_um if cfg.camera.sensor == "custom" else None,
-                              focal_length_mm=None)
+                              pixel_pitch_um=None if pitch is None else pitch * f, focal_length_mm=None,
+                              principal_point_px=None if pp is None else list(binned_pixel(pp, f)))
     return dataclasses.replace(cfg, camera=cam)
+
+
+def dvs128_bin_factor(cfg: Config, sensor_size) -> int:
+    """The binning that gives a recording's pixels about the angle of the DVS128 of the paper (60 deg
+    over 128 px): round((60 / 128) / (camera.fov_deg / W)), at least 1."""
+    W = int(sensor_size[0])
+    return max(1, int(round((60.0 / 128.0) / (float(cfg.camera.fov_deg) / W))))
 
 
 def _intervals(cfg: Config, recording: Recording, max_steps: Optional[int]) -> tuple:
@@ -252,6 +264,7 @@ def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
                            time_base=time_base(device), checkpoints=checkpoints, confidence=conf)
     info = dict(trajectory="recording", recording=recording.source, recording_format=recording.format,
                 sensor_size=[int(W), int(H)], sensor_size_from=recording.meta.get("sensor_size_from"),
+                bin_factor=int(recording.meta.get("bin_factor", 1)),
                 has_ground_truth=gt is not None, n_steps=K, steps_run=K,
                 warmup_steps=int(warmup_steps), device=str(device), torch_threads=torch.get_num_threads(),
                 estimators_run=list(ests), n_events_total=len(ev_all))

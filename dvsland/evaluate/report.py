@@ -44,7 +44,9 @@ def _source(summary: dict) -> str:
         name = Path(str(summary.get("recording", "recording"))).name
         w, h = (summary.get("sensor_size") or ["?", "?"])[:2]
         gt = "" if summary.get("has_ground_truth", True) else "; no ground truth: no error"
-        return f"recording {name} ({w}x{h} px, {summary.get('n_steps', '?')} intervals{gt})"
+        f = int(summary.get("bin_factor") or 1)
+        binned = f", binned {f}x{f}" if f > 1 else ""
+        return f"recording {name} ({w}x{h} px{binned}, {summary.get('n_steps', '?')} intervals{gt})"
     return "closed-form oracle descents"
 
 

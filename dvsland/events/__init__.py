@@ -12,7 +12,8 @@ Public names:
     save_events, load_events: .npz / .h5 files, exact round trip (:mod:`dvsland.events.io`).
     read_recording, write_recording, Recording, GroundTruth, read_ground_truth, write_ground_truth:
         recordings of others and for others: AEDAT4, HDF5, tonic arrays, npz, CSV
-        (:mod:`dvsland.events.recording`; ``GroundTruth`` in :mod:`dvsland.events.ground_truth`).
+        (:mod:`dvsland.events.recording`; ``GroundTruth`` in :mod:`dvsland.events.ground_truth`);
+        bin_recording, binned_pixel: a recording seen through pixels F x F times larger.
     validate_events, check_event_arrays, check_events, EventDataError: the one check of events on
         the way in, for every reader and every estimator (:mod:`dvsland.events.validate`;
         ``validate_events``, which packs the checked columns into Events, in :mod:`dvsland.events.events`).
@@ -24,11 +25,12 @@ from .events import TONIC_DTYPE, Events, validate_events
 from .ground_truth import GroundTruth
 from .io import load_events, save_events
 from .pixel_model import PixelModelParams
-from .recording import Recording, read_ground_truth, read_recording, write_ground_truth, write_recording
+from .recording import (Recording, bin_recording, binned_pixel, read_ground_truth, read_recording,
+                        write_ground_truth, write_recording)
 from .validate import EventDataError, check_event_arrays, check_events
 from .recording import RecordingError
 
 __all__ = ["Events", "EventEmulator", "EmulatorParams", "EmulatorState", "LEVEL_TOL", "TONIC_DTYPE", "save_events", "load_events",
-           "read_recording", "write_recording", "Recording", "GroundTruth", "read_ground_truth",
+           "read_recording", "write_recording", "bin_recording", "binned_pixel", "Recording", "GroundTruth", "read_ground_truth",
            "write_ground_truth", "validate_events", "PixelModelParams", "EventDataError", "RecordingError", "check_event_arrays",
            "check_events"]

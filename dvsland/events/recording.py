@@ -655,6 +655,45 @@ _READERS = {"aedat4": _read_aedat4, "h5": _read_h5, "npz": _read_npz, "npy": _re
 
 
 # ----------------------------------------------------------------------------- read_recording
+def bin_recording(recording: Recording, factor: int) -> Recording:
+    """The recording seen through pixels ``factor`` x ``factor`` times larger: each event keeps its time
+    and polarity at pixel (x // factor, y // factor) of a (W // factor, H // factor) sensor; events of the
+    partial last column or row of bins (when W or H is not a multiple) are dropped. The events stay in
+    time order. ``meta["bin_factor"]`` records the factor (multiplied over repeated binning), so that a
+    principal point given in the full sensor's pixels can be moved to the binned one
+    (:func:`binned_pixel`).
+
+    Raises:
+        ValueError naming ``factor`` when it is not an integer >= 1 or leaves no whole bin.
+    """
+    if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or int(factor) < 1:
+        raise ValueError(f"factor must be an integer >= 1, got {factor!r}")
+    f = int(factor)
+    W, H = recording.sensor_size
+    if W // f < 1 or H // f < 1:
+        raise ValueError(f"factor {f} leaves no whole bin of the {W} x {H} sensor (at most {min(W, H)})")
+    meta = dict(recording.meta, bin_factor=int(recording.meta.get("bin_factor", 1)) * f)
+    if f == 1:
+        return Recording(recording.events, (W, H), recording.ground_truth, recording.source, recording.format, meta)
+    ev = recording.events
+    x, y = torch.div(ev.x, f, rounding_mode="floor"), torch.div(ev.y, f, rounding_mode="floor")
+    keep = (x < W // f) & (y < H // f)
+    if not bool(keep.all()):
+        idx = keep.nonzero().squeeze(1)
+        x, y = x.index_select(0, idx), y.index_select(0, idx)
+        ev = Events(ev.b.index_select(0, idx), ev.x.index_select(0, idx), ev.y.index_select(0, idx),
+                    ev.t.index_select(0, idx), ev.p.index_select(0, idx))
+    binned = Events(ev.b, x, y, ev.t, ev.p)
+    return Recording(binned, (W // f, H // f), recording.ground_truth, recording.source, recording.format, meta)
+
+
+def binned_pixel(xy: Sequence[float], factor: int) -> Tuple[float, float]:
+    """A point (x, y) in pixel units of a full sensor (pixel centres at integers) in those of the
+    sensor binned ``factor`` x: ((x + 0.5) / factor - 0.5, (y + 0.5) / factor - 0.5)."""
+    f = float(factor)
+    return ((float(xy[0]) + 0.5) / f - 0.5, (float(xy[1]) + 0.5) / f - 0.5)
+
+
 def read_recording(path, format: Optional[str] = None, ground_truth: Optional[PathLike] = None,
                    t_unit: Optional[str] = None, sensor_size: Optional[Tuple[int, int]] = None,
                    columns: Sequence[str] = ("t", "x", "y", "p"), b: int = 0, device=None) -> Recording:
