@@ -54,6 +54,7 @@ def _reference(events, B, sensor_size, t_us, p):
     flick = torch.where((vt > 1e-6) & (vp > 1e-6), rr, torch.zeros_like(rr)).clamp(0.0, 1.0)
     motion = torch.maximum(A._ramp(clus, p.clustering_none, p.clustering_full),
                            A._ramp(nbx, p.neighbours_none, p.neighbours_full))
+    motion = torch.maximum(motion, A._ramp(q, p.saturated_from, p.saturated_full))  # most pixels active
     motion = motion * A._ramp(flick, p.flicker_none, p.flicker_full)
     judged = A._ramp(n.to(torch.float32), float(p.min_events), float(p.full_events))
     factor = (1.0 - judged * (1.0 - motion)).clamp(0.0, 1.0)

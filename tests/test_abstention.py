@@ -155,6 +155,31 @@ def test_motion_evidence_separates_noise_flicker_and_structure():
     assert (motion_evidence(None, 3, (W, H), DT_US).factor == 1).all()
 
 
+def test_dense_windows_are_judged_by_what_can_show_structure():
+    """Where most pixels are active (a dense zoom: about 3 events per pixel and step) the active-pixel
+    statistics cannot show structure, and such a window used to be abstained: those two tests fade out
+    from an active share of 0.6 to 0.75. Dense uniform noise (a share of 0.26) is still abstained, and
+    so is a global flicker, every pixel active (the flicker test stays)."""
+    from dvsland.evaluate import ZoomTextureFrames
+    from dvsland.events import EventEmulator
+
+    src = ZoomTextureFrames(1, (160, 160), 60.0, ground_m=300.0, seed=1)
+    idx = torch.zeros(1, dtype=torch.long)
+    emu = EventEmulator()
+    emu.reset(src(torch.tensor([500.0]), idx), 0)
+    ev = emu.step(src(torch.tensor([485.0]), idx), DT_US)
+    active = torch.zeros(160 * 160).index_fill_(0, ev.y * 160 + ev.x, 1.0).mean()
+    assert active > 0.75 and len(ev) > 50_000
+    off = AbstainParams(saturated_from=1.01, saturated_full=1.02)  # the test without the fade
+    assert motion_evidence(ev, 1, (160, 160), DT_US, off).factor.item() == 0.0
+    assert motion_evidence(ev, 1, (160, 160), DT_US).factor.item() == 1.0
+    dense_noise = noise_window(5000, 2, 1, batch=2)  # 0.3 events per pixel on 128 x 128
+    assert (motion_evidence(dense_noise, 2, (W, H), DT_US).factor == 0).all()
+    assert (motion_evidence(flicker_window(1, 1, batch=1), 1, (W, H), DT_US).factor == 0).all()
+    with pytest.raises(ValueError, match="saturated_from must be < abstain.saturated_full"):
+        motion_evidence(None, 1, (W, H), DT_US, AbstainParams(saturated_from=0.8, saturated_full=0.7))
+
+
 def test_rows_are_judged_independently():
     """Noise in one descent does not touch its neighbour's factor (batched, no mixing)."""
     a = noise_window(2000, 0, 1, batch=2)

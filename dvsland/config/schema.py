@@ -332,6 +332,10 @@ class AbstainConfig:
                               rng=(0.0, 1.0))
     min_events: int = opt(200, "events of one descent in a window below which it is not judged", rng=(0, 10**9))
     full_events: int = opt(300, "events from which a window is judged fully", rng=(0, 10**9))
+    saturated_from: float = opt(0.6, "share of active pixels from which the clustering and neighbour tests "
+                                "fade out (most pixels active: they cannot show structure; the flicker test "
+                                "stays)", rng=(0.0, 1.0))
+    saturated_full: float = opt(0.75, "share of active pixels at which they no longer judge", rng=(0.0, 1.0))
 
 
 @dataclass

@@ -27,6 +27,12 @@ The factor: ``clamp(max(ramp(clustering), ramp(neighbours)), 0, 1)``, times the 
 judged only on windows with enough events: below ``min_events`` the window is not judged (factor
 1: the estimators' own rules on few events hold, e.g. ``cmax``'s ``min_events`` over its longer
 window), from ``full_events`` on it is judged fully, linear between.
+
+Where most pixels are active (a dense window: a recording binned to large pixels, 10-20 events per
+pixel and step) neither active-pixel statistic can show structure: every pixel is active whether
+the scene moves or not. From an active share ``saturated_from`` (0.6) to ``saturated_full`` (0.75)
+the two fade out of the test (the flicker test stays). Uniform noise reaches that share only at
+about one noise event per pixel per step, 5x the densest noise the test is tuned on.
 """
 
 from __future__ import annotations
@@ -50,6 +56,8 @@ class AbstainParams(NamedTuple):
             flicker (factor 1) / at or above which it is one (factor 0).
         min_events / full_events: events of one descent in the window below which it is not judged
             (factor 1) / from which it is judged fully.
+        saturated_from / saturated_full: share of active pixels from which the clustering and
+            neighbour tests fade out / at which they no longer judge (module doc).
     """
 
     cell_px: int = 8
@@ -61,6 +69,8 @@ class AbstainParams(NamedTuple):
     flicker_none: float = 0.7
     min_events: int = 200
     full_events: int = 300
+    saturated_from: float = 0.6
+    saturated_full: float = 0.75
 
 
 #: the shipped thresholds; ``DivergenceEstimator.abstain = None`` turns the test off for a class or
@@ -211,19 +221,21 @@ def _flicker_of_sums(sums: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
 
 
 def _statistics(events, B: int, W: int, H: int, t_us: int, n: torch.Tensor, cell: int, dev):
-    """(clustering, neighbours, flicker), each (B,) float32, of the checked events sorted by b: their
+    """(clustering, neighbours, flicker, active pixels), each (B,) float32, of the checked events sorted by b: their
     counts and sums from the compiled kernel where it runs (CPU; :mod:`dvsland.events.native`, the same
     integers and the same float32 sums in the same order), else from torch; the statistics from torch."""
     mod = native.kernels() if dev.type == "cpu" and events.b.device.type == "cpu" else None
     if mod is None:
         padded = _occupancy(events, B, W, H, dev)
-        return _clustering(padded[:, 1:-1, 1:-1], cell), _neighbours(padded), _flicker(events, B, t_us, n, dev)
+        active = padded.view(B, -1).to(torch.float32).sum(dim=1)  # the border is 0
+        return (_clustering(padded[:, 1:-1, 1:-1], cell), _neighbours(padded), _flicker(events, B, t_us, n, dev),
+                active)
     with_cells = (H // cell) * (W // cell) >= 2
     cells, active, with_nb, sums = mod.motion_counts(
         *(v.to(torch.int64).contiguous() for v in (events.b, events.x, events.y, events.t)),
         events.p.to(torch.int8).contiguous(), B, H, W, cell if with_cells else 0, int(t_us))
     clus = _clustering_of_counts(cells, cell) if with_cells else torch.zeros(B, dtype=torch.float32)
-    return clus, _neighbours_of_counts(active, with_nb, H, W), _flicker_of_sums(sums, n)
+    return clus, _neighbours_of_counts(active, with_nb, H, W), _flicker_of_sums(sums, n), active
 
 
 def check_abstain_params(p: AbstainParams) -> None:
@@ -233,7 +245,8 @@ def check_abstain_params(p: AbstainParams) -> None:
     if not 2 <= p.cell_px <= 1024:
         raise ValueError(f"abstain.cell_px must be in [2, 1024] px, got {p.cell_px}")
     for lo, hi in (("clustering_none", "clustering_full"), ("neighbours_none", "neighbours_full"),
-                   ("flicker_full", "flicker_none"), ("min_events", "full_events")):
+                   ("flicker_full", "flicker_none"), ("min_events", "full_events"),
+                   ("saturated_from", "saturated_full")):
         if not getattr(p, lo) < getattr(p, hi):
             raise ValueError(f"abstain.{lo} must be < abstain.{hi}, got {getattr(p, lo)} and {getattr(p, hi)}")
     if p.min_events < 0:
@@ -268,9 +281,12 @@ def motion_evidence(events, batch_size: int, sensor_size: Tuple[int, int], t_us:
     b = events.b.to(dev).contiguous()  # sorted: the events of a row are contiguous
     edges = torch.searchsorted(b, torch.arange(B + 1, dtype=b.dtype, device=dev))
     n = edges[1:] - edges[:-1]
-    clus, nbx, flick = _statistics(events, B, W, H, t_us, n, max(2, int(params.cell_px)), dev)
+    clus, nbx, flick, active = _statistics(events, B, W, H, t_us, n, max(2, int(params.cell_px)), dev)
     motion = torch.maximum(_ramp(clus, params.clustering_none, params.clustering_full),
                            _ramp(nbx, params.neighbours_none, params.neighbours_full))
+    # most pixels active: the two cannot show structure and fade out (module doc)
+    saturated = _ramp(active / float(H * W), params.saturated_from, params.saturated_full)
+    motion = torch.maximum(motion, saturated)
     motion = motion * _ramp(flick, params.flicker_none, params.flicker_full)
     judged = _ramp(n.to(torch.float32), float(params.min_events), float(params.full_events))
     factor = (1.0 - judged * (1.0 - motion)).clamp(0.0, 1.0)
