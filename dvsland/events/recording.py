@@ -664,7 +664,7 @@ def bin_recording(recording: Recording, factor: int) -> Recording:
     (:func:`binned_pixel`).
 
     Raises:
-        ValueError naming ``factor`` when it is not an integer >= 1 or leaves no whole bin.
+        ValueError: naming ``factor`` when it is not an integer >= 1 or leaves no whole bin.
     """
     if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or int(factor) < 1:
         raise ValueError(f"factor must be an integer >= 1, got {factor!r}")
