@@ -164,6 +164,10 @@ def table(rows: List[Dict], info: Dict, env_rows: Sequence[Dict] = ()) -> str:
 
 
 def main(argv=None) -> int:
+    if argv is None:  # run as a program: keep freed memory as the dvsland command does
+        from dvsland.allocator import tune_allocator
+
+        tune_allocator()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--batches", default="18,63", help="comma-separated batch sizes")

@@ -74,9 +74,14 @@ CAMPAIGN_HINT = ("resume with `dvsland campaign --resume RUN_DIR` and fewer --wo
                  "or a lower simulation.max_memory_gb")
 
 
-def _init_worker(parent_pid: int, slots=None) -> None:
-    """Process-pool initializer: die with the driver, report shard progress into ``slots``."""
+def _init_worker(parent_pid: int, slots=None, tune: bool = False) -> None:
+    """Process-pool initializer: die with the driver, report shard progress into ``slots``, and keep
+    freed memory as the driver does (``tune``: :func:`dvsland.allocator.tune_allocator`)."""
     _die_with_parent(parent_pid)
+    if tune:
+        from dvsland.allocator import tune_allocator
+
+        tune_allocator()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the driver's Ctrl-C (it stops the pool), not ours
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     if slots is not None:
@@ -91,8 +96,10 @@ def make_pool(workers: int, slots=None):
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
+    from dvsland.allocator import tuned
+
     return ProcessPoolExecutor(max_workers=int(workers), mp_context=mp.get_context("spawn"),
-                               initializer=_init_worker, initargs=(os.getpid(), slots))
+                               initializer=_init_worker, initargs=(os.getpid(), slots, tuned()))
 
 
 @contextlib.contextmanager

@@ -122,8 +122,13 @@ class _HeldLoader:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run the ``dvsland`` command line ``argv`` (default: ``sys.argv[1:]``); return the exit
     status: 0 done, 1 a run that ended incomplete, 2 bad input (one line naming it), 130
-    interrupted (SIGINT or SIGTERM, at any moment)."""
+    interrupted (SIGINT or SIGTERM, at any moment). As the program (``argv`` None) it first keeps
+    freed memory in the process for the next step (:func:`dvsland.allocator.tune_allocator`)."""
     old = _own_signals()  # first: a Ctrl-C while the sub-commands are imported is ours too
+    if argv is None:  # the command line itself (not a caller's in-process run): before torch loads
+        from dvsland.allocator import tune_allocator
+
+        tune_allocator()
     guard = _TorchImportGuard()
     guard.install()
     started = []
