@@ -162,17 +162,10 @@ def _neighbour_counts(padded: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]
     return active, with_nb
 
 
-def _neighbours(padded: torch.Tensor) -> torch.Tensor:
-    """Neighbour excess (B,) float32 in standard errors (module doc) of the occupancy images
-    ``padded`` (B, H + 2, W + 2) uint8 with a zero border: the share of active pixels with an
-    active 8-neighbour against 1 - (1 - q)^8 for pixels active at random."""
-    H, W = padded.shape[1] - 2, padded.shape[2] - 2
-    return _neighbours_of_counts(*_neighbour_counts(padded), H, W)
-
-
 def _neighbours_of_counts(active: torch.Tensor, with_nb: torch.Tensor, H: int, W: int) -> torch.Tensor:
-    """Neighbour excess (B,) float32 of the active pixels ``active`` (B,) and those of them with an
-    active 8-neighbour ``with_nb`` (B,), float32 integers, on an H x W sensor."""
+    """Neighbour excess (B,) float32 in standard errors (module doc) of the active pixels ``active``
+    (B,) and those of them with an active 8-neighbour ``with_nb`` (B,), float32 integers, on an
+    H x W sensor: the share with a neighbour against 1 - (1 - q)^8 for pixels active at random."""
     obs = with_nb / active.clamp_min(1.0)
     q = active / float(H * W)
     exp = 1.0 - (1.0 - q) ** 8
@@ -221,15 +214,16 @@ def _flicker_of_sums(sums: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
 
 
 def _statistics(events, B: int, W: int, H: int, t_us: int, n: torch.Tensor, cell: int, dev):
-    """(clustering, neighbours, flicker, active pixels), each (B,) float32, of the checked events sorted by b: their
-    counts and sums from the compiled kernel where it runs (CPU; :mod:`dvsland.events.native`, the same
-    integers and the same float32 sums in the same order), else from torch; the statistics from torch."""
+    """(clustering, neighbours, flicker, active pixels), each (B,) float32, of the checked events
+    sorted by b: their counts and sums from the compiled kernel where it runs (CPU;
+    :mod:`dvsland.events.native`, the same integers and the same float32 sums in the same order), else
+    from torch; the statistics from torch."""
     mod = native.kernels() if dev.type == "cpu" and events.b.device.type == "cpu" else None
     if mod is None:
         padded = _occupancy(events, B, W, H, dev)
-        active = padded.view(B, -1).to(torch.float32).sum(dim=1)  # the border is 0
-        return (_clustering(padded[:, 1:-1, 1:-1], cell), _neighbours(padded), _flicker(events, B, t_us, n, dev),
-                active)
+        active, with_nb = _neighbour_counts(padded)
+        return (_clustering(padded[:, 1:-1, 1:-1], cell), _neighbours_of_counts(active, with_nb, H, W),
+                _flicker(events, B, t_us, n, dev), active)
     with_cells = (H // cell) * (W // cell) >= 2
     cells, active, with_nb, sums = mod.motion_counts(
         *(v.to(torch.int64).contiguous() for v in (events.b, events.x, events.y, events.t)),
