@@ -277,15 +277,13 @@ class FastRenderer(Renderer):
         gain = self._gain_shared
         rows = None if gain is not None else self._gain.index_select(0, site_idx)  # (B, H, W) per frame
         step = min(b, sub_batch(b, self.chunk))
-        full = b - b % step
         grid = _LevelGrid(step, h, w, self.device, self.threads, self.atlas_irradiance)
-        for i in range(0, full, step):  # a handful of operator calls per sub-batch, no Python arithmetic
-            grid.sample_into(out[i:i + step], off[:, i:i + step], self._slopes.index_select(1, site_idx[i:i + step]),
+        for i in range(0, b, step):  # a handful of operator calls per sub-batch (slices clamp at the end)
+            part = out[i:i + step]
+            if part.shape[0] != grid.frames:  # the last, shorter sub-batch: a grid of its size
+                grid = _LevelGrid(part.shape[0], h, w, self.device, self.threads, self.atlas_irradiance)
+            grid.sample_into(part, off[:, i:i + step], self._slopes.index_select(1, site_idx[i:i + step]),
                              rng_n[i:i + step], frac[i:i + step], gain if rows is None else rows[i:i + step])
-        if full < b:  # the last, shorter sub-batch
-            grid = _LevelGrid(b - full, h, w, self.device, self.threads, self.atlas_irradiance)
-            grid.sample_into(out[full:], off[:, full:], self._slopes.index_select(1, site_idx[full:]), rng_n[full:],
-                             frac[full:], gain if rows is None else rows[full:])
         return out
 
     def _frame_terms(self, altitude_m: torch.Tensor, site_idx: torch.Tensor):
