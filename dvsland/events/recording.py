@@ -676,15 +676,14 @@ def bin_recording(recording: Recording, factor: int) -> Recording:
     if f == 1:
         return Recording(recording.events, (W, H), recording.ground_truth, recording.source, recording.format, meta)
     ev = recording.events
+    b, t, p = ev.b, ev.t, ev.p
     x, y = torch.div(ev.x, f, rounding_mode="floor"), torch.div(ev.y, f, rounding_mode="floor")
     keep = (x < W // f) & (y < H // f)
     if not bool(keep.all()):
         idx = keep.nonzero().squeeze(1)
-        x, y = x.index_select(0, idx), y.index_select(0, idx)
-        ev = Events(ev.b.index_select(0, idx), ev.x.index_select(0, idx), ev.y.index_select(0, idx),
-                    ev.t.index_select(0, idx), ev.p.index_select(0, idx))
-    binned = Events(ev.b, x, y, ev.t, ev.p)
-    return Recording(binned, (W // f, H // f), recording.ground_truth, recording.source, recording.format, meta)
+        b, x, y, t, p = (v.index_select(0, idx) for v in (b, x, y, t, p))
+    return Recording(Events(b, x, y, t, p), (W // f, H // f), recording.ground_truth, recording.source,
+                     recording.format, meta)
 
 
 def binned_pixel(xy: Sequence[float], factor: int) -> Tuple[float, float]:
