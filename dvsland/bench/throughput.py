@@ -152,7 +152,8 @@ def table(rows: List[Dict], info: Dict, env_rows: Sequence[Dict] = ()) -> str:
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     body = "".join(f"| {r['estimator']} | {r['B']} | {r['device']} | {r['setup_s']} | {r['descent_steps_per_s']:,} | "
                    f"{r['us_per_descent_step']} | " + " | ".join(f"{r['stage_ms'][k]}" for k in STAGE_KEYS)
-                   + f" | {r['syncs_per_step']} | {r.get('calls_per_step', '–')} | {r.get('peak_memory_gib', '–')} ({r.get('memory_estimate_gib', '–')}) |\n"
+                   + f" | {r['syncs_per_step']} | {r.get('calls_per_step', '–')} | "
+                     f"{r.get('peak_memory_gib', '–')} ({r.get('memory_estimate_gib', '–')}) |\n"
                    for r in rows)
     text = (f"Machine: {json.dumps(info)}; descent-steps/s from plain steps; stage columns in ms per step, "
             "each stage synchronised.\n\n" + head + body)

@@ -44,8 +44,9 @@ Per update and batch element, all elements at once:
    below 0.15 on three quarters of the estimates that were 50 % off or worse through the realistic
    one). It grows with the events per pixel, so on a sensor larger than 128 x 128, whose windows
    hold more events spread thinner (``max_events`` x :func:`sensor_scale`), it is multiplied by
-   :func:`sensor_scale` (a binned 1280 x 720 sensor: 0.17 -> 0.64 on a correct estimate). At or below ``structure_none`` the estimate is NaN, the window goes back to ``window_ms``
-   and the next update searches globally (a wild estimate cannot shrink its own window into a trap
+   :func:`sensor_scale` (a binned 1280 x 720 sensor: 0.17 -> 0.64 on a correct estimate). At or
+   below ``structure_none`` the estimate is NaN, the window goes back to ``window_ms`` and the
+   next update searches globally (a wild estimate cannot shrink its own window into a trap
    of few, noise-dominated events); from ``structure_full`` on the confidence is unchanged, linear
    between.
 

@@ -455,12 +455,13 @@ class _Step:
         self.params, self.state, self.t0, self.dt = params, state, t0, float(t1 - t0)
         self.layout = _layout(B, H, W, state.lref.device)
         self.b_shift = self.layout.b_shift(t1 - t0)  # ValueError if the key would overflow
-        # the compiled pixel kernel reads the state's buffers and writes fresh ones (its pass is the copy)
-        self.native = (_cpu_fast_path(state.lref) and params.interpolation == "log"
-                       and state.lref.dtype == torch.float64 and native.kernels() is not None)
+        # the compiled pixel kernel (or None: the torch path) reads the state's buffers and writes
+        # fresh ones (its pass is the copy)
+        self.native = (native.kernels() if _cpu_fast_path(state.lref) and params.interpolation == "log"
+                       and state.lref.dtype == torch.float64 else None)
         if donate:
             self.lref, self.t_last = state.lref, state.t_last
-        elif self.native:
+        elif self.native is not None:
             self.lref, self.t_last = torch.empty_like(state.lref), torch.empty_like(state.t_last)
         else:
             self.lref, self.t_last = state.lref.clone(), state.t_last.clone()
@@ -628,7 +629,7 @@ def _pixel_keys(ctx: _Step, l1: torch.Tensor, f1: torch.Tensor):
     """(keys of the pixels' events or None, whether they come in pixel order); moves the working
     L_ref and t_last: the compiled one-pass kernel where built (CPU, log interpolation), else the
     candidate scan and :func:`_pixel_events` per block of candidates."""
-    if ctx.native:
+    if ctx.native is not None:
         return _native_pixel_events(ctx, l1), True
     d = torch.sub(l1, ctx.lref)  # a temporary: the CPU scan may overwrite it
     # candidate pixels (A,): a superset of those with >= 1 crossing (exact counts follow)
@@ -660,7 +661,7 @@ def _native_pixel_events(ctx: _Step, l1: torch.Tensor) -> torch.Tensor:
         th_on, th_off = 0.0, 0.0
         on_map, off_map = ctx.th_on.reshape(-1).contiguous(), ctx.th_off.reshape(-1).contiguous()
     r_elem = none if ctx.r_elem is None else ctx.r_elem.to(torch.float64).contiguous()
-    keys = native.load().pixel_events(
+    keys = ctx.native.pixel_events(
         l1.reshape(-1), state.lref.reshape(-1), state.l_prev.reshape(-1), state.t_last.reshape(-1),
         state.lref.shape, ctx.b_shift, layout.y_shift, th_on, th_off, on_map, off_map,
         float(ctx.params.refractory_us), r_elem, float(ctx.t0), ctx.dt, bool(ctx.spacing_may_bind),
