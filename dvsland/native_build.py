@@ -286,25 +286,26 @@ class NativeLibrary:
         return self._bound
 
 
-def timed_build(label: str, kernel_module) -> int:
-    """Build ``kernel_module``'s library (a module with ``cached()``, ``build()`` and ``build_dir()``)
-    and print whether it was already cached, the wall and CPU time (the compiler's included) and the
-    folder; 0, or 1 with the error on stderr when it cannot be built."""
+def timed_build(what: str, library: "NativeLibrary") -> int:
+    """Build ``library`` (a :class:`NativeLibrary`) and print ``what`` with its module, whether it was
+    already cached, the wall and CPU time (the compiler's included) and the folder; 0, or 1 with the
+    error on stderr when it cannot be built."""
     import resource
     import time
 
-    was = kernel_module.cached()
+    label = f"{what} ({library.label})"
+    was = library.cached()
     w0 = time.perf_counter()
     r0 = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     try:
-        kernel_module.build()
+        library.build()
     except Exception as exc:
         print(f"could not build {label}: {exc}", file=sys.stderr)
         return 1
     r1 = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = sum(b.ru_utime + b.ru_stime - a.ru_utime - a.ru_stime for a, b in zip(r0, r1))
     print(f"{label}: {'already cached' if was else 'built'} in {time.perf_counter() - w0:.1f} s wall, "
-          f"{cpu:.1f} s CPU (compiler included): {kernel_module.build_dir()}")
+          f"{cpu:.1f} s CPU (compiler included): {library.build_dir()}")
     return 0
 
 

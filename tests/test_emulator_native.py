@@ -181,8 +181,8 @@ def test_cli_build_native_builds_both_kernels_and_reports(monkeypatch, capsys):
     from dvsland.estimators import native_cmax, native_dpr
 
     built = []
-    monkeypatch.setattr(native, "build", lambda verbose=False: built.append("events"))
-    monkeypatch.setattr(native_cmax, "build", lambda verbose=False: built.append("cmax"))
+    monkeypatch.setattr(native.LIBRARY, "build", lambda verbose=False: built.append("events"))
+    monkeypatch.setattr(native_cmax.LIBRARY, "build", lambda verbose=False: built.append("cmax"))
     monkeypatch.setattr(native_dpr.LIBRARY, "build", lambda verbose=False: built.append("dpr"))
     assert main(["build-native"]) == 0 and built == ["events", "cmax", "dpr"]
     out = capsys.readouterr().out
@@ -191,7 +191,7 @@ def test_cli_build_native_builds_both_kernels_and_reports(monkeypatch, capsys):
     def broken(verbose=False):
         raise RuntimeError("no compiler")
 
-    monkeypatch.setattr(native_cmax, "build", broken)
+    monkeypatch.setattr(native_cmax.LIBRARY, "build", broken)
     assert main(["build-native"]) == 1
     assert "could not build the cmax kernel" in capsys.readouterr().err
 

@@ -23,6 +23,6 @@ def run_build_native(args) -> int:
     from dvsland.events import native
     from dvsland.native_build import timed_build
 
-    rc = timed_build("the emulator kernels (dvsland.events.native)", native)
-    rc = max(rc, timed_build("the cmax kernel (dvsland.estimators.native_cmax)", native_cmax))
-    return max(rc, timed_build("the dpr mean-shift kernel (dvsland.estimators.native_dpr)", native_dpr.LIBRARY))
+    rc = timed_build("the emulator kernels", native.LIBRARY)
+    rc = max(rc, timed_build("the cmax kernel", native_cmax.LIBRARY))
+    return max(rc, timed_build("the dpr mean-shift kernel", native_dpr.LIBRARY))

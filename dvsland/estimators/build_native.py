@@ -13,7 +13,7 @@ def main(argv=None) -> int:
     from dvsland.estimators import native_cmax as kernel
     from dvsland.native_build import timed_build
 
-    return timed_build("the cmax kernel (dvsland.estimators.native_cmax)", kernel)
+    return timed_build("the cmax kernel", kernel.LIBRARY)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ def main(argv=None) -> int:
     from dvsland.events import native as kernel
     from dvsland.native_build import timed_build
 
-    return timed_build("the emulator kernels (dvsland.events.native)", kernel)
+    return timed_build("the emulator kernels", kernel.LIBRARY)
 
 
 if __name__ == "__main__":
