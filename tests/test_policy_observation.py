@@ -158,6 +158,43 @@ def test_an_untrained_residual_flies_div_gs_bit_for_bit():
     assert not torch.equal(oc[-1].thrust_n, oa[1].thrust_n)
 
 
+def test_authority_scales_the_residual_and_is_recorded_in_the_checkpoint(tmp_path):
+    """thrust = u_div_gs + authority x m g tanh(net): the same network at authority 0.25 moves the
+    command by a quarter of what it moves it at 1; a checkpoint keeps its authority."""
+    res = EFF + ["controller.policy.base=div_gs"]
+    a = _stages(["controller.name=div_gs"], site="I")
+    _, oa = fly_steps(a, init_state(a), 2)
+    moved = {}
+    for auth in (1.0, 0.25):
+        st = _stages(res + [f"controller.policy.authority={auth}"], site="I")
+        assert st.controller.net.authority == auth
+        with torch.no_grad():
+            st.controller.net.net[2].bias.fill_(0.01)  # a small output: no thrust clamp reached
+        _, o = fly_steps(st, init_state(st), 2)
+        moved[auth] = o[-1].thrust_n - oa[-1].thrust_n
+    assert torch.allclose(moved[0.25], 0.25 * moved[1.0], rtol=1e-3)  # the first step moved the state a little
+    assert float(moved[1.0].abs().min()) > 0.0
+    st = _stages(res + ["controller.policy.authority=0.25"])
+    tr = make_trainable(st, "policy")
+    path = tmp_path / "checkpoint.pt"
+    save_checkpoint(path, tr, torch.optim.Adam(tr.parameters()), TrainLoopSettings().check(), TrainLoopRun(),
+                    torch.zeros(2, dtype=torch.int64), "policy")
+    assert torch.load(path, weights_only=True)["authority"] == 0.25
+    assert load_policy(path).authority == 0.25
+    with pytest.raises(ValueError, match=r"controller.policy.authority is 1.0 but .* authority 0.25"):
+        _stages(res + [f"controller.policy.checkpoint={path}"])
+    assert _stages(res + ["controller.policy.authority=0.25", f"controller.policy.checkpoint={path}"]
+                   ).controller.net.authority == 0.25
+
+
+@pytest.mark.parametrize("bad, match", [("controller.policy.authority=0", r"controller.policy.authority.*\(0"),
+                                        ("controller.policy.authority=4", r"controller.policy.authority.*3"),
+                                        ("controller.policy.authority=0.5", r"needs controller.policy.base=div_gs")])
+def test_bad_authority_names_the_key(bad, match):
+    with pytest.raises(ValueError, match=match):
+        _stages(EFF + [bad])
+
+
 # ------------------------------------------------------------------ gradients
 def _first_layer_grad(extra, open_output: bool):
     """The gradient of the first layer's weights after 10 closed-loop steps of a toy loss."""

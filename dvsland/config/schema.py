@@ -408,8 +408,11 @@ class PolicyLawConfig:
                            "needs controller.filter=efference_fit); a checkpoint records its own",
                            choices=("basic", "efference", "efference_doubt"))
     base: str = opt("none", "none: thrust = sigmoid(net) x top; div_gs: a residual on div_gs (controller.div_gs's "
-                    "constants), thrust = u_div_gs + m g tanh(net), which starts as div_gs exactly",
+                    "constants), thrust = u_div_gs + authority x m g tanh(net), which starts as div_gs exactly",
                     choices=("none", "div_gs"))
+    authority: float = opt(1.0, "the residual's reach in units of m g (base=div_gs only; 1 for base=none): "
+                           "thrust = u_div_gs + authority x m g tanh(net); a checkpoint records its own",
+                           rng=(0.0, 3.0), open_lo=True)
 
 
 @dataclass

@@ -23,12 +23,13 @@ Action (``controller.policy.base``):
 
 - ``none``: thrust = sigmoid(net(obs)) x the engine's top, clamped to the controller's bounds;
 - ``div_gs``: a residual on ``div_gs`` (its constants from ``controller.div_gs``): thrust =
-  u_div_gs + m g tanh(net(obs)), clamped. The network's output layer starts at zero, so the
-  untrained policy flies exactly ``div_gs``.
+  u_div_gs + a m g tanh(net(obs)), clamped, with ``a`` = ``controller.policy.authority`` (the
+  residual's reach in units of m g; 1 by default). The network's output layer starts at zero, so
+  the untrained policy flies exactly ``div_gs``.
 
 A missing filtered estimate holds the last command (or hovers), as the other laws do. A
-checkpoint records its observation and base; flying it under other settings is refused, naming
-the key.
+checkpoint records its observation, base and authority; flying it under other settings is refused,
+naming the key.
 
 Params :class:`~dvsland.control.base.LawParams` whose ``options`` is a :class:`PolicyOptions`
 (the network and the observation's constants), state
@@ -44,7 +45,7 @@ from typing import NamedTuple, Optional, Tuple
 import torch
 from torch import nn
 
-from dvsland.checks import check_choice
+from dvsland.checks import check_choice, check_range
 from dvsland.config.schema import DivGSConfig
 from dvsland.estimators.state_dict_check import check_state_dict, read_checkpoint_file, short_path
 
@@ -65,12 +66,19 @@ DOUBT_CLAMP = 10.0
 OBSERVATIONS = {"basic": 4, "efference": 7, "efference_doubt": 10}
 #: laws a policy can be a residual on (``controller.policy.base``)
 BASES = ("none", "div_gs")
+#: the residual's largest reach, in units of m g (``controller.policy.authority``)
+AUTHORITY_MAX = 3.0
 
 
-def _check_kind(observation: str, base: str) -> None:
-    """ValueError naming ``controller.policy.observation`` / ``.base`` when either is not allowed."""
+def _check_kind(observation: str, base: str, authority: float = 1.0) -> None:
+    """ValueError naming ``controller.policy.observation`` / ``.base`` / ``.authority`` when one is not
+    allowed (an authority other than 1 needs ``base=div_gs``: only a residual has one)."""
     check_choice("controller.policy.observation", observation, OBSERVATIONS)
     check_choice("controller.policy.base", base, BASES)
+    check_range("controller.policy.authority", authority, 0.0, AUTHORITY_MAX, open_lo=True)
+    if base == "none" and authority != 1.0:
+        raise ValueError(f"controller.policy.authority={authority!r} needs controller.policy.base=div_gs "
+                         "(it scales the residual; base=none has none)")
 
 
 class PolicyNet(nn.Module):
@@ -82,15 +90,16 @@ class PolicyNet(nn.Module):
         hover_fraction: the untrained thrust fraction of ``base="none"``.
         observation: a key of :data:`OBSERVATIONS` (the input width).
         base: one of :data:`BASES`.
+        authority: the residual's reach in units of m g (``base="div_gs"``; 1 for ``none``).
     """
 
     def __init__(self, hidden: int = 32, hover_fraction: float = 1.0 / 3.0, observation: str = "basic",
-                 base: str = "none"):
+                 base: str = "none", authority: float = 1.0):
         super().__init__()
         if not (isinstance(hidden, int) and hidden >= 1):
             raise ValueError(f"controller.policy.hidden must be an integer >= 1, got {hidden!r}")
-        _check_kind(observation, base)
-        self.hidden, self.observation, self.base = hidden, observation, base
+        _check_kind(observation, base, authority)
+        self.hidden, self.observation, self.base, self.authority = hidden, observation, base, float(authority)
         self.net = nn.Sequential(nn.Linear(OBSERVATIONS[observation], hidden), nn.Tanh(),
                                  nn.Linear(hidden, 1)).double()
         with torch.no_grad():
@@ -116,14 +125,19 @@ class PolicyOptions(NamedTuple):
 
 
 def checkpoint_observation_base(ck: dict, where: str, observation: Optional[str] = None,
-                                base: Optional[str] = None) -> dict:
-    """``{"observation": ..., "base": ...}`` of a policy checkpoint's dict ``ck`` (``basic`` / ``none``
-    when it predates them), checked: ValueError naming ``where`` for an unknown value, and naming
-    ``controller.policy.<key>`` when ``observation`` / ``base`` (the flown config's; None = any)
-    differ from the checkpoint's."""
-    got = {"observation": ck.get("observation", "basic"), "base": ck.get("base", "none")}
-    for key, want, known in (("observation", observation, OBSERVATIONS), ("base", base, BASES)):
-        if got[key] not in known:
+                                base: Optional[str] = None, authority: Optional[float] = None) -> dict:
+    """``{"observation": ..., "base": ..., "authority": ...}`` of a policy checkpoint's dict ``ck``
+    (``basic`` / ``none`` / 1.0 when it predates them), checked: ValueError naming ``where`` for an
+    unknown value, and naming ``controller.policy.<key>`` when ``observation`` / ``base`` /
+    ``authority`` (the flown config's; None = any) differ from the checkpoint's."""
+    got = {"observation": ck.get("observation", "basic"), "base": ck.get("base", "none"),
+           "authority": ck.get("authority", 1.0)}
+    if not (isinstance(got["authority"], (int, float)) and 0.0 < got["authority"] <= AUTHORITY_MAX):
+        raise ValueError(f"{where}: authority {got['authority']!r} is not in (0, {AUTHORITY_MAX}]")
+    got["authority"] = float(got["authority"])
+    for key, want, known in (("observation", observation, OBSERVATIONS), ("base", base, BASES),
+                             ("authority", None if authority is None else float(authority), None)):
+        if known is not None and got[key] not in known:
             raise ValueError(f"{where}: {key} {got[key]!r} is not one of {list(known)}")
         if want is not None and want != got[key]:
             raise ValueError(f"controller.policy.{key} is {want!r} but {where} was trained with {key} "
@@ -132,18 +146,19 @@ def checkpoint_observation_base(ck: dict, where: str, observation: Optional[str]
 
 
 def load_policy(path, param: str = "controller.policy.checkpoint", observation: Optional[str] = None,
-                base: Optional[str] = None) -> PolicyNet:
+                base: Optional[str] = None, authority: Optional[float] = None) -> PolicyNet:
     """The :class:`PolicyNet` of a ``dvsland train-loop --what policy`` checkpoint. A checkpoint
-    without ``observation`` / ``base`` (written before they existed) is ``basic`` / ``none``.
+    without ``observation`` / ``base`` / ``authority`` (written before they existed) is ``basic`` /
+    ``none`` / 1.
 
     Args:
-        observation, base: the flown config's ``controller.policy.observation`` / ``.base``
-            (None: take the checkpoint's).
+        observation, base, authority: the flown config's ``controller.policy.observation`` /
+            ``.base`` / ``.authority`` (None: take the checkpoint's).
 
     Raises:
         ValueError: naming ``param`` and the file: missing, unreadable, another kind of file, or
             weights that do not fit or are not finite; naming ``controller.policy.observation`` /
-            ``.base`` when the checkpoint was trained with another one.
+            ``.base`` / ``.authority`` when the checkpoint was trained with another one.
     """
     hint = "write one with dvsland train-loop CONFIG --what policy"
     ck = read_checkpoint_file(path, param, "dvsland policy checkpoint", hint)
@@ -154,8 +169,8 @@ def load_policy(path, param: str = "controller.policy.checkpoint", observation: 
     hidden = ck.get("hidden")
     if not (isinstance(hidden, int) and 1 <= hidden <= 4096):
         raise ValueError(f"{where}: 'hidden' must be an integer in [1, 4096], got {hidden!r}")
-    got = checkpoint_observation_base(ck, where, observation, base)
-    net = PolicyNet(hidden, observation=got["observation"], base=got["base"])
+    got = checkpoint_observation_base(ck, where, observation, base, authority)
+    net = PolicyNet(hidden, observation=got["observation"], base=got["base"], authority=got["authority"])
     check_state_dict(ck.get("state_dict"), net, where)
     net.load_state_dict(ck["state_dict"])
     return net
@@ -224,9 +239,10 @@ def policy_law_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor,
     if o.base is None:
         u = clamp_thrust(p, torch.sigmoid(out) * o.thrust_high_n)
         tau_target = -1.0 / d_star
-    else:  # residual on div_gs: its command where it has one, plus m g tanh(net)
+    else:  # residual on div_gs: its command where it has one, plus authority x m g tanh(net)
         _, base = div_gs_step(o.base, state, t_s, d_filtered, mass_kg, active, altitude_m)
-        u = clamp_thrust(p, base.thrust_n + mg * torch.tanh(out))
+        reach = mg if o.net.authority == 1.0 else o.net.authority * mg
+        u = clamp_thrust(p, base.thrust_n + reach * torch.tanh(out))
         tau_target = base.tau_target_s
     return divergence_law_finish(p, state, d, u, mg, active, tau_target)
 
@@ -247,26 +263,27 @@ class PolicyController(Controller):
         tau_min_s: lowest TTC of the observed target, s.
         observation: ``basic``, ``efference`` or ``efference_doubt`` (see the module doc).
         base: ``none`` or ``div_gs`` (a residual on div_gs).
+        authority: the residual's reach in units of m g (``base="div_gs"`` only).
         base_options: the base law's constants (``controller.div_gs`` as a dict; None = its defaults).
     """
 
     def __init__(self, tau0_s: Tensor, c2: float, g_mps2: float, m0_kg: Tensor, thrust_min_n: float = 0.0,
                  thrust_max_n: Optional[float] = None, missing_policy: str = "hold", net: Optional[PolicyNet] = None,
                  checkpoint: str = "", hidden: int = 32, tau_min_s: float = 4.0, observation: str = "basic",
-                 base: str = "none", base_options: Optional[dict] = None):
+                 base: str = "none", base_options: Optional[dict] = None, authority: float = 1.0):
         check_bounds(thrust_min_n, thrust_max_n, missing_policy)
         if not (isinstance(tau_min_s, (int, float)) and tau_min_s > 0):
             raise ValueError(f"controller.policy.tau_min_s must be > 0 s, got {tau_min_s!r}")
-        _check_kind(observation, base)
+        _check_kind(observation, base, authority)
         if net is None:  # frozen in flight: a loop that flies it keeps no graph (training unfreezes it)
             if str(checkpoint).strip():
-                net = load_policy(checkpoint, observation=observation, base=base)
+                net = load_policy(checkpoint, observation=observation, base=base, authority=authority)
             else:
-                net = PolicyNet(int(hidden), observation=observation, base=base)
+                net = PolicyNet(int(hidden), observation=observation, base=base, authority=authority)
             net.requires_grad_(False)
-        elif (net.observation, net.base) != (observation, base):
-            raise ValueError(f"controller.policy.observation/base {observation!r}/{base!r} do not match the "
-                             f"network's {net.observation!r}/{net.base!r}")
+        elif (net.observation, net.base, net.authority) != (observation, base, float(authority)):
+            raise ValueError(f"controller.policy.observation/base/authority {observation!r}/{base!r}/{authority!r} do "
+                             f"not match the network's {net.observation!r}/{net.base!r}/{net.authority!r}")
         tau0 = torch.as_tensor(tau0_s, dtype=torch.float64)
         m0 = torch.as_tensor(m0_kg, dtype=torch.float64, device=tau0.device).expand_as(tau0)
         high = torch.full_like(tau0, float(thrust_max_n)) if thrust_max_n is not None else 3.0 * m0 * g_mps2
@@ -311,4 +328,4 @@ class PolicyController(Controller):
 
 __all__ = ["PolicyNet", "PolicyOptions", "PolicyController", "policy_law_step", "policy_observation", "load_policy",
            "checkpoint_observation_base", "POLICY_KIND", "D_SCALE", "ERR_SCALE", "Z_REF_M", "DOUBT_CLAMP", "OBSERVATIONS",
-           "BASES"]
+           "BASES", "AUTHORITY_MAX"]

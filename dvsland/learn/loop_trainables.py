@@ -167,18 +167,18 @@ class PolicyWeights(Trainable):
 
     def describe(self) -> dict:
         return {"hidden": self.net.hidden, "observation": self.net.observation, "base": self.net.base,
-                "parameters": sum(p.numel() for p in self.net.parameters())}
+                "authority": self.net.authority, "parameters": sum(p.numel() for p in self.net.parameters())}
 
     def checkpoint_fields(self) -> dict:
-        """``hidden``, ``observation``, ``base`` and the weights (a checkpoint without ``observation`` /
-        ``base`` is ``basic`` / ``none``)."""
+        """``hidden``, ``observation``, ``base``, ``authority`` and the weights (a checkpoint without
+        ``observation`` / ``base`` / ``authority`` is ``basic`` / ``none`` / 1)."""
         return {"hidden": self.net.hidden, "observation": self.net.observation, "base": self.net.base,
-                "state_dict": self.net.state_dict()}
+                "authority": self.net.authority, "state_dict": self.net.state_dict()}
 
     def load_checkpoint_fields(self, ck: dict, where: str) -> None:
         if ck.get("hidden") != self.net.hidden:
             raise ValueError(f"{where}: hidden {ck.get('hidden')!r} != controller.policy.hidden {self.net.hidden}")
-        checkpoint_observation_base(ck, where, self.net.observation, self.net.base)
+        checkpoint_observation_base(ck, where, self.net.observation, self.net.base, self.net.authority)
         check_state_dict(ck.get("state_dict"), self.net, where)
         self.net.load_state_dict(ck["state_dict"])
 
