@@ -113,6 +113,21 @@ def test_kernel_scores_equal_torch_path(seed, B, G):
     assert torch.equal(split_contrast(*a, native=True), split_contrast(*a, native=False))
 
 
+def test_kernel_heavy_weights_take_the_wide_canvas_and_too_heavy_ones_are_refused():
+    """Weights of 10^4 events: an element's total passes 2^31 / WEIGHT_UNIT, so the kernel sums in an
+    int64 canvas, still equal to the torch path; a weight of 2^18 events (its int32 corner weights
+    would overflow) or a NaN one is refused with the reason, never summed wrongly."""
+    _need_kernel()
+    args = list(_score_args(seed=3, E=3000, B=2, G=3))
+    args[10] = args[10] * 1e4
+    assert torch.equal(split_contrast(*args, native=True), split_contrast(*args, native=False))
+    for bad in (2.0 ** 18, float("nan")):
+        args[10] = torch.ones_like(args[10])
+        args[10][7] = bad
+        with pytest.raises(RuntimeError, match="event weight not finite or of 2\\^18"):
+            split_contrast(*args, native=True)
+
+
 def test_kernel_estimates_equal_torch_path():
     """cmax at its defaults over a few updates: the same estimates, standard errors and windows."""
     _need_kernel()

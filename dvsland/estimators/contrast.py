@@ -238,8 +238,8 @@ def split_contrast(xc: torch.Tensor, yc: torch.Tensor, b: torch.Tensor, half: to
         sensor_box: (x_lo, x_hi, y_lo, y_hi) the sensor's outer edges on the canvas, px (inside
             the canvas with a margin of at least 1 px).
         half_window_s: (B,) half of each element's window, s.
-        event_weight: (E,) float weights (default 1; a weight above ~500 000 events per pixel
-            would overflow the int64 sums).
+        event_weight: (E,) float weights (default 1; the compiled kernel refuses a weight of 2^18
+            or more, and a pixel above ~500 000 events would overflow the int64 sums).
         native: None = the compiled kernel where enabled (:func:`native_cmax.enabled`, CPU
             tensors), True = it where it can be loaded, False = the torch path (the reference).
 
