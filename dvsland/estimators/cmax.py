@@ -315,21 +315,26 @@ def _prune(state: CMaxState, t_us: int) -> CMaxState:
                           step_tmax_packed=state.step_tmax_packed[n_pop:], **out)
 
 
-def _window_events(setup: CMaxSetup, state: CMaxState, t_us: int):
-    """(b, x, y, t, key) of the stored events in each element's window, hash-thinned to
-    max_events, and n_per (B,) int64 events in each window before the thinning."""
+def _window_mask(setup: CMaxSetup, state: CMaxState, t_us: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """(inw (N,) bool: which stored events lie in their element's window, hash-thinned to
+    max_events; n_per (B,) int64 events in each window before the thinning)."""
     B = setup.batch_size
-    b, x, y, t, key = (getattr(state, f) for f in _EVENT_FIELDS)
+    b, t, key = state.ev_b_packed, state.ev_t_packed, state.ev_key_packed
     if b.numel() == 0:
-        return b, x, y, t, key, torch.zeros(B, dtype=_I64, device=b.device)
+        return torch.zeros(0, dtype=torch.bool, device=b.device), torch.zeros(B, dtype=_I64, device=b.device)
     since_us = t_us - (state.window_s * 1e6).round().to(_I64)  # (B,) each window's start (excluded)
     inw = (t > since_us.index_select(0, b)) & (t <= t_us)
     n_per = torch.bincount(b, weights=inw.to(_F32), minlength=B)[:B]
     if setup.max_events > 0:
         frac = (setup.max_events / n_per.clamp_min(1)).clamp(max=1.0)
         inw &= (key & 0x7FFF).to(_F32) < (frac * 32768.0).index_select(0, b)
-    sel = inw.nonzero().squeeze(1)
-    return tuple(v.index_select(0, sel) for v in (b, x, y, t, key)) + (n_per.round().to(_I64),)
+    return inw, n_per.round().to(_I64)
+
+
+def _gather(state: CMaxState, mask: torch.Tensor):
+    """(b, x, y, t, key) of the stored events where ``mask`` (N,) bool holds, in store order."""
+    sel = mask.nonzero().squeeze(1)
+    return tuple(getattr(state, f).index_select(0, sel) for f in _EVENT_FIELDS)
 
 
 # ------------------------------------------------------------------ event weights
@@ -647,7 +652,7 @@ def cmax_step(p: CMaxConfig, state: CMaxState, events, t_us: int, setup: CMaxSet
     if events is not None and events.b.numel() > 0:
         state = _store(p, setup, state, events)
     state = _prune(state, t_us)
-    b, xs, ys, t, key, n_per = _window_events(setup, state, t_us)
+    inw, n_per = _window_mask(setup, state, t_us)
     t_begin = t_us - int(round(setup.dt_s * 1e6))
     t_start = torch.where(state.t_start_us < 0, torch.full_like(state.t_start_us, t_begin), state.t_start_us)
     state = state._replace(t_start_us=t_start)
@@ -658,9 +663,9 @@ def cmax_step(p: CMaxConfig, state: CMaxState, events, t_us: int, setup: CMaxSet
     any_ok, all_ok = torch.stack([ok.any(), ok.all()]).tolist()  # one host sync for both
     if not any_ok:
         return state, blank_out(state, n_per)
-    if not all_ok:
-        sel = ok.index_select(0, b).nonzero().squeeze(1)
-        b, xs, ys, t, key = (v.index_select(0, sel) for v in (b, xs, ys, t, key))
+    if not all_ok:  # the events of the elements that estimate (one gather with the window's)
+        inw = inw & ok.index_select(0, state.ev_b_packed)
+    b, xs, ys, t, key = _gather(state, inw)
     d0, need, edge, sigma, sigma_step, contrast, bracketed, floor = _search(p, setup, state, (b, xs, ys, t, key),
                                                                             ok, t_us)
     win_s = state.window_s
