@@ -229,23 +229,40 @@ extern "C" int64_t cmax_pixel_counts(const int64_t* Bi, const int64_t* Px, int64
 // out (E,) float32. Returns 0, or -1 when some b or px is out of range (nothing written).
 extern "C" int64_t cmax_hot_weights(const int64_t* Bi, const int64_t* Px, int64_t E, int64_t B, int64_t n_px,
                                     double factor, float* O) {
-  std::vector<int64_t> cnt(size_t(std::max<int64_t>(E, 1)));
-  if (pixel_counts(Bi, Px, E, B, n_px, cnt.data()) != 0) return -1;
-  const int64_t* C = cnt.data();
-  std::vector<double> mean(B, 0.0), n_px_s(B), n_ev_s(B);
-  std::vector<unsigned char> keep(E, 1);
-  for (int round = 0; round < 2; ++round) {
-    std::fill(n_px_s.begin(), n_px_s.end(), 0.0);
-    std::fill(n_ev_s.begin(), n_ev_s.end(), 0.0);
-    for (int64_t e = 0; e < E; ++e) {
-      const double k = keep[e] ? 1.0 : 0.0;
-      n_px_s[Bi[e]] += k / (double)C[e];
-      n_ev_s[Bi[e]] += k;
-    }
-    for (int64_t i = 0; i < B; ++i) mean[i] = n_ev_s[i] / std::max(n_px_s[i], 1e-9);
-    for (int64_t e = 0; e < E; ++e) keep[e] = (double)C[e] <= factor * mean[Bi[e]];
+  for (int64_t e = 0; e < E; ++e)
+    if (!(Bi[e] >= 0 && Bi[e] < B && Px[e] >= 0 && Px[e] < n_px)) return -1;
+  std::vector<int64_t> start(B + 1, 0), order(E);
+  for (int64_t e = 0; e < E; ++e) start[Bi[e] + 1]++;
+  for (int64_t i = 0; i < B; ++i) start[i + 1] += start[i];
+  {
+    std::vector<int64_t> pos(start.begin(), start.end() - 1);
+    for (int64_t e = 0; e < E; ++e) order[pos[Bi[e]]++] = e;
   }
-  for (int64_t e = 0; e < E; ++e) O[e] = keep[e] ? 1.0f : (float)(mean[Bi[e]] / (double)C[e]);
+  // element by element, its events in event order (the order of torch's bincount sums): the count of
+  // its pixel, then two rounds of the mean count per active pixel
+  std::vector<int32_t> canvas(n_px, 0);
+  std::vector<double> cnt, inv;
+  std::vector<int32_t> px;
+  std::vector<unsigned char> keep;
+  for (int64_t bi = 0; bi < B; ++bi) {
+    const int64_t k0 = start[bi], n = start[bi + 1] - k0;
+    if (n == 0) continue;
+    px.resize(n); cnt.resize(n); inv.resize(n); keep.assign(n, 1);
+    for (int64_t k = 0; k < n; ++k) { px[k] = (int32_t)Px[order[k0 + k]]; canvas[px[k]]++; }
+    for (int64_t k = 0; k < n; ++k) { cnt[k] = (double)canvas[px[k]]; inv[k] = 1.0 / cnt[k]; }
+    for (int64_t k = 0; k < n; ++k) canvas[px[k]] = 0;
+    double mean = 0.0;
+    for (int round = 0; round < 2; ++round) {
+      double n_px_s = 0.0, n_ev_s = 0.0;
+      for (int64_t k = 0; k < n; ++k) {
+        n_px_s += keep[k] ? inv[k] : 0.0;  // 1 / c or 0 / c, exactly
+        n_ev_s += keep[k] ? 1.0 : 0.0;
+      }
+      mean = n_ev_s / std::max(n_px_s, 1e-9);
+      for (int64_t k = 0; k < n; ++k) keep[k] = cnt[k] <= factor * mean;
+    }
+    for (int64_t k = 0; k < n; ++k) O[order[k0 + k]] = keep[k] ? 1.0f : (float)(mean / cnt[k]);
+  }
   return 0;
 }
 
