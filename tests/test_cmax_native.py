@@ -203,3 +203,36 @@ def test_kernel_store_thinning_equals_torch_path(max_events, seed):
         finally:
             native_cmax.use_native_cmax(None)
     assert torch.equal(out[0], out[1]) and 0 < out[0].numel() < E
+
+
+@pytest.mark.parametrize("max_events,some_ok", [(4000, True), (150, False), (0, True)])
+def test_kernel_window_and_gather_equal_torch_path(max_events, some_ok):
+    """The stored events of each element's window (time range, hash thinning to max_events) and the
+    gather of the estimating elements' events: the same mask, counts and events in the same order."""
+    _need_kernel()
+    from dvsland.estimators.cmax import _gather, _window_mask
+
+    g = torch.Generator().manual_seed(5)
+    N, B = 30000, 5
+    est = get_estimator("cmax", B, (32, 32), max_events=max_events)
+    st = est.state._replace(
+        ev_b_packed=torch.randint(0, B - 1, (N,), generator=g),  # element 4 stores nothing
+        ev_x_packed=32 * torch.rand(N, generator=g), ev_y_packed=32 * torch.rand(N, generator=g),
+        ev_t_packed=torch.randint(0, 3_000_000, (N,), generator=g),
+        ev_key_packed=torch.randint(0, 2 ** 40, (N,), generator=g),
+        window_s=torch.tensor([0.5, 1.0, 2.5, 0.01, 1.0], dtype=torch.float64))
+    ok = torch.tensor([True, False, True, True, False]) if some_ok else None
+    out = []
+    for native in (False, True):
+        native_cmax.use_native_cmax(native)
+        try:
+            inw, n_per = _window_mask(est.setup, st, 2_600_000)
+            out.append((inw, n_per, _gather(st, inw, ok)))
+        finally:
+            native_cmax.use_native_cmax(None)
+    (m0, n0, g0), (m1, n1, g1) = out
+    assert torch.equal(m0, m1) and torch.equal(n0, n1) and n0[4] == 0 and int(m0.sum()) > 0
+    if max_events:
+        assert bool((m0.sum() < (n0.sum()))) or max_events >= int(n0.max())
+    assert all(a.dtype == c.dtype and torch.equal(a, c) for a, c in zip(g0, g1))
+    assert len(g0[0]) == int((m0 & (ok[st.ev_b_packed] if ok is not None else True)).sum())

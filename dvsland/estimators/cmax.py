@@ -323,6 +323,11 @@ def _window_mask(setup: CMaxSetup, state: CMaxState, t_us: int) -> Tuple[torch.T
     if b.numel() == 0:
         return torch.zeros(0, dtype=torch.bool, device=b.device), torch.zeros(B, dtype=_I64, device=b.device)
     since_us = t_us - (state.window_s * 1e6).round().to(_I64)  # (B,) each window's start (excluded)
+    mod = native_cmax.kernel_for(b)
+    if mod is not None:  # the same mask and counts in two passes
+        inw, n_per = mod.window_mask(b.contiguous(), t.contiguous(), key.contiguous(), since_us.contiguous(), t_us,
+                                     setup.max_events)
+        return inw, n_per.round().to(_I64)
     inw = (t > since_us.index_select(0, b)) & (t <= t_us)
     n_per = torch.bincount(b, weights=inw.to(_F32), minlength=B)[:B]
     if setup.max_events > 0:
@@ -331,10 +336,18 @@ def _window_mask(setup: CMaxSetup, state: CMaxState, t_us: int) -> Tuple[torch.T
     return inw, n_per.round().to(_I64)
 
 
-def _gather(state: CMaxState, mask: torch.Tensor):
-    """(b, x, y, t, key) of the stored events where ``mask`` (N,) bool holds, in store order."""
+def _gather(state: CMaxState, mask: torch.Tensor, ok: Optional[torch.Tensor] = None):
+    """(b, x, y, t, key) of the stored events where ``mask`` (N,) bool holds, and ``ok`` (B,) bool of
+    their element (None: every element), in store order (the compiled kernel: one pass)."""
+    fields = [getattr(state, f) for f in _EVENT_FIELDS]
+    mod = native_cmax.kernel_for(mask)
+    if mod is not None:
+        return mod.gather(mask.contiguous(), None if ok is None else ok.contiguous(), state.d_mid.numel(),
+                          *(v.contiguous() for v in fields))
+    if ok is not None:
+        mask = mask & ok.index_select(0, fields[0])
     sel = mask.nonzero().squeeze(1)
-    return tuple(getattr(state, f).index_select(0, sel) for f in _EVENT_FIELDS)
+    return tuple(v.index_select(0, sel) for v in fields)
 
 
 # ------------------------------------------------------------------ event weights
@@ -663,9 +676,7 @@ def cmax_step(p: CMaxConfig, state: CMaxState, events, t_us: int, setup: CMaxSet
     any_ok, all_ok = torch.stack([ok.any(), ok.all()]).tolist()  # one host sync for both
     if not any_ok:
         return state, blank_out(state, n_per)
-    if not all_ok:  # the events of the elements that estimate (one gather with the window's)
-        inw = inw & ok.index_select(0, state.ev_b_packed)
-    b, xs, ys, t, key = _gather(state, inw)
+    b, xs, ys, t, key = _gather(state, inw, None if all_ok else ok)  # the estimating elements' events
     d0, need, edge, sigma, sigma_step, contrast, bracketed, floor = _search(p, setup, state, (b, xs, ys, t, key),
                                                                             ok, t_us)
     win_s = state.window_s

@@ -266,6 +266,50 @@ extern "C" int64_t cmax_hot_weights(const int64_t* Bi, const int64_t* Px, int64_
   return 0;
 }
 
+// cmax's window (cmax._window_mask, the torch path): M[e] = 1 where the stored event's time lies in its
+// element's window (since[b], t_us]; NP (B,) float32 the events in each window, summed in event order in
+// float32 (as torch's bincount does); with max_events > 0 the window is then hash-thinned: kept where
+// (key & 0x7FFF) < min(max_events / max(NP, 1), 1) x 32768, computed in float32 as torch does (the
+// division as reciprocal times max_events, torch's int / tensor). Returns 0, or -1 when some b is out
+// of [0, B) (nothing written).
+extern "C" int64_t cmax_window_mask(const int64_t* Bi, const int64_t* T, const int64_t* K, int64_t N, int64_t B,
+                                    const int64_t* since, int64_t t_us, int64_t max_events, uint8_t* M, float* NP) {
+  for (int64_t e = 0; e < N; ++e)
+    if (!(Bi[e] >= 0 && Bi[e] < B)) return -1;
+  for (int64_t i = 0; i < B; ++i) NP[i] = 0.0f;
+  for (int64_t e = 0; e < N; ++e) {
+    const bool in = T[e] > since[Bi[e]] && T[e] <= t_us;
+    M[e] = in ? 1 : 0;
+    NP[Bi[e]] += in ? 1.0f : 0.0f;
+  }
+  if (max_events > 0) {
+    std::vector<float> thr(B);
+    for (int64_t i = 0; i < B; ++i) {
+      const float r = 1.0f / std::max(NP[i], 1.0f);
+      thr[i] = std::min(r * (float)max_events, 1.0f) * 32768.0f;
+    }
+    for (int64_t e = 0; e < N; ++e)
+      if (M[e]) M[e] = (float)(K[e] & 0x7FFF) < thr[Bi[e]] ? 1 : 0;
+  }
+  return 0;
+}
+
+// The stored events where M[e] (and OK[b], when OK is not null) holds, in store order, into the outputs
+// (b, x, y, t, key; each of room for N). Returns how many, or -1 when some b is out of [0, B).
+extern "C" int64_t cmax_gather(const uint8_t* M, const uint8_t* OK, const int64_t* Bi, const float* X,
+                               const float* Y, const int64_t* T, const int64_t* K, int64_t N, int64_t B,
+                               int64_t* ob, float* ox, float* oy, int64_t* ot, int64_t* okey) {
+  for (int64_t e = 0; e < N; ++e)
+    if (!(Bi[e] >= 0 && Bi[e] < B)) return -1;
+  int64_t n = 0;
+  for (int64_t e = 0; e < N; ++e) {
+    if (!M[e] || (OK && !OK[Bi[e]])) continue;
+    ob[n] = Bi[e]; ox[n] = X[e]; oy[n] = Y[e]; ot[n] = T[e]; okey[n] = K[e];
+    ++n;
+  }
+  return n;
+}
+
 // dvsland.estimators.contrast.event_hash for one event (int64 products wrap as uint64 ones; >> is arithmetic).
 static inline int64_t event_hash1(int64_t b, int64_t x, int64_t y, int64_t t, int64_t seed_term) {
   uint64_t u = (uint64_t)b * 0x1F1F1F1FULL + (uint64_t)x * 0x2545F491ULL + (uint64_t)y * 0x9E3779B1ULL +
@@ -313,6 +357,8 @@ _SIGNATURES = {
     "cmax_pixel_counts": ([_P, _P, _I64, _I64, _I64, _P], _I64),
     "cmax_hot_weights": ([_P, _P, _I64, _I64, _I64, _F64, _P], _I64),
     "cmax_store_select": ([_P] * 4 + [_I64, _P, _I64, _I64, _I64, _P, _P], _I64),
+    "cmax_window_mask": ([_P, _P, _P, _I64, _I64, _P, _I64, _I64, _P, _P], _I64),
+    "cmax_gather": ([_P] * 7 + [_I64, _I64] + [_P] * 5, _I64),
 }
 
 
@@ -384,6 +430,41 @@ class Kernels:
                                         _ptr(cap, torch.float64, "store_select: cap"), B, int(W), int(H),
                                         _ptr(seed_terms, i64, "store_select: seed_terms"), out.data_ptr())
         return out[:k].clone() if k < E else out
+
+
+    def window_mask(self, b, t, key, since, t_us: int, max_events: int):
+        """(mask (N,) bool, n_per (B,) float32): cmax's window over its stored events (module source).
+        b, t, key (N,) int64; since (B,) int64."""
+        i64 = torch.int64
+        N, B = b.numel(), since.numel()
+        if t.numel() != N or key.numel() != N:
+            raise RuntimeError("window_mask: b, t, key contiguous int64 (N,)")
+        mask = torch.empty(N, dtype=torch.bool)
+        n_per = torch.empty(B, dtype=torch.float32)
+        _ok(self._lib.cmax_window_mask(_ptr(b, i64, "window_mask: b"), _ptr(t, i64, "window_mask: t"),
+                                       _ptr(key, i64, "window_mask: key"), N, B, _ptr(since, i64, "window_mask: since"),
+                                       int(t_us), int(max_events), mask.data_ptr(), n_per.data_ptr()),
+            "window_mask: b out of range")
+        return mask, n_per
+
+    def gather(self, mask, ok, n_elements: int, b, x, y, t, key):
+        """(b, x, y, t, key) of the stored events where ``mask`` (N,) bool and ``ok`` (B,) bool (or
+        None: every element) hold, in store order; b in [0, ``n_elements``); x, y (N,) float32, the
+        others (N,) int64."""
+        i64, f32 = torch.int64, torch.float32
+        N, B = b.numel(), int(n_elements)
+        if not all(v.numel() == N for v in (mask, x, y, t, key)) or mask.dtype != torch.bool:
+            raise RuntimeError("gather: mask bool, b, x, y, t, key (N,)")
+        if ok is not None and (ok.dtype != torch.bool or ok.numel() != B):
+            raise RuntimeError("gather: ok bool (B,)")
+        outs = [torch.empty(N, dtype=d) for d in (i64, f32, f32, i64, i64)]
+        n = self._lib.cmax_gather(_ptr(mask, torch.bool, "gather: mask"),
+                                  None if ok is None else _ptr(ok, torch.bool, "gather: ok"),
+                                  _ptr(b, i64, "gather: b"), _ptr(x, f32, "gather: x"), _ptr(y, f32, "gather: y"),
+                                  _ptr(t, i64, "gather: t"), _ptr(key, i64, "gather: key"), N, B,
+                                  *(o.data_ptr() for o in outs))
+        _ok(n, "gather: b out of range")
+        return tuple(o[:n] for o in outs)
 
 
 #: the library (its mode, cache and build)
