@@ -236,3 +236,26 @@ def test_kernel_window_and_gather_equal_torch_path(max_events, some_ok):
         assert bool((m0.sum() < (n0.sum()))) or max_events >= int(n0.max())
     assert all(a.dtype == c.dtype and torch.equal(a, c) for a, c in zip(g0, g1))
     assert len(g0[0]) == int((m0 & (ok[st.ev_b_packed] if ok is not None else True)).sum())
+
+
+def test_kernel_radial_and_event_weights_equal_torch_path():
+    """Radial weights alone and radial x hot-pixel weights (an element without events, a hot pixel)."""
+    _need_kernel()
+    from dvsland.estimators.cmax import _event_weights, radial_weights
+
+    g = torch.Generator().manual_seed(8)
+    B, E = 5, 20000
+    b = torch.randint(0, B - 1, (E,), generator=g)
+    pix = torch.where(torch.rand(E, generator=g) < 0.05, torch.full((E,), 500), torch.randint(0, 64 * 64, (E,),
+                                                                                               generator=g))
+    est = get_estimator("cmax", B, (64, 64))
+    out = []
+    for native in (False, True):
+        native_cmax.use_native_cmax(native)
+        try:
+            out.append((radial_weights(est.params, est.setup, pix, b), _event_weights(est.params, est.setup, pix, b)))
+        finally:
+            native_cmax.use_native_cmax(None)
+    (r0, w0), (r1, w1) = out
+    assert torch.equal(r0, r1) and torch.equal(w0, w1) and not torch.equal(r0, w0)
+    assert float(r0.min()) >= 0.1 and float(r0.max()) <= 10.0

@@ -374,7 +374,8 @@ def hot_pixel_weights(p: CMaxConfig, setup: CMaxSetup, pix: torch.Tensor, b: tor
     return torch.where(keep, torch.ones_like(c), mean[b] / c).to(_F32)
 
 
-def radial_weights(p: CMaxConfig, setup: CMaxSetup, pix: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def radial_weights(p: CMaxConfig, setup: CMaxSetup, pix: torch.Tensor, b: torch.Tensor,
+                   times: Optional[torch.Tensor] = None) -> torch.Tensor:
     """(E,) float32 weights that flatten each element's event density over radius about the FoE.
 
     The event rate of a pixel grows with its image speed, D r: events crowd towards the edges
@@ -383,23 +384,31 @@ def radial_weights(p: CMaxConfig, setup: CMaxSetup, pix: torch.Tensor, b: torch.
     the inverse of its element's event density in its annulus (``radial_bin_px`` wide)
     removes that pull. The weight is that inverse to the power ``radial_power``: 1 over-
     corrects on the rendered sites (|D| read about 1 % high), 0.5 leaves no bias there. An event's
-    annulus is its pixel centre's (``pix``: (E,) int64 y W + x)."""
+    annulus is its pixel centre's (``pix``: (E,) int64 y W + x). With ``times`` (E,) float32, the
+    weights times it (float32). The compiled kernel gives the same weights."""
     nb, B = setup.n_rbins, setup.batch_size
-    rb = setup.rbin_of_px.index_select(0, pix)
-    cnt = torch.bincount(b * nb + rb, minlength=B * nb)[: B * nb]
+    mod = native_cmax.kernel_for(b) if b.numel() else None
+    if mod is not None:
+        b, pix = b.contiguous(), pix.contiguous()
+        cnt = mod.radial_counts(b, pix, setup.rbin_of_px, B, nb)
+    else:
+        key = b * nb + setup.rbin_of_px.index_select(0, pix)
+        cnt = torch.bincount(key, minlength=B * nb)[: B * nb]
     dens = cnt.view(B, nb).to(_F64) / setup.px_per_rbin.clamp_min(1)
     mean = dens.sum(1) / (dens > 0).sum(1).clamp_min(1)
     w = (mean.unsqueeze(1) / dens.clamp_min(1e-12)).pow(p.radial_power).clamp(0.1, 10.0)
-    return w.view(-1).index_select(0, b * nb + rb).to(_F32)
+    if mod is not None:
+        return mod.radial_apply(b, pix, setup.rbin_of_px, w.view(-1), nb, times)
+    w = w.view(-1).index_select(0, key).to(_F32)
+    return w if times is None else w * times
 
 
 def _event_weights(p: CMaxConfig, setup: CMaxSetup, pix: torch.Tensor, b: torch.Tensor) -> Optional[torch.Tensor]:
     """(E,) float32 radial x hot-pixel weights of the window's events, or None (all 1)."""
-    wt = radial_weights(p, setup, pix, b) if p.radial_bin_px > 0 and p.radial_power > 0 else None
-    if p.hot_pixel_factor > 0:
-        hot = hot_pixel_weights(p, setup, pix, b)
-        wt = hot if wt is None else wt * hot
-    return wt
+    hot = hot_pixel_weights(p, setup, pix, b) if p.hot_pixel_factor > 0 else None
+    if p.radial_bin_px > 0 and p.radial_power > 0:
+        return radial_weights(p, setup, pix, b, times=hot)
+    return hot
 
 
 # ------------------------------------------------------------------ search

@@ -266,6 +266,29 @@ extern "C" int64_t cmax_hot_weights(const int64_t* Bi, const int64_t* Px, int64_
   return 0;
 }
 
+// cmax's radial weights (cmax.radial_weights, the torch path): CNT (B, nb) int64 the events of each element
+// in each annulus, RB (n_px,) int64 each pixel's annulus in [0, nb). Returns 0, or -1 when some b, px or
+// annulus is out of range (nothing written).
+extern "C" int64_t cmax_radial_counts(const int64_t* Bi, const int64_t* Px, const int64_t* RB, int64_t E, int64_t B,
+                                      int64_t n_px, int64_t nb, int64_t* CNT) {
+  for (int64_t e = 0; e < E; ++e)
+    if (!(Bi[e] >= 0 && Bi[e] < B && Px[e] >= 0 && Px[e] < n_px && RB[Px[e]] >= 0 && RB[Px[e]] < nb)) return -1;
+  for (int64_t i = 0; i < B * nb; ++i) CNT[i] = 0;
+  for (int64_t e = 0; e < E; ++e) CNT[Bi[e] * nb + RB[Px[e]]]++;
+  return 0;
+}
+
+// O[e] = (float) WR[b nb + RB[px]], times O[e] (float32) when ``times``: each event's radial weight from the
+// (B, nb) float64 table WR (the caller checked the indices with cmax_radial_counts).
+extern "C" void cmax_radial_apply(const int64_t* Bi, const int64_t* Px, const int64_t* RB, int64_t E, int64_t nb,
+                                  const double* WR, int64_t times, float* O) {
+  if (times) {
+    for (int64_t e = 0; e < E; ++e) O[e] = (float)WR[Bi[e] * nb + RB[Px[e]]] * O[e];
+  } else {
+    for (int64_t e = 0; e < E; ++e) O[e] = (float)WR[Bi[e] * nb + RB[Px[e]]];
+  }
+}
+
 // cmax's window (cmax._window_mask, the torch path): M[e] = 1 where the stored event's time lies in its
 // element's window (since[b], t_us]; NP (B,) float32 the events in each window, summed in event order in
 // float32 (as torch's bincount does); with max_events > 0 the window is then hash-thinned: kept where
@@ -357,6 +380,8 @@ _SIGNATURES = {
     "cmax_pixel_counts": ([_P, _P, _I64, _I64, _I64, _P], _I64),
     "cmax_hot_weights": ([_P, _P, _I64, _I64, _I64, _F64, _P], _I64),
     "cmax_store_select": ([_P] * 4 + [_I64, _P, _I64, _I64, _I64, _P, _P], _I64),
+    "cmax_radial_counts": ([_P, _P, _P, _I64, _I64, _I64, _I64, _P], _I64),
+    "cmax_radial_apply": ([_P, _P, _P, _I64, _I64, _P, _I64, _P], None),
     "cmax_window_mask": ([_P, _P, _P, _I64, _I64, _P, _I64, _I64, _P, _P], _I64),
     "cmax_gather": ([_P] * 7 + [_I64, _I64] + [_P] * 5, _I64),
 }
@@ -431,6 +456,33 @@ class Kernels:
                                         _ptr(seed_terms, i64, "store_select: seed_terms"), out.data_ptr())
         return out[:k].clone() if k < E else out
 
+
+    def radial_counts(self, b, px, rbin_of_px, B: int, nb: int) -> torch.Tensor:
+        """(B * nb,) int64: the events of each element in each annulus (cmax.radial_weights). b, px (E,)
+        int64; rbin_of_px (n_px,) int64 in [0, nb)."""
+        i64 = torch.int64
+        if b.numel() != px.numel():
+            raise RuntimeError("radial_counts: b, px contiguous int64 (E,)")
+        out = torch.empty(int(B) * int(nb), dtype=i64)
+        _ok(self._lib.cmax_radial_counts(_ptr(b, i64, "radial_counts: b"), _ptr(px, i64, "radial_counts: px"),
+                                         _ptr(rbin_of_px, i64, "radial_counts: rbin_of_px"), b.numel(), int(B),
+                                         rbin_of_px.numel(), int(nb), out.data_ptr()),
+            "radial_counts: b, px or annulus out of range")
+        return out
+
+    def radial_apply(self, b, px, rbin_of_px, table, nb: int, times=None) -> torch.Tensor:
+        """(E,) float32: each event's weight from the (B * nb,) float64 ``table``, times ``times``
+        (E,) float32 when given (then written in place). Indices as checked by :meth:`radial_counts`."""
+        i64 = torch.int64
+        E = b.numel()
+        out = torch.empty(E, dtype=torch.float32) if times is None else times
+        if out.numel() != E or px.numel() != E:
+            raise RuntimeError("radial_apply: b, px, times (E,)")
+        self._lib.cmax_radial_apply(_ptr(b, i64, "radial_apply: b"), _ptr(px, i64, "radial_apply: px"),
+                                    _ptr(rbin_of_px, i64, "radial_apply: rbin_of_px"), E, int(nb),
+                                    _ptr(table, torch.float64, "radial_apply: table"), int(times is not None),
+                                    _ptr(out, torch.float32, "radial_apply: times"))
+        return out
 
     def window_mask(self, b, t, key, since, t_us: int, max_events: int):
         """(mask (N,) bool, n_per (B,) float32): cmax's window over its stored events (module source).
