@@ -1,15 +1,21 @@
-"""Compiled splat-and-sum kernel of ``cmax``'s score (CPU), identical to the torch path.
+"""Compiled kernels of ``cmax`` (CPU), each identical to its torch path.
 
-:func:`dvsland.estimators.contrast.split_contrast` splats every warped event (bilinear, four
-corners) into one image per element, candidate and half of the events, and needs per image the
-total weight and the sums of squares and cross products. The torch path builds all images at once
-(one large canvas, B x G x 2 images); this kernel takes the events element by element (a counting
-sort by element), splats them into one small canvas per (element, candidate) that stays in the
-cache, and sums only the rows touched. Corner weights are integers (multiples of 2^-12 of an
+The splat-and-sum of the score: :func:`dvsland.estimators.contrast.split_contrast` splats every
+warped event (bilinear, four corners) into one image per element, candidate and half of the
+events, and needs per image the total weight and the sums of squares and cross products. The torch
+path builds all images at once (one large canvas, B x G x 2 images); this kernel takes the events
+element by element and half by half (a counting sort), computes their corner weights in one
+vectorised pass, splats them into one small canvas per (element, candidate) that stays in the
+cache, and clears only the corners touched. Corner weights are integers (multiples of 2^-12 of an
 event, see ``WEIGHT_UNIT`` in contrast.py) and the sums are int64, so the kernel's sums are the
 torch path's exactly, in any order and on any number of threads; its float32 arithmetic (warp,
 box test, corner weights) is the torch path's operation for operation (the exponential comes in
-from torch). Tests pin the two to equality.
+from torch).
+
+Beside it, the per-event passes of an update: the store's thinning (``store_select``), each
+window's mask and counts and the gather of its events (``window_mask``, ``gather``), and the event
+weights (``hot_weights``, ``radial_counts`` / ``radial_apply``). Tests pin every kernel to its
+torch path.
 
 Plain C++ behind a C interface (no torch headers), called through ``ctypes`` on the tensors'
 memory, compiled with the system's C++ compiler in a second or two into a cache folder
