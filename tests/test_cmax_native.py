@@ -253,7 +253,8 @@ def test_kernel_radial_and_event_weights_equal_torch_path():
     for native in (False, True):
         native_cmax.use_native_cmax(native)
         try:
-            out.append((radial_weights(est.params, est.setup, pix, b), _event_weights(est.params, est.setup, pix, b)))
+            p, setup = est.params, est.setup
+            out.append((radial_weights(p, setup, pix, b), _event_weights(p, setup, pix, b)))
         finally:
             native_cmax.use_native_cmax(None)
     (r0, w0), (r1, w1) = out

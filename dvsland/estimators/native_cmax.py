@@ -59,6 +59,18 @@ template <class F> static void parallel_ranges(int64_t n, int64_t n_threads, F f
   for (auto& t : pool) t.join();
 }
 
+// A stable counting sort of the events [0, E) by key(e) in [0, n_keys): start (n_keys + 1) the first
+// position of each key in order (E), which lists the events key by key, in event order within a key.
+template <class F>
+static void counting_sort(int64_t E, int64_t n_keys, F key, std::vector<int64_t>& start, std::vector<int64_t>& order) {
+  start.assign(n_keys + 1, 0);
+  order.resize(E);
+  for (int64_t e = 0; e < E; ++e) start[key(e) + 1]++;
+  for (int64_t i = 0; i < n_keys; ++i) start[i + 1] += start[i];
+  std::vector<int64_t> pos(start.begin(), start.end() - 1);
+  for (int64_t e = 0; e < E; ++e) order[pos[key(e)]++] = e;
+}
+
 // Per element b and candidate g: n[b,g,h] = sum of the integer corner weights of half h, and
 // s[b,g,:] = (sum_p I0^2, sum_p I1^2, sum_p I0 I1) over the canvas pixels p; see the module doc
 // of dvsland/estimators/native_cmax.py and split_contrast in contrast.py (the torch path).
@@ -147,14 +159,8 @@ extern "C" int64_t cmax_splat_sums(const float* X, const float* Y, const int64_t
     if (!(Bi[e] >= 0 && Bi[e] < B && (Hf[e] == 0 || Hf[e] == 1))) return -1;
   for (int64_t e = 0; e < E; ++e)
     if (!(std::fabs((double)W[e]) * unit < 1073741824.0)) return -2;
-  // a counting sort by (element, half)
-  std::vector<int64_t> start(2 * B + 1, 0), order(E);
-  for (int64_t e = 0; e < E; ++e) start[2 * Bi[e] + Hf[e] + 1]++;
-  for (int64_t i = 0; i < 2 * B; ++i) start[i + 1] += start[i];
-  {
-    std::vector<int64_t> pos(start.begin(), start.end() - 1);
-    for (int64_t e = 0; e < E; ++e) order[pos[2 * Bi[e] + Hf[e]]++] = e;
-  }
+  std::vector<int64_t> start, order;  // by (element, half)
+  counting_sort(E, 2 * B, [&](int64_t e) { return 2 * Bi[e] + Hf[e]; }, start, order);
   const float fcx = (float)cx, fcy = (float)cy, uf = (float)unit;
   const float lox = (float)(x_lo - cx), hix = (float)(x_hi - cx), loy = (float)(y_lo - cy), hiy = (float)(y_hi - cy);
   const float xmax = (float)(Wc - 2), ymax = (float)(Hc - 2);
@@ -208,13 +214,8 @@ extern "C" int64_t cmax_splat_sums(const float* X, const float* Y, const int64_t
 static int64_t pixel_counts(const int64_t* Bi, const int64_t* Px, int64_t E, int64_t B, int64_t n_px, int64_t* O) {
   for (int64_t e = 0; e < E; ++e)
     if (!(Bi[e] >= 0 && Bi[e] < B && Px[e] >= 0 && Px[e] < n_px)) return -1;
-  std::vector<int64_t> start(B + 1, 0), order(E);
-  for (int64_t e = 0; e < E; ++e) start[Bi[e] + 1]++;
-  for (int64_t i = 0; i < B; ++i) start[i + 1] += start[i];
-  {
-    std::vector<int64_t> pos(start.begin(), start.end() - 1);
-    for (int64_t e = 0; e < E; ++e) order[pos[Bi[e]]++] = e;
-  }
+  std::vector<int64_t> start, order;  // by element
+  counting_sort(E, B, [&](int64_t e) { return Bi[e]; }, start, order);
   std::vector<int32_t> canvas(n_px, 0);
   for (int64_t bi = 0; bi < B; ++bi) {
     for (int64_t k = start[bi]; k < start[bi + 1]; ++k) canvas[Px[order[k]]]++;
@@ -237,13 +238,8 @@ extern "C" int64_t cmax_hot_weights(const int64_t* Bi, const int64_t* Px, int64_
                                     double factor, float* O) {
   for (int64_t e = 0; e < E; ++e)
     if (!(Bi[e] >= 0 && Bi[e] < B && Px[e] >= 0 && Px[e] < n_px)) return -1;
-  std::vector<int64_t> start(B + 1, 0), order(E);
-  for (int64_t e = 0; e < E; ++e) start[Bi[e] + 1]++;
-  for (int64_t i = 0; i < B; ++i) start[i + 1] += start[i];
-  {
-    std::vector<int64_t> pos(start.begin(), start.end() - 1);
-    for (int64_t e = 0; e < E; ++e) order[pos[Bi[e]]++] = e;
-  }
+  std::vector<int64_t> start, order;  // by element
+  counting_sort(E, B, [&](int64_t e) { return Bi[e]; }, start, order);
   // element by element, its events in event order (the order of torch's bincount sums): the count of
   // its pixel, then two rounds of the mean count per active pixel
   std::vector<int32_t> canvas(n_px, 0);
