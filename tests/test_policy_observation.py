@@ -187,6 +187,30 @@ def test_authority_scales_the_residual_and_is_recorded_in_the_checkpoint(tmp_pat
                    ).controller.net.authority == 0.25
 
 
+def test_the_residual_reaches_the_step_output_and_the_loss():
+    """StepOutput.control_residual is tanh(net) of a residual policy (None for div_gs), and the
+    loss's ``residual`` term is weight x r^2 dt of the flying descents; asked of another law, it is
+    refused naming --loss."""
+    from dvsland.learn.loop_loss import LossWeights, step_terms
+
+    st = _stages(EFF + ["controller.policy.base=div_gs", "controller.policy.authority=0.5"], site="I")
+    with torch.no_grad():
+        st.controller.net.net[2].bias.fill_(0.3)
+    s0 = init_state(st)
+    s1, out = loop_step(st, s0)
+    assert out.control_residual is not None
+    assert torch.allclose(out.control_residual, torch.full_like(out.control_residual, math.tanh(0.3)))
+    terms = step_terms(st, s0, s1, out, LossWeights(residual=2.0))
+    dt = st.settings.dt_s
+    assert torch.allclose(terms["residual"], torch.full_like(s1.z_m, 2.0 * math.tanh(0.3) ** 2 * dt))
+    gs = _stages(["controller.name=div_gs"], site="I")
+    g0 = init_state(gs)
+    g1, gout = loop_step(gs, g0)
+    assert gout.control_residual is None and "residual" not in step_terms(gs, g0, g1, gout, LossWeights())
+    with pytest.raises(ValueError, match="--loss residual=1.0: the law has no residual"):
+        step_terms(gs, g0, g1, gout, LossWeights(residual=1.0))
+
+
 @pytest.mark.parametrize("bad, match", [("controller.policy.authority=0", r"controller.policy.authority.*\(0"),
                                         ("controller.policy.authority=4", r"controller.policy.authority.*3"),
                                         ("controller.policy.authority=0.5", r"needs controller.policy.base=div_gs")])

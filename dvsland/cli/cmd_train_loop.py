@@ -53,7 +53,8 @@ def register(subparsers) -> None:
     p.add_argument("--loss", default="", metavar="NAME=W,...",
                    help="loss weights over the defaults: policy " + WHAT_DEFAULTS["policy"][1] + "; law "
                         + WHAT_DEFAULTS["law"][1] + "; filter and estimator " + WHAT_DEFAULTS["filter"][1]
-                        + "; track_gs (div_gs's target at the true altitude, docs/train_loop.md) is 0 unless given")
+                        + "; track_gs (div_gs's target at the true altitude, docs/train_loop.md) and residual "
+                        "(a residual policy's correction squared) are 0 unless given")
     p.add_argument("--seed", type=int, default=0, help="seed of the training's dispersed restarts")
     p.add_argument("--val-seed", type=int, default=999, help="simulation.seed of the validation descents")
     p.add_argument("--val-seeds", type=int, default=None, metavar="N",

@@ -26,12 +26,15 @@ class ControlOutput(NamedTuple):
         tau_hat_s: float64 TTC used, s (NaN where the estimate was not used).
         tau_target_s: float64 tau*(t), s.
         held: bool, True where the estimate was missing / wrong-signed and the policy acted.
+        residual: float64 a residual law's correction as a share of its reach, in [-1, 1] (the
+            ``policy`` law on ``div_gs``: tanh(net)); None for every other law.
     """
 
     thrust_n: Tensor
     tau_hat_s: Tensor
     tau_target_s: Tensor
     held: Tensor
+    residual: Optional[Tensor] = None
 
 
 class LawParams(NamedTuple):

@@ -238,13 +238,14 @@ def policy_law_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor,
     out = o.net(obs)
     if o.base is None:
         u = clamp_thrust(p, torch.sigmoid(out) * o.thrust_high_n)
-        tau_target = -1.0 / d_star
-    else:  # residual on div_gs: its command where it has one, plus authority x m g tanh(net)
-        _, base = div_gs_step(o.base, state, t_s, d_filtered, mass_kg, active, altitude_m)
-        reach = mg if o.net.authority == 1.0 else o.net.authority * mg
-        u = clamp_thrust(p, base.thrust_n + reach * torch.tanh(out))
-        tau_target = base.tau_target_s
-    return divergence_law_finish(p, state, d, u, mg, active, tau_target)
+        return divergence_law_finish(p, state, d, u, mg, active, -1.0 / d_star)
+    # residual on div_gs: its command where it has one, plus authority x m g tanh(net)
+    _, base = div_gs_step(o.base, state, t_s, d_filtered, mass_kg, active, altitude_m)
+    reach = mg if o.net.authority == 1.0 else o.net.authority * mg
+    r = torch.tanh(out)
+    state, ctl = divergence_law_finish(p, state, d, clamp_thrust(p, base.thrust_n + reach * r), mg, active,
+                                       base.tau_target_s)
+    return state, ctl._replace(residual=r)
 
 
 @register_controller("policy")

@@ -16,7 +16,11 @@ controller and ``loop_step(..., grad=True)``; the loss is the batch mean of, per
   the descent ``div_gs`` would fly with perfect sensing (0 by default);
 - ``filter`` x sum over steps of ((D_f - D) / 0.01 1/s)^2 dt (clipped at 30), D_f the filter's output
   and D the true divergence at the step's start (dense: how well the filter knows the divergence the
-  loop flies; ``--what filter``'s default beside the landing terms, 0 otherwise).
+  loop flies; ``--what filter``'s default beside the landing terms, 0 otherwise);
+- ``residual`` x sum over steps of r^2 dt, r = tanh(net) in [-1, 1] the residual policy's correction
+  as a share of its reach (``controller.policy.base=div_gs``; 0 by default): a price on moving the
+  base law's command, so that a constant offset, which a feedback base law cancels, is not pushed
+  to the bound.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ class LossWeights:
     fuel: float = 0.0
     filter: float = 0.0
     track_gs: float = 0.0
+    residual: float = 0.0
 
     def check(self) -> "LossWeights":
         for name, v in vars(self).items():
@@ -108,6 +113,12 @@ def step_terms(stages, before, after, out, w: LossWeights) -> Dict[str, torch.Te
     if w.track_gs:
         e_gs = (d - div_gs_target(stages, out.t_flight_s + dt, after.z_m)) / ERR_SCALE
         terms["track_gs"] = w.track_gs * torch.where(flying, e_gs.clamp(-30, 30) ** 2 * dt, zero)
+    if w.residual:
+        r = out.control_residual
+        if r is None:
+            raise ValueError(f"--loss residual={w.residual}: the law has no residual; use controller.name=policy "
+                             "with controller.policy.base=div_gs")
+        terms["residual"] = w.residual * torch.where(flying, r.to(zero.dtype) ** 2 * dt, zero)
     if w.filter:  # only when weighted: a missing output (NaN) must not reach the graph as 0 x NaN
         f_err = (out.d_filtered - out.d_true) / ERR_SCALE
         ok = flying & torch.isfinite(f_err)

@@ -63,7 +63,7 @@ def trained_config(cfg, trainable: Trainable, ckpt: Path):
 
 def _tensorboard(writer, rec: dict, what: str = "law") -> None:
     step = rec["window"]
-    for k in ("loss", "track", "landing", "fail", "fuel", "filter", "track_gs"):
+    for k in ("loss", "track", "landing", "fail", "fuel", "filter", "track_gs", "residual"):
         if k in rec:
             writer.add_scalar(f"loss/{k}", rec[k], step)
     writer.add_scalar("train/landed", rec["landed"], step)

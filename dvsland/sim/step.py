@@ -75,6 +75,8 @@ class StepOutput(NamedTuple):
             step (``{}`` when it has none).
         t_flight_s: (B,) float64 flight time of each descent at the step's start, s (``t_s``
             unless a descent was restarted by :func:`dvsland.sim.reset_where`).
+        control_residual: (B,) float64 a residual law's correction as a share of its reach
+            (:attr:`dvsland.control.base.ControlOutput.residual`; None for other laws).
     """
 
     step: int
@@ -99,6 +101,7 @@ class StepOutput(NamedTuple):
     events: Any
     diagnostics: Callable[[], dict]
     t_flight_s: Optional[torch.Tensor] = None
+    control_residual: Optional[torch.Tensor] = None
 
 
 def sanitise_estimates(d_hat: torch.Tensor, abs_max: float = D_HAT_ABS_MAX):
@@ -399,7 +402,8 @@ def sense_step(stages, state: LoopState, timer: Optional[Callable[[str], Any]] =
                      d_filtered=cmd.d_filtered, n_used=cmd.n_used.to(torch.float64), thrust_n=u,
                      held=ctl.held & state.active, tau_target_s=ctl.tau_target_s, tau_hat_s=ctl.tau_hat_s,
                      z_est_m=cmd.z_est_m, active=state.active, ended=torch.zeros_like(state.active), frames=frames,
-                     events=events, diagnostics=lambda: dict(diag or {}), t_flight_s=flight_time_s(stages, state))
+                     events=events, diagnostics=lambda: dict(diag or {}), t_flight_s=flight_time_s(stages, state),
+                     control_residual=ctl.residual)
     return Sensed(state, out, est.bad, StageStates(emu_st, est_st, f_st, c_st))
 
 
