@@ -4,6 +4,7 @@ and the filter's altitude beside the basic four) and its residual on div_gs (con
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -326,3 +327,18 @@ def test_a_gradient_reaches_the_doubt_inputs_weights():
     assert g is not None and torch.isfinite(g).all() and g.shape[1] == 10
     for col in (7, 8):  # the offsets (the rejected share may be 0 throughout on an oracle)
         assert float(g[:, col].abs().max()) > 0.0, col
+
+
+SHIPPED = Path(__file__).resolve().parents[1] / "examples" / "policies" / "residual_div_gs_cnn_landing.pt"
+
+
+def test_the_shipped_residual_policy_loads_and_flies():
+    """examples/policies/residual_div_gs_cnn_landing.pt (docs/train_loop.md): the trained residual on
+    div_gs with the cnn_landing estimator flies; its corrections stay well inside its reach."""
+    st = _stages(EFF + ["controller.policy.base=div_gs", "controller.policy.authority=0.2",
+                        f"controller.policy.checkpoint={SHIPPED}", "estimator.name=learned",
+                        "estimator.learned.checkpoint=cnn_landing"], site="I")
+    assert st.controller.net.authority == 0.2 and st.controller.net.observation == "efference"
+    s, outs = fly_steps(st, init_state(st), 30)
+    r = torch.stack([o.control_residual for o in outs])
+    assert torch.isfinite(r).all() and float(r.abs().max()) < 0.5
