@@ -211,6 +211,15 @@ extern "C" int64_t cmax_splat_sums(const float* X, const float* Y, const int64_t
 // For each event, how many events of its element lie on its pixel: bincount(b * n_px + px)[b * n_px + px]
 // computed element by element in a small canvas (b (E,) int64 in [0, B), px (E,) int64 in [0, n_px)).
 // out (E,) int64. Returns 0, or -1 when some b or px is out of range (nothing written).
+// For the events idx[0 .. n) of one element (pixels Px[idx[k]] in [0, n_px)): put(k, c), c the events of the
+// n on event k's pixel, counted on ``canvas`` (n_px zeros, left zeroed).
+template <class F>
+static void element_pixel_counts(const int64_t* Px, const int64_t* idx, int64_t n, int32_t* canvas, F put) {
+  for (int64_t k = 0; k < n; ++k) canvas[Px[idx[k]]]++;
+  for (int64_t k = 0; k < n; ++k) put(k, canvas[Px[idx[k]]]);
+  for (int64_t k = 0; k < n; ++k) canvas[Px[idx[k]]] = 0;
+}
+
 static int64_t pixel_counts(const int64_t* Bi, const int64_t* Px, int64_t E, int64_t B, int64_t n_px, int64_t* O) {
   for (int64_t e = 0; e < E; ++e)
     if (!(Bi[e] >= 0 && Bi[e] < B && Px[e] >= 0 && Px[e] < n_px)) return -1;
@@ -218,9 +227,9 @@ static int64_t pixel_counts(const int64_t* Bi, const int64_t* Px, int64_t E, int
   counting_sort(E, B, [&](int64_t e) { return Bi[e]; }, start, order);
   std::vector<int32_t> canvas(n_px, 0);
   for (int64_t bi = 0; bi < B; ++bi) {
-    for (int64_t k = start[bi]; k < start[bi + 1]; ++k) canvas[Px[order[k]]]++;
-    for (int64_t k = start[bi]; k < start[bi + 1]; ++k) O[order[k]] = canvas[Px[order[k]]];
-    for (int64_t k = start[bi]; k < start[bi + 1]; ++k) canvas[Px[order[k]]] = 0;
+    const int64_t* idx = order.data() + start[bi];
+    element_pixel_counts(Px, idx, start[bi + 1] - start[bi], canvas.data(),
+                         [&](int64_t k, int32_t c) { O[idx[k]] = c; });
   }
   return 0;
 }
@@ -244,15 +253,14 @@ extern "C" int64_t cmax_hot_weights(const int64_t* Bi, const int64_t* Px, int64_
   // its pixel, then two rounds of the mean count per active pixel
   std::vector<int32_t> canvas(n_px, 0);
   std::vector<double> cnt, inv;
-  std::vector<int32_t> px;
   std::vector<unsigned char> keep;
   for (int64_t bi = 0; bi < B; ++bi) {
     const int64_t k0 = start[bi], n = start[bi + 1] - k0;
     if (n == 0) continue;
-    px.resize(n); cnt.resize(n); inv.resize(n); keep.assign(n, 1);
-    for (int64_t k = 0; k < n; ++k) { px[k] = (int32_t)Px[order[k0 + k]]; canvas[px[k]]++; }
-    for (int64_t k = 0; k < n; ++k) { cnt[k] = (double)canvas[px[k]]; inv[k] = 1.0 / cnt[k]; }
-    for (int64_t k = 0; k < n; ++k) canvas[px[k]] = 0;
+    cnt.resize(n); inv.resize(n); keep.assign(n, 1);
+    element_pixel_counts(Px, order.data() + k0, n, canvas.data(), [&](int64_t k, int32_t c) {
+      cnt[k] = (double)c; inv[k] = 1.0 / cnt[k];
+    });
     double mean = 0.0;
     for (int round = 0; round < 2; ++round) {
       double n_px_s = 0.0, n_ev_s = 0.0;
@@ -320,12 +328,13 @@ extern "C" int64_t cmax_window_mask(const int64_t* Bi, const int64_t* T, const i
 }
 
 // The stored events where M[e] (and OK[b], when OK is not null) holds, in store order, into the outputs
-// (b, x, y, t, key; each of room for N). Returns how many, or -1 when some b is out of [0, B).
+// (b, x, y, t, key; each of room for N). Returns how many, or -1 when OK is given and some b is out of [0, B).
 extern "C" int64_t cmax_gather(const uint8_t* M, const uint8_t* OK, const int64_t* Bi, const float* X,
                                const float* Y, const int64_t* T, const int64_t* K, int64_t N, int64_t B,
                                int64_t* ob, float* ox, float* oy, int64_t* ot, int64_t* okey) {
-  for (int64_t e = 0; e < N; ++e)
-    if (!(Bi[e] >= 0 && Bi[e] < B)) return -1;
+  if (OK)  // b is read as an index only into OK (without it, it is copied, not followed)
+    for (int64_t e = 0; e < N; ++e)
+      if (!(Bi[e] >= 0 && Bi[e] < B)) return -1;
   int64_t n = 0;
   for (int64_t e = 0; e < N; ++e) {
     if (!M[e] || (OK && !OK[Bi[e]])) continue;
@@ -457,7 +466,6 @@ class Kernels:
                                         _ptr(cap, torch.float64, "store_select: cap"), B, int(W), int(H),
                                         _ptr(seed_terms, i64, "store_select: seed_terms"), out.data_ptr())
         return out[:k].clone() if k < E else out
-
 
     def radial_counts(self, b, px, rbin_of_px, B: int, nb: int) -> torch.Tensor:
         """(B * nb,) int64: the events of each element in each annulus (cmax.radial_weights). b, px (E,)
