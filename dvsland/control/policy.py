@@ -241,10 +241,9 @@ def policy_law_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor,
         return divergence_law_finish(p, state, d, u, mg, active, -1.0 / d_star)
     # residual on div_gs: its command where it has one, plus authority x m g tanh(net)
     _, base = div_gs_step(o.base, state, t_s, d_filtered, mass_kg, active, altitude_m)
-    reach = mg if o.net.authority == 1.0 else o.net.authority * mg
-    r = torch.tanh(out)
-    state, ctl = divergence_law_finish(p, state, d, clamp_thrust(p, base.thrust_n + reach * r), mg, active,
-                                       base.tau_target_s)
+    r = torch.tanh(out)  # x 1.0 is exact: authority 1 gives the bits of m g tanh(net)
+    state, ctl = divergence_law_finish(p, state, d, clamp_thrust(p, base.thrust_n + o.net.authority * mg * r), mg,
+                                       active, base.tau_target_s)
     return state, ctl._replace(residual=r)
 
 

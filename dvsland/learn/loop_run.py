@@ -6,7 +6,7 @@ write ``checkpoint.pt``, ``trained.yaml`` and ``train_loop.json`` into the run f
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, replace
+from dataclasses import asdict, fields, replace
 from pathlib import Path
 from typing import Optional
 
@@ -63,7 +63,7 @@ def trained_config(cfg, trainable: Trainable, ckpt: Path):
 
 def _tensorboard(writer, rec: dict, what: str = "law") -> None:
     step = rec["window"]
-    for k in ("loss", "track", "landing", "fail", "fuel", "filter", "track_gs", "residual"):
+    for k in ("loss", *(f.name for f in fields(LossWeights))):  # the total, then each term
         if k in rec:
             writer.add_scalar(f"loss/{k}", rec[k], step)
     writer.add_scalar("train/landed", rec["landed"], step)
