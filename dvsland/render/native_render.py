@@ -1,0 +1,269 @@
+"""Compiled sampling passes of the fast renderer (CPU), identical to its torch path.
+
+A frame of :class:`dvsland.render.fast.FastRenderer` is, per pixel, two bilinear, border-clamped
+samples of the irradiance atlas (levels lo and lo + 1 at grid offset + ray slope x range), their blend
+and the view-angle gain; before it, the relief's ray ranges take ``parallax_iters`` samples of the
+height atlas each. The torch path writes a sampling grid, calls ``grid_sampler`` and then blends in
+three more passes; these kernels do each in one pass over the pixels, reading the per-site slopes and
+gains by the frames' site indices (no gathered copies), so the grid and the two sampled levels never
+reach memory.
+
+The arithmetic is torch's, operation for operation, on CPUs where torch runs its AVX2 or AVX-512
+kernels (every x86-64 CPU of the last decade): the grid as ``fma(slope, range, offset)`` (``addcmul``),
+the unnormalisation ``fma(g + 1, size / 2, -0.5)``, the clamp to the border, the four corner weights
+and their sum as a chain of ``fma`` (torch's vectorised ``grid_sampler`` is compiled with
+contraction), and the blend as ``lerp``'s ``fma(coeff, v1 - v0, base)``. Tests pin every frame to
+the torch path bit for bit there (and to float rounding elsewhere).
+
+Plain C++ behind a C interface (no torch headers), called through ``ctypes`` on the tensors' memory,
+compiled in a second or two on first use where a C++ compiler is found, with AVX-512, AVX2 + FMA and
+baseline clones picked at load time on x86-64 Linux (:class:`dvsland.native_build.NativeLibrary`).
+``DVSLAND_NATIVE_RENDER`` (or :func:`use_native_render`) picks the mode: ``auto`` (default), ``1`` /
+``on``, ``0`` / ``off`` (as ``DVSLAND_NATIVE_CMAX``).
+"""
+
+from __future__ import annotations
+
+import ctypes
+from typing import Optional
+
+import torch
+
+from dvsland.native_build import NativeLibrary, bind_functions
+
+_SRC = r"""
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <thread>
+#include <vector>
+
+// f(lo, hi) over [0, n) split into n_threads contiguous ranges (one call when n_threads <= 1)
+template <class F> static void parallel_ranges(int64_t n, int64_t n_threads, F f) {
+  const int64_t k = std::min<int64_t>(std::max<int64_t>(n_threads, 1), std::max<int64_t>(n, 1));
+  if (k <= 1) { f(0, n); return; }
+  std::vector<std::thread> pool;
+  for (int64_t i = 0; i < k; ++i) pool.emplace_back(f, n * i / k, n * (i + 1) / k);
+  for (auto& t : pool) t.join();
+}
+
+// Clones per instruction set (x86-64-v4: AVX-512, v3: AVX2 + FMA), picked at load time: the fma below
+// are single instructions there and a (slow, exact) libm call in the baseline clone.
+#if defined(__x86_64__) && defined(__linux__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11
+#define DVS_CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#else
+#define DVS_CLONES
+#endif
+#define DVS_INLINE __attribute__((always_inline)) static inline
+
+// The texture's geometry for torch.grid_sampler (bilinear, border padding, align_corners=False).
+struct Tex {
+  const float* __restrict a;  // (Ha, Wa) float32, row-major
+  int32_t Ha, Wa;
+  float sx, sy, mx, my;       // size / 2 and size - 1, per axis
+};
+
+// torch.grid_sampler's sample at normalised (gx, gy): unnormalise, clamp to the border, four corners.
+// A corner past the last row or column has weight 0 exactly (the coordinate is clamped to the last
+// texel); it reads the last texel in place of torch's masked 0, which adds the same +0.
+DVS_INLINE float sample(const Tex& t, float gx, float gy) {
+  float ix = __builtin_fmaf(gx + 1.0f, t.sx, -0.5f);
+  float iy = __builtin_fmaf(gy + 1.0f, t.sy, -0.5f);
+  ix = ix < 0.0f ? 0.0f : ix;
+  ix = ix > t.mx ? t.mx : ix;
+  iy = iy < 0.0f ? 0.0f : iy;
+  iy = iy > t.my ? t.my : iy;
+  const float xw = __builtin_floorf(ix), yn = __builtin_floorf(iy);
+  const float w = ix - xw, e = 1.0f - w, n = iy - yn, s = 1.0f - n;
+  const int32_t x0 = (int32_t)xw, y0 = (int32_t)yn;
+  const int32_t dx = x0 + 1 < t.Wa ? 1 : 0, dy = y0 + 1 < t.Ha ? t.Wa : 0;
+  const int32_t i0 = y0 * t.Wa + x0;
+  const float* __restrict a = t.a;
+  return __builtin_fmaf(a[i0 + dy + dx], n * w,
+                        __builtin_fmaf(a[i0 + dy], n * e, __builtin_fmaf(a[i0 + dx], s * w, a[i0] * (s * e))));
+}
+
+// One frame: out[p] = lerp(v0, v1, frac) * gain[p], v_k = level k's sample at its grid (see module doc).
+template <bool PER_PIXEL_RANGE>
+DVS_INLINE void frame(const Tex& t, float ox0, float oy0, float ox1, float oy1, const float* __restrict slx,
+                      const float* __restrict sly, const float* __restrict rng, float frac,
+                      const float* __restrict gain, float* __restrict out, int64_t P) {
+  const bool small = __builtin_fabsf(frac) < 0.5f;  // torch's lerp: weight below 0.5 from v0, else from v1
+  const float coeff = small ? frac : frac - 1.0f;
+  const float r0 = rng[0];
+  for (int64_t p = 0; p < P; ++p) {
+    const float r = PER_PIXEL_RANGE ? rng[p] : r0;
+    const float gx0 = __builtin_fmaf(slx[p], r, ox0), gy0 = __builtin_fmaf(sly[p], r, oy0);
+    const float v0 = sample(t, gx0, gy0);
+    const float v1 = sample(t, __builtin_fmaf(gx0, 0.5f, ox1), __builtin_fmaf(gy0, 0.5f, oy1));
+    out[p] = __builtin_fmaf(coeff, v1 - v0, small ? v0 : v1) * gain[p];
+  }
+}
+
+DVS_CLONES static void levels_range(const Tex t, const float* off, int64_t B, const float* slopes, int64_t S,
+                                    const int64_t* site, const float* rng, int64_t rng_per_pixel, const float* frac,
+                                    const float* gain, int64_t gain_per_site, float* out, int64_t P, int64_t f0,
+                                    int64_t f1) {
+  for (int64_t f = f0; f < f1; ++f) {
+    const int64_t s = site[f];
+    const float* slx = slopes + s * P;
+    const float* sly = slopes + (S + s) * P;
+    const float* g = gain + (gain_per_site ? s * P : 0);
+    if (rng_per_pixel)
+      frame<true>(t, off[f], off[B + f], off[2 * B + f], off[3 * B + f], slx, sly, rng + f * P, frac[f], g,
+                  out + f * P, P);
+    else
+      frame<false>(t, off[f], off[B + f], off[2 * B + f], off[3 * B + f], slx, sly, rng + f, frac[f], g,
+                   out + f * P, P);
+  }
+}
+
+// Relief ranges of frames [f0, f1): r = z, then iters times r = max(z - h(off + slope r inv), 0.05 z);
+// out = r * inv_lo (see FastRenderer._relief_range, the torch path).
+DVS_CLONES static void relief_range(const Tex t, const float* off, int64_t B, const float* slopes, int64_t S,
+                                    const int64_t* site, const float* z, const float* inv, const float* inv_lo,
+                                    int64_t iters, float* out, int64_t Q, int64_t f0, int64_t f1) {
+  for (int64_t f = f0; f < f1; ++f) {
+    const int64_t s = site[f];
+    const float* __restrict slx = slopes + s * Q;
+    const float* __restrict sly = slopes + (S + s) * Q;
+    float* __restrict r = out + f * Q;
+    const float zf = z[f], inv_f = inv[f], ox = off[f], oy = off[B + f], floor_m = zf * 0.05f;
+    for (int64_t q = 0; q < Q; ++q) r[q] = zf;
+    for (int64_t it = 0; it < iters; ++it) {
+      for (int64_t q = 0; q < Q; ++q) {
+        const float ri = r[q] * inv_f;
+        const float d = zf - sample(t, __builtin_fmaf(slx[q], ri, ox), __builtin_fmaf(sly[q], ri, oy));
+        r[q] = d < floor_m ? floor_m : d;
+      }
+    }
+    const float k = inv_lo[f];
+    for (int64_t q = 0; q < Q; ++q) r[q] = r[q] * k;
+  }
+}
+
+static Tex texture(const float* a, int64_t Ha, int64_t Wa) {
+  return Tex{a, (int32_t)Ha, (int32_t)Wa, (float)Wa / 2, (float)Ha / 2, (float)(Wa - 1), (float)(Ha - 1)};
+}
+
+extern "C" {
+
+// out (B, P) = the blended, gain-weighted frames. atlas (Ha, Wa); off (4, B) (x lo, y lo, x lo+1 - x lo / 2,
+// y lo+1 - y lo / 2); slopes (2, S, P); site (B,) in [0, S); rng (B, P) or (B,); frac (B,); gain (S, P) or (P,).
+// Returns 0, or -1 on a bad size or site index.
+int64_t render_levels(const float* atlas, int64_t Ha, int64_t Wa, const float* off, int64_t B, const float* slopes,
+                      int64_t S, const int64_t* site, const float* rng, int64_t rng_per_pixel, const float* frac,
+                      const float* gain, int64_t gain_per_site, float* out, int64_t P, int64_t n_threads) {
+  if (Ha < 1 || Wa < 1 || Ha * Wa >= (int64_t(1) << 31) || B < 0 || S < 1 || P < 1) return -1;
+  for (int64_t f = 0; f < B; ++f) if (site[f] < 0 || site[f] >= S) return -1;
+  const Tex t = texture(atlas, Ha, Wa);
+  parallel_ranges(B, n_threads, [&](int64_t f0, int64_t f1) {
+    levels_range(t, off, B, slopes, S, site, rng, rng_per_pixel, frac, gain, gain_per_site, out, P, f0, f1);
+  });
+  return 0;
+}
+
+// out (B, Q) = the relief's ray ranges times inv_lo. atlas (Ha, Wa) heights; off (2, B); slopes (2, S, Q);
+// site (B,); z, inv, inv_lo (B,). Returns 0, or -1 on a bad size or site index.
+int64_t render_relief(const float* atlas, int64_t Ha, int64_t Wa, const float* off, int64_t B, const float* slopes,
+                      int64_t S, const int64_t* site, const float* z, const float* inv, const float* inv_lo,
+                      int64_t iters, float* out, int64_t Q, int64_t n_threads) {
+  if (Ha < 1 || Wa < 1 || Ha * Wa >= (int64_t(1) << 31) || B < 0 || S < 1 || Q < 1 || iters < 0) return -1;
+  for (int64_t f = 0; f < B; ++f) if (site[f] < 0 || site[f] >= S) return -1;
+  const Tex t = texture(atlas, Ha, Wa);
+  parallel_ranges(B, n_threads, [&](int64_t f0, int64_t f1) {
+    relief_range(t, off, B, slopes, S, site, z, inv, inv_lo, iters, out, Q, f0, f1);
+  });
+  return 0;
+}
+
+}
+"""
+
+# -ffp-contract=off: every fma is written out (torch's own contractions), nothing else is fused
+_CFLAGS = ["-O3", "-ffp-contract=off", "-fno-trapping-math", "-std=c++17", "-pthread"]
+_ENV = "DVSLAND_NATIVE_RENDER"
+_I64, _P = ctypes.c_int64, ctypes.c_void_p
+#: the C functions' (argument types, result type)
+_SIGNATURES = {
+    "render_levels": ([_P, _I64, _I64, _P, _I64, _P, _I64, _P, _P, _I64, _P, _P, _I64, _P, _I64, _I64], _I64),
+    "render_relief": ([_P, _I64, _I64, _P, _I64, _P, _I64, _P, _P, _P, _P, _I64, _P, _I64, _I64], _I64),
+}
+
+
+def _f32(t: torch.Tensor, what: str, numel: int) -> int:
+    """The address of ``t`` after checking it is a contiguous CPU float32 tensor of ``numel`` elements."""
+    if t.dtype != torch.float32 or t.device.type != "cpu" or not t.is_contiguous() or t.numel() != numel:
+        raise RuntimeError(f"native render: {what} must be a contiguous CPU float32 tensor of {numel} elements, "
+                           f"got {t.dtype} {tuple(t.shape)} on {t.device}")
+    return t.data_ptr()
+
+
+def _sites(site_idx: torch.Tensor, b: int) -> torch.Tensor:
+    if site_idx.device.type != "cpu" or site_idx.numel() != b:
+        raise RuntimeError(f"native render: site_idx must be a CPU tensor of {b} indices, got "
+                           f"{tuple(site_idx.shape)} on {site_idx.device}")
+    return site_idx.to(torch.int64).contiguous()
+
+
+class Kernels:
+    """The loaded library's passes on torch tensors (CPU; each checks its inputs)."""
+
+    def __init__(self, lib: ctypes.CDLL):
+        self._lib = bind_functions(lib, _SIGNATURES)
+
+    def levels(self, atlas: torch.Tensor, off: torch.Tensor, slopes: torch.Tensor, site_idx: torch.Tensor,
+               rng_n: torch.Tensor, frac: torch.Tensor, gain: torch.Tensor, out: torch.Tensor,
+               threads: int = 1) -> torch.Tensor:
+        """Write into ``out`` (B, H, W) the frames blended from levels lo and lo + 1 of ``atlas`` (Ha, Wa):
+        grid off (4, B) + slopes (2, S, H, W)[:, site_idx] x rng_n ((B, H, W) or (B,)), blend frac
+        (B,), times gain ((S, H, W) per site or (H, W) shared); all float32, site_idx int64 (B,)."""
+        b, h, w = out.shape
+        p = h * w
+        s = slopes.shape[1]
+        site = _sites(site_idx, b)
+        per_pixel = rng_n.numel() == b * p and p > 1
+        per_site = gain.dim() == 3
+        status = self._lib.render_levels(
+            _f32(atlas, "atlas", atlas.numel()), atlas.shape[-2], atlas.shape[-1], _f32(off, "off", 4 * b), b,
+            _f32(slopes, "slopes", 2 * s * p), s, site.data_ptr(), _f32(rng_n, "rng_n", b * p if per_pixel else b),
+            int(per_pixel), _f32(frac, "frac", b), _f32(gain, "gain", (s if per_site else 1) * p), int(per_site),
+            _f32(out, "out", b * p), p, int(threads))
+        if status < 0:
+            raise RuntimeError(f"native render: bad sizes or a site index outside [0, {s - 1}]")
+        return out
+
+    def relief(self, atlas: torch.Tensor, off: torch.Tensor, slopes: torch.Tensor, site_idx: torch.Tensor,
+               z: torch.Tensor, inv: torch.Tensor, inv_lo: torch.Tensor, iters: int, threads: int = 1) -> torch.Tensor:
+        """(B, h, w) relief ray ranges (m) times ``inv_lo``: per point r = z, then ``iters`` times
+        r = max(z - height(off + slopes[:, site] r inv), 0.05 z), heights sampled from ``atlas`` (Ha, Wa).
+        off (2, B); slopes (2, S, h, w); z, inv, inv_lo (B,); all float32, site_idx int64 (B,)."""
+        b = z.numel()
+        s, hh, ww = slopes.shape[1:]
+        q = hh * ww
+        site = _sites(site_idx, b)
+        out = torch.empty(b, hh, ww)
+        status = self._lib.render_relief(
+            _f32(atlas, "atlas", atlas.numel()), atlas.shape[-2], atlas.shape[-1], _f32(off, "off", 2 * b), b,
+            _f32(slopes, "slopes", 2 * s * q), s, site.data_ptr(), _f32(z, "z", b), _f32(inv, "inv", b),
+            _f32(inv_lo, "inv_lo", b), int(iters), out.data_ptr(), q, int(threads))
+        if status < 0:
+            raise RuntimeError(f"native render: bad sizes or a site index outside [0, {s - 1}]")
+        return out
+
+
+#: the library (its mode, cache and build: ``LIBRARY.build()``, ``LIBRARY.cached()``, ``LIBRARY.build_dir()``)
+LIBRARY = NativeLibrary("dvsland_render_native", _SRC, _CFLAGS, _ENV, "dvsland.render.native_render", Kernels)
+
+
+def use_native_render(on: Optional[bool] = True) -> None:
+    """Pick the mode for this process: True = on, False = off, None = back to ``DVSLAND_NATIVE_RENDER``."""
+    LIBRARY.use(on)
+
+
+def kernel_for(t: torch.Tensor) -> Optional[Kernels]:
+    """The kernels for work on ``t``'s device where enabled (built once when needed), else None."""
+    return LIBRARY.load() if t.device.type == "cpu" else None
+
+
+__all__ = ["Kernels", "LIBRARY", "use_native_render", "kernel_for"]

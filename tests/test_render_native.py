@@ -1,0 +1,107 @@
+"""The fast renderer's compiled sampling passes (dvsland.render.native_render): the same frames as
+the torch path (bit for bit where torch runs its AVX2 / AVX-512 kernels), every branch of the pass
+(per-pixel and per-frame ranges, shared and per-site gains, threads, nearest level), input checks,
+and the mode switch."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dvsland.config import CameraConfig, RenderConfig
+from dvsland.render import native_render
+from dvsland.render.fast import FastRenderer
+
+CAM = CameraConfig(width_px=48, height_px=48, fov_deg=60.0)
+SITES = ["A", "E", "G", "H"]
+
+
+@pytest.fixture(scope="module")
+def kernels():
+    k = native_render.LIBRARY.load(force=True)
+    if k is None:
+        pytest.skip("no C++ compiler: the compiled render passes cannot be built here")
+    return k
+
+
+def _same(a: torch.Tensor, b: torch.Tensor) -> None:
+    """Equal to the bit where torch's grid_sampler is its vectorised (contracted) kernel, else to rounding."""
+    if torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512"):
+        assert torch.equal(a, b), f"{int((a != b).sum())} of {a.numel()} pixels differ"
+    else:
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+def _pair(**kw):
+    rc = kw.pop("render", RenderConfig(threads=1))
+    sites = kw.pop("sites", SITES)
+    return (FastRenderer(sites, CAM, rc, disk_cache=False, native=False, **kw),
+            FastRenderer(sites, CAM, rc, disk_cache=False, native=True, **kw))
+
+
+def _altitudes(n: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    alt = torch.exp(torch.empty(n).uniform_(2.31, 9.9, generator=g))  # 10.1 m ... 19.9 km, log-uniform
+    return alt, torch.randint(0, len(SITES), (n,), generator=g)
+
+
+def test_frames_identical_to_torch_path(kernels):
+    """Random altitudes and sites over the whole range, a batch that is not a multiple of the chunk."""
+    torch_r, native_r = _pair()
+    alt, idx = _altitudes(70)
+    _same(torch_r.render(alt, idx), native_r.render(alt, idx))
+
+
+@pytest.mark.parametrize("case", ["no_parallax", "two_parallax", "nearest_level", "threads", "per_site_gain"])
+def test_every_branch_identical_to_torch_path(kernels, case):
+    kw = {"no_parallax": dict(parallax_iters=0), "two_parallax": dict(parallax_iters=2),
+          "nearest_level": dict(blend_levels=False), "threads": dict(threads=3),
+          "per_site_gain": dict(sites=["A", "E"], suns=[(12.0, 0.0), (18.0, 5.0)])}[case]
+    torch_r, native_r = _pair(**kw)
+    if case == "per_site_gain":
+        assert native_r._gain_shared is None  # the gains differ: read per frame by site
+    alt, idx = _altitudes(23, seed=1)
+    idx = idx % len(native_r.site_names)
+    _same(torch_r.render(alt, idx), native_r.render(alt, idx))
+
+
+def test_kernel_is_used_and_mode_off_runs_torch(kernels, monkeypatch):
+    calls = []
+    _, native_r = _pair()
+    real = native_render.Kernels.levels
+    monkeypatch.setattr(native_render.Kernels, "levels", lambda self, *a, **k: calls.append(1) or real(self, *a, **k))
+    alt, idx = _altitudes(5)
+    native_r.render(alt, idx)
+    assert calls == [1]
+    monkeypatch.setattr(native_render.LIBRARY, "chosen", False)
+    assert native_render.kernel_for(alt) is None
+    native_r.render(alt, idx)
+    assert calls == [1]
+
+
+def test_kernel_checks_its_inputs(kernels):
+    atlas = torch.rand(64, 128)
+    off = torch.zeros(4, 2)
+    slopes = torch.zeros(2, 3, 4, 4)
+    rng, frac, gain, out = torch.ones(2), torch.zeros(2), torch.ones(4, 4), torch.empty(2, 4, 4)
+    kernels.levels(atlas, off, slopes, torch.tensor([0, 2]), rng, frac, gain, out)
+    assert torch.isfinite(out).all()
+    with pytest.raises(RuntimeError, match="site index"):
+        kernels.levels(atlas, off, slopes, torch.tensor([0, 3]), rng, frac, gain, out)
+    with pytest.raises(RuntimeError, match="atlas must be a contiguous CPU float32"):
+        kernels.levels(atlas.double(), off, slopes, torch.tensor([0, 1]), rng, frac, gain, out)
+    with pytest.raises(RuntimeError, match="off must be"):
+        kernels.levels(atlas, off[:3], slopes, torch.tensor([0, 1]), rng, frac, gain, out)
+    with pytest.raises(RuntimeError, match="site_idx"):
+        kernels.relief(atlas, off[:2], slopes, torch.tensor([0]), torch.ones(2), torch.ones(2), torch.ones(2), 1)
+
+
+def test_relief_matches_its_definition(kernels):
+    """On a constant height field h the ranges are max(z - h, 0.05 z) times inv_lo, whatever the slopes."""
+    atlas = torch.full((32, 64), 30.0)
+    slopes = torch.randn(2, 2, 6, 6)
+    z = torch.tensor([100.0, 20.0, 500.0])
+    inv_lo = torch.tensor([1.0, 0.5, 0.25])
+    r = kernels.relief(atlas, torch.zeros(2, 3), slopes, torch.tensor([0, 1, 1]), z, torch.ones(3), inv_lo, 2)
+    want = torch.maximum(z - 30.0, 0.05 * z) * inv_lo
+    assert r.shape == (3, 6, 6) and torch.equal(r, want[:, None, None].expand(3, 6, 6))
