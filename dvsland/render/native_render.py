@@ -64,12 +64,9 @@ struct Tex {
 };
 
 // torch.grid_sampler's sample at normalised (gx, gy): unnormalise, clamp to the border, four corners.
-// Each row's two corners come in one 8-byte load (two adjacent texels: half the gathers). At the last
-// column (x clamped to it, so its right weight is exactly 0) the pair starts one texel left and the
-// texel is read from its upper half: the right corner reads the last texel in place of torch's masked
-// 0, which adds the same +0. The bottom row likewise reads its own row as the row below (weight 0).
+// A corner past the last row or column has weight 0 exactly (the coordinate is clamped to the last
+// texel); it reads the last texel in place of torch's masked 0, which adds the same +0.
 DVS_INLINE float sample(const Tex& t, float gx, float gy) {
-  typedef uint64_t __attribute__((__may_alias__, aligned(4))) pair_t;
   float ix = __builtin_fmaf(gx + 1.0f, t.sx, -0.5f);
   float iy = __builtin_fmaf(gy + 1.0f, t.sy, -0.5f);
   ix = ix < 0.0f ? 0.0f : ix;
@@ -79,15 +76,11 @@ DVS_INLINE float sample(const Tex& t, float gx, float gy) {
   const float xw = __builtin_floorf(ix), yn = __builtin_floorf(iy);
   const float w = ix - xw, e = 1.0f - w, n = iy - yn, s = 1.0f - n;
   const int32_t x0 = (int32_t)xw, y0 = (int32_t)yn;
-  const int32_t last = x0 + 1 >= t.Wa;  // the pair (x0 - 1, x0): both corners from its upper half
-  const int32_t dy = y0 + 1 < t.Ha ? t.Wa : 0;
-  const int32_t i0 = y0 * t.Wa + x0 - last;
-  const uint64_t top = *(const pair_t*)(t.a + i0), bottom = *(const pair_t*)(t.a + i0 + dy);
-  const uint32_t bits[4] = {last ? (uint32_t)(top >> 32) : (uint32_t)top, (uint32_t)(top >> 32),
-                            last ? (uint32_t)(bottom >> 32) : (uint32_t)bottom, (uint32_t)(bottom >> 32)};
-  float v[4];
-  __builtin_memcpy(v, bits, sizeof v);
-  return __builtin_fmaf(v[3], n * w, __builtin_fmaf(v[2], n * e, __builtin_fmaf(v[1], s * w, v[0] * (s * e))));
+  const int32_t dx = x0 + 1 < t.Wa ? 1 : 0, dy = y0 + 1 < t.Ha ? t.Wa : 0;
+  const int32_t i0 = y0 * t.Wa + x0;
+  const float* __restrict a = t.a;
+  return __builtin_fmaf(a[i0 + dy + dx], n * w,
+                        __builtin_fmaf(a[i0 + dy], n * e, __builtin_fmaf(a[i0 + dx], s * w, a[i0] * (s * e))));
 }
 
 // One frame: out[p] = lerp(v0, v1, frac) * gain[p], v_k = level k's sample at its grid (see module doc).
@@ -157,11 +150,11 @@ extern "C" {
 
 // out (B, P) = the blended, gain-weighted frames. atlas (Ha, Wa); off (4, B) (x lo, y lo, x lo+1 - x lo / 2,
 // y lo+1 - y lo / 2); slopes (2, S, P); site (B,) in [0, S); rng (B, P) or (B,); frac (B,); gain (S, P) or (P,).
-// Returns 0, or -1 on a bad size (the atlas at least 2 texels wide) or site index.
+// Returns 0, or -1 on a bad size or site index.
 int64_t render_levels(const float* atlas, int64_t Ha, int64_t Wa, const float* off, int64_t B, const float* slopes,
                       int64_t S, const int64_t* site, const float* rng, int64_t rng_per_pixel, const float* frac,
                       const float* gain, int64_t gain_per_site, float* out, int64_t P, int64_t n_threads) {
-  if (Ha < 1 || Wa < 2 || Ha * Wa >= (int64_t(1) << 31) || B < 0 || S < 1 || P < 1) return -1;
+  if (Ha < 1 || Wa < 1 || Ha * Wa >= (int64_t(1) << 31) || B < 0 || S < 1 || P < 1) return -1;
   for (int64_t f = 0; f < B; ++f) if (site[f] < 0 || site[f] >= S) return -1;
   const Tex t = texture(atlas, Ha, Wa);
   parallel_ranges(B, n_threads, [&](int64_t f0, int64_t f1) {
@@ -175,7 +168,7 @@ int64_t render_levels(const float* atlas, int64_t Ha, int64_t Wa, const float* o
 int64_t render_relief(const float* atlas, int64_t Ha, int64_t Wa, const float* off, int64_t B, const float* slopes,
                       int64_t S, const int64_t* site, const float* z, const float* inv, const float* inv_lo,
                       int64_t iters, float* out, int64_t Q, int64_t n_threads) {
-  if (Ha < 1 || Wa < 2 || Ha * Wa >= (int64_t(1) << 31) || B < 0 || S < 1 || Q < 1 || iters < 0) return -1;
+  if (Ha < 1 || Wa < 1 || Ha * Wa >= (int64_t(1) << 31) || B < 0 || S < 1 || Q < 1 || iters < 0) return -1;
   for (int64_t f = 0; f < B; ++f) if (site[f] < 0 || site[f] >= S) return -1;
   const Tex t = texture(atlas, Ha, Wa);
   parallel_ranges(B, n_threads, [&](int64_t f0, int64_t f1) {
