@@ -206,6 +206,45 @@ extern "C" void dvs_refractory_keep(const int64_t* pix, const int64_t* t, int64_
   }
 }
 
+// The active pixels, those with an active 8-neighbour and the cells' active pixels of one element's
+// occupancy image img ((H + 2) x (W + 2), zero border; 0 = no event), added to its outputs: a dense pass
+// over the pixels, three rows at a time (vectorised), for windows with many events.
+static void dense_counts(const uint8_t* img, int64_t H, int64_t W, int64_t cell, int64_t Hc, int64_t Wc,
+                         float* cells, float* active, float* with_nb, std::vector<int32_t>& col) {
+  const int64_t Wp = W + 2;
+  int64_t n_act = 0, n_nb = 0;
+  col.assign(size_t(W), 0);
+  for (int64_t y = 0; y < H; ++y) {
+    const uint8_t* __restrict r0 = img + y * Wp;  // the rows above, at and below sensor row y
+    const uint8_t* __restrict r1 = r0 + Wp;
+    const uint8_t* __restrict r2 = r1 + Wp;
+    int32_t a = 0, w = 0;
+    for (int64_t x = 1; x <= W; ++x) {
+      const int32_t c = r1[x] != 0;
+      const int32_t nb = (r0[x - 1] | r0[x] | r0[x + 1] | r1[x - 1] | r1[x + 1] | r2[x - 1] | r2[x] | r2[x + 1]) != 0;
+      a += c;
+      w += c & nb;
+    }
+    n_act += a;
+    n_nb += w;
+    if (cells && y < Hc * cell) {  // a band of cell rows: per-column counts, then per cell
+      int32_t* __restrict cl = col.data();
+      for (int64_t x = 0; x < W; ++x) cl[x] += r1[x + 1] != 0;
+      if ((y + 1) % cell == 0) {
+        float* row = cells + (y / cell) * Wc;
+        for (int64_t j = 0; j < Wc; ++j) {
+          int32_t s = 0;
+          for (int64_t x = j * cell; x < (j + 1) * cell; ++x) s += cl[x];
+          row[j] += float(s);
+        }
+        col.assign(size_t(W), 0);
+      }
+    }
+  }
+  *active += float(n_act);
+  *with_nb += float(n_nb);
+}
+
 // The integer counts and float32 sums of the estimators' motion-evidence test
 // (dvsland.estimators.abstain), over n events sorted by element b (all on the B x H x W sensor):
 // per element the active pixels, those with an active 8-neighbour and, when cells is not null,
@@ -213,7 +252,8 @@ extern "C" void dvs_refractory_keep(const int64_t* pix, const int64_t* t, int64_
 // first rows and columns); and the sums of (t, p, t^2, p t) over its events in their order (float32,
 // as torch's segment sum adds them: the events must come sorted by b, one run per element),
 // t = (t_us_event - t_us) as float32 divided by the largest |t| over all events (at least 1).
-// Outputs zeroed by the caller.
+// The counts are integers (exact whatever the order): from a dense pass over the pixels where the
+// window holds at least one event per 16 pixels, else event by event. Outputs zeroed by the caller.
 extern "C" void dvs_motion_counts(const int64_t* b, const int64_t* x, const int64_t* y, const int64_t* t,
                                   const int8_t* p, int64_t n, int64_t B, int64_t H, int64_t W, int64_t cell,
                                   int64_t t_us, float* cells, float* active, float* with_nb, float* sums) {
@@ -223,24 +263,30 @@ extern "C" void dvs_motion_counts(const int64_t* b, const int64_t* x, const int6
   uint8_t* o = occ.data();  // a local pointer: byte stores may alias the vector (a TLS look-up per access)
   for (int64_t i = 0; i < n; ++i) o[b[i] * P + (y[i] + 1) * Wp + x[i] + 1] = 1;
   const int64_t Hc = cell > 0 ? H / cell : 0, Wc = cell > 0 ? W / cell : 0;
-  const int64_t nb[8] = {-Wp - 1, -Wp, -Wp + 1, -1, 1, Wp - 1, Wp, Wp + 1};
-  // per run of equal b (one run per element: the events come sorted by b), counts in registers
-  int64_t n_act = 0, n_nb = 0;
-  for (int64_t i = 0; i < n; ++i) {
-    const int64_t k = b[i] * P + (y[i] + 1) * Wp + x[i] + 1;
-    if (o[k] == 1) {  // each active pixel once
-      o[k] = 2;
-      ++n_act;
-      bool any = false;
-      for (int j = 0; j < 8; ++j) any |= o[k + nb[j]] != 0;
-      n_nb += any;
-      if (cells && y[i] < Hc * cell && x[i] < Wc * cell)
-        cells[b[i] * Hc * Wc + (y[i] / cell) * Wc + x[i] / cell] += 1.0f;
-    }
-    if (i + 1 == n || b[i + 1] != b[i]) {
-      active[b[i]] += float(n_act);
-      with_nb[b[i]] += float(n_nb);
-      n_act = n_nb = 0;
+  if (16 * n >= B * H * W) {
+    static thread_local std::vector<int32_t> col;
+    for (int64_t e = 0; e < B; ++e)
+      dense_counts(o + e * P, H, W, cell, Hc, Wc, cells ? cells + e * Hc * Wc : nullptr, active + e, with_nb + e, col);
+  } else {
+    const int64_t nb[8] = {-Wp - 1, -Wp, -Wp + 1, -1, 1, Wp - 1, Wp, Wp + 1};
+    // per run of equal b (one run per element: the events come sorted by b), counts in registers
+    int64_t n_act = 0, n_nb = 0;
+    for (int64_t i = 0; i < n; ++i) {
+      const int64_t k = b[i] * P + (y[i] + 1) * Wp + x[i] + 1;
+      if (o[k] == 1) {  // each active pixel once
+        o[k] = 2;
+        ++n_act;
+        bool any = false;
+        for (int j = 0; j < 8; ++j) any |= o[k + nb[j]] != 0;
+        n_nb += any;
+        if (cells && y[i] < Hc * cell && x[i] < Wc * cell)
+          cells[b[i] * Hc * Wc + (y[i] / cell) * Wc + x[i] / cell] += 1.0f;
+      }
+      if (i + 1 == n || b[i + 1] != b[i]) {
+        active[b[i]] += float(n_act);
+        with_nb[b[i]] += float(n_nb);
+        n_act = n_nb = 0;
+      }
     }
   }
   float m = 0.0f;
