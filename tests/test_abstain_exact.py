@@ -76,7 +76,7 @@ def _window(g, B, W, H, N, structured):
     return Events(b, x, y, t, p, sort=True)
 
 
-# the compiled counts take a dense pass over the pixels from one event per 16 pixels, else go event by
+# the compiled counts take a dense pass over the pixels from one event per 10 pixels, else go event by
 # event: (4, 64, 64, 500) and (6, 50, 40, 700) are the sparse windows
 @pytest.mark.parametrize("B,W,H,N", [(3, 40, 30, 900), (1, 9, 9, 60), (5, 128, 128, 30000), (4, 33, 17, 3000),
                                      (2, 7, 7, 10), (4, 64, 64, 500), (6, 50, 40, 700)])
