@@ -29,6 +29,20 @@ ON, OFF, AUTO = "on", "off", "auto"
 ABI = "dvsland-c-abi-1"
 
 
+#: C++ shared by the kernels' sources (which include <algorithm>, <cstdint>, <thread> and <vector>
+#: before it): ``parallel_ranges(n, n_threads, f)`` runs f(lo, hi) over [0, n) split into contiguous
+#: ranges on that many threads
+PARALLEL_RANGES = r"""// f(lo, hi) over [0, n) split into n_threads contiguous ranges (one call when n_threads <= 1)
+template <class F> static void parallel_ranges(int64_t n, int64_t n_threads, F f) {
+  const int64_t k = std::min<int64_t>(std::max<int64_t>(n_threads, 1), std::max<int64_t>(n, 1));
+  if (k <= 1) { f(0, n); return; }
+  std::vector<std::thread> pool;
+  for (int64_t i = 0; i < k; ++i) pool.emplace_back(f, n * i / k, n * (i + 1) / k);
+  for (auto& t : pool) t.join();
+}
+"""
+
+
 def mode_from_env(env_var: str, chosen: Optional[bool]) -> str:
     """``"on"``, ``"off"`` or ``"auto"``: the process's ``chosen`` mode (True / False), else the
     environment variable ``env_var`` (empty or unset = auto).
@@ -309,6 +323,6 @@ def timed_build(what: str, library: "NativeLibrary") -> int:
     return 0
 
 
-__all__ = ["load_or_warn", "timed_build", "ON", "OFF", "AUTO", "ABI", "mode_from_env", "compiler", "library_name",
-           "library_dir", "library_file", "library_cached", "load_library", "build_library", "build_lock",
-           "NativeLibrary", "bind_functions", "tensor_address"]
+__all__ = ["PARALLEL_RANGES", "load_or_warn", "timed_build", "ON", "OFF", "AUTO", "ABI", "mode_from_env", "compiler",
+           "library_name", "library_dir", "library_file", "library_cached", "load_library", "build_library",
+           "build_lock", "NativeLibrary", "bind_functions", "tensor_address"]

@@ -40,7 +40,7 @@ from typing import Optional
 
 import torch
 
-from dvsland.native_build import NativeLibrary, bind_functions, tensor_address as _ptr
+from dvsland.native_build import PARALLEL_RANGES, NativeLibrary, bind_functions, tensor_address as _ptr
 
 _SRC = r"""
 #include <algorithm>
@@ -50,15 +50,7 @@ _SRC = r"""
 #include <thread>
 #include <vector>
 
-// f(lo, hi) over [0, n) split into n_threads contiguous ranges (one call when n_threads <= 1)
-template <class F> static void parallel_ranges(int64_t n, int64_t n_threads, F f) {
-  const int64_t k = std::min<int64_t>(std::max<int64_t>(n_threads, 1), std::max<int64_t>(n, 1));
-  if (k <= 1) { f(0, n); return; }
-  std::vector<std::thread> pool;
-  for (int64_t i = 0; i < k; ++i) pool.emplace_back(f, n * i / k, n * (i + 1) / k);
-  for (auto& t : pool) t.join();
-}
-
+""" + PARALLEL_RANGES + r"""
 // A stable counting sort of the events [0, E) by key(e) in [0, n_keys): start (n_keys + 1) the first
 // position of each key in order (E), which lists the events key by key, in event order within a key.
 template <class F>

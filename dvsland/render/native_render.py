@@ -29,7 +29,7 @@ from typing import Optional
 
 import torch
 
-from dvsland.native_build import NativeLibrary, bind_functions
+from dvsland.native_build import PARALLEL_RANGES, NativeLibrary, bind_functions
 
 _SRC = r"""
 #include <algorithm>
@@ -38,15 +38,7 @@ _SRC = r"""
 #include <thread>
 #include <vector>
 
-// f(lo, hi) over [0, n) split into n_threads contiguous ranges (one call when n_threads <= 1)
-template <class F> static void parallel_ranges(int64_t n, int64_t n_threads, F f) {
-  const int64_t k = std::min<int64_t>(std::max<int64_t>(n_threads, 1), std::max<int64_t>(n, 1));
-  if (k <= 1) { f(0, n); return; }
-  std::vector<std::thread> pool;
-  for (int64_t i = 0; i < k; ++i) pool.emplace_back(f, n * i / k, n * (i + 1) / k);
-  for (auto& t : pool) t.join();
-}
-
+""" + PARALLEL_RANGES + r"""
 // Clones per instruction set (x86-64-v4: AVX-512, v3: AVX2 + FMA), picked at load time: the fma below
 // are single instructions there and a (slow, exact) libm call in the baseline clone.
 #if defined(__x86_64__) && defined(__linux__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11
