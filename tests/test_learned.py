@@ -59,6 +59,27 @@ def test_voxel_grid_is_signed_pooled_and_conserves_counts():
     assert v[1, 2, 3, 4] == pytest.approx(-1.0) and v[1, 1, 3, 4] == pytest.approx(1.0)
 
 
+@pytest.mark.parametrize("pool", [2, 3, 4])
+def test_one_bin_grid_compiled_counts_are_the_torch_counts(pool):
+    """A ring input's one-bin window (the shipped CNN's) comes from the compiled per-cell counts
+    (dvsland.events.native) where a compiler is found: the same grid as the torch path's bincount."""
+    from dvsland.events import native
+
+    if native.load() is None:
+        pytest.skip("no C++ compiler here")
+    spec = InputSpec((45, 30), n_bins=4, pool_px=pool, n_windows=4)
+    g = torch.Generator().manual_seed(pool)
+    n = 5000
+    b = torch.sort(torch.randint(0, 3, (n,), generator=g)).values
+    x, y = torch.randint(0, 45, (n,), generator=g), torch.randint(0, 30, (n,), generator=g)
+    p = (torch.randint(0, 2, (n,), generator=g) * 2 - 1).to(torch.int8)
+    got = voxel_grid(b, x, y, b, p, 3, spec, spec.bins_per_window)
+    with native.native_sort_mode(False):
+        want = voxel_grid(b, x, y, b, p, 3, spec, spec.bins_per_window)
+    assert got.shape == want.shape == (3, 1, *spec.grid_hw) and got.dtype == want.dtype == torch.float32
+    assert torch.equal(got, want) and float(got.abs().sum()) > 0
+
+
 def test_coord_channels_are_relative_to_the_principal_point():
     spec = InputSpec((128, 128), pool_px=1, coord_scale_px=64.0)
     c = coord_channels(spec, (10.0, 20.0))

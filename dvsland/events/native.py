@@ -309,6 +309,28 @@ extern "C" void dvs_motion_counts(const int64_t* b, const int64_t* x, const int6
   }
 }
 
+// Signed event counts per pooled cell: out[b, y / pool, x / pool] += p (ON +1, OFF -1) over n events on a
+// W x H sensor pooled to h x w cells (out (B, h, w) float32, zeroed by the caller; the sums are whole
+// numbers, exact in float32 below 2^24 in any order). Returns 0, or -1 where an event's cell lies outside
+// the B x h x w grid (nothing is then trusted: the caller runs its torch path).
+extern "C" int64_t dvs_cell_counts(const int64_t* b, const int64_t* x, const int64_t* y, const int8_t* p, int64_t n,
+                                   int64_t B, int64_t h, int64_t w, int64_t pool, float* out) {
+  const int64_t size = B * h * w, X = w * pool, Y = h * pool;
+  // each column's and row's offset in a grid (tables: no division per event)
+  static thread_local std::vector<int32_t> col, row;
+  col.resize(size_t(X));
+  row.resize(size_t(Y));
+  for (int64_t v = 0; v < X; ++v) col[v] = int32_t(v / pool);
+  for (int64_t v = 0; v < Y; ++v) row[v] = int32_t((v / pool) * w);
+  const int32_t* cx = col.data();
+  const int32_t* cy = row.data();
+  for (int64_t i = 0; i < n; ++i)
+    if (b[i] < 0 || b[i] >= B || x[i] < 0 || x[i] >= X || y[i] < 0 || y[i] >= Y) return -1;
+  for (int64_t i = 0; i < n; ++i) out[b[i] * (h * w) + cy[y[i]] + cx[x[i]]] += float(p[i]);
+  (void)size;
+  return 0;
+}
+
 // The ideal pixel's step (log interpolation, scalar thresholds and refractory period) in one pass
 // over the pixels, the same float64 operations in the same order as EventEmulator._pixel_events /
 // _emitted_log / _extra_keys (torch's addcmul is a fused multiply-add: std::fma here). Updates
@@ -450,6 +472,7 @@ _SIGNATURES = {
     "dvs_pixel_scan": ([_P] * 6 + [_I64] * 5 + [_F64, _F64, _P, _P, _F64, _P, _F64, _F64, _I64], _F64),
     "dvs_pixel_write": ([_F64, _I64, _P], _VOID),
     "dvs_motion_counts": ([_P] * 5 + [_I64] * 6 + [_P] * 4, _VOID),
+    "dvs_cell_counts": ([_P] * 4 + [_I64] * 5 + [_P], _I64),
 }
 
 
@@ -504,6 +527,16 @@ class Kernels:
             int(W), int(cell) if cells is not None else 0, int(t_us), None if cells is None else cells.data_ptr(),
             active.data_ptr(), with_nb.data_ptr(), sums.data_ptr())
         return cells, active, with_nb, sums
+
+    def cell_counts(self, b, x, y, p, B: int, h: int, w: int, pool: int) -> Optional[torch.Tensor]:
+        """(B, h, w) float32 signed counts (ON minus OFF) of N events (int64 b, x, y; int8 p) per ``pool``
+        x ``pool`` cell, or None where a cell falls outside the grid (the caller's torch path decides)."""
+        out = torch.zeros(int(B), int(h), int(w), dtype=torch.float32)
+        status = self._lib.dvs_cell_counts(
+            _ptr(b, torch.int64, "cell_counts: b"), _ptr(x, torch.int64, "cell_counts: x"),
+            _ptr(y, torch.int64, "cell_counts: y"), _ptr(p, torch.int8, "cell_counts: p"), b.numel(), int(B), int(h),
+            int(w), int(pool), out.data_ptr())
+        return None if status < 0 else out
 
     def pixel_events(self, l1, lref, l0, tlast, shape, b_shift: int, y_shift: int, th_on: float, th_off: float,
                      th_on_map, th_off_map, r: float, r_elem, t0: float, dt: float, spacing_may_bind: bool,

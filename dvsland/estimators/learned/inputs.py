@@ -25,6 +25,7 @@ from typing import NamedTuple, Optional, Tuple
 import torch
 
 from dvsland.config.schema import DEFAULT_FOV_DEG, focal_length_px
+from dvsland.events import native
 
 from ..base import resolve_principal_point
 
@@ -148,6 +149,14 @@ def voxel_grid(b: torch.Tensor, x: torch.Tensor, y: torch.Tensor, frac: torch.Te
     if b.numel() == 0:
         return torch.zeros(size, dtype=torch.float32, device=b.device).view(batch_size, nb, h, w)
     P = spec.pool_px
+    if spec.n_windows > 1 and nb == 1 and b.device.type == "cpu" and not p.is_floating_point():
+        # one bin: the compiled signed counts per cell (events.native), the same whole numbers in one pass
+        mod = native.kernels()
+        out = None if mod is None else mod.cell_counts(b.long().contiguous(), x.long().contiguous(),
+                                                         y.long().contiguous(), p.to(torch.int8).contiguous(),
+                                                         batch_size, h, w, P)
+        if out is not None:
+            return out.view(batch_size, 1, h, w)
     if P & (P - 1) == 0:  # a power of two: shifts (integer division is several times slower)
         sh = P.bit_length() - 1
         cx, cy = x.long() >> sh, y.long() >> sh
