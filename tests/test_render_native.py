@@ -35,8 +35,9 @@ def _same(a: torch.Tensor, b: torch.Tensor) -> None:
 def _pair(**kw):
     rc = kw.pop("render", RenderConfig(threads=1))
     sites = kw.pop("sites", SITES)
-    return (FastRenderer(sites, CAM, rc, disk_cache=False, native=False, **kw),
-            FastRenderer(sites, CAM, rc, disk_cache=False, native=True, **kw))
+    cam = kw.pop("camera", CAM)
+    return (FastRenderer(sites, cam, rc, disk_cache=False, native=False, **kw),
+            FastRenderer(sites, cam, rc, disk_cache=False, native=True, **kw))
 
 
 def _altitudes(n: int, seed: int = 0):
@@ -52,11 +53,14 @@ def test_frames_identical_to_torch_path(kernels):
     _same(torch_r.render(alt, idx), native_r.render(alt, idx))
 
 
-@pytest.mark.parametrize("case", ["no_parallax", "two_parallax", "nearest_level", "threads", "per_site_gain"])
+@pytest.mark.parametrize("case", ["no_parallax", "two_parallax", "nearest_level", "threads", "per_site_gain",
+                                  "odd_sensor", "wide_sensor"])
 def test_every_branch_identical_to_torch_path(kernels, case):
     kw = {"no_parallax": dict(parallax_iters=0), "two_parallax": dict(parallax_iters=2),
           "nearest_level": dict(blend_levels=False), "threads": dict(threads=3),
-          "per_site_gain": dict(sites=["A", "E"], suns=[(12.0, 0.0), (18.0, 5.0)])}[case]
+          "per_site_gain": dict(sites=["A", "E"], suns=[(12.0, 0.0), (18.0, 5.0)]),
+          "odd_sensor": dict(camera=CameraConfig(width_px=35, height_px=27, fov_deg=60.0)),  # full-size relief
+          "wide_sensor": dict(camera=CameraConfig(width_px=64, height_px=36, fov_deg=60.0))}[case]
     torch_r, native_r = _pair(**kw)
     if case == "per_site_gain":
         assert native_r._gain_shared is None  # the gains differ: read per frame by site
