@@ -14,6 +14,38 @@ REPO = Path(__file__).resolve().parents[1]
 torch.set_num_threads(1)
 
 
+#: the CPU the bit-for-bit references of the tests were recorded on: (machine, torch's CPU capability,
+#: vendor). Another CPU may round float reductions (convolutions, sums) differently in the last bits:
+#: those tests then compare to a tolerance or to that CPU's own recorded variant, as
+#: scripts/loop_reference.py does.
+RECORDING_CPU = ("x86_64", "AVX512", "GenuineIntel")
+
+
+def cpu_identity() -> tuple:
+    """(machine, torch's CPU capability, vendor id from /proc/cpuinfo or "") of this machine."""
+    import platform
+
+    vendor = ""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            vendor = next((line.split(":", 1)[1].strip() for line in f if line.startswith("vendor_id")), "")
+    except OSError:
+        pass
+    return platform.machine(), torch.backends.cpu.get_cpu_capability(), vendor
+
+
+@pytest.fixture(scope="session")
+def recording_cpu() -> bool:
+    """Whether this CPU is :data:`RECORDING_CPU` (the recorded references hold bit for bit)."""
+    return cpu_identity() == RECORDING_CPU
+
+
+@pytest.fixture(scope="session")
+def cpu_vendor() -> str:
+    """This CPU's vendor id ("GenuineIntel", "AuthenticAMD", ... or "")."""
+    return cpu_identity()[2]
+
+
 def _devices():
     devs = ["cpu"]
     if torch.cuda.is_available():

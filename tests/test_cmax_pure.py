@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import platform
 
 import numpy as np
 import pytest
@@ -103,8 +102,8 @@ D_HAT_HEX = {
              "9a84c2bbcf2595bcb47564bd686062bc6cf825bd07624bbcdc6e0cbd938018bcacbdfbbc683152bc0ad718bdcc63aebc"
              "6ab038bde3c8ddbc5f3826bd866af2bc22f80ebd041cd7bc25441dbd8ebd13bd"),
 }
-#: where the record was made: torch's CPU capability (it sets the order of float reductions)
-RECORDED_ON = ("x86_64", "AVX512")
+# recorded on conftest.RECORDING_CPU (the ``recording_cpu`` fixture): elsewhere the values are compared
+# to a tolerance (another CPU's kernels order float reductions differently)
 
 
 def _fly_recorded(name):
@@ -147,7 +146,7 @@ def _digest(rec) -> str:
 
 @pytest.mark.parametrize("native", [False, True])
 @pytest.mark.parametrize("name", list(RECORDED))
-def test_estimates_and_diagnostics_as_recorded(name, native):
+def test_estimates_and_diagnostics_as_recorded(name, native, recording_cpu):
     """Bit for bit the estimates, confidences and diagnostics of cmax as it was before the stage contract
     (recorded with its torch path), on the torch path and the compiled kernel (where built)."""
     if native and native_cmax.load(force=True) is None:
@@ -157,19 +156,17 @@ def test_estimates_and_diagnostics_as_recorded(name, native):
         rec = _fly_recorded(name)
     finally:
         native_cmax.use_native_cmax(None)
-    assert [float(x) for x in rec[-1][0]] == RECORDED[name][7] or not _recording_cpu()
+    assert [float(x) for x in rec[-1][0]] == RECORDED[name][7] or not recording_cpu
     d = torch.stack([r[0] for r in rec])
     want = torch.from_numpy(np.frombuffer(bytes.fromhex(D_HAT_HEX[name]), dtype="<f4").copy()).view(d.shape)
-    if _recording_cpu():  # bit for bit: estimates, confidences, every diagnostic
+    if recording_cpu:  # bit for bit: estimates, confidences, every diagnostic
         assert torch.equal(d.nan_to_num(-7.0), want.nan_to_num(-7.0))
         assert _digest(rec) == RECORDED[name][6]
-    else:  # another CPU may round float reductions differently (as scripts/loop_reference.py allows)
+    else:  # another CPU may round float reductions differently, and the search's Newton steps carry
+        # that a little further (an AMD EPYC: at most 0.19 % of a value)
         assert torch.equal(d.isnan(), want.isnan())
-        assert torch.allclose(d.nan_to_num(0.0), want.nan_to_num(0.0), rtol=1e-3, atol=1e-6)
+        assert torch.allclose(d.nan_to_num(0.0), want.nan_to_num(0.0), rtol=5e-3, atol=1e-6)
 
-
-def _recording_cpu() -> bool:
-    return (platform.machine(), torch.backends.cpu.get_cpu_capability()) == RECORDED_ON
 
 
 # ------------------------------------------------------------------ the contract

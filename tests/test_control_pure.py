@@ -143,12 +143,21 @@ REFERENCE = {
     "tau_p": "ee11155868f39f8ed8066cf45f308ef5ee602b798e412ac6c69bed4fc0771a3d",
     "tau_p_hover": "2a0fa63be17f29ccc77a314ae0f4a1258b49072a7938acc649124288617867c4",
 }
+#: the same trajectories recorded on other CPUs (by vendor id), where they round differently: "fit"'s
+#: least-squares sums on an AMD EPYC (2026-11-27, from the code that recorded REFERENCE's "fit")
+OTHER_CPUS = {"AuthenticAMD": {"fit": "e8bfa9fe2d386fc197f35b03e3f281d45a0a44f180e92b38c53bf8b3abe044f6"}}
+
+
+def _recorded(name: str, recording_cpu: bool, vendor: str) -> tuple:
+    """The digests ``name`` may have here: REFERENCE's, and this CPU's own recorded variant if any."""
+    other = () if recording_cpu else tuple(v for v in [OTHER_CPUS.get(vendor, {}).get(name)] if v)
+    return (REFERENCE[name],) + other
 
 
 # ------------------------------------------------------------------ the previous outputs, bit for bit
 @pytest.mark.parametrize("name", sorted(_filters()))
-def test_filter_outputs_are_the_previous_ones(name):
-    assert digest(fly_filter_object(name)) == REFERENCE[name]
+def test_filter_outputs_are_the_previous_ones(name, recording_cpu, cpu_vendor):
+    assert digest(fly_filter_object(name)) in _recorded(name, recording_cpu, cpu_vendor)
 
 
 @pytest.mark.parametrize("name", sorted(_laws()))
@@ -188,9 +197,10 @@ def fly_law_contract(name, steps=K):
 
 
 @pytest.mark.parametrize("name", sorted(_filters()))
-def test_filter_contract_agrees_with_the_object_api(name):
+def test_filter_contract_agrees_with_the_object_api(name, recording_cpu, cpu_vendor):
     out, f, _ = fly_filter_contract(name)
-    assert digest(out) == REFERENCE[name]
+    assert digest(out) in _recorded(name, recording_cpu, cpu_vendor)
+    assert digest(out) == digest(fly_filter_object(name))  # the two APIs agree on any CPU
     assert (out[-1][2] is None) == (not f.provides_altitude)
 
 

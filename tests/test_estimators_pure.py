@@ -193,8 +193,9 @@ def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
 
 
 @pytest.mark.parametrize("name", sorted(REFERENCE))
-def test_estimates_equal_those_before_the_stage_contract(name):
-    """The object API (update / reset) on the scenario: D_hat bit for bit as recorded."""
+def test_estimates_equal_those_before_the_stage_contract(name, recording_cpu):
+    """The object API (update / reset) on the scenario: D_hat bit for bit as recorded (on another CPU,
+    whose convolutions and sums may round differently, within float32 rounding of the record)."""
     est_name, sensor, (n_blobs, epb), params = SCENARIOS[name]
     est = get_estimator(est_name, B, sensor, **params)
     got = []
@@ -204,7 +205,10 @@ def test_estimates_equal_those_before_the_stage_contract(name):
         got.append(est.update(ev, t))
     got = torch.stack(got)
     want = torch.tensor(REFERENCE[name], dtype=torch.float32).view_as(got)
-    assert _same(got, want), f"{name}: max |diff| {(got - want).abs().nan_to_num(0).max()}"
+    close = torch.equal(got.isnan(), want.isnan()) and torch.allclose(got.nan_to_num(0), want.nan_to_num(0),
+                                                                       rtol=1e-4, atol=1e-6)
+    assert _same(got, want) or (close and not recording_cpu), \
+        f"{name}: max |diff| {(got - want).abs().nan_to_num(0).max()}"
 
 
 # ------------------------------------------------------------------ the contract, per stage
