@@ -175,21 +175,23 @@ def test_native_kernel_respects_the_event_cap(fresh):
 
 
 def test_cli_build_native_builds_both_kernels_and_reports(monkeypatch, capsys):
-    """`dvsland build-native` builds the renderer's, the emulator's, cmax's and dpr's kernels (compile
-    mocked here) and returns 1 when one cannot be built, naming it."""
+    """`dvsland build-native` builds the terrain's, the renderer's, the emulator's, cmax's and dpr's kernels
+    (compile mocked here) and returns 1 when one cannot be built, naming it."""
     from dvsland.cli.main import main
     from dvsland.estimators import native_cmax, native_dpr
     from dvsland.render import native_render
+    from dvsland.terrain import native_noise
 
     built = []
+    monkeypatch.setattr(native_noise.LIBRARY, "build", lambda verbose=False: built.append("terrain"))
     monkeypatch.setattr(native_render.LIBRARY, "build", lambda verbose=False: built.append("render"))
     monkeypatch.setattr(native.LIBRARY, "build", lambda verbose=False: built.append("events"))
     monkeypatch.setattr(native_cmax.LIBRARY, "build", lambda verbose=False: built.append("cmax"))
     monkeypatch.setattr(native_dpr.LIBRARY, "build", lambda verbose=False: built.append("dpr"))
-    assert main(["build-native"]) == 0 and built == ["render", "events", "cmax", "dpr"]
+    assert main(["build-native"]) == 0 and built == ["terrain", "render", "events", "cmax", "dpr"]
     out = capsys.readouterr().out
-    assert all(f"dvsland.{m}" in out for m in ("render.native_render", "events.native", "estimators.native_cmax",
-                                               "estimators.native_dpr"))
+    assert all(f"dvsland.{m}" in out for m in ("terrain.native_noise", "render.native_render", "events.native",
+                                               "estimators.native_cmax", "estimators.native_dpr"))
 
     def broken(verbose=False):
         raise RuntimeError("no compiler")

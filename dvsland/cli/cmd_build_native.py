@@ -1,5 +1,5 @@
-"""``dvsland build-native``: compile the C++ kernels (the renderer's, the emulator's, ``cmax``'s, ``dpr``'s)
-ahead of use.
+"""``dvsland build-native``: compile the C++ kernels (the terrain's, the renderer's, the emulator's, ``cmax``'s,
+``dpr``'s) ahead of use.
 Every process builds them on first use anyway where a C++ compiler is found (a second or two,
 once per machine); this command does it now and reports the time and the folder, or the error."""
 
@@ -8,15 +8,15 @@ from __future__ import annotations
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "build-native", help="compile the C++ kernels of the renderer, the emulator, cmax and dpr now (a second or "
-                             "two each; otherwise done on first use)",
-        description="Compile the fast renderer's, the emulator's, cmax's and dpr's C++ kernels (needs a C++ compiler: $CXX, c++, g++ or "
-                    "clang++) into the kernel cache (~/.cache/torch_extensions/dvsland, or $TORCH_EXTENSIONS_DIR). "
+        "build-native", help="compile the C++ kernels of the terrain, the renderer, the emulator, cmax and dpr now (a "
+                             "second or two each; otherwise done on first use)",
+        description="Compile the terrain's, the fast renderer's, the emulator's, cmax's and dpr's C++ kernels (needs "
+                    "a C++ compiler: $CXX, c++, g++ or clang++) into the kernel cache (~/.cache/torch_extensions/dvsland, or $TORCH_EXTENSIONS_DIR). "
                     "Every process builds them on first use anyway where a compiler is found "
-                    "(DVSLAND_NATIVE_RENDER / DVSLAND_NATIVE_SORT / DVSLAND_NATIVE_CMAX / DVSLAND_NATIVE_DPR = auto, the "
-                    "default) and uses them: the same frames, events and estimates as the torch path, cmax 2.5-3.5x, "
-                    "the emulator and the renderer's sampling about 2x cheaper "
-                    "(docs/howto/devices.md). This command reports the build's time and folder, or its error.")
+                    "(DVSLAND_NATIVE_TERRAIN / DVSLAND_NATIVE_RENDER / DVSLAND_NATIVE_SORT / DVSLAND_NATIVE_CMAX / "
+                    "DVSLAND_NATIVE_DPR = auto, the default) and uses them: the same terrain, frames, events and "
+                    "estimates as the torch path, cmax 2.5-3.5x, the emulator and the renderer's sampling about 2x "
+                    "cheaper (docs/howto/devices.md). This command reports the build's time and folder, or its error.")
     p.set_defaults(func=run_build_native)
 
 
@@ -25,8 +25,10 @@ def run_build_native(args) -> int:
     from dvsland.events import native
     from dvsland.native_build import timed_build
     from dvsland.render import native_render
+    from dvsland.terrain import native_noise
 
-    rc = timed_build("the renderer kernels", native_render.LIBRARY)
+    rc = timed_build("the terrain noise kernel", native_noise.LIBRARY)
+    rc = max(rc, timed_build("the renderer kernels", native_render.LIBRARY))
     rc = max(rc, timed_build("the emulator kernels", native.LIBRARY))
     rc = max(rc, timed_build("the cmax kernel", native_cmax.LIBRARY))
     return max(rc, timed_build("the dpr mean-shift kernel", native_dpr.LIBRARY))

@@ -1,8 +1,10 @@
 """Seeded 2-D gradient (Perlin) noise and band-limited fBm, evaluated at world points.
 
 Lattice gradients come from a seeded permutation table (period 4096 cells, one table per
-octave) and a fixed table of 16 unit vectors, so a value depends only on the point, the wavelength and the seed: the terrain is
-continuous and any grid over it is reproducible bit for bit (float64 on CPU).
+octave) and a fixed table of 16 unit vectors, so a value depends only on the point, the wavelength
+and the seed: the terrain is continuous and any grid over it is reproducible bit for bit (float64 on
+CPU). On the CPU each octave of :func:`fbm` runs as one compiled pass where a C++ compiler is found
+(:mod:`dvsland.terrain.native_noise`), with the same bits as the torch passes here.
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ import math
 
 import numpy as np
 import torch
+
+from . import native_noise
 
 _PERIOD = 4096  # lattice period in cells (per octave; octaves have their own tables)
 _ANG = torch.arange(16, dtype=torch.float64) * (2 * math.pi / 16) + math.pi / 16
@@ -89,6 +93,7 @@ def fbm(x_m: torch.Tensor, y_m: torch.Tensor, seed: int, texel_m: float, max_wav
     Only octaves with ``lam_from <= lambda < lam_below`` are summed (to split the work in tiers).
     """
     out = torch.zeros_like(x_m)
+    kern = _octave_kernel(x_m, y_m, out)
     lam = max_wavelength_m
     k = 0
     while lam >= min_wavelength_m * 0.999:
@@ -99,7 +104,18 @@ def fbm(x_m: torch.Tensor, y_m: torch.Tensor, seed: int, texel_m: float, max_wav
             amp = amplitude_at_1km * (lam / 1000.0) ** hurst * w
             # per-octave offset decorrelates the lattices of neighbouring octaves
             off = 0.5 + 0.37 * k
-            out += amp * perlin(x_m / lam + off, y_m / lam - off, seed * 131 + k)
+            s = seed * 131 + k
+            # the compiled octave where it runs (native_noise: the same bits), else torch's passes
+            if kern is None or not kern.add_octave(x_m, y_m, lam, off, amp, _tables(s), _PERIOD, out):
+                out += amp * perlin(x_m / lam + off, y_m / lam - off, s)
         lam *= 0.5
         k += 1
     return out
+
+
+def _octave_kernel(x_m: torch.Tensor, y_m: torch.Tensor, out: torch.Tensor):
+    """:mod:`dvsland.terrain.native_noise`'s kernels where they take these points (contiguous CPU
+    float64 of one shape) and are enabled, else None."""
+    ok = (x_m.dtype == y_m.dtype == torch.float64 and x_m.device.type == "cpu" and y_m.device.type == "cpu"
+          and x_m.shape == y_m.shape and x_m.is_contiguous() and y_m.is_contiguous())
+    return native_noise.kernel_for(out) if ok else None
