@@ -43,6 +43,20 @@ template <class F> static void parallel_ranges(int64_t n, int64_t n_threads, F f
 """
 
 
+#: C++ shared by the kernels' sources: the ``DVS_CLONES`` (one clone per x86-64 instruction-set level,
+#: picked at load time, on GCC >= 11 / Linux; nothing elsewhere) and ``DVS_INLINE`` attributes
+CLONES = r"""// DVS_CLONES: a function compiled per instruction set (x86-64-v4: AVX-512, v3: AVX2 + FMA, and the
+// baseline), the clone picked at load time; __builtin_fmaf is one instruction in the first two and an
+// (exact, slower) libm call in the baseline. DVS_INLINE: inlined into each clone.
+#if defined(__x86_64__) && defined(__linux__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11
+#define DVS_CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#else
+#define DVS_CLONES
+#endif
+#define DVS_INLINE __attribute__((always_inline)) static inline
+"""
+
+
 def mode_from_env(env_var: str, chosen: Optional[bool]) -> str:
     """``"on"``, ``"off"`` or ``"auto"``: the process's ``chosen`` mode (True / False), else the
     environment variable ``env_var`` (empty or unset = auto).
@@ -323,6 +337,6 @@ def timed_build(what: str, library: "NativeLibrary") -> int:
     return 0
 
 
-__all__ = ["PARALLEL_RANGES", "load_or_warn", "timed_build", "ON", "OFF", "AUTO", "ABI", "mode_from_env", "compiler",
+__all__ = ["CLONES", "PARALLEL_RANGES", "load_or_warn", "timed_build", "ON", "OFF", "AUTO", "ABI", "mode_from_env", "compiler",
            "library_name", "library_dir", "library_file", "library_cached", "load_library", "build_library",
            "build_lock", "NativeLibrary", "bind_functions", "tensor_address"]

@@ -29,7 +29,7 @@ from typing import Optional
 
 import torch
 
-from dvsland.native_build import PARALLEL_RANGES, NativeLibrary, bind_functions
+from dvsland.native_build import CLONES, PARALLEL_RANGES, NativeLibrary, bind_functions
 
 _SRC = r"""
 #include <algorithm>
@@ -39,15 +39,7 @@ _SRC = r"""
 #include <vector>
 
 """ + PARALLEL_RANGES + r"""
-// Clones per instruction set (x86-64-v4: AVX-512, v3: AVX2 + FMA), picked at load time: the fma below
-// are single instructions there and a (slow, exact) libm call in the baseline clone.
-#if defined(__x86_64__) && defined(__linux__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11
-#define DVS_CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
-#else
-#define DVS_CLONES
-#endif
-#define DVS_INLINE __attribute__((always_inline)) static inline
-
+""" + CLONES + r"""
 // The texture's geometry for torch.grid_sampler (bilinear, border padding, align_corners=False).
 struct Tex {
   const float* __restrict a;  // (Ha, Wa) float32, row-major

@@ -21,21 +21,13 @@ from typing import Optional
 
 import torch
 
-from dvsland.native_build import NativeLibrary, bind_functions
+from dvsland.native_build import CLONES, NativeLibrary, bind_functions
 
 _SRC = r"""
 #include <cmath>
 #include <cstdint>
 
-// Clones per instruction set (x86-64-v4: AVX-512, v3: AVX2 + FMA), picked at load time: the fma below are
-// single instructions there and an (exact, slower) libm call in the baseline clone.
-#if defined(__x86_64__) && defined(__linux__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11
-#define DVS_CLONES __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
-#else
-#define DVS_CLONES
-#endif
-#define DVS_INLINE __attribute__((always_inline)) static inline
-
+""" + CLONES + r"""
 // torch.lerp on a CPU: from the nearer end, one fused multiply-add
 DVS_INLINE float lerp(float a, float b, float w) {
   return __builtin_fabsf(w) < 0.5f ? __builtin_fmaf(w, b - a, a) : __builtin_fmaf(w - 1.0f, b - a, b);
