@@ -69,8 +69,10 @@ int64_t noise_octave(const double* x, const double* y, int64_t n, double lam, do
 }
 """
 
-# every operation rounded on its own, as the torch path's separate passes (the fma above are lerp's own)
-_CFLAGS = ["-O3", "-ffp-contract=off", "-std=c++17"]
+# every operation rounded on its own, as the torch path's separate passes (the fma above are lerp's own);
+# -fno-trapping-math lets the compiler vectorise lerp's two-sided select (no value changes, only whether
+# floating-point exception flags could be raised)
+_CFLAGS = ["-O3", "-ffp-contract=off", "-fno-trapping-math", "-std=c++17"]
 _ENV = "DVSLAND_NATIVE_TERRAIN"
 _I64, _F64, _P = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 #: the C function's (argument types, result type)
