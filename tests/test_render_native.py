@@ -109,3 +109,11 @@ def test_relief_matches_its_definition(kernels):
     r = kernels.relief(atlas, torch.zeros(2, 3), slopes, torch.tensor([0, 1, 1]), z, torch.ones(3), inv_lo, 2)
     want = torch.maximum(z - 30.0, 0.05 * z) * inv_lo
     assert r.shape == (3, 6, 6) and torch.equal(r, want[:, None, None].expand(3, 6, 6))
+
+
+def test_atlas_too_large_for_int32_indices_is_left_to_torch():
+    """2^31 texels or more (about 1,100 dispersed scenes) cannot be indexed by the passes: the renderer
+    then samples with grid_sample (checked on meta tensors: no memory)."""
+    assert native_render.fits(torch.empty(388 * 9, 388 * 13))
+    assert not native_render.fits(torch.empty(388 * 1100, 388 * 13, device="meta"))
+    assert not native_render.fits(torch.empty(10, 1))

@@ -275,7 +275,7 @@ class FastRenderer(Renderer):
         lo, frac, oy, z = self._frame_terms(altitude_m, site_idx)
         ax, bx, wa = self._ox
         inv_lo = torch.exp2(-lo)[:, None, None]  # level lo texel scale relative to level 0
-        kern = native_render.kernel_for(out) if self.native else None
+        kern = native_render.kernel_for(out) if self.native and native_render.fits(self.atlas_irradiance) else None
         # rng_n: ray range (metres of z) times the level-lo scale, (B, H, W) or (B, 1, 1)
         rng_n = self._relief_range(lo, oy, z, site_idx, inv_lo, kern) if self.parallax_iters else z * inv_lo
         # grid offsets (coordinate, B) of level lo and lo + 1; level lo + 1 has half the scale of

@@ -250,4 +250,10 @@ def kernel_for(t: torch.Tensor) -> Optional[Kernels]:
     return LIBRARY.load() if t.device.type == "cpu" else None
 
 
-__all__ = ["Kernels", "LIBRARY", "use_native_render", "kernel_for"]
+def fits(atlas: torch.Tensor) -> bool:
+    """Whether the passes take this atlas: texel indices are int32, so fewer than 2^31 texels (about
+    1,100 dispersed scenes of 128 x 128 frames); a larger one is sampled by torch's ``grid_sample``."""
+    return 2 <= atlas.shape[-1] and atlas.numel() < 2 ** 31
+
+
+__all__ = ["Kernels", "LIBRARY", "use_native_render", "kernel_for", "fits"]
