@@ -260,3 +260,26 @@ def test_kernel_radial_and_event_weights_equal_torch_path():
     (r0, w0), (r1, w1) = out
     assert torch.equal(r0, r1) and torch.equal(w0, w1) and not torch.equal(r0, w0)
     assert float(r0.min()) >= 0.1 and float(r0.max()) <= 10.0
+
+
+def test_kernel_noise_floor_sums_equal_torch_path():
+    """The noise floor's per-element sums of w and w^2 (two index_add_ in event order) from one compiled
+    pass: the same float64 bits, an element without events at 4/9."""
+    _need_kernel()
+    from dvsland.estimators.cmax import NOISE_FLOOR_SCORE, _noise_floor
+
+    g = torch.Generator().manual_seed(5)
+    B, E = 7, 50000
+    b = torch.randint(0, B - 1, (E,), generator=g)  # the last element has no events
+    wt = torch.rand(E, generator=g).mul_(3.0)
+    out = []
+    for native in (False, True):
+        native_cmax.use_native_cmax(native)
+        try:
+            out.append(_noise_floor(b, wt, B, b.device))
+        finally:
+            native_cmax.use_native_cmax(None)
+    assert out[0].dtype == out[1].dtype == torch.float64
+    assert torch.equal(out[0], out[1]) and float(out[1][-1]) == NOISE_FLOOR_SCORE
+    with pytest.raises(RuntimeError, match="out of range"):
+        native_cmax.load(force=True).weight_sums(torch.tensor([0, B]), wt[:2].contiguous(), B)

@@ -226,6 +226,20 @@ static int64_t pixel_counts(const int64_t* Bi, const int64_t* Px, int64_t E, int
   return 0;
 }
 
+// The noise floor's per-element sums of the event weights w and w^2 (cmax._noise_floor, the torch path:
+// two index_add_ into zeroed float64 sums, in event order): s1[b] += w, s2[b] += w * w, w = double(wt[e]).
+// Returns 0, or -1 when some b is out of range (nothing written).
+extern "C" int64_t cmax_weight_sums(const int64_t* Bi, const float* wt, int64_t E, int64_t B, double* s1, double* s2) {
+  for (int64_t e = 0; e < E; ++e)
+    if (!(Bi[e] >= 0 && Bi[e] < B)) return -1;
+  for (int64_t e = 0; e < E; ++e) {
+    const double w = double(wt[e]);
+    s1[Bi[e]] += w;
+    s2[Bi[e]] += w * w;
+  }
+  return 0;
+}
+
 extern "C" int64_t cmax_pixel_counts(const int64_t* Bi, const int64_t* Px, int64_t E, int64_t B, int64_t n_px,
                                      int64_t* O) {
   return pixel_counts(Bi, Px, E, B, n_px, O);
@@ -387,6 +401,7 @@ _SIGNATURES = {
     "cmax_radial_apply": ([_P, _P, _P, _I64, _I64, _P, _I64, _P], None),
     "cmax_window_mask": ([_P, _P, _P, _I64, _I64, _P, _I64, _I64, _P, _P], _I64),
     "cmax_gather": ([_P] * 7 + [_I64, _I64] + [_P] * 5, _I64),
+    "cmax_weight_sums": ([_P, _P, _I64, _I64, _P, _P], _I64),
 }
 
 
@@ -435,6 +450,16 @@ class Kernels:
                                         out.data_ptr()),
             "pixel_counts: b or px out of range")
         return out
+
+    def weight_sums(self, b, wt, B: int):
+        """(sum w, sum w^2) (B,) float64 per element of the weights ``wt`` (E,) float32 of events in
+        elements ``b`` (E,) int64, added in event order (module source)."""
+        if b.numel() != wt.numel():
+            raise RuntimeError("weight_sums: b (E,) int64 and wt (E,) float32")
+        s1, s2 = torch.zeros(int(B), dtype=torch.float64), torch.zeros(int(B), dtype=torch.float64)
+        _ok(self._lib.cmax_weight_sums(_ptr(b, torch.int64, "weight_sums: b"), _ptr(wt, torch.float32, "weight_sums: wt"),
+                                       b.numel(), int(B), s1.data_ptr(), s2.data_ptr()), "weight_sums: b out of range")
+        return s1, s2
 
     def hot_weights(self, b, px, B: int, n_px: int, factor: float) -> torch.Tensor:
         """cmax's hot-pixel weights (E,) float32 (module source)."""
