@@ -92,9 +92,9 @@ def test_kernel_checks_its_inputs(kernels):
     assert torch.isfinite(out).all()
     with pytest.raises(RuntimeError, match="site index"):
         kernels.levels(atlas, off, slopes, torch.tensor([0, 3]), rng, frac, gain, out)
-    with pytest.raises(RuntimeError, match="atlas must be a contiguous CPU float32"):
+    with pytest.raises(RuntimeError, match="atlas must be a contiguous torch.float32 CPU tensor"):
         kernels.levels(atlas.double(), off, slopes, torch.tensor([0, 1]), rng, frac, gain, out)
-    with pytest.raises(RuntimeError, match="off must be"):
+    with pytest.raises(RuntimeError, match="off must hold 8 elements"):
         kernels.levels(atlas, off[:3], slopes, torch.tensor([0, 1]), rng, frac, gain, out)
     with pytest.raises(RuntimeError, match="site_idx"):
         kernels.relief(atlas, off[:2], slopes, torch.tensor([0]), torch.ones(2), torch.ones(2), torch.ones(2), 1)

@@ -457,8 +457,9 @@ class Kernels:
         if b.numel() != wt.numel():
             raise RuntimeError("weight_sums: b (E,) int64 and wt (E,) float32")
         s1, s2 = torch.zeros(int(B), dtype=torch.float64), torch.zeros(int(B), dtype=torch.float64)
-        _ok(self._lib.cmax_weight_sums(_ptr(b, torch.int64, "weight_sums: b"), _ptr(wt, torch.float32, "weight_sums: wt"),
-                                       b.numel(), int(B), s1.data_ptr(), s2.data_ptr()), "weight_sums: b out of range")
+        _ok(self._lib.cmax_weight_sums(_ptr(b, torch.int64, "weight_sums: b"),
+                                       _ptr(wt, torch.float32, "weight_sums: wt"), b.numel(), int(B), s1.data_ptr(),
+                                       s2.data_ptr()), "weight_sums: b out of range")
         return s1, s2
 
     def hot_weights(self, b, px, B: int, n_px: int, factor: float) -> torch.Tensor:

@@ -315,7 +315,7 @@ extern "C" void dvs_motion_counts(const int64_t* b, const int64_t* x, const int6
 // the B x h x w grid (nothing is then trusted: the caller runs its torch path).
 extern "C" int64_t dvs_cell_counts(const int64_t* b, const int64_t* x, const int64_t* y, const int8_t* p, int64_t n,
                                    int64_t B, int64_t h, int64_t w, int64_t pool, float* out) {
-  const int64_t size = B * h * w, X = w * pool, Y = h * pool;
+  const int64_t X = w * pool, Y = h * pool;
   // each column's and row's offset in a grid (tables: no division per event)
   static thread_local std::vector<int32_t> col, row;
   col.resize(size_t(X));
@@ -327,7 +327,6 @@ extern "C" int64_t dvs_cell_counts(const int64_t* b, const int64_t* x, const int
   for (int64_t i = 0; i < n; ++i)
     if (b[i] < 0 || b[i] >= B || x[i] < 0 || x[i] >= X || y[i] < 0 || y[i] >= Y) return -1;
   for (int64_t i = 0; i < n; ++i) out[b[i] * (h * w) + cy[y[i]] + cx[x[i]]] += float(p[i]);
-  (void)size;
   return 0;
 }
 

@@ -29,7 +29,7 @@ from typing import Optional
 
 import torch
 
-from dvsland.native_build import CLONES, PARALLEL_RANGES, NativeLibrary, bind_functions
+from dvsland.native_build import CLONES, PARALLEL_RANGES, NativeLibrary, bind_functions, tensor_address
 
 _SRC = r"""
 #include <algorithm>
@@ -176,11 +176,11 @@ _SIGNATURES = {
 
 
 def _f32(t: torch.Tensor, what: str, numel: int) -> int:
-    """The address of ``t`` after checking it is a contiguous CPU float32 tensor of ``numel`` elements."""
-    if t.dtype != torch.float32 or t.device.type != "cpu" or not t.is_contiguous() or t.numel() != numel:
-        raise RuntimeError(f"native render: {what} must be a contiguous CPU float32 tensor of {numel} elements, "
-                           f"got {t.dtype} {tuple(t.shape)} on {t.device}")
-    return t.data_ptr()
+    """The address of ``t`` after checking (:func:`~dvsland.native_build.tensor_address`) that it is a
+    contiguous CPU float32 tensor, and that it holds ``numel`` elements."""
+    if t.numel() != numel:
+        raise RuntimeError(f"native render: {what} must hold {numel} elements, got {tuple(t.shape)}")
+    return tensor_address(t, torch.float32, f"native render: {what}")
 
 
 def _sites(site_idx: torch.Tensor, b: int) -> torch.Tensor:

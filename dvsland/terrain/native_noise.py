@@ -21,7 +21,7 @@ from typing import Optional
 
 import torch
 
-from dvsland.native_build import CLONES, NativeLibrary, bind_functions
+from dvsland.native_build import CLONES, NativeLibrary, bind_functions, tensor_address
 
 _SRC = r"""
 #include <cmath>
@@ -91,14 +91,13 @@ class Kernels:
         one shape); ``tables`` = (perm int32, gx, gy float32) of the octave's seed. False (``out``
         untouched) where a lattice coordinate is out of range."""
         perm, gx, gy = tables
-        for name, t, dt in (("x_m", x_m, torch.float64), ("y_m", y_m, torch.float64), ("out", out, torch.float64),
-                            ("perm", perm, torch.int32), ("gx", gx, torch.float32), ("gy", gy, torch.float32)):
-            if t.dtype != dt or t.device.type != "cpu" or not t.is_contiguous():
-                raise RuntimeError(f"noise_octave: {name} must be a contiguous CPU {dt} tensor")
         if not (x_m.shape == y_m.shape == out.shape) or perm.numel() != 2 * period:
             raise RuntimeError("noise_octave: x_m, y_m and out must share a shape; perm holds 2 x period entries")
-        return self._f(x_m.data_ptr(), y_m.data_ptr(), out.numel(), float(lam), float(off), float(amp),
-                       perm.data_ptr(), gx.data_ptr(), gy.data_ptr(), int(period), out.data_ptr()) == 0
+        ptr = {name: tensor_address(t, dt, f"noise_octave: {name}") for name, t, dt in (
+            ("x_m", x_m, torch.float64), ("y_m", y_m, torch.float64), ("out", out, torch.float64),
+            ("perm", perm, torch.int32), ("gx", gx, torch.float32), ("gy", gy, torch.float32))}
+        return self._f(ptr["x_m"], ptr["y_m"], out.numel(), float(lam), float(off), float(amp), ptr["perm"],
+                       ptr["gx"], ptr["gy"], int(period), ptr["out"]) == 0
 
 
 #: the library (its mode, cache and build)
