@@ -88,8 +88,11 @@ def test_quick_smoke_run_writes_a_checkpoint_the_estimator_flies(data, tmp_path,
     ck = read_checkpoint(out)
     assert ck["train"]["schedule"] == "budget" and ck["train"]["max_cpu_minutes"] == 0.02
     assert ck["input"]["n_windows"] == 8 and ck["input"]["pool_px"] == 4 and ck["epoch"] >= 1
-    stopped_by_cap = ck["epoch"] < ck["train"]["epochs"]
-    assert stopped_by_cap == (ck["final"]["train_cpu_seconds"] >= 1.2) and math.isfinite(ck["final"]["val"]["all"]["median_rel_error"])
+    # a run stopped before its epochs ran out was stopped by the cap (0.02 CPU-minutes) and recorded at least
+    # the cap. (A run that ran every epoch may still end just past the cap: its last epoch started before it,
+    # as on a fast CPU where the 30 epochs take about 1.2 s.)
+    assert ck["epoch"] == ck["train"]["epochs"] or ck["final"]["train_cpu_seconds"] >= 1.2
+    assert math.isfinite(ck["final"]["val"]["all"]["median_rel_error"])
     est = get_estimator("learned", 2, (128, 128), checkpoint=str(out))
     assert est.meta["model"]["settings"]["width"] == 16
 
