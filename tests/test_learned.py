@@ -80,6 +80,23 @@ def test_one_bin_grid_compiled_counts_are_the_torch_counts(pool):
     assert torch.equal(got, want) and float(got.abs().sum()) > 0
 
 
+@pytest.mark.parametrize("field,value", [("b", 3), ("b", -1), ("x", 44), ("y", 30)])
+def test_one_bin_compiled_counts_refuse_an_event_off_the_grid(field, value):
+    """An event outside the B x h x w grid, even after others were counted, makes the compiled counts
+    return None (the caller then runs the torch path): no partial grid comes back."""
+    from dvsland.events import native
+
+    mod = native.kernels()
+    if mod is None:
+        pytest.skip("no C++ compiler here")
+    n = 200
+    ev = {"b": torch.zeros(n, dtype=torch.int64), "x": torch.full((n,), 3), "y": torch.full((n,), 4)}
+    p = torch.ones(n, dtype=torch.int8)
+    assert float(mod.cell_counts(ev["b"], ev["x"], ev["y"], p, 3, 15, 22, 2).sum()) == n  # 44 x 30 px
+    ev[field][n // 2] = value
+    assert mod.cell_counts(ev["b"], ev["x"], ev["y"], p, 3, 15, 22, 2) is None
+
+
 def test_coord_channels_are_relative_to_the_principal_point():
     spec = InputSpec((128, 128), pool_px=1, coord_scale_px=64.0)
     c = coord_channels(spec, (10.0, 20.0))

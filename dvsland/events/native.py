@@ -262,7 +262,13 @@ extern "C" void dvs_motion_counts(const int64_t* b, const int64_t* x, const int6
   static thread_local std::vector<uint8_t> occ;  // occupancy with a zero border: 0 none, 1 active, 2 counted
   occ.assign(size_t(B * P), 0);
   uint8_t* o = occ.data();  // a local pointer: byte stores may alias the vector (a TLS look-up per access)
-  for (int64_t i = 0; i < n; ++i) o[b[i] * P + (y[i] + 1) * Wp + x[i] + 1] = 1;
+  // the occupancy and the largest |t| in one pass over the events
+  float m = 0.0f;
+  for (int64_t i = 0; i < n; ++i) {
+    o[b[i] * P + (y[i] + 1) * Wp + x[i] + 1] = 1;
+    m = std::max(m, std::fabs(float(t[i] - t_us)));
+  }
+  m = std::max(m, 1.0f);
   const int64_t Hc = cell > 0 ? H / cell : 0, Wc = cell > 0 ? W / cell : 0;
   if (10 * n >= B * H * W) {
     static thread_local std::vector<int32_t> col;
@@ -290,9 +296,6 @@ extern "C" void dvs_motion_counts(const int64_t* b, const int64_t* x, const int6
       }
     }
   }
-  float m = 0.0f;
-  for (int64_t i = 0; i < n; ++i) m = std::max(m, std::fabs(float(t[i] - t_us)));
-  m = std::max(m, 1.0f);
   // the sums of one element's events in their order (a run of equal b), added to its zeroed entries
   float s0 = 0.0f, s1 = 0.0f, s2 = 0.0f, s3 = 0.0f;
   for (int64_t i = 0; i < n; ++i) {
@@ -324,9 +327,12 @@ extern "C" int64_t dvs_cell_counts(const int64_t* b, const int64_t* x, const int
   for (int64_t v = 0; v < Y; ++v) row[v] = int32_t((v / pool) * w);
   const int32_t* cx = col.data();
   const int32_t* cy = row.data();
-  for (int64_t i = 0; i < n; ++i)
-    if (b[i] < 0 || b[i] >= B || x[i] < 0 || x[i] >= X || y[i] < 0 || y[i] >= Y) return -1;
-  for (int64_t i = 0; i < n; ++i) out[b[i] * (h * w) + cy[y[i]] + cx[x[i]]] += float(p[i]);
+  // checked and added in one pass (the caller discards a partial grid where -1 comes back)
+  for (int64_t i = 0; i < n; ++i) {
+    const int64_t bi = b[i], xi = x[i], yi = y[i];
+    if (uint64_t(bi) >= uint64_t(B) || uint64_t(xi) >= uint64_t(X) || uint64_t(yi) >= uint64_t(Y)) return -1;
+    out[bi * (h * w) + cy[yi] + cx[xi]] += float(p[i]);
+  }
   return 0;
 }
 
