@@ -1,13 +1,16 @@
-"""The build cache of dvsland's compiled kernels (the emulator's, ``cmax``'s, ``dpr``'s).
+"""The build cache of dvsland's compiled kernels (the terrain's, the renderer's, the emulator's,
+``cmax``'s, ``dpr``'s).
 
 The kernels are plain C++ behind a C interface (raw pointers and sizes, no torch or Python headers),
 so a build is one call of the C++ compiler that takes a second or two, and the library does not
-depend on the torch or Python version. Each kernel module (:mod:`dvsland.events.native`,
+depend on the torch or Python version. Each kernel module (:mod:`dvsland.terrain.native_noise`,
+:mod:`dvsland.render.native_render`, :mod:`dvsland.events.native`,
 :mod:`dvsland.estimators.native_cmax`, :mod:`dvsland.estimators.native_dpr`) keeps its own source
 and its ``ctypes`` bindings; this module holds what they share: :class:`NativeLibrary` (a library's
 mode word read from an environment variable and its process state), the library's name (a hash of
 source, flags, compiler and machine, so a stale build is never loaded), its folder, the compile
-(atomic, under a lock), the load and the binding helpers.
+(atomic, under a lock), the load, the binding helpers and :func:`build_in_background` (a run's
+builds started while it prepares its scenes).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import platform
 import shutil
 import subprocess
 import sys
+import threading
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -263,6 +267,7 @@ class NativeLibrary:
         self._bound = None
         self._failed = False
         self._absent = False  # auto found neither a cached build nor a compiler (not looked for again)
+        self._pending: Optional[threading.Event] = None  # set when a background build has ended
 
     def use(self, on: Optional[bool] = True) -> None:
         """Pick the mode for this process: True = on, False = off, None = back to the environment's."""
@@ -308,10 +313,40 @@ class NativeLibrary:
             return None
         if self._bound is not None or self._failed:
             return self._bound
+        if self._pending is not None:  # a background build (build_in_background): wait for its end
+            self._pending.wait()
+            self._pending = None
         self._bound = load_or_warn(lambda: self.bind(load_library(self.name())) if self.cached() else self.build(),
                                    self.label, self.env_var)
         self._failed = self._bound is None
         return self._bound
+
+
+def build_in_background(libraries: Sequence["NativeLibrary"]) -> int:
+    """Compile, one after the other in a background thread, those of ``libraries`` that would be
+    built on first use (:meth:`NativeLibrary.enabled`, not cached, not loaded, no build pending), so
+    that the compiler runs as its own process while this one prepares the run; a library's
+    :meth:`~NativeLibrary.load` waits for its build. A build that fails here is left to ``load``,
+    which builds again and warns as it would have. Returns the number of builds started (0 when
+    every library is cached, off or without a compiler: nothing is started)."""
+    todo = [lib for lib in libraries if lib._pending is None and lib._bound is None and not lib._failed
+            and lib.enabled() and not lib.cached()]
+    if not todo:
+        return 0
+    for lib in todo:
+        lib._pending = threading.Event()
+
+    def run():
+        for lib, done in [(lib, lib._pending) for lib in todo]:
+            try:
+                build_library(lib.name(), lib.src, lib.flags)
+            except Exception:  # pragma: no cover - load() builds again and warns
+                pass
+            finally:
+                done.set()
+
+    threading.Thread(target=run, name="dvsland-native-builds", daemon=True).start()
+    return len(todo)
 
 
 def timed_build(what: str, library: "NativeLibrary") -> int:
@@ -337,6 +372,6 @@ def timed_build(what: str, library: "NativeLibrary") -> int:
     return 0
 
 
-__all__ = ["CLONES", "PARALLEL_RANGES", "load_or_warn", "timed_build", "ON", "OFF", "AUTO", "ABI", "mode_from_env",
+__all__ = ["CLONES", "PARALLEL_RANGES", "load_or_warn", "build_in_background", "timed_build", "ON", "OFF", "AUTO", "ABI", "mode_from_env",
            "compiler", "library_name", "library_dir", "library_file", "library_cached", "load_library",
            "build_library", "build_lock", "NativeLibrary", "bind_functions", "tensor_address"]

@@ -275,6 +275,8 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
             raise ValueError(f"estimator instance is for batch_size={est.batch_size}, the batch has B={B}")
     events = None
     if record_events or getattr(est, "needs_events", True):
+        if device.type == "cpu":
+            start_kernel_builds(cfg, est, renderer)
         kw = _dispersed_scene_kwargs(cfg, layout, renderer)
         if progress and (renderer or cfg.render.renderer) == "fast":
             kw["progress"] = True
@@ -290,6 +292,32 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
     return Stages(cfg, layout, est, events, controller, filter=filt, dynamics=LanderDynamics.from_config(cfg.dynamics),
                   params=params, settings=LoopSettings.from_config(cfg), device=device,
                   scene_idx=layout.tensor("scene_idx", device, torch.int64))
+
+
+def start_kernel_builds(cfg: Config, estimator: Any = None, renderer: Any = None) -> int:
+    """Start compiling, in one background thread, the C++ kernels that a CPU run with ``estimator``
+    and ``renderer`` (None: the configured one) loads on first use and finds neither built nor
+    loaded (:func:`dvsland.native_build.build_in_background`): the terrain's and the renderer's
+    for the fast renderer, the emulator's, and ``cmax``'s or ``dpr``'s for those estimators. The
+    compiler runs beside the scenes' preparation instead of before the first steps; each kernel's
+    first use waits for its build. Returns the builds started (0 on a warm cache)."""
+    from dvsland.estimators import native_cmax, native_dpr
+    from dvsland.estimators.cmax import CMaxEstimator
+    from dvsland.estimators.dpr import DPREstimator
+    from dvsland.events import native as events_native
+    from dvsland.native_build import build_in_background
+    from dvsland.render import native_render
+    from dvsland.terrain import native_noise
+
+    libraries = []
+    if (renderer or cfg.render.renderer) == "fast":
+        libraries += [native_noise.LIBRARY, native_render.LIBRARY]
+    libraries.append(events_native.LIBRARY)
+    if isinstance(estimator, CMaxEstimator):
+        libraries.append(native_cmax.LIBRARY)
+    elif isinstance(estimator, DPREstimator):
+        libraries.append(native_dpr.LIBRARY)
+    return build_in_background(libraries)
 
 
 def _build_plugin_estimator(cfg: Config, batch_size: int, device, seed):
@@ -348,5 +376,5 @@ def _dispersed_scene_kwargs(cfg: Config, layout, renderer) -> dict:
 #: ``f(altitude_m (B,), site_idx (B,) int64) -> (B, H, W)`` float32 frames (torch tensors)
 FrameSource = Callable[[Any, Any], Any]
 
-__all__ = ["Stages", "LoopSettings", "EventSource", "build_stages", "build_event_source", "build_estimator", "build_controller",
-           "available_controllers", "check_names", "FrameSource"]
+__all__ = ["Stages", "LoopSettings", "EventSource", "build_stages", "start_kernel_builds", "build_event_source",
+           "build_estimator", "build_controller", "available_controllers", "check_names", "FrameSource"]
