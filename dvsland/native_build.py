@@ -372,6 +372,6 @@ def timed_build(what: str, library: "NativeLibrary") -> int:
     return 0
 
 
-__all__ = ["CLONES", "PARALLEL_RANGES", "load_or_warn", "build_in_background", "timed_build", "ON", "OFF", "AUTO", "ABI", "mode_from_env",
-           "compiler", "library_name", "library_dir", "library_file", "library_cached", "load_library",
+__all__ = ["CLONES", "PARALLEL_RANGES", "load_or_warn", "build_in_background", "timed_build", "ON", "OFF", "AUTO",
+           "ABI", "mode_from_env", "compiler", "library_name", "library_dir", "library_file", "library_cached", "load_library",
            "build_library", "build_lock", "NativeLibrary", "bind_functions", "tensor_address"]
