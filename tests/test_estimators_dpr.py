@@ -395,3 +395,72 @@ def test_meanshift_fractional_counts_take_the_torch_path():
     assert kern.meanshift(pad, 5, 20, 20, seeds, valid, 4.0, 20, 0.01) is None
     (c1, n1, _), (c0, n0, _) = _meanshift_both(pad, seeds, valid, 4.0, 0.01, 5)
     assert torch.equal(c1, c0) and torch.equal(n1, n0) and torch.allclose(c0, torch.tensor([[[10.0, 10.0]]]))
+
+
+def _peaks_both(img, n_max, sigma, nms):
+    from dvsland.estimators import native_dpr
+    from dvsland.estimators.density_peaks import density_peaks
+
+    out = []
+    for on in (True, False):
+        native_dpr.use_native_dpr(on)
+        try:
+            out.append(density_peaks(img, n_max, sigma, nms))
+        finally:
+            native_dpr.use_native_dpr(None)
+    return out
+
+
+@pytest.mark.parametrize("batch,shape,sigma,nms", [(18, (128, 128), 2.0, 3), (2, (31, 45), 1.0, 5),
+                                                    (5, (130, 97), 3.0, 1), (1, (64, 200), 2.0, 3)])
+def test_density_peaks_compiled_equal_the_torch_path(batch, shape, sigma, nms):
+    """DPR's compiled blur, local maxima and scores (dvsland.estimators.native_dpr) give the torch
+    path's peaks, densities and validity bit for bit (one image: the torch path itself), and the
+    compiled pass ran where it matches this machine's torch path."""
+    from dvsland.estimators import density_peaks as dp
+    from dvsland.estimators import native_dpr
+
+    kern = native_dpr._LIB.load(force=True)
+    if kern is None:
+        pytest.skip("no C++ compiler here")
+    g = torch.Generator().manual_seed(batch)
+    img = torch.poisson(torch.rand(batch, *shape, generator=g) * 0.8, generator=g)
+    img[:, :, : shape[1] // 3] = 0.0  # an empty band: no peaks there
+    calls = []
+    real = native_dpr.Kernels.peak_scores
+
+    def spy(self, *a):
+        calls.append(1)
+        return real(self, *a)
+
+    native_dpr.Kernels.peak_scores = spy
+    try:
+        (p1, d1, v1), (p0, d0, v0) = _peaks_both(img, 15, sigma, nms)
+    finally:
+        native_dpr.Kernels.peak_scores = real
+    assert torch.equal(p1.nan_to_num(-7), p0.nan_to_num(-7)) and torch.equal(d1, d0) and torch.equal(v1, v0)
+    assert v1.any()
+    assert bool(calls) == (batch > 1 and dp.compiled_scores_match(kern))
+
+
+def test_density_peaks_compiled_scores_are_checked_against_torch():
+    """The compiled scores are used only after a sample matched the torch path on this machine;
+    a kernel that sums in another order is refused (the torch path runs)."""
+    from dvsland.estimators import density_peaks as dp
+    from dvsland.estimators import native_dpr
+
+    kern = native_dpr._LIB.load(force=True)
+    if kern is None:
+        pytest.skip("no C++ compiler here")
+    assert dp.compiled_scores_match(kern)  # on CPUs where oneDNN's depthwise sums are an fma chain
+
+    class Float64Sums:  # the same blur summed in float64, rounded once: other bits on some pixels
+        def peak_scores(self, img, kx, ky, nms_px, min_density):
+            blurred = dp._blur_depthwise(img.double(), kx.double(), ky.double()).float()
+            is_peak = (blurred >= dp._max_filter(blurred, nms_px)) & (blurred > min_density)
+            return blurred, torch.where(is_peak, blurred, torch.full_like(blurred, -1.0))
+
+    assert not dp.compiled_scores_match(Float64Sums())
+    with pytest.raises(RuntimeError, match="peak_scores: img"):
+        kern.peak_scores(torch.zeros(2, 5, 5, dtype=torch.float64), *dp._gaussian_kernels(7, 1.0, "cpu", torch.float32),
+                         3, 0.0)

@@ -31,4 +31,4 @@ def run_build_native(args) -> int:
     rc = max(rc, timed_build("the renderer kernels", native_render.LIBRARY))
     rc = max(rc, timed_build("the emulator kernels", native.LIBRARY))
     rc = max(rc, timed_build("the cmax kernel", native_cmax.LIBRARY))
-    return max(rc, timed_build("the dpr mean-shift kernel", native_dpr.LIBRARY))
+    return max(rc, timed_build("the dpr kernels (mean-shift, peak scores)", native_dpr.LIBRARY))

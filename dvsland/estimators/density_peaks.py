@@ -2,6 +2,12 @@
 
 count image -> Gaussian blur (kornia) -> morphological local maxima (max-pool NMS) -> ranked by
 blurred density -> top ``n_max``. Pure functions, batched over B.
+
+On a CPU with the compiled ``dpr`` kernels (:mod:`.native_dpr`), the blur, the local maxima and the
+scores run as one pass per image, with the same bits as the torch path: the blur's sums as the
+fused multiply-add chain oneDNN's depthwise convolution computes (two images or more: one image is a
+plain convolution, summed in another order, and stays on the torch path). That is checked once per
+process on a small sample against the torch path; where it does not hold, the torch path runs.
 """
 
 from __future__ import annotations
@@ -13,6 +19,8 @@ from typing import Tuple
 import kornia
 import torch
 import torch.nn.functional as F
+
+from . import native_dpr
 
 
 def _check_image(image: torch.Tensor) -> None:
@@ -37,6 +45,30 @@ def _blur_depthwise(img: torch.Tensor, kx: torch.Tensor, ky: torch.Tensor) -> to
     x = img.unsqueeze(0)
     h = F.conv2d(x, kx.view(1, 1, 1, k).expand(B, 1, 1, k), padding=(0, k // 2), groups=B)
     return F.conv2d(h, ky.view(1, 1, k, 1).expand(B, 1, k, 1), padding=(k // 2, 0), groups=B)[0]
+
+
+def _torch_scores(img: torch.Tensor, kx: torch.Tensor, ky: torch.Tensor, nms_px: int,
+                  min_density: float) -> Tuple[torch.Tensor, torch.Tensor]:
+    """(blurred, score) (B, H, W) float32 of count images ``img`` (B, H, W) float32: the depthwise
+    blur, and the blurred density at local maxima above ``min_density`` (-1 elsewhere)."""
+    blurred = _blur_depthwise(img, kx, ky)
+    is_peak = (blurred >= _max_filter(blurred, int(nms_px))) & (blurred > min_density)
+    return blurred, torch.where(is_peak, blurred, torch.full_like(blurred, -1.0))
+
+
+@functools.lru_cache(maxsize=4)
+def compiled_scores_match(kernels) -> bool:
+    """Whether ``kernels`` (a loaded :class:`~.native_dpr.Kernels`) give this machine's torch path's
+    blur and scores bit for bit, on a sample of sparse count images (checked once per process)."""
+    g = torch.Generator().manual_seed(1)
+    img = torch.poisson(torch.rand(3, 37, 53, generator=g) * 1.5, generator=g)
+    img[:, :, :20] = 0.0
+    for sigma, nms in ((2.0, 3), (1.0, 5)):
+        kx, ky = _gaussian_kernels(2 * int(math.ceil(3.0 * sigma)) + 1, sigma, "cpu", torch.float32)
+        got, want = kernels.peak_scores(img, kx, ky, nms, 0.0), _torch_scores(img, kx, ky, nms, 0.0)
+        if not all(torch.equal(a, b) for a, b in zip(got, want)):
+            return False
+    return True
 
 
 def _max_filter(x: torch.Tensor, k: int) -> torch.Tensor:
@@ -87,15 +119,20 @@ def density_peaks(image: torch.Tensor, n_max: int, sigma_px: float = 2.0, nms_px
     if H * W < 256 * 256:
         # kornia's gaussian_blur2d (filter2d_separable, zero border), with the 1-d kernels made once
         # and the images as the channels of one depthwise convolution: the same values, 3-5x
-        # cheaper on a CPU than a batch of one-channel images
+        # cheaper on a CPU than a batch of one-channel images; compiled where it gives the same bits
         kx, ky = _gaussian_kernels(k, float(sigma_px), str(img.device), img.dtype)
-        blurred = _blur_depthwise(img[:, 0], kx, ky)
+        # (one image is a plain convolution, which oneDNN sums in another order: the torch path)
+        kern = native_dpr.kernel_for(img) if B > 1 else None
+        if kern is not None and compiled_scores_match(kern):
+            _, score = kern.peak_scores(img[:, 0].contiguous(), kx, ky, int(nms_px), float(min_density))
+        else:
+            _, score = _torch_scores(img[:, 0], kx, ky, int(nms_px), float(min_density))
     else:
         blurred = kornia.filters.gaussian_blur2d(img, (k, k), (float(sigma_px), float(sigma_px)),
                                                  border_type="constant")[:, 0]
-    pooled = _max_filter(blurred, int(nms_px))
-    is_peak = (blurred >= pooled) & (blurred > min_density)
-    score = torch.where(is_peak, blurred, torch.full_like(blurred, -1.0)).reshape(B, H * W)
+        is_peak = (blurred >= _max_filter(blurred, int(nms_px))) & (blurred > min_density)
+        score = torch.where(is_peak, blurred, torch.full_like(blurred, -1.0))
+    score = score.reshape(B, H * W)
     n = min(int(n_max), H * W)
     top, idx = torch.topk(score, n, dim=1)  # sorted, densest first
     valid = top > min_density
