@@ -415,8 +415,8 @@ def _peaks_both(img, n_max, sigma, nms):
                                                     (5, (130, 97), 3.0, 1), (1, (64, 200), 2.0, 3)])
 def test_density_peaks_compiled_equal_the_torch_path(batch, shape, sigma, nms):
     """DPR's compiled blur, local maxima and scores (dvsland.estimators.native_dpr) give the torch
-    path's peaks, densities and validity bit for bit (one image: the torch path itself), and the
-    compiled pass ran where it matches this machine's torch path."""
+    path's peaks, densities and validity bit for bit (several images: oneDNN's depthwise sums; one:
+    its plain convolution's), and the compiled pass ran where it matches this machine's torch path."""
     from dvsland.estimators import density_peaks as dp
     from dvsland.estimators import native_dpr
 
@@ -440,7 +440,7 @@ def test_density_peaks_compiled_equal_the_torch_path(batch, shape, sigma, nms):
         native_dpr.Kernels.peak_scores = real
     assert torch.equal(p1.nan_to_num(-7), p0.nan_to_num(-7)) and torch.equal(d1, d0) and torch.equal(v1, v0)
     assert v1.any()
-    assert bool(calls) == (batch > 1 and dp.compiled_scores_match(kern))
+    assert bool(calls) == dp.compiled_scores_match(kern, 1 if batch == 1 else 3)
 
 
 def test_density_peaks_compiled_scores_are_checked_against_torch():
@@ -452,15 +452,21 @@ def test_density_peaks_compiled_scores_are_checked_against_torch():
     kern = native_dpr._LIB.load(force=True)
     if kern is None:
         pytest.skip("no C++ compiler here")
-    assert dp.compiled_scores_match(kern)  # on CPUs where oneDNN's depthwise sums are an fma chain
+    assert dp.compiled_scores_match(kern) and dp.compiled_scores_match(kern, 1)  # where oneDNN sums as here
+
+    class Unfused:  # the single image's order for several images: refused
+        def peak_scores(self, img, kx, ky, nms_px, min_density, fused=True):
+            return kern.peak_scores(img, kx, ky, nms_px, min_density, not fused)
+
+    assert not dp.compiled_scores_match(Unfused()) and not dp.compiled_scores_match(Unfused(), 1)
 
     class Float64Sums:  # the same blur summed in float64, rounded once: other bits on some pixels
-        def peak_scores(self, img, kx, ky, nms_px, min_density):
+        def peak_scores(self, img, kx, ky, nms_px, min_density, fused=True):
             blurred = dp._blur_depthwise(img.double(), kx.double(), ky.double()).float()
             is_peak = (blurred >= dp._max_filter(blurred, nms_px)) & (blurred > min_density)
             return blurred, torch.where(is_peak, blurred, torch.full_like(blurred, -1.0))
 
     assert not dp.compiled_scores_match(Float64Sums())
     with pytest.raises(RuntimeError, match="peak_scores: img"):
-        kern.peak_scores(torch.zeros(2, 5, 5, dtype=torch.float64), *dp._gaussian_kernels(7, 1.0, "cpu", torch.float32),
-                         3, 0.0)
+        kern.peak_scores(torch.zeros(2, 5, 5, dtype=torch.float64), *dp._gaussian_kernels(7, 1.0, "cpu",
+                                                                                         torch.float32), 3, 0.0)

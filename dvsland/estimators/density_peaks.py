@@ -5,9 +5,9 @@ blurred density -> top ``n_max``. Pure functions, batched over B.
 
 On a CPU with the compiled ``dpr`` kernels (:mod:`.native_dpr`), the blur, the local maxima and the
 scores run as one pass per image, with the same bits as the torch path: the blur's sums as the
-fused multiply-add chain oneDNN's depthwise convolution computes (two images or more: one image is a
-plain convolution, summed in another order, and stays on the torch path). That is checked once per
-process on a small sample against the torch path; where it does not hold, the torch path runs.
+fused multiply-add chain oneDNN's depthwise convolution computes for two images or more, and as the
+rounded products added in tap order of the plain convolution of a single image. Each is checked once
+per process on a small sample against the torch path; where it does not hold, the torch path runs.
 """
 
 from __future__ import annotations
@@ -56,17 +56,18 @@ def _torch_scores(img: torch.Tensor, kx: torch.Tensor, ky: torch.Tensor, nms_px:
     return blurred, torch.where(is_peak, blurred, torch.full_like(blurred, -1.0))
 
 
-@functools.lru_cache(maxsize=4)
-def compiled_scores_match(kernels) -> bool:
+@functools.lru_cache(maxsize=8)
+def compiled_scores_match(kernels, batch: int = 3) -> bool:
     """Whether ``kernels`` (a loaded :class:`~.native_dpr.Kernels`) give this machine's torch path's
-    blur and scores bit for bit, on a sample of sparse count images (checked once per process)."""
+    blur and scores bit for bit for ``batch`` images (1: the single image's sums, else the depthwise
+    convolution's), on a sample of sparse count images (checked once per process)."""
     g = torch.Generator().manual_seed(1)
-    img = torch.poisson(torch.rand(3, 37, 53, generator=g) * 1.5, generator=g)
+    img = torch.poisson(torch.rand(batch, 37, 53, generator=g) * 1.5, generator=g)
     img[:, :, :20] = 0.0
     for sigma, nms in ((2.0, 3), (1.0, 5)):
         kx, ky = _gaussian_kernels(2 * int(math.ceil(3.0 * sigma)) + 1, sigma, "cpu", torch.float32)
-        got, want = kernels.peak_scores(img, kx, ky, nms, 0.0), _torch_scores(img, kx, ky, nms, 0.0)
-        if not all(torch.equal(a, b) for a, b in zip(got, want)):
+        got = kernels.peak_scores(img, kx, ky, nms, 0.0, batch > 1)
+        if not all(torch.equal(a, b) for a, b in zip(got, _torch_scores(img, kx, ky, nms, 0.0))):
             return False
     return True
 
@@ -121,10 +122,10 @@ def density_peaks(image: torch.Tensor, n_max: int, sigma_px: float = 2.0, nms_px
         # and the images as the channels of one depthwise convolution: the same values, 3-5x
         # cheaper on a CPU than a batch of one-channel images; compiled where it gives the same bits
         kx, ky = _gaussian_kernels(k, float(sigma_px), str(img.device), img.dtype)
-        # (one image is a plain convolution, which oneDNN sums in another order: the torch path)
-        kern = native_dpr.kernel_for(img) if B > 1 else None
-        if kern is not None and compiled_scores_match(kern):
-            _, score = kern.peak_scores(img[:, 0].contiguous(), kx, ky, int(nms_px), float(min_density))
+        # (one image is a plain convolution, which oneDNN sums as rounded products: fused=False)
+        kern = native_dpr.kernel_for(img)
+        if kern is not None and compiled_scores_match(kern, 1 if B == 1 else 3):
+            _, score = kern.peak_scores(img[:, 0].contiguous(), kx, ky, int(nms_px), float(min_density), B > 1)
         else:
             _, score = _torch_scores(img[:, 0], kx, ky, int(nms_px), float(min_density))
     else:
