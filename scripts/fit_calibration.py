@@ -29,7 +29,8 @@ def main(argv=None) -> int:
     ap.add_argument("--estimator", required=True, help="the estimator's label in those runs (e.g. cmax, learned)")
     ap.add_argument("--out", required=True, help="the table to write (.json)")
     ap.add_argument("--feature", default="events", choices=FEATURES,
-                    help="per-step feature besides the confidence (default events: the window's event count)")
+                    help="per-step feature besides the confidence (default events: the window's event count; "
+                         "structure: cmax's score above the noise floor)")
     ap.add_argument("--sigma-bins", type=int, default=8, help="bins of the raw predicted sigma (default 8)")
     ap.add_argument("--feature-bins", type=int, default=6, help="bins of the feature (default 6)")
     ap.add_argument("--min-count", type=int, default=40, help="fewest estimates of a cell fitted on its own (default 40)")
@@ -52,7 +53,8 @@ def main(argv=None) -> int:
         i = labels.index(args.estimator)
         dh, c = s[f"d_hat_{i}"], s[f"confidence_{i}"]
         before = _coverage_rows(s["d_true"], dh, c, s["site"])
-        after = _coverage_rows(s["d_true"], dh, apply_calibration_np(params, dh, c, s["n_events"]), s["site"])
+        after = _coverage_rows(s["d_true"], dh, apply_calibration_np(params, dh, c, s["n_events"],
+                                                                     s.get(f"structure_{i}")), s["site"])
         print(f"held out: {run} (config {s['meta'].get('config')}, seed {s['meta'].get('seed')}): 1 sigma / 2 sigma "
               f"before -> after")
         for grp, b in before.items():

@@ -15,8 +15,8 @@ from typing import Any, Dict, NamedTuple, Optional, Sequence, Tuple
 import torch
 
 from .abstain import DEFAULT_ABSTAIN, EVIDENCE_KEY, AbstainParams, gate_output, motion_evidence
-from .calibrate import CalibrationParams, calibrate_confidence, calibrate_output, feature_values, params_to, \
-    window_event_counts
+from .calibrate import (STRUCTURE_KEY, CalibrationParams, calibrate_confidence, calibrate_output, feature_values,
+                        params_to, window_event_counts)
 
 
 @dataclass
@@ -267,7 +267,8 @@ def _checked_update(update):
             return d
         # the object API alone: the factor (and the calibration's inputs) are kept for confidence()
         if getattr(self, "calibration", None) is not None:
-            self._calibration_input = (window_event_counts(events, self.batch_size, d.device), d.detach().clone())
+            self._calibration_input = (window_event_counts(events, self.batch_size, d.device), d.detach().clone(),
+                                       _structure_of(self) if self.calibration.feature == "structure" else None)
         if not gated:
             return d
         ev = motion_evidence(events, self.batch_size, self.sensor_size, t_us, self.abstain, device=d.device)
@@ -291,9 +292,18 @@ def _times_factor(self, c: torch.Tensor) -> torch.Tensor:
     params, inp = getattr(self, "calibration", None), getattr(self, "_calibration_input", None)
     if params is not None and inp is not None:
         p = params_to(params, c.device)
-        n, d = inp
-        c = calibrate_confidence(c, p, feature_values(p.feature, n_events=n.to(c.device), d_hat=d.to(c.device))).to(c.dtype)
+        n, d, st = inp
+        f = feature_values(p.feature, n_events=n.to(c.device), d_hat=d.to(c.device),
+                           structure=None if st is None else st.to(c.device))
+        c = calibrate_confidence(c, p, f).to(c.dtype)
     return c
+
+
+def _structure_of(est) -> Optional[torch.Tensor]:
+    """The ``structure`` diagnostic (B,) of an object-API estimator's last update, or None."""
+    diag = est.diagnostics() if callable(getattr(est, "diagnostics", None)) else None
+    st = diag.get(STRUCTURE_KEY) if isinstance(diag, dict) else None
+    return st.detach().clone() if isinstance(st, torch.Tensor) else None
 
 
 def _gated_confidence(confidence):

@@ -12,11 +12,12 @@ by a factor read from a table, and turns the result back into a confidence::
 
 ``S`` is bilinear in (log10 sigma_raw, f) between the knots of the table and constant beyond
 them; ``f`` is one optional cheap per-step feature the estimator already has: ``events``
-(log10(1 + events of the descent in the step's window)) or ``abs_d_hat`` (log10 |D_hat|), or
-none. The site, which a flight computer does not know, is never a feature. The fitter
-(:func:`fit_calibration`) makes ``log10 sigma_raw + S`` non-decreasing in ``sigma_raw`` along
-every feature knot (weighted isotonic regression), so the calibrated confidence keeps the
-estimator's ranking: a higher raw confidence never gives a lower calibrated one at the same feature.
+(log10(1 + events of the descent in the step's window)), ``abs_d_hat`` (log10 |D_hat|),
+``structure`` (log10 of the step's ``structure`` diagnostic: how far ``cmax``'s score stands above
+the score of structureless events), or none. The site, which a flight computer does not know, is
+never a feature. The fitter (:func:`fit_calibration`) makes ``log10 sigma_raw + S`` non-decreasing
+in ``sigma_raw`` along every feature knot (weighted isotonic regression), so the calibrated
+confidence keeps the estimator's ranking: a higher raw confidence never gives a lower calibrated one at the same feature.
 
 - :class:`CalibrationParams` and :func:`calibrate_confidence`: the table and the pure, batched map
   (torch, no loop over the batch, no host sync; CPU or CUDA). Where S = 0 the confidence passes
@@ -44,7 +45,9 @@ import torch
 from dvsland.checks import file_sha256
 
 #: the features a table may use besides the raw confidence
-FEATURES = ("none", "events", "abs_d_hat")
+FEATURES = ("none", "events", "abs_d_hat", "structure")
+#: the diagnostic key the ``structure`` feature reads (``cmax`` gives it)
+STRUCTURE_KEY = "structure"
 #: the key of the confidence before calibration in a calibrated estimator's diagnostics
 RAW_KEY = "confidence_raw"
 #: the config key that selects a table (named in every error)
@@ -159,10 +162,11 @@ def raw_log10_sigma(confidence: torch.Tensor) -> torch.Tensor:
     return (0.5 * torch.log10((1.0 - c) / c) - 1.0).clamp_min(LOG10_SIGMA_FLOOR)
 
 
-def feature_values(kind: str, n_events: Optional[torch.Tensor] = None,
-                   d_hat: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
+def feature_values(kind: str, n_events: Optional[torch.Tensor] = None, d_hat: Optional[torch.Tensor] = None,
+                   structure: Optional[torch.Tensor] = None) -> Optional[torch.Tensor]:
     """The feature (B,) float32 of a table: ``events`` -> log10(1 + n_events), ``abs_d_hat`` ->
     log10 |D_hat| (at least -6; 0 where D_hat is NaN: such steps have c = 0 and pass unchanged),
+    ``structure`` -> log10 of the ``structure`` diagnostic (at least -3; 0 where NaN: no estimate),
     ``none`` -> None."""
     if kind == "none":
         return None
@@ -175,6 +179,11 @@ def feature_values(kind: str, n_events: Optional[torch.Tensor] = None,
             raise ValueError("the 'abs_d_hat' calibration feature needs D_hat")
         a = torch.log10(d_hat.to(torch.float32).abs().clamp_min(1e-6))
         return torch.nan_to_num(a, nan=0.0)
+    if kind == "structure":
+        if structure is None:
+            raise ValueError(f"the 'structure' calibration feature needs the estimator's {STRUCTURE_KEY!r} "
+                             f"diagnostic (cmax gives it)")
+        return torch.nan_to_num(torch.log10(structure.to(torch.float32).clamp_min(1e-3)), nan=0.0)
     raise ValueError(f"unknown calibration feature {kind!r}; use one of {', '.join(FEATURES)}")
 
 
@@ -218,7 +227,8 @@ def calibrate_output(out, events, batch_size: int, params: Optional[CalibrationP
     raw = out.confidence
     p = params_to(params, raw.device)
     n = window_event_counts(events, batch_size, raw.device) if p.feature == "events" else None
-    f = feature_values(p.feature, n_events=n, d_hat=out.d_hat)
+    st = out.diagnostics.get(STRUCTURE_KEY) if p.feature == "structure" else None
+    f = feature_values(p.feature, n_events=n, d_hat=out.d_hat, structure=None if st is None else st.to(raw.device))
     conf = calibrate_confidence(raw, p, f).to(raw.dtype)
     diag = dict(out.diagnostics)
     diag[RAW_KEY] = raw
@@ -298,7 +308,7 @@ def _bin(v, e):
     return np.clip(np.searchsorted(e, v, side="right") - 1, 0, e.size - 2)
 
 
-def fit_calibration(d_true, d_hat, confidence, feature: str = "none", n_events=None, *,
+def fit_calibration(d_true, d_hat, confidence, feature: str = "none", n_events=None, *, structure=None,
                     sigma_bins: int = 6, feature_bins: int = 4, min_count: int = 40) -> Tuple[CalibrationParams, dict]:
     """Fit a calibration table to a sample of estimates (NumPy; N steps, pooled over sites).
 
@@ -314,6 +324,7 @@ def fit_calibration(d_true, d_hat, confidence, feature: str = "none", n_events=N
         d_true, d_hat, confidence: (N,) true divergence, estimates (NaN = none), raw confidence.
         feature: one of :data:`FEATURES`.
         n_events: (N,) events of each step's window (``events``).
+        structure: (N,) the estimator's ``structure`` diagnostic at each step (``structure``).
 
     Returns:
         (:class:`CalibrationParams`, {"n_estimates", "cells": [[count per cell]], "max_gap_cells"}).
@@ -326,8 +337,7 @@ def fit_calibration(d_true, d_hat, confidence, feature: str = "none", n_events=N
     if feature == "none":
         f = np.zeros_like(x)
     else:
-        f = feature_values(feature, n_events=None if n_events is None else torch.as_tensor(np.asarray(n_events, dtype=np.float64).ravel()),
-                           d_hat=torch.as_tensor(np.asarray(d_hat, dtype=np.float64).ravel())).double().numpy()
+        f = _feature_np(feature, d_hat, n_events, structure)
     z0, x, f = z0[ans], x[ans], f[ans]
     ex = _edges(x, int(sigma_bins))
     ef = _edges(f, int(feature_bins)) if feature != "none" else np.array([0.0, 1.0])
@@ -371,13 +381,23 @@ def _strict(k: np.ndarray) -> np.ndarray:
     return out
 
 
-def apply_calibration_np(params: CalibrationParams, d_hat, confidence, n_events=None) -> np.ndarray:
+def _feature_np(kind: str, d_hat, n_events=None, structure=None) -> np.ndarray:
+    """:func:`feature_values` over a flat NumPy sample (N,), float64."""
+    def flat(v, dtype):
+        return None if v is None else torch.as_tensor(np.asarray(v, dtype=dtype).ravel())
+
+    return feature_values(kind, n_events=flat(n_events, np.float64), d_hat=flat(d_hat, np.float64),
+                          structure=flat(structure, np.float64)).double().numpy()
+
+
+def apply_calibration_np(params: CalibrationParams, d_hat, confidence, n_events=None, structure=None) -> np.ndarray:
     """:func:`calibrate_confidence` over a flat NumPy sample (N,) (the fitter's and the report's
     offline check), float64."""
     c = torch.as_tensor(np.asarray(confidence, dtype=np.float32).ravel())
     n = None if n_events is None else torch.as_tensor(np.asarray(n_events, dtype=np.float64).ravel())
+    st = None if structure is None else torch.as_tensor(np.asarray(structure, dtype=np.float64).ravel())
     dh = torch.as_tensor(np.asarray(d_hat, dtype=np.float32).ravel())
-    f = feature_values(params.feature, n_events=n, d_hat=dh)
+    f = feature_values(params.feature, n_events=n, d_hat=dh, structure=st)
     return calibrate_confidence(c, params_to(params, "cpu"), f).double().numpy()
 
 
@@ -503,7 +523,7 @@ def checkpoint_sha256(estimator) -> Optional[str]:
     return f"{Path(ck).name} sha256:{file_sha256(ck)}"
 
 
-__all__ = ["FEATURES", "RAW_KEY", "CONFIG_KEY", "SHIPPED_SETS", "CalibrationParams", "identity_params", "check_params",
-           "params_to", "log10_scale_at", "raw_log10_sigma", "feature_values", "calibrate_confidence",
+__all__ = ["FEATURES", "STRUCTURE_KEY", "RAW_KEY", "CONFIG_KEY", "SHIPPED_SETS", "CalibrationParams", "identity_params",
+           "check_params", "params_to", "log10_scale_at", "raw_log10_sigma", "feature_values", "calibrate_confidence",
            "window_event_counts", "calibrate_output", "best_log10_scale", "fit_calibration", "apply_calibration_np",
            "calibration_to_json", "params_from_json", "shipped_calibrations", "load_calibration", "resolve_calibration"]

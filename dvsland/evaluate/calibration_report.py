@@ -107,7 +107,8 @@ SAMPLE_FILE = "calibration_sample.npz"
 
 def calibration_sample(res) -> dict:
     """The scored steps of an evaluation as flat arrays: ``d_true``, ``site``, ``n_events`` (events
-    of the step's window) and, per estimator i (``labels[i]``), ``d_hat_i`` and ``confidence_i``."""
+    of the step's window) and, per estimator i (``labels[i]``), ``d_hat_i``, ``confidence_i`` and,
+    for an estimator whose diagnostics give it (``cmax``), ``structure_i``."""
     conf = getattr(res, "confidence", None) or {}
     if not conf:
         raise ValueError("--calibration: this evaluation recorded no per-step confidence")
@@ -118,6 +119,9 @@ def calibration_sample(res) -> dict:
     for i, name in enumerate(res.d_hat):
         out[f"d_hat_{i}"] = np.asarray(res.d_hat[name], dtype=np.float64)[sc]
         out[f"confidence_{i}"] = np.asarray(conf[name], dtype=np.float64)[sc]
+        st = (getattr(res, "structure", None) or {}).get(name)
+        if st is not None:
+            out[f"structure_{i}"] = np.asarray(st, dtype=np.float64)[sc]
     return out
 
 
@@ -197,12 +201,16 @@ def fit_from_samples(samples, label: str, estimator: Optional[str] = None, featu
         if not calibration_off(meta.get("calibration", "none")):
             raise ValueError(f"this sample was evaluated with estimator.calibration={meta['calibration']!r}: fit on "
                              f"raw confidences (estimator.calibration=none)")
-        parts.append((s["d_true"], s[f"d_hat_{i}"], s[f"confidence_{i}"], s["n_events"], s["site"]))
+        if feature == "structure" and f"structure_{i}" not in s:
+            raise ValueError(f"the 'structure' feature: this calibration sample holds no structure for {label!r} "
+                             f"(its estimator gives none, or the sample predates it)")
+        st = s.get(f"structure_{i}", np.full(np.shape(s["d_true"]), np.nan))
+        parts.append((s["d_true"], s[f"d_hat_{i}"], s[f"confidence_{i}"], s["n_events"], s["site"], st))
         metas.append(meta)
-    dt, dh, c, ne, site = (np.concatenate([p[k] for p in parts]) for k in range(5))
-    params, info = fit_calibration(dt, dh, c, feature, ne, sigma_bins=sigma_bins, feature_bins=feature_bins,
-                                   min_count=min_count)
-    after = apply_calibration_np(params, dh, c, ne)
+    dt, dh, c, ne, site, st = (np.concatenate([p[k] for p in parts]) for k in range(6))
+    params, info = fit_calibration(dt, dh, c, feature, ne, structure=st, sigma_bins=sigma_bins,
+                                   feature_bins=feature_bins, min_count=min_count)
+    after = apply_calibration_np(params, dh, c, ne, st)
     names = [m.get("estimators", {}).get(label, label) for m in metas]
     est = estimator or names[0]
     ck = [m.get("checkpoints", {}).get(label) for m in metas]

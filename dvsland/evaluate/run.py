@@ -55,6 +55,8 @@ class EvaluationResult:
             estimators that read a trained checkpoint (``learned``, ``snn``).
         confidence: {estimator: (B, K + 1) float64 confidence in [0, 1] of each estimate (0 where
             none or not run)}; read by the calibration report (:mod:`dvsland.evaluate.calibration`).
+        structure: {estimator: (B, K + 1) float64 its ``structure`` diagnostic per step (NaN where
+            none)}, for the estimators that give one (``cmax``): a calibration feature.
     """
 
     descents: Descents
@@ -68,6 +70,7 @@ class EvaluationResult:
     time_base: str = "CPU"
     checkpoints: Dict[str, dict] = field(default_factory=dict)
     confidence: Dict[str, np.ndarray] = field(default_factory=dict)
+    structure: Dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def _sync(device: torch.device) -> None:
@@ -178,6 +181,14 @@ class _Timed:
         return False
 
 
+def _record_structure(structure: Dict[str, np.ndarray], name: str, out, k: int, shape) -> None:
+    """Step ``k``'s ``structure`` diagnostic of estimator ``name`` into ``structure[name]`` (made on
+    its first value, NaN elsewhere), where the step's diagnostics hold one."""
+    st = (out.diagnostics() or {}).get("structure")
+    if isinstance(st, torch.Tensor):
+        structure.setdefault(name, np.full(shape, np.nan))[:, k] = st.detach().double().cpu().numpy()
+
+
 def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Optional[Sequence[str]] = None,
              *, segment_steps: int = 0, stride: int = 1, max_steps: Optional[int] = None, warmup_steps: int = 10,
              device="cpu", frame_source: Optional[FrameSource] = None, progress: bool = True,
@@ -248,6 +259,7 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
         renderer = get_renderer(cfg.render.renderer, desc.sites, cfg.camera, cfg.render, device=device)
     d_hat = {n: np.full((B, K + 1), np.nan) for n in estimators}
     conf = {n: np.zeros((B, K + 1)) for n in estimators}
+    structure: Dict[str, np.ndarray] = {}  # the estimators whose diagnostics give it
     base = time_base(device)
     times: Dict[str, List[float]] = {n: [] for n in estimators}  # in the time base
     walls: Dict[str, List[float]] = {n: [] for n in estimators}
@@ -282,6 +294,7 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
                 walls[name].append(timer.last_ms)
                 d_hat[name][:, k] = out.d_est.detach().cpu().numpy()
                 conf[name][:, k] = out.d_conf.detach().cpu().numpy()
+                _record_structure(structure, name, out, k, (B, K + 1))
                 if first:
                     alt[:, k], vel[:, k] = out.z_m.cpu().numpy(), out.v_mps.cpu().numpy()
                     valid[:, k] = (out.active & (out.z_m > z_end)).cpu().numpy()
@@ -304,7 +317,7 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
     flown_desc = Descents(desc.sites, desc.t_s, alt, vel, valid)
     res = EvaluationResult(flown_desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events,
                            wall_ms_per_step={n: np.asarray(v) for n, v in walls.items()}, time_base=base,
-                           checkpoints=checkpoints, confidence=conf)
+                           checkpoints=checkpoints, confidence=conf, structure=structure)
     info = dict(trajectory="closed_form", flight="loop_step, tracking thrust",
                 integrator=str(cfg.dynamics.integrator),
                 trajectory_max_rel_dz=float(rel_dz[flown].max()) if flown.any() else 0.0,
