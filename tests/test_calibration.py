@@ -180,9 +180,16 @@ def test_cli_calibration_of_a_recording(tmp_path, capsys):
 
     data = Path(__file__).parent / "data"
     out = tmp_path / "r"
-    rc = main(["evaluate", "paper", "--recording", str(data / "descent_A.npz"), "--estimators", "oracle,dpr",
+    rc = main(["evaluate", "paper", "--recording", str(data / "descent_A.npz"), "--estimators", "oracle,dpr,cmax",
                "--max-steps", "25", "--calibration", "--no-figures", "--quiet", "--out", str(out)])
     assert rc == 0, capsys.readouterr().err
     cal = json.loads((out / "calibration.json").read_text())
     cov = cal["estimators"]["dpr"]["coverage"]["all"]
     assert cov["n_steps"] > 0 and cov["n_estimates"] + cov["n_nan"] + cov["n_zero_confidence"] == cov["n_steps"]
+    # its sample holds cmax's structure diagnostic (the 'structure' calibration feature), not dpr's
+    from dvsland.evaluate.calibration_report import read_calibration_sample
+
+    s = read_calibration_sample(out)
+    labels = [str(x) for x in s["labels"].tolist()]
+    assert f"structure_{labels.index('cmax')}" in s and f"structure_{labels.index('dpr')}" not in s
+    assert s[f"structure_{labels.index('cmax')}"].shape == s["d_true"].shape

@@ -147,10 +147,11 @@ def _run_intervals(ests: dict, ev_all, cut: np.ndarray, edges: np.ndarray, truth
                    progress: bool, label: str) -> tuple:
     """Feed each estimator of ``ests`` ({label: estimator}) interval k's events (``ev_all[cut[k-1]:cut[k]]``)
     at ``edges[k]`` µs with the ground truth ``truth`` ({"divergence", "altitude_m", "velocity_mps"}:
-    (K + 1,) arrays, NaN = unknown). Returns ``(d_hat, conf, times, walls, n_events)``: {label: (1, K + 1)
-    estimates, 1/s}, {label: (1, K + 1) confidence in [0, 1] (0 where there is no estimate)},
-    {label: [ms per update in the time base, :func:`.run.time_base`]}, {label: [wall ms per update]},
-    (1, K + 1) event counts (-1 at k = 0)."""
+    (K + 1,) arrays, NaN = unknown). Returns ``(d_hat, conf, times, walls, n_events, structure)``:
+    {label: (1, K + 1) estimates, 1/s}, {label: (1, K + 1) confidence in [0, 1] (0 where there is no
+    estimate)}, {label: [ms per update in the time base, :func:`.run.time_base`]}, {label: [wall ms per
+    update]}, (1, K + 1) event counts (-1 at k = 0), {label: (1, K + 1) ``structure`` diagnostic} of the
+    estimators whose diagnostics give one (``cmax``)."""
     K = len(edges) - 1
     d_true = truth["divergence"]
     d_hat = {n: np.full((1, K + 1), np.nan) for n in ests}
@@ -159,6 +160,7 @@ def _run_intervals(ests: dict, ev_all, cut: np.ndarray, edges: np.ndarray, truth
     times: Dict[str, List[float]] = {n: [] for n in ests}
     walls: Dict[str, List[float]] = {n: [] for n in ests}
     n_events = np.full((1, K + 1), -1, dtype=np.int64)
+    structure: Dict[str, np.ndarray] = {}
     bar = None
     if progress:
         from tqdm import tqdm
@@ -186,11 +188,14 @@ def _run_intervals(ests: dict, ev_all, cut: np.ndarray, edges: np.ndarray, truth
             walls[n].append(wall_ms)
             d_hat[n][:, k] = d.detach().double().cpu().numpy()
             conf[n][:, k] = np.nan_to_num(est.confidence().detach().double().cpu().numpy(), nan=0.0)
+            st = (est.diagnostics() or {}).get("structure") if callable(getattr(est, "diagnostics", None)) else None
+            if isinstance(st, torch.Tensor):
+                structure.setdefault(n, np.full((1, K + 1), np.nan))[:, k] = st.detach().double().cpu().numpy()
         if bar is not None:
             bar.update(1)
     if bar is not None:
         bar.close()
-    return d_hat, conf, times, walls, n_events
+    return d_hat, conf, times, walls, n_events, structure
 
 
 def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
@@ -257,11 +262,13 @@ def evaluate_recording(cfg: Config, recording: Union[Recording, str, Path],
         ck = estimator_checkpoint(vcfg, est_name, ests[lab])
         if ck is not None:
             checkpoints[lab] = ck
-    d_hat, conf, times, walls, n_events = _run_intervals(ests, ev_all, cut, edges, truth, device, progress, label)
+    d_hat, conf, times, walls, n_events, structure = _run_intervals(ests, ev_all, cut, edges, truth, device,
+                                                                     progress, label)
     scored = desc.valid & (np.arange(K + 1)[None] > warmup_steps)
     res = EvaluationResult(desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events,
                            wall_ms_per_step={n: np.asarray(v) for n, v in walls.items()},
-                           time_base=time_base(device), checkpoints=checkpoints, confidence=conf)
+                           time_base=time_base(device), checkpoints=checkpoints, confidence=conf,
+                           structure=structure)
     info = dict(trajectory="recording", recording=recording.source, recording_format=recording.format,
                 sensor_size=[int(W), int(H)], sensor_size_from=recording.meta.get("sensor_size_from"),
                 bin_factor=int(recording.meta.get("bin_factor", 1)),
