@@ -268,6 +268,7 @@ class NativeLibrary:
         self._failed = False
         self._absent = False  # auto found neither a cached build nor a compiler (not looked for again)
         self._pending: Optional[threading.Event] = None  # set when a background build has ended
+        self._pending_pid = 0  # the process whose thread runs that build (a forked child has no such thread)
 
     def use(self, on: Optional[bool] = True) -> None:
         """Pick the mode for this process: True = on, False = off, None = back to the environment's."""
@@ -314,7 +315,8 @@ class NativeLibrary:
         if self._bound is not None or self._failed:
             return self._bound
         if self._pending is not None:  # a background build (build_in_background): wait for its end
-            self._pending.wait()
+            if self._pending_pid == os.getpid():  # (in a forked child the thread is gone: the lock waits)
+                self._pending.wait()
             self._pending = None
         self._bound = load_or_warn(lambda: self.bind(load_library(self.name())) if self.cached() else self.build(),
                                    self.label, self.env_var)
@@ -334,7 +336,7 @@ def build_in_background(libraries: Sequence["NativeLibrary"]) -> int:
     if not todo:
         return 0
     for lib in todo:
-        lib._pending = threading.Event()
+        lib._pending, lib._pending_pid = threading.Event(), os.getpid()
 
     def run():
         for lib, done in [(lib, lib._pending) for lib in todo]:

@@ -69,3 +69,25 @@ def test_a_run_starts_the_builds_of_the_kernels_it_uses(estimator, renderer, wan
     est = get_estimator(estimator, 2, (128, 128))
     assert stages.start_kernel_builds(cfg, est, renderer) == 0
     assert [lib.prefix.split("_")[1] for lib in asked] == want
+
+
+def test_a_forked_child_does_not_wait_for_its_parents_build_thread(library):
+    """A process forked while its parent's background build runs has no builder thread: its first
+    use builds (or waits on the build lock) instead of waiting forever for the parent's thread."""
+    import os
+    import sys
+
+    if sys.platform != "linux":
+        pytest.skip("fork")
+    lib = library()
+    assert native_build.build_in_background([lib]) == 1
+    pid = os.fork()
+    if pid == 0:  # the child: load within the alarm, or die by it
+        import signal
+
+        signal.alarm(60)
+        ok = lib.load() is not None and lib.load().dvs_answer() == 42
+        os._exit(0 if ok else 1)
+    _, status = os.waitpid(pid, 0)
+    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+    assert lib.load().dvs_answer() == 42
