@@ -375,5 +375,5 @@ def timed_build(what: str, library: "NativeLibrary") -> int:
 
 
 __all__ = ["CLONES", "PARALLEL_RANGES", "load_or_warn", "build_in_background", "timed_build", "ON", "OFF", "AUTO",
-           "ABI", "mode_from_env", "compiler", "library_name", "library_dir", "library_file", "library_cached", "load_library",
-           "build_library", "build_lock", "NativeLibrary", "bind_functions", "tensor_address"]
+           "ABI", "mode_from_env", "compiler", "library_name", "library_dir", "library_file", "library_cached",
+           "load_library", "build_library", "build_lock", "NativeLibrary", "bind_functions", "tensor_address"]
