@@ -306,6 +306,11 @@ class NativeLibrary:
         build_library(self.name(), self.src, self.flags, verbose)
         return self.bind(load_library(self.name()))
 
+    def kernel_for(self, t):
+        """The bindings for work on tensor ``t``'s device: :meth:`load` for a CPU tensor, None (the
+        caller's torch path) on any other device."""
+        return self.load() if t.device.type == "cpu" else None
+
     def load(self, force: bool = False):
         """The bindings, built once when needed, or None: not :meth:`enabled` now (unless ``force``;
         a mode switched off after a load gives None too), or a failed build or load (one warning,

@@ -70,6 +70,23 @@ def torch_event_path():
 
 
 @pytest.fixture
+def count_calls(monkeypatch):
+    """``count_calls(cls, name)`` wraps method ``name`` of ``cls`` for this test (restored after it)
+    and returns the list that each call appends to: which path a test ran."""
+    def count(cls, name: str) -> list:
+        calls, real = [], getattr(cls, name)
+
+        def spy(self, *a, **kw):
+            calls.append(1)
+            return real(self, *a, **kw)
+
+        monkeypatch.setattr(cls, name, spy)
+        return calls
+
+    return count
+
+
+@pytest.fixture
 def repo_root() -> Path:
     return REPO
 

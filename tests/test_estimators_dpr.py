@@ -413,7 +413,7 @@ def _peaks_both(img, n_max, sigma, nms):
 
 @pytest.mark.parametrize("batch,shape,sigma,nms", [(18, (128, 128), 2.0, 3), (2, (31, 45), 1.0, 5),
                                                     (5, (130, 97), 3.0, 1), (1, (64, 200), 2.0, 3)])
-def test_density_peaks_compiled_equal_the_torch_path(batch, shape, sigma, nms):
+def test_density_peaks_compiled_equal_the_torch_path(batch, shape, sigma, nms, count_calls):
     """DPR's compiled blur, local maxima and scores (dvsland.estimators.native_dpr) give the torch
     path's peaks, densities and validity bit for bit (several images: oneDNN's depthwise sums; one:
     its plain convolution's), and the compiled pass ran where it matches this machine's torch path."""
@@ -426,18 +426,8 @@ def test_density_peaks_compiled_equal_the_torch_path(batch, shape, sigma, nms):
     g = torch.Generator().manual_seed(batch)
     img = torch.poisson(torch.rand(batch, *shape, generator=g) * 0.8, generator=g)
     img[:, :, : shape[1] // 3] = 0.0  # an empty band: no peaks there
-    calls = []
-    real = native_dpr.Kernels.peak_scores
-
-    def spy(self, *a):
-        calls.append(1)
-        return real(self, *a)
-
-    native_dpr.Kernels.peak_scores = spy
-    try:
-        (p1, d1, v1), (p0, d0, v0) = _peaks_both(img, 15, sigma, nms)
-    finally:
-        native_dpr.Kernels.peak_scores = real
+    calls = count_calls(native_dpr.Kernels, "peak_scores")
+    (p1, d1, v1), (p0, d0, v0) = _peaks_both(img, 15, sigma, nms)
     assert torch.equal(p1.nan_to_num(-7), p0.nan_to_num(-7)) and torch.equal(d1, d0) and torch.equal(v1, v0)
     assert v1.any()
     assert bool(calls) == dp.compiled_scores_match(kern, 1 if batch == 1 else 3)

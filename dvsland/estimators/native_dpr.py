@@ -278,7 +278,7 @@ def use_native_dpr(on: Optional[bool] = True) -> None:
 
 def kernel_for(t: torch.Tensor) -> Optional[Kernels]:
     """The kernel for work on ``t``'s device where enabled (built once when needed), else None."""
-    return _LIB.load() if t.device.type == "cpu" else None
+    return _LIB.kernel_for(t)
 
 
 def fits(radius_px: float, image_pad_px: int) -> bool:

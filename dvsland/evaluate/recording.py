@@ -25,7 +25,7 @@ from dvsland.events import Recording, binned_pixel, read_recording
 from dvsland.report.checkpoint import estimator_checkpoint
 from dvsland.stages import build_estimator
 
-from .run import EvaluationResult, parse_estimator_spec, summarise, time_base, variant_config
+from .run import EvaluationResult, parse_estimator_spec, record_structure, summarise, time_base, variant_config
 from .trajectory import Descents
 
 
@@ -188,9 +188,8 @@ def _run_intervals(ests: dict, ev_all, cut: np.ndarray, edges: np.ndarray, truth
             walls[n].append(wall_ms)
             d_hat[n][:, k] = d.detach().double().cpu().numpy()
             conf[n][:, k] = np.nan_to_num(est.confidence().detach().double().cpu().numpy(), nan=0.0)
-            st = (est.diagnostics() or {}).get("structure") if callable(getattr(est, "diagnostics", None)) else None
-            if isinstance(st, torch.Tensor):
-                structure.setdefault(n, np.full((1, K + 1), np.nan))[:, k] = st.detach().double().cpu().numpy()
+            diag = est.diagnostics() if callable(getattr(est, "diagnostics", None)) else None
+            record_structure(structure, n, diag if isinstance(diag, dict) else None, k, (1, K + 1))
         if bar is not None:
             bar.update(1)
     if bar is not None:

@@ -181,10 +181,11 @@ class _Timed:
         return False
 
 
-def _record_structure(structure: Dict[str, np.ndarray], name: str, out, k: int, shape) -> None:
-    """Step ``k``'s ``structure`` diagnostic of estimator ``name`` into ``structure[name]`` (made on
-    its first value, NaN elsewhere), where the step's diagnostics hold one."""
-    st = (out.diagnostics() or {}).get("structure")
+def record_structure(structure: Dict[str, np.ndarray], name: str, diagnostics, k: int, shape) -> None:
+    """Step ``k``'s ``structure`` diagnostic (B,) of estimator ``name`` into ``structure[name]`` (an
+    array of ``shape``, made on its first value, NaN elsewhere), where ``diagnostics`` (the step's
+    dict, or None) hold one."""
+    st = (diagnostics or {}).get("structure")
     if isinstance(st, torch.Tensor):
         structure.setdefault(name, np.full(shape, np.nan))[:, k] = st.detach().double().cpu().numpy()
 
@@ -294,7 +295,7 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
                 walls[name].append(timer.last_ms)
                 d_hat[name][:, k] = out.d_est.detach().cpu().numpy()
                 conf[name][:, k] = out.d_conf.detach().cpu().numpy()
-                _record_structure(structure, name, out, k, (B, K + 1))
+                record_structure(structure, name, out.diagnostics(), k, (B, K + 1))
                 if first:
                     alt[:, k], vel[:, k] = out.z_m.cpu().numpy(), out.v_mps.cpu().numpy()
                     valid[:, k] = (out.active & (out.z_m > z_end)).cpu().numpy()

@@ -283,11 +283,10 @@ class FastRenderer(Renderer):
         ox0 = (lo * ax + bx) / wa - 1.0
         ox1 = ((lo + 1.0) * ax + bx) / wa - 1.0
         off = torch.stack([ox0, oy, ox1 - 0.5 * ox0, oy - 0.5 * oy])[:, :, None, None]  # (4, B, 1, 1)
-        if kern is not None:  # one compiled pass over the frames, the same bits (native_render)
-            shared = self._gain_shared
-            return kern.levels(self.atlas_irradiance[0, 0], off, self._slopes, site_idx, rng_n, frac,
-                               self._gain if shared is None else shared, out, self.threads)
         gain = self._gain_shared
+        if kern is not None:  # one compiled pass over the frames, the same bits (native_render)
+            return kern.levels(self.atlas_irradiance[0, 0], off, self._slopes, site_idx, rng_n, frac,
+                               self._gain if gain is None else gain, out, self.threads)
         rows = None if gain is not None else self._gain.index_select(0, site_idx)  # (B, H, W) per frame
         step = min(b, sub_batch(b, self.chunk))
         grid = _LevelGrid(step, h, w, self.device, self.threads, self.atlas_irradiance)

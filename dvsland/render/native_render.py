@@ -247,7 +247,7 @@ def use_native_render(on: Optional[bool] = True) -> None:
 
 def kernel_for(t: torch.Tensor) -> Optional[Kernels]:
     """The kernels for work on ``t``'s device where enabled (built once when needed), else None."""
-    return LIBRARY.load() if t.device.type == "cpu" else None
+    return LIBRARY.kernel_for(t)
 
 
 def fits(atlas: torch.Tensor) -> bool:

@@ -111,7 +111,7 @@ def use_native_noise(on: Optional[bool] = True) -> None:
 
 def kernel_for(t: torch.Tensor) -> Optional[Kernels]:
     """The kernel for work on ``t``'s device where enabled (built once when needed), else None."""
-    return LIBRARY.load() if t.device.type == "cpu" else None
+    return LIBRARY.kernel_for(t)
 
 
 __all__ = ["Kernels", "LIBRARY", "use_native_noise", "kernel_for"]
