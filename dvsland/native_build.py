@@ -182,6 +182,31 @@ def _remove_stale_partials(d: Path) -> None:
             f.unlink(missing_ok=True)
 
 
+#: the descriptors of the build locks this process has open, and the mutex that keeps a fork from
+#: coming between a lock's open (or close) and its entry here
+_LOCK_FDS: set = set()
+_LOCK_FDS_MUTEX = threading.Lock()
+
+
+def _close_inherited_lock_fds() -> None:
+    """In a forked child: close the copies of the parent's build-lock descriptors. A flock belongs to
+    the open file, which lives while any copy of its descriptor is open: a child that kept them would
+    hold its parent's lock (and wait forever on it) after the parent's build thread, which the child
+    does not have, released it. Closing a copy leaves the parent's lock held (no LOCK_UN)."""
+    for fd in _LOCK_FDS:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    _LOCK_FDS.clear()
+    _LOCK_FDS_MUTEX.release()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(before=_LOCK_FDS_MUTEX.acquire, after_in_parent=_LOCK_FDS_MUTEX.release,
+                        after_in_child=_close_inherited_lock_fds)
+
+
 @contextlib.contextmanager
 def build_lock(d: Path):
     """Hold folder ``d``'s build for this process (a flock on ``d/OWNER_LOCK``, this pid written in
@@ -190,7 +215,9 @@ def build_lock(d: Path):
     writes a temporary file that is renamed when complete) is removed."""
     import fcntl
 
-    fd = os.open(d / OWNER_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    with _LOCK_FDS_MUTEX:
+        fd = os.open(d / OWNER_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+        _LOCK_FDS.add(fd)
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -203,7 +230,9 @@ def build_lock(d: Path):
         _remove_stale_partials(d)
         yield
     finally:
-        os.close(fd)  # releases the flock
+        with _LOCK_FDS_MUTEX:
+            _LOCK_FDS.discard(fd)
+            os.close(fd)  # releases the flock
 
 
 def build_library(name: str, src: str, flags: Sequence[str], verbose: bool = False) -> Path:

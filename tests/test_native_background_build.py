@@ -71,23 +71,44 @@ def test_a_run_starts_the_builds_of_the_kernels_it_uses(estimator, renderer, wan
     assert [lib.prefix.split("_")[1] for lib in asked] == want
 
 
-def test_a_forked_child_does_not_wait_for_its_parents_build_thread(library):
-    """A process forked while its parent's background build runs has no builder thread: its first
-    use builds (or waits on the build lock) instead of waiting forever for the parent's thread."""
+def _fork_and_load(lib) -> int:
+    """Fork; the child loads ``lib`` within a 60 s alarm and exits 0 when its kernel answers; the
+    child's wait status."""
     import os
+    import signal
+
+    pid = os.fork()
+    if pid == 0:  # the child: load within the alarm, or die by it
+        signal.alarm(60)
+        ok = lib.load() is not None and lib.load().dvs_answer() == 42
+        os._exit(0 if ok else 1)
+    return os.waitpid(pid, 0)[1]
+
+
+@pytest.mark.parametrize("when", ["any time", "lock held"])
+def test_a_forked_child_does_not_wait_for_its_parents_build_thread(library, monkeypatch, when):
+    """A process forked while its parent's background build runs has no builder thread: its first
+    use builds (or waits on the build lock) instead of waiting forever for the parent's thread. With
+    "lock held" the fork comes while the parent's thread holds the build lock (its compile slowed to
+    2 s): the child's copy of the lock's descriptor must not keep the lock from it."""
+    import os
+    import subprocess
     import sys
+    import time
 
     if sys.platform != "linux":
         pytest.skip("fork")
     lib = library()
+    if when == "lock held":
+        run = subprocess.run
+        monkeypatch.setattr(native_build.subprocess, "run", lambda *a, **k: time.sleep(2) or run(*a, **k))
     assert native_build.build_in_background([lib]) == 1
-    pid = os.fork()
-    if pid == 0:  # the child: load within the alarm, or die by it
-        import signal
-
-        signal.alarm(60)
-        ok = lib.load() is not None and lib.load().dvs_answer() == 42
-        os._exit(0 if ok else 1)
-    _, status = os.waitpid(pid, 0)
-    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+    if when == "lock held":
+        owner = lib.build_dir() / native_build.OWNER_LOCK
+        deadline = time.monotonic() + 30
+        while not (owner.is_file() and owner.read_text().strip() == str(os.getpid())):
+            assert time.monotonic() < deadline, "the background build never took its lock"
+            time.sleep(0.01)
+    status = _fork_and_load(lib)
+    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0, f"child status {status}"
     assert lib.load().dvs_answer() == 42
