@@ -84,3 +84,101 @@ def test_voxel_grid_index_matches_the_products(pool_px, K):
         ref.index_put_((base + lo * (h * w),), pol * (1.0 - wt), accumulate=True)
         ref.index_put_((base + hi * (h * w),), pol * wt, accumulate=True)
     assert torch.equal(got, ref.view(B, nb, h, w))
+
+
+def _conv_batches(monkeypatch) -> list:
+    """The batch sizes every convolution runs on from now on in this test."""
+    sizes, real = [], F.conv2d
+    monkeypatch.setattr(F, "conv2d", lambda x, *a, **k: sizes.append(x.shape[0]) or real(x, *a, **k))
+    return sizes
+
+
+def _ring_case(B: int, K: int = 4, seed: int = 0):
+    torch.manual_seed(seed)
+    net = VoxelCNN(n_bins=4, width=8).eval()
+    spec = InputSpec((64, 48), 4, 2, n_windows=K)
+    rn = RingCNN(net, coord_channels(spec, (31.5, 23.5)), K)
+    ring = torch.randint(-3, 4, (B, 4, *spec.grid_hw)).to(torch.float32)
+    return rn, (ring, ring.abs().view(B, K, -1).sum(2), torch.full((B,), 2), torch.log1p(torch.full((B,), 700.0)))
+
+
+@pytest.mark.parametrize("needed", [[], [3], [0, 5, 17], list(range(0, 30, 2)), list(range(29))])
+def test_ring_net_rows_give_the_whole_batchs_bits(needed, monkeypatch):
+    """forward_rows: the whole batch's mu and log_var at the needed rows (0 at rows not computed),
+    before and after its one check of the rows' bits; a batch mostly needed runs whole."""
+    from dvsland.estimators.learned import fast
+
+    B = 30
+    rn, args = _ring_case(B)
+    need = torch.zeros(B, dtype=torch.bool)
+    need[needed] = True
+    with torch.no_grad():
+        whole = rn(*args)
+        for _ in range(2):  # the first call checks the rows against the whole batch, the second trusts it
+            got = rn.forward_rows(*args, need)
+            for g, w in zip(got, whole):
+                assert torch.equal(g[need], w[need])
+    k = max(len(needed), fast.MIN_ROWS)
+    if k > fast.ROWS_SHARE * B:
+        assert rn._rows_exact == {}
+    else:
+        assert set(rn._rows_exact) == {(B, k)}
+        if not rn._rows_exact[(B, k)]:
+            pytest.skip(f"this CPU's convolution rounds {k} rows apart from {B}: the whole batch runs")
+        sizes = _conv_batches(monkeypatch)
+        with torch.no_grad():
+            rn.forward_rows(*args, need)
+        assert sizes and set(sizes) == {k}  # only k rows went through
+
+
+def test_ring_net_rows_fall_back_to_the_whole_batch_where_the_bits_differ(monkeypatch):
+    """A (batch, rows) size whose check failed runs the whole batch: the whole batch's bits."""
+    B = 30
+    rn, args = _ring_case(B, seed=1)
+    need = torch.zeros(B, dtype=torch.bool)
+    need[[1, 2]] = True
+    rn._rows_exact[(B, 8)] = False
+    sizes = _conv_batches(monkeypatch)
+    with torch.no_grad():
+        got, whole = rn.forward_rows(*args, need), rn(*args)
+    assert all(torch.equal(g, w) for g, w in zip(got, whole))
+    assert sizes and set(sizes) == {B}
+
+
+def test_learned_step_on_a_few_flying_rows_is_the_whole_batchs(monkeypatch):
+    """The shipped CNN's step on a batch where few rows have events (finished descents: none) runs
+    the network on those rows only and gives the whole batch's estimates, confidences and state."""
+    from dvsland.estimators import get_estimator
+    from dvsland.estimators.learned import fast
+    from dvsland.events import Events
+
+    B, g = 20, torch.Generator().manual_seed(3)
+
+    def window(k: int, rows=(2, 7, 11)):
+        n = 400
+        b = torch.tensor(rows).repeat_interleave(n)
+        t = torch.randint((k - 1) * 100_000, k * 100_000, (b.numel(),), generator=g)
+        order = torch.argsort(b * 10**9 + t)
+        xy = torch.randint(0, 128, (2, b.numel()), generator=g)
+        p = torch.randint(0, 2, (b.numel(),), generator=g) * 2 - 1
+        return Events(b[order], xy[0][order], xy[1][order], t[order], p[order])
+
+    def fly(share: float):
+        monkeypatch.setattr(fast, "ROWS_SHARE", share)
+        est = get_estimator("learned", B, (128, 128), min_events=20)
+        st, outs = est.init_state(), []
+        for k, ev in enumerate(windows, start=1):
+            st, out = est.step_state(st, ev, k * 100_000)
+            outs.append(out)
+        return est, st, outs
+
+    windows = [window(k) for k in range(1, 7)]
+    est, st, outs = fly(fast.ROWS_SHARE)
+    assert est.consts.ring_net._rows_exact  # the rows' path was taken (and checked once)
+    _, st_whole, outs_whole = fly(-1.0)  # the whole batch every step
+    for a, w in zip(outs, outs_whole):
+        assert torch.equal(a.d_hat.isnan(), w.d_hat.isnan()) and torch.equal(a.d_hat.nan_to_num(), w.d_hat.nan_to_num())
+        assert torch.equal(a.confidence, w.confidence)
+    assert int(st.d.isfinite().sum()) == 3  # the network's estimates (random events: the motion gate abstains)
+    for a, w in zip(st, st_whole):
+        assert torch.equal(a.nan_to_num(), w.nan_to_num())

@@ -187,12 +187,14 @@ def _learned_step(p: LearnedConfig, c: LearnedConsts, state: LearnedState, event
             total = total * c.cmap.count_scale
     st = state._replace(ring=ring, ring_counts=counts, ring_abs=sums, newest=q)
     activity: Dict[str, torch.Tensor] = {}
-    if c.ring_net is not None:
+    ok = n >= p.min_events
+    if c.ring_net is not None and ring.device.type == "cpu" and not train:  # the rows with an estimate only
+        mu, log_var = c.ring_net.forward_rows(ring, sums, q, torch.log1p(total), ok)
+    elif c.ring_net is not None:
         mu, log_var = c.ring_net(ring, sums, q, torch.log1p(total))
     else:
         mu, log_var = c.model(ordered_ring(st, spec), c.coords, torch.log1p(total))
         activity = {k: v.clone() for k, v in getattr(c.model, "last_activity", {}).items()}
-    ok = n >= p.min_events
     nan = torch.full((), float("nan"), device=ring.device)
     d = torch.where(ok, -torch.exp(mu), nan).to(torch.float32)
     sig = torch.where(ok, torch.exp(0.5 * log_var), nan).to(torch.float32)
