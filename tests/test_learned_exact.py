@@ -119,7 +119,12 @@ def test_ring_net_rows_give_the_whole_batchs_bits(needed, monkeypatch):
             for g, w in zip(got, whole):
                 assert torch.equal(g[need], w[need])
     k = max(len(needed), fast.MIN_ROWS)
-    if k > fast.ROWS_SHARE * B:
+    if not needed:  # nothing to run
+        sizes = _conv_batches(monkeypatch)
+        with torch.no_grad():
+            assert all(torch.equal(g, torch.zeros(B)) for g in rn.forward_rows(*args, need))
+        assert rn._rows_exact == {} and sizes == []
+    elif k > fast.ROWS_SHARE * B:
         assert rn._rows_exact == {}
     else:
         assert set(rn._rows_exact) == {(B, k)}

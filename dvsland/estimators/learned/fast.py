@@ -100,6 +100,8 @@ class RingCNN(nn.Module):
         ``newest`` is (B,) int64 here. Reads ``need`` on the host: meant for a CPU batch."""
         B = ring.shape[0]
         rows = need.nonzero().squeeze(1)
+        if rows.numel() == 0:  # no row gives an estimate: nothing to run
+            return tuple(torch.zeros(B, dtype=torch.float32, device=ring.device) for _ in range(2))
         k = max(rows.numel(), min(MIN_ROWS, B))
         if k > ROWS_SHARE * B or self._rows_exact.get((B, k)) is False:
             return self(ring, abs_sums, newest, log_count)
