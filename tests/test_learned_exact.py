@@ -106,7 +106,7 @@ def _ring_case(B: int, K: int = 4, seed: int = 0):
 def test_ring_net_rows_give_the_whole_batchs_bits(needed, monkeypatch):
     """forward_rows: the whole batch's mu and log_var at the needed rows (0 at rows not computed),
     before and after its one check of the rows' bits; a batch mostly needed runs whole."""
-    from dvsland.estimators.learned import fast
+    from dvsland.estimators.learned import rows
 
     B = 30
     rn, args = _ring_case(B)
@@ -118,13 +118,13 @@ def test_ring_net_rows_give_the_whole_batchs_bits(needed, monkeypatch):
             got = rn.forward_rows(*args, need)
             for g, w in zip(got, whole):
                 assert torch.equal(g[need], w[need])
-    k = max(len(needed), fast.MIN_ROWS)
+    k = max(len(needed), rows.MIN_ROWS)
     if not needed:  # nothing to run
         sizes = _conv_batches(monkeypatch)
         with torch.no_grad():
             assert all(torch.equal(g, torch.zeros(B)) for g in rn.forward_rows(*args, need))
         assert rn._rows_exact == {} and sizes == []
-    elif k > fast.ROWS_SHARE * B:
+    elif k > rows.ROWS_SHARE * B:
         assert rn._rows_exact == {}
     else:
         assert set(rn._rows_exact) == {(B, k)}
@@ -150,11 +150,13 @@ def test_ring_net_rows_fall_back_to_the_whole_batch_where_the_bits_differ(monkey
     assert sizes and set(sizes) == {B}
 
 
-def test_learned_step_on_a_few_flying_rows_is_the_whole_batchs(monkeypatch):
-    """The shipped CNN's step on a batch where few rows have events (finished descents: none) runs
-    the network on those rows only and gives the whole batch's estimates, confidences and state."""
+@pytest.mark.parametrize("checkpoint", ["", "spiking"])
+def test_learned_step_on_a_few_flying_rows_is_the_whole_batchs(monkeypatch, checkpoint):
+    """The shipped CNN's and spiking model's step on a batch where few rows have events (finished
+    descents: none) runs the network on those rows only and gives the whole batch's estimates,
+    confidences and state (the spiking model's activity too, at the rows with an estimate)."""
     from dvsland.estimators import get_estimator
-    from dvsland.estimators.learned import fast
+    from dvsland.estimators.learned import rows
     from dvsland.events import Events
 
     B, g = 20, torch.Generator().manual_seed(3)
@@ -169,8 +171,8 @@ def test_learned_step_on_a_few_flying_rows_is_the_whole_batchs(monkeypatch):
         return Events(b[order], xy[0][order], xy[1][order], t[order], p[order])
 
     def fly(share: float):
-        monkeypatch.setattr(fast, "ROWS_SHARE", share)
-        est = get_estimator("learned", B, (128, 128), min_events=20)
+        monkeypatch.setattr(rows, "ROWS_SHARE", share)
+        est = get_estimator("learned", B, (128, 128), min_events=20, checkpoint=checkpoint)
         st, outs = est.init_state(), []
         for k, ev in enumerate(windows, start=1):
             st, out = est.step_state(st, ev, k * 100_000)
@@ -178,12 +180,19 @@ def test_learned_step_on_a_few_flying_rows_is_the_whole_batchs(monkeypatch):
         return est, st, outs
 
     windows = [window(k) for k in range(1, 7)]
-    est, st, outs = fly(fast.ROWS_SHARE)
-    assert est.consts.ring_net._rows_exact  # the rows' path was taken (and checked once)
+    est, st, outs = fly(rows.ROWS_SHARE)
+    exact = est.consts.ring_net._rows_exact if est.consts.ring_net is not None else est.consts.rows_exact
+    assert exact  # the rows' path was taken (and checked once)
     _, st_whole, outs_whole = fly(-1.0)  # the whole batch every step
     for a, w in zip(outs, outs_whole):
         assert torch.equal(a.d_hat.isnan(), w.d_hat.isnan()) and torch.equal(a.d_hat.nan_to_num(), w.d_hat.nan_to_num())
         assert torch.equal(a.confidence, w.confidence)
+        for k in ("spikes", "synops"):
+            assert (k in a.diagnostics) == (k in w.diagnostics) == (checkpoint == "spiking")
+            if k in a.diagnostics:
+                has, x, y = a.diagnostics["sigma_rel"].isfinite(), a.diagnostics[k], w.diagnostics[k]
+                assert torch.equal(x[has], y[has])
+                assert bool(((x == 0) | (x == y))[~has].all())  # not run: none (a padding row: its own)
     assert int(st.d.isfinite().sum()) == 3  # the network's estimates (random events: the motion gate abstains)
     for a, w in zip(st, st_whole):
         assert torch.equal(a.nan_to_num(), w.nan_to_num())

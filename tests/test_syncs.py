@@ -55,8 +55,10 @@ TORCH_PATH_SYNC_BUDGET = {"learned": 6, "cmax": 11}
 def test_torch_path_syncs_within_budget(est, monkeypatch):
     from dvsland.control import efference_fit
     from dvsland.estimators import native_cmax, native_dpr
+    from dvsland.estimators.learned import rows
     from dvsland.events import denoise, emulator, native
 
+    monkeypatch.setattr(rows, "CPU_ROWS", False)  # the learned network's CPU-only rows path reads them
     monkeypatch.setattr(efference_fit, "CPU_COMPACT", False)  # the filter's CPU-only compaction reads the mask
     monkeypatch.setattr(emulator, "CPU_FAST_PATHS", False)
     monkeypatch.setattr(denoise, "CPU_FAST_PATHS", False)

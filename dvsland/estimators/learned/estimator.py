@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Any, Dict, NamedTuple, Optional
+from typing import Any, Dict, NamedTuple, Optional, Tuple
 
 import torch
 
@@ -32,8 +32,9 @@ from dvsland.pytree import check_state_like, tree_where
 from ..base import DivergenceEstimator, EstimateOut, Truth, confidence_from_rel_std
 from ..registry import register_estimator
 from .checkpoint import load_checkpoint
-from .models import VoxelCNN
+from .models import SpikingVoxelNet, VoxelCNN
 from .fast import RingCNN
+from .rows import rows_path, run_rows
 from .inputs import InputSpec, camera_map, coord_channels, events_voxel_grid, pixel_cells, row_counts
 
 #: the shipped checkpoints by name (trained by `dvsland train`, commands in docs/learning.md): the CNN,
@@ -90,6 +91,9 @@ class LearnedConsts(NamedTuple):
             then carries the gradient to the weights) when the caller has grad enabled; the
             voxel grid and the ring are still built without one. The ring net copies the first
             layer's weights, so training sets ``ring_net`` None. False (default): no graph.
+        rows_exact: for a built-in model without a ring net (the spiking one): the verdicts of
+            :func:`~.rows.run_rows` (the network runs on a CPU batch's rows with an estimate only);
+            None: every row runs (plug-in models, which may not be row by row).
     """
 
     batch_size: int
@@ -101,6 +105,7 @@ class LearnedConsts(NamedTuple):
     model: torch.nn.Module
     ring_net: Optional[torch.nn.Module]
     grad: bool = False
+    rows_exact: Optional[Dict[Tuple[int, int], bool]] = None
 
 
 def initial_state(batch_size: int, spec: InputSpec, device) -> LearnedState:
@@ -188,19 +193,38 @@ def _learned_step(p: LearnedConfig, c: LearnedConsts, state: LearnedState, event
     st = state._replace(ring=ring, ring_counts=counts, ring_abs=sums, newest=q)
     activity: Dict[str, torch.Tensor] = {}
     ok = n >= p.min_events
-    if c.ring_net is not None and ring.device.type == "cpu" and not train:  # the rows with an estimate only
+    if c.ring_net is not None and rows_path(ring) and not train:  # the rows with an estimate only
         mu, log_var = c.ring_net.forward_rows(ring, sums, q, torch.log1p(total), ok)
     elif c.ring_net is not None:
         mu, log_var = c.ring_net(ring, sums, q, torch.log1p(total))
     else:
-        mu, log_var = c.model(ordered_ring(st, spec), c.coords, torch.log1p(total))
-        activity = {k: v.clone() for k, v in getattr(c.model, "last_activity", {}).items()}
+        mu, log_var, activity = _model_forward(c, ordered_ring(st, spec), torch.log1p(total),
+                                               ok if rows_path(ring) and not train else None)
     nan = torch.full((), float("nan"), device=ring.device)
     d = torch.where(ok, -torch.exp(mu), nan).to(torch.float32)
     sig = torch.where(ok, torch.exp(0.5 * log_var), nan).to(torch.float32)
     st = st._replace(d=d, sigma_rel=sig, n_events=n.to(torch.int64), t_prev_us=torch.full_like(last, t_us))
     conf = confidence_from_rel_std(sig, d)
     return st, EstimateOut(d, conf, {"sigma_rel": sig, "n_events": st.n_events, "confidence": conf, **activity})
+
+
+def _model_forward(c: LearnedConsts, vox: torch.Tensor, log_count: torch.Tensor, need: Optional[torch.Tensor]):
+    """(mu, log_var, activity) of the model without a ring net: on the rows of ``need`` (B,) bool
+    only where given and ``c.rows_exact`` is set (:func:`~.rows.run_rows`; a row not run has 0
+    spikes and synaptic operations), else on every row."""
+    keys: list = []
+
+    def call(v, lc):
+        mu, log_var = c.model(v, c.coords, lc)
+        act = getattr(c.model, "last_activity", {})
+        keys[:] = list(act)
+        return (mu, log_var, *(act[k] for k in keys))
+
+    if need is None or c.rows_exact is None:
+        out = call(vox, log_count)
+    else:  # (with no row needed, the padding rows run: the activity keeps its keys)
+        out = run_rows(call, (vox, log_count), need, c.rows_exact)
+    return out[0], out[1], {k: v.clone() for k, v in zip(keys, out[2:])}
 
 
 def default_focal_px(sensor_size) -> float:
@@ -276,7 +300,8 @@ class LearnedEstimator(DivergenceEstimator):
                                     dtype=torch.bfloat16 if fast == "bf16" else torch.float32)
         self.donate = bool(donate)
         self.consts = LearnedConsts(self.batch_size, self.dt_s, self.spec, self.cmap, self.cells, self.coords,
-                                    self.model, self.ring_net)
+                                    self.model, self.ring_net,
+                                    rows_exact={} if type(self.model) is SpikingVoxelNet else None)
         self._template = self.init_state()
         self.state = self.init_state()
 

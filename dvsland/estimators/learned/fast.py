@@ -14,12 +14,8 @@ as they are, with the scaling, the shift and every ReLU done in place on the con
 mkldnn's fused convolution + ReLU gave the same bits and no time). Same numbers as the model up to
 float32 rounding (tested). In bfloat16 (``dtype``) the convolutions run channels-last.
 
-:meth:`RingCNN.forward_rows` runs the network on the rows that will give an estimate only (the
-others: a finished descent, an empty window), so that a batch whose descents have mostly ended pays
-for the few still flying. A convolution's sums may round differently for another batch size (oneDNN
-picks its code path by the batch's shape), so the rows' results are checked once per process and
-(batch, rows) size against the whole batch's, bit for bit, and the whole batch is run where they
-differ; too few rows are padded to :data:`MIN_ROWS`.
+:meth:`RingCNN.forward_rows` runs the network on the rows that will give an estimate only
+(:func:`~.rows.run_rows`: a finished descent's empty window costs nothing, with the whole batch's bits).
 """
 
 from __future__ import annotations
@@ -31,13 +27,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from .models import VoxelCNN
-
-
-#: the fewest rows :meth:`RingCNN.forward_rows` runs (fewer are padded with rows not needed): the
-#: smallest batches take other convolution code paths, whose sums round differently
-MIN_ROWS = 8
-#: above this share of the batch needed, :meth:`RingCNN.forward_rows` runs the whole batch
-ROWS_SHARE = 0.75
+from .rows import run_rows
 
 
 def _conv_relu_layers(rest: nn.Sequential) -> Tuple[nn.Conv2d, ...]:
@@ -95,25 +85,12 @@ class RingCNN(nn.Module):
 
     def forward_rows(self, ring: torch.Tensor, abs_sums: torch.Tensor, newest: torch.Tensor,
                      log_count: torch.Tensor, need: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`forward` of the rows where ``need`` (B,) bool is True: (mu, log_var) (B,) float32,
-        the whole batch's bits at those rows, 0 at the others (rows not needed may be computed too).
-        ``newest`` is (B,) int64 here. Reads ``need`` on the host: meant for a CPU batch."""
-        B = ring.shape[0]
-        rows = need.nonzero().squeeze(1)
-        if rows.numel() == 0:  # no row gives an estimate: nothing to run
-            return tuple(torch.zeros(B, dtype=torch.float32, device=ring.device) for _ in range(2))
-        k = max(rows.numel(), min(MIN_ROWS, B))
-        if k > ROWS_SHARE * B or self._rows_exact.get((B, k)) is False:
-            return self(ring, abs_sums, newest, log_count)
-        if rows.numel() < k:  # padded with the first rows not needed (sorted: the batch's order)
-            rows = torch.cat([rows, (~need).nonzero().squeeze(1)[:k - rows.numel()]]).sort().values
-        part = self(ring.index_select(0, rows), abs_sums.index_select(0, rows), newest.index_select(0, rows),
-                    log_count.index_select(0, rows))
-        if (B, k) not in self._rows_exact:  # once: the rows' bits against the whole batch's
-            whole = self(ring, abs_sums, newest, log_count)
-            self._rows_exact[(B, k)] = all(torch.equal(a, w.index_select(0, rows)) for a, w in zip(part, whole))
-            return whole
-        return tuple(torch.zeros(B, dtype=a.dtype, device=a.device).index_copy_(0, rows, a) for a in part)
+        """:meth:`forward` of the rows where ``need`` (B,) bool is True (:func:`~.rows.run_rows`):
+        (mu, log_var) (B,) float32, the whole batch's bits at those rows, 0 at the others (rows not
+        needed may be computed too). ``newest`` is (B,) int64 here. Meant for a CPU batch."""
+        if not bool(need.any()):  # no row gives an estimate: nothing to run
+            return tuple(torch.zeros(ring.shape[0], dtype=torch.float32, device=ring.device) for _ in range(2))
+        return run_rows(self, (ring, abs_sums, newest, log_count), need, self._rows_exact)
 
     def forward(self, ring: torch.Tensor, abs_sums: torch.Tensor, newest,
                 log_count: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
