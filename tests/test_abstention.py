@@ -24,9 +24,10 @@ B = 3  # descents per batch: the seeds of one window kind run side by side
 #: (name, extra params): every shipped estimator that takes events, both shipped learned models
 SHIPPED = [("cmax", {}), ("dpr", {}), ("dpr", {"baseline_steps": 5}), ("snn", {}), ("learned", {}),
            ("learned", {"checkpoint": "spiking"}), ("learned", {"checkpoint": "cnn_landing"}),
-           ("learned", {"checkpoint": "cnn_wide"}), ("learned", {"checkpoint": "cnn_dagger"})]
+           ("learned", {"checkpoint": "cnn_wide"}), ("learned", {"checkpoint": "cnn_dagger"}),
+           ("learned", {"checkpoint": "spiking8"})]
 IDS = ["cmax", "dpr", "dpr5", "snn", "learned-cnn", "learned-spiking", "learned-cnn-landing", "learned-cnn-wide",
-       "learned-cnn-dagger"]
+       "learned-cnn-dagger", "learned-spiking8"]
 
 
 def build(name: str, extra: dict, batch: int = B, cfg=None) -> DivergenceEstimator:

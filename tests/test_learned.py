@@ -240,14 +240,14 @@ def test_spiking_nir_round_trip_agrees(tmp_path):
     assert torch.allclose(got[0], want[0], atol=1e-5) and torch.allclose(got[1], want[1], atol=1e-5)
 
 
-@pytest.mark.parametrize("which", ["", "spiking", "cnn_realistic", "cnn_landing", "cnn_wide", "cnn_dagger"])
+@pytest.mark.parametrize("which", ["", "spiking", "spiking8", "cnn_realistic", "cnn_landing", "cnn_wide", "cnn_dagger"])
 def test_shipped_checkpoints_load_and_estimate(which):
     from dvsland.estimators.learned.estimator import SHIPPED
 
     path = SHIPPED["cnn" if which == "" else which]
     assert path.is_file() and path.stat().st_size < 1_000_000
     est = _plain("learned", 2, (128, 128), checkpoint=which, min_events=1)
-    assert est.meta["data"]["config_hash"] and est.meta["train"]["model"] == ("spiking" if which == "spiking" else "cnn")
+    assert est.meta["data"]["config_hash"] and est.meta["train"]["model"] == ("spiking" if "spiking" in which else "cnn")
     d = est.update(_events(2, 3000), 100_000)
     assert d.shape == (2,) and torch.isfinite(d).all() and (d < 0).all()
 

@@ -40,13 +40,14 @@ from .inputs import InputSpec, camera_map, coord_channels, events_voxel_grid, pi
 #: the shipped checkpoints by name (trained by `dvsland train`, commands in docs/learning.md): the CNN,
 #: the CNN fine-tuned on events of the realistic pixel as well ("Through a realistic pixel"), the CNN
 #: fine-tuned on the landing loss through the closed loop (`dvsland train-loop --what estimator`,
-#: docs/train_loop.md), the spiking model
+#: docs/train_loop.md), the spiking model, and the spiking model on eight windows (docs/learning.md)
 SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"),
            "cnn_realistic": Path(__file__).with_name("learned_cnn_realistic.pt"),
            "cnn_landing": Path(__file__).with_name("learned_cnn_landing.pt"),
            "cnn_wide": Path(__file__).with_name("learned_cnn_wide.pt"),
            "cnn_dagger": Path(__file__).with_name("learned_cnn_dagger.pt"),
-           "spiking": Path(__file__).with_name("learned_spiking.pt")}
+           "spiking": Path(__file__).with_name("learned_spiking.pt"),
+           "spiking8": Path(__file__).with_name("learned_spiking8.pt")}
 
 
 class LearnedState(NamedTuple):
@@ -255,7 +256,8 @@ class LearnedEstimator(DivergenceEstimator):
         checkpoint: path of a ``dvsland train --model`` checkpoint; ``""``/``"cnn"`` = the shipped
             CNN, ``"cnn_realistic"`` = the CNN fine-tuned through the realistic pixel,
             ``"cnn_landing"`` = the CNN fine-tuned on the landing loss through the closed loop,
-            ``"spiking"`` = the shipped spiking model.
+            ``"spiking"`` = the shipped spiking model, ``"spiking8"`` = the spiking model on eight
+            control steps (0.8 s) of events.
         min_events: windows with fewer events give NaN, in [1, 1e9].
         principal_point_px: focus of expansion: the events are resampled about it onto the
             checkpoint's reference canvas (:mod:`.inputs`), whose centre it becomes.
