@@ -17,7 +17,8 @@ them; ``f`` is one optional cheap per-step feature the estimator already has: ``
 the score of structureless events), or none. The site, which a flight computer does not know, is
 never a feature. The fitter (:func:`fit_calibration`) makes ``log10 sigma_raw + S`` non-decreasing
 in ``sigma_raw`` along every feature knot (weighted isotonic regression), so the calibrated
-confidence keeps the estimator's ranking: a higher raw confidence never gives a lower calibrated one at the same feature.
+confidence keeps the estimator's ranking: a higher raw confidence never gives a lower calibrated one
+at the same feature.
 
 - :class:`CalibrationParams` and :func:`calibrate_confidence`: the table and the pure, batched map
   (torch, no loop over the batch, no host sync; CPU or CUDA). Where S = 0 the confidence passes
@@ -381,24 +382,23 @@ def _strict(k: np.ndarray) -> np.ndarray:
     return out
 
 
+def _flat(v, dtype=np.float64) -> Optional[torch.Tensor]:
+    """A NumPy-like sample ``v`` as a flat (N,) tensor of ``dtype`` (None stays None)."""
+    return None if v is None else torch.as_tensor(np.asarray(v, dtype=dtype).ravel())
+
+
 def _feature_np(kind: str, d_hat, n_events=None, structure=None) -> np.ndarray:
     """:func:`feature_values` over a flat NumPy sample (N,), float64."""
-    def flat(v, dtype):
-        return None if v is None else torch.as_tensor(np.asarray(v, dtype=dtype).ravel())
-
-    return feature_values(kind, n_events=flat(n_events, np.float64), d_hat=flat(d_hat, np.float64),
-                          structure=flat(structure, np.float64)).double().numpy()
+    f = feature_values(kind, n_events=_flat(n_events), d_hat=_flat(d_hat), structure=_flat(structure))
+    return f.double().numpy()
 
 
 def apply_calibration_np(params: CalibrationParams, d_hat, confidence, n_events=None, structure=None) -> np.ndarray:
     """:func:`calibrate_confidence` over a flat NumPy sample (N,) (the fitter's and the report's
     offline check), float64."""
-    c = torch.as_tensor(np.asarray(confidence, dtype=np.float32).ravel())
-    n = None if n_events is None else torch.as_tensor(np.asarray(n_events, dtype=np.float64).ravel())
-    st = None if structure is None else torch.as_tensor(np.asarray(structure, dtype=np.float64).ravel())
-    dh = torch.as_tensor(np.asarray(d_hat, dtype=np.float32).ravel())
-    f = feature_values(params.feature, n_events=n, d_hat=dh, structure=st)
-    return calibrate_confidence(c, params_to(params, "cpu"), f).double().numpy()
+    f = feature_values(params.feature, n_events=_flat(n_events), d_hat=_flat(d_hat, np.float32),
+                       structure=_flat(structure))
+    return calibrate_confidence(_flat(confidence, np.float32), params_to(params, "cpu"), f).double().numpy()
 
 
 # ---------------------------------------------------------------------------------------------- files

@@ -47,13 +47,19 @@ def _blur_depthwise(img: torch.Tensor, kx: torch.Tensor, ky: torch.Tensor) -> to
     return F.conv2d(h, ky.view(1, 1, k, 1).expand(B, 1, k, 1), padding=(k // 2, 0), groups=B)[0]
 
 
+def _peak_scores(blurred: torch.Tensor, nms_px: int, min_density: float) -> torch.Tensor:
+    """(B, H, W) the blurred density ``blurred`` (B, H, W) at its ``nms_px`` local maxima above
+    ``min_density``, -1 elsewhere."""
+    is_peak = (blurred >= _max_filter(blurred, int(nms_px))) & (blurred > min_density)
+    return torch.where(is_peak, blurred, torch.full_like(blurred, -1.0))
+
+
 def _torch_scores(img: torch.Tensor, kx: torch.Tensor, ky: torch.Tensor, nms_px: int,
                   min_density: float) -> Tuple[torch.Tensor, torch.Tensor]:
     """(blurred, score) (B, H, W) float32 of count images ``img`` (B, H, W) float32: the depthwise
-    blur, and the blurred density at local maxima above ``min_density`` (-1 elsewhere)."""
+    blur, and :func:`_peak_scores` of it."""
     blurred = _blur_depthwise(img, kx, ky)
-    is_peak = (blurred >= _max_filter(blurred, int(nms_px))) & (blurred > min_density)
-    return blurred, torch.where(is_peak, blurred, torch.full_like(blurred, -1.0))
+    return blurred, _peak_scores(blurred, nms_px, min_density)
 
 
 @functools.lru_cache(maxsize=8)
@@ -131,8 +137,7 @@ def density_peaks(image: torch.Tensor, n_max: int, sigma_px: float = 2.0, nms_px
     else:
         blurred = kornia.filters.gaussian_blur2d(img, (k, k), (float(sigma_px), float(sigma_px)),
                                                  border_type="constant")[:, 0]
-        is_peak = (blurred >= _max_filter(blurred, int(nms_px))) & (blurred > min_density)
-        score = torch.where(is_peak, blurred, torch.full_like(blurred, -1.0))
+        score = _peak_scores(blurred, nms_px, min_density)
     score = score.reshape(B, H * W)
     n = min(int(n_max), H * W)
     top, idx = torch.topk(score, n, dim=1)  # sorted, densest first

@@ -227,7 +227,7 @@ _SIGNATURES = {"dpr_meanshift": ([_P] + [_I64] * 6 + [_P, _P, _I64, _F64, _I64, 
 
 
 class Kernels:
-    """The loaded library's mean-shift on torch tensors (CPU)."""
+    """The loaded library's mean-shift and peak scores on torch tensors (CPU)."""
 
     def __init__(self, lib: ctypes.CDLL):
         lib = bind_functions(lib, _SIGNATURES)

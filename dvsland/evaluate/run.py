@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from dvsland.config import Config
+from dvsland.estimators.calibrate import STRUCTURE_KEY
 from dvsland.report.checkpoint import estimator_checkpoint
 from dvsland.stages import FrameSource, build_estimator, build_stages
 
@@ -185,7 +186,7 @@ def record_structure(structure: Dict[str, np.ndarray], name: str, diagnostics, k
     """Step ``k``'s ``structure`` diagnostic (B,) of estimator ``name`` into ``structure[name]`` (an
     array of ``shape``, made on its first value, NaN elsewhere), where ``diagnostics`` (the step's
     dict, or None) hold one."""
-    st = (diagnostics or {}).get("structure")
+    st = (diagnostics or {}).get(STRUCTURE_KEY)
     if isinstance(st, torch.Tensor):
         structure.setdefault(name, np.full(shape, np.nan))[:, k] = st.detach().double().cpu().numpy()
 

@@ -194,13 +194,14 @@ def _learned_step(p: LearnedConfig, c: LearnedConsts, state: LearnedState, event
     st = state._replace(ring=ring, ring_counts=counts, ring_abs=sums, newest=q)
     activity: Dict[str, torch.Tensor] = {}
     ok = n >= p.min_events
-    if c.ring_net is not None and rows_path(ring) and not train:  # the rows with an estimate only
+    rows_only = rows_path(ring) and not train  # the network on the rows with an estimate only
+    if c.ring_net is not None and rows_only:
         mu, log_var = c.ring_net.forward_rows(ring, sums, q, torch.log1p(total), ok)
     elif c.ring_net is not None:
         mu, log_var = c.ring_net(ring, sums, q, torch.log1p(total))
     else:
         mu, log_var, activity = _model_forward(c, ordered_ring(st, spec), torch.log1p(total),
-                                               ok if rows_path(ring) and not train else None)
+                                               ok if rows_only else None)
     nan = torch.full((), float("nan"), device=ring.device)
     d = torch.where(ok, -torch.exp(mu), nan).to(torch.float32)
     sig = torch.where(ok, torch.exp(0.5 * log_var), nan).to(torch.float32)
