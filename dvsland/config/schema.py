@@ -391,6 +391,10 @@ class DivGSConfig:
     v_min_mps: float = opt(0.0, "lowest sink rate of the final approach, m/s (0 = none): the target is "
                            "-max(d_final, v_min / z_hat), so a too-low altitude estimate cannot make the craft "
                            "hover above the ground", rng=(0.0, 1000.0))
+    v_min_sigma: float = opt(0.0, "the sink-rate floor grows by this many of the filter's posterior standard "
+                             "deviations of the velocity: v_min + v_min_sigma sigma_v (0 = off), so that a velocity "
+                             "estimate the filter cannot vouch for still descends (needs controller.filter="
+                             "efference_fit or efference)", rng=(0.0, 10.0))
 
 
 @dataclass

@@ -165,11 +165,13 @@ class Controller:
             self.state = self.reset_where(self.state, mask)
 
     def __call__(self, t_s, d_filtered: Tensor, mass_kg: Tensor, active: Optional[Tensor] = None,
-                 altitude_m: Optional[Tensor] = None) -> ControlOutput:
-        """One command for each descent (see the class doc); the state advances in ``self.state``."""
+                 altitude_m: Optional[Tensor] = None, **inputs) -> ControlOutput:
+        """One command for each descent (see the class doc); the state advances in ``self.state``.
+        ``inputs``: what a law reads besides (e.g. ``velocity_sigma_mps`` for ``div_gs`` with
+        ``v_min_sigma`` > 0), passed to its ``step_state``."""
         if getattr(self, "state", None) is None:
             self.state = self.init_state()
-        self.state, out = self.step_state(self.state, t_s, d_filtered, mass_kg, active, altitude_m=altitude_m)
+        self.state, out = self.step_state(self.state, t_s, d_filtered, mass_kg, active, altitude_m=altitude_m, **inputs)
         return out
 
     def __getattr__(self, name: str):

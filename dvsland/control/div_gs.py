@@ -18,7 +18,12 @@ so the speed at the success altitude z_s is d_final z_s (0.03 1/s x 50 m = 1.5 m
 altitude estimate says: z_hat only scales the gain and the feed-forward a_ref (the deceleration
 the target needs: (1 - c2) D*^2 z_hat on the TTC part, D*^2 z_hat on the constant-divergence part).
 With ``v_min_mps`` > 0 the final approach is floored at that sink rate (constant velocity below
-z_hat = v_min / d_final). The constant-TTC-decrease descent alone reaches 50 m at 11-14 m/s on the paper's sites. A
+z_hat = v_min / d_final). With ``v_min_sigma`` > 0 the floor grows with what the filter does not
+know about its own velocity: v_min + v_min_sigma sigma_v, sigma_v the filter's posterior standard
+deviation of the velocity (``FilterOut.velocity_sigma_mps``). A craft whose filter fused no
+estimate flies on its prior (sigma_v = the dispersion of v0, 3 m/s on ``montecarlo_efference``);
+its velocity may be off by that much, and a floor of 2 m/s alone then lets the true velocity reach
+0, so the craft hovers and climbs away. The floor falls back to v_min as estimates come in. The constant-TTC-decrease descent alone reaches 50 m at 11-14 m/s on the paper's sites. A
 missing filtered estimate holds the last thrust (or hovers).
 
 Params :class:`~dvsland.control.base.LawParams` (options: :class:`dvsland.config.schema.DivGSConfig`),
@@ -61,19 +66,20 @@ def divergence_target(t_s, tau0_s: Tensor, c2: float, d_final_per_s: float):
     return d_star, coef
 
 
-def floored_target(t_s, tau0_s: Tensor, c2: float, d_final_per_s: float, v_min_mps: float, z_m: Tensor):
+def floored_target(t_s, tau0_s: Tensor, c2: float, d_final_per_s: float, v_min_mps, z_m: Tensor):
     """:func:`divergence_target` with the final approach floored at the sink rate ``v_min_mps``
     (m/s; 0 = no floor): where the final approach's d_final z is below it the target becomes
     -v_min / z (constant velocity, coef 0).
 
     Args:
+        v_min_mps: the floor, m/s: a float (0 = none) or (B,) float64 (one per descent, >= 0).
         z_m: (B,) float64 altitude, m, at least 1 m (the law's z_hat; the loss's true z).
 
     Returns:
         (d_star (B,) float64 1/s, coef (B,) float64), as :func:`divergence_target`.
     """
     d_star, coef = divergence_target(t_s, tau0_s, c2, d_final_per_s)
-    if v_min_mps > 0:  # final approach (coef 1) floored at v_min: constant velocity, a_ref = 0
+    if isinstance(v_min_mps, Tensor) or v_min_mps > 0:  # final approach (coef 1) floored: constant velocity, a_ref = 0
         floor = -v_min_mps / z_m
         use = (coef == 1.0) & (floor < d_star)
         d_star = torch.where(use, floor, d_star)
@@ -82,7 +88,8 @@ def floored_target(t_s, tau0_s: Tensor, c2: float, d_final_per_s: float, v_min_m
 
 
 def div_gs_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
-                active: Optional[Tensor], altitude_m: Optional[Tensor]) -> Tuple[HoldLastState, ControlOutput]:
+                active: Optional[Tensor], altitude_m: Optional[Tensor],
+                velocity_sigma_mps: Optional[Tensor] = None) -> Tuple[HoldLastState, ControlOutput]:
     """Pure step of ``div_gs``: (next state, :class:`ControlOutput`).
 
     Args:
@@ -91,18 +98,32 @@ def div_gs_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor, mas
         mass_kg: (B,) current mass, kg.
         active: (B,) bool or None (all); inactive descents keep their last command.
         altitude_m: (B,) the filter's altitude estimate z_hat, m (required).
+        velocity_sigma_mps: (B,) the filter's posterior standard deviation of the velocity, m/s
+            (required where ``v_min_sigma`` > 0, else not read).
     """
     if altitude_m is None:
         raise ValueError("controller 'div_gs' needs altitude_m (use the 'efference' filter)")
     o = p.options
     d, m, mg, t_s = law_inputs(p, t_s, d_filtered, mass_kg)
     z = altitude_m.to(torch.float64).clamp_min(1.0)
-    d_star, coef = floored_target(t_s, p.tau0_s, p.c2, o.d_final_per_s, o.v_min_mps, z)
+    d_star, coef = floored_target(t_s, p.tau0_s, p.c2, o.d_final_per_s, sink_floor(o, velocity_sigma_mps), z)
     usable = ~torch.isnan(d)
     a_ref = coef * d_star * d_star * z
     u = m * (p.g_mps2 + a_ref) + o.lambda_per_s * m * z * (d_star - torch.where(usable, d, 0.0))
     u = clamp_thrust(p, u)
     return divergence_law_finish(p, state, d, u, mg, active, -1.0 / d_star)
+
+
+def sink_floor(o: DivGSConfig, velocity_sigma_mps: Optional[Tensor]):
+    """The final approach's sink-rate floor, m/s: ``v_min_mps`` (a float), or with ``v_min_sigma`` > 0
+    v_min + v_min_sigma sigma_v (B,) float64 (a NaN sigma counts as 0)."""
+    if not o.v_min_sigma > 0:
+        return o.v_min_mps
+    if velocity_sigma_mps is None:
+        raise ValueError("controller.div_gs.v_min_sigma > 0 needs the filter's velocity standard deviation "
+                         "(velocity_sigma_mps; controller.filter=efference_fit or efference gives it)")
+    sig = torch.nan_to_num(velocity_sigma_mps.to(torch.float64), nan=0.0).clamp_min(0.0)
+    return o.v_min_mps + o.v_min_sigma * sig
 
 
 @register_controller("div_gs")
@@ -121,23 +142,26 @@ class DivGSController(Controller):
             D* = -max(d_final, v_min / z_hat), a constant-velocity descent once d_final z_hat < v_min.
             An altitude estimate that is too low then cannot stop the craft above the ground (it
             would hover, then climb, at v_hat = -d_final z_hat -> 0).
+        v_min_sigma: the floor grows by this many of the filter's posterior velocity standard
+            deviations (>= 0; 0 = off): v_min + v_min_sigma sigma_v (the module doc).
     """
 
     needs_altitude = True
 
     def __init__(self, tau0_s: Tensor, c2: float, g_mps2: float, thrust_min_n: float = 0.0,
                  thrust_max_n: Optional[float] = None, missing_policy: str = "hold", lambda_per_s: float = 1.0,
-                 d_final_per_s: float = 0.03, v_min_mps: float = 0.0):
+                 d_final_per_s: float = 0.03, v_min_mps: float = 0.0, v_min_sigma: float = 0.0):
         check_bounds(thrust_min_n, thrust_max_n, missing_policy)
-        if not v_min_mps >= 0:
-            raise ValueError(f"v_min_mps must be >= 0, got {v_min_mps}")
+        for name, val in (("v_min_mps", v_min_mps), ("v_min_sigma", v_min_sigma)):
+            if not val >= 0:
+                raise ValueError(f"controller.div_gs.{name} must be >= 0, got {val}")
         for name, val in (("lambda_per_s", lambda_per_s), ("d_final_per_s", d_final_per_s)):
             if not val > 0:
                 raise ValueError(f"{name} must be > 0, got {val}")
         if not 0 < c2 < 1:
             raise ValueError(f"c2 must be in (0, 1), got {c2}")
         options = DivGSConfig(lambda_per_s=float(lambda_per_s), d_final_per_s=float(d_final_per_s),
-                              v_min_mps=float(v_min_mps))
+                              v_min_mps=float(v_min_mps), v_min_sigma=float(v_min_sigma))
         self.params = law_params(None, torch.as_tensor(tau0_s, dtype=torch.float64), c2, g_mps2, thrust_min_n,
                                  thrust_max_n, missing_policy, options)
         self._template = self.init_state()
@@ -152,11 +176,18 @@ class DivGSController(Controller):
     def init_state(self) -> HoldLastState:
         return hold_last_init(self.params)
 
+    @property
+    def needs_velocity_sigma(self) -> bool:
+        """Whether the step reads the filter's velocity standard deviation (``v_min_sigma`` > 0)."""
+        return self.params.options.v_min_sigma > 0
+
     def step_state(self, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
-                   active: Optional[Tensor] = None, altitude_m: Optional[Tensor] = None):
-        """Pure step (:func:`div_gs_step`); ``altitude_m`` (B,) m is required."""
+                   active: Optional[Tensor] = None, altitude_m: Optional[Tensor] = None,
+                   velocity_sigma_mps: Optional[Tensor] = None):
+        """Pure step (:func:`div_gs_step`); ``altitude_m`` (B,) m is required, ``velocity_sigma_mps``
+        (B,) m/s where ``v_min_sigma`` > 0."""
         self._check(state)
-        return div_gs_step(self.params, state, t_s, d_filtered, mass_kg, active, altitude_m)
+        return div_gs_step(self.params, state, t_s, d_filtered, mass_kg, active, altitude_m, velocity_sigma_mps)
 
     def loop_gain_fields(self, m_kg: Tensor, z_m: Tensor) -> dict:
         """The scheduled divergence-loop gain is lambda at every altitude: it never crosses the limit."""

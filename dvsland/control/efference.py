@@ -224,12 +224,13 @@ def efference_step(p: EfferenceParams, state: EfferenceState, d_hat: Tensor, act
     first step after a restart), then fuse ``d_hat``.
 
     Returns:
-        (next state, FilterOut(v/z (B,) float64, 1 where D_hat was fused (B,) int64, z (B,) float64 m)).
+        (next state, FilterOut(v/z (B,) float64, 1 where D_hat was fused (B,) int64, z (B,) float64 m,
+        no doubt, sqrt(pvv) (B,) float64 m/s)).
     """
     if accel_mps2 is not None:
         state = efference_predict(p, state, accel_mps2, thrust_accel_mps2, active)
     state, used = efference_correct(p, state, d_hat, active, confidence)
-    return state, FilterOut(state.v / state.z, used.to(torch.int64), state.z)
+    return state, FilterOut(state.v / state.z, used.to(torch.int64), state.z, None, torch.sqrt(state.pvv))
 
 
 def check_filter_plan(z0_m, v0_mps) -> Tuple[Tensor, Tensor]:
@@ -294,6 +295,7 @@ class EfferenceFilter(PlannedStartFilter):
     """
 
     provides_altitude = True
+    provides_velocity_sigma = True
 
     def __init__(self, z0_m: Tensor, v0_mps: Tensor, dt_s: float, prior_scale: float = 1.0,
                  prior_rel_sigma: float = 0.3, accel_sigma_mps2: float = 0.05, accel_sigma_rel: float = 0.02,

@@ -145,6 +145,13 @@ def fit_doubt(p: EfferenceFitParams, s: EfferenceFitState) -> Tensor:
     return torch.stack([s.theta[:, 0] / p.sz0, s.theta[:, 1] / p.sv0, rejected], 1)
 
 
+def fit_velocity_sigma(s: EfferenceFitState) -> Tensor:
+    """(B,) float64 posterior standard deviation of the velocity, m/s: sqrt of the (dv, dv) entry of
+    the inverse of the fit's information [[a, b], [b, c]] (v_dr is known exactly), a / (a c - b^2)."""
+    a, b, c = s.info.unbind(1)
+    return torch.sqrt(a / (a * c - b * b).clamp_min(1e-300))
+
+
 def _estimates(c: EfferenceConfig, d_hat: Tensor, confidence: Optional[Tensor], dev) -> Tuple[Tensor, Tensor]:
     """(D_hat (B,) float64, NaN where not to be used; sigma_c (B,) float64, 0 unless ``meas_noise="confidence"``)."""
     d = d_hat.to(device=dev, dtype=torch.float64)
@@ -291,7 +298,8 @@ def efference_fit_step(p: EfferenceFitParams, state: EfferenceFitState, d_hat: T
 
     Returns:
         (next state, FilterOut(v_hat / z_hat (B,) float64, 1 where this step's estimate got weight
-        > 0.5 (B,) int64, z_hat (B,) float64 m)).
+        > 0.5 (B,) int64, z_hat (B,) float64 m, the doubt (B, 3), the posterior velocity standard
+        deviation (B,) float64 m/s)).
     """
     c, dt, dev = p.cfg, p.dt_s, p.z0_m.device
     m = torch.ones(p.z0_m.shape[0], dtype=torch.bool, device=dev) if active is None else active.to(dev)
@@ -316,7 +324,7 @@ def efference_fit_step(p: EfferenceFitParams, state: EfferenceFitState, d_hat: T
                             state.n_rejected + (fresh & (w_now == 0)).to(torch.int64), hist.permute(1, 2, 0))
     z_hat = fit_altitude(p, new)
     return new, FilterOut(fit_velocity(new) / z_hat, (fresh & (w_now > 0.5)).to(torch.int64), z_hat,
-                          fit_doubt(p, new))
+                          fit_doubt(p, new), fit_velocity_sigma(new))
 
 
 def fit_reset_where(p: EfferenceFitParams, state: EfferenceFitState, mask: Tensor) -> EfferenceFitState:
@@ -365,6 +373,7 @@ class EfferenceFitFilter(PlannedStartFilter):
     provides_altitude = True
     #: its :class:`FilterOut` carries ``doubt`` (the ``efference_doubt`` policy observation reads it)
     provides_doubt = True
+    provides_velocity_sigma = True
 
     def __init__(self, z0_m: Tensor, v0_mps: Tensor, dt_s: float, prior_rel_sigma: float = 0.1,
                  prior_rel_sigma_v: Optional[float] = None, meas_sigma_rel: float = 0.05,

@@ -73,4 +73,7 @@ def make_filter(cfg, params: DescentParams, controller=None):
     if getattr(controller, "needs_doubt", False) and not getattr(filt, "provides_doubt", False):
         raise ValueError(f"controller.policy.observation=efference_doubt needs the filter's doubt; controller.filter="
                          f"{name!r} gives none: use controller.filter=efference_fit")
+    if getattr(controller, "needs_velocity_sigma", False) and not getattr(filt, "provides_velocity_sigma", False):
+        raise ValueError(f"controller.div_gs.v_min_sigma > 0 needs the filter's velocity standard deviation; "
+                         f"controller.filter={name!r} gives none: use efference_fit or efference")
     return filt

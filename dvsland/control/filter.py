@@ -37,12 +37,16 @@ class FilterOut(NamedTuple):
             ``efference_fit`` gives it): the fitted offsets of the initial altitude and velocity in
             prior standard deviations (dz / sigma_z0, dv / sigma_v0), and the share of this descent's
             estimates the fit rejected (weight 0) so far, in [0, 1].
+        velocity_sigma_mps: (B,) float64 the filter's posterior standard deviation of the velocity,
+            m/s, or None (the moving average). The efference filters give it: how far the velocity
+            they report may be off, from their prior and every estimate they fused.
     """
 
     d_filtered: Tensor
     n_used: Tensor
     altitude_m: Optional[Tensor]
     doubt: Optional[Tensor] = None
+    velocity_sigma_mps: Optional[Tensor] = None
 
 
 class DivergenceFilter:
@@ -65,6 +69,8 @@ class DivergenceFilter:
 
     #: whether :class:`FilterOut` carries an altitude estimate
     provides_altitude = False
+    #: whether :class:`FilterOut` carries the velocity's posterior standard deviation
+    provides_velocity_sigma = False
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)

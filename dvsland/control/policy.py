@@ -224,11 +224,13 @@ def policy_observation(p: LawParams, t_s, d: Tensor, m: Tensor, altitude_m: Opti
 def policy_law_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
                     active: Optional[Tensor], altitude_m: Optional[Tensor] = None,
                     estimate: Optional[Tuple[Tensor, Tensor]] = None,
-                    doubt: Optional[Tensor] = None) -> Tuple[HoldLastState, ControlOutput]:
+                    doubt: Optional[Tensor] = None,
+                    velocity_sigma_mps: Optional[Tensor] = None) -> Tuple[HoldLastState, ControlOutput]:
     """Pure step of ``policy``: (next state, :class:`ControlOutput`); inputs as for every law
     (t_s (B,) s, d_filtered (B,) 1/s NaN = none, mass_kg (B,) kg, active (B,) bool or None,
     altitude_m (B,) m the filter's z_hat), and ``estimate`` = (D_hat (B,) 1/s, confidence (B,))
-    for the ``efference`` observations, and the filter's ``doubt`` (B, 3) for ``efference_doubt``. The
+    for the ``efference`` observations, the filter's ``doubt`` (B, 3) for ``efference_doubt``, and its
+    velocity standard deviation (B,) m/s for a ``div_gs`` base with ``v_min_sigma`` > 0. The
     command keeps its autograd graph to the network's weights and the inputs."""
     d, m, mg, t_s = law_inputs(p, t_s, d_filtered, mass_kg)
     if not isinstance(t_s, Tensor):
@@ -240,7 +242,7 @@ def policy_law_step(p: LawParams, state: HoldLastState, t_s, d_filtered: Tensor,
         u = clamp_thrust(p, torch.sigmoid(out) * o.thrust_high_n)
         return divergence_law_finish(p, state, d, u, mg, active, -1.0 / d_star)
     # residual on div_gs: its command where it has one, plus authority x m g tanh(net)
-    _, base = div_gs_step(o.base, state, t_s, d_filtered, mass_kg, active, altitude_m)
+    _, base = div_gs_step(o.base, state, t_s, d_filtered, mass_kg, active, altitude_m, velocity_sigma_mps)
     r = torch.tanh(out)  # x 1.0 is exact: authority 1 gives the bits of m g tanh(net)
     state, ctl = divergence_law_finish(p, state, d, clamp_thrust(p, base.thrust_n + o.net.authority * mg * r), mg,
                                        active, base.tau_target_s)
@@ -302,6 +304,8 @@ class PolicyController(Controller):
         self.needs_altitude = observation != "basic" or base != "none"
         self.needs_estimate = observation != "basic"
         self.needs_doubt = observation == "efference_doubt"
+        #: ... and its velocity standard deviation (a div_gs base whose floor grows with it)
+        self.needs_velocity_sigma = base != "none" and base_p.options.v_min_sigma > 0
         self._template = self.init_state()
         self.state = self.init_state()
 
@@ -320,10 +324,12 @@ class PolicyController(Controller):
 
     def step_state(self, state: HoldLastState, t_s, d_filtered: Tensor, mass_kg: Tensor,
                    active: Optional[Tensor] = None, altitude_m: Optional[Tensor] = None,
-                   estimate: Optional[Tuple[Tensor, Tensor]] = None, doubt: Optional[Tensor] = None):
+                   estimate: Optional[Tuple[Tensor, Tensor]] = None, doubt: Optional[Tensor] = None,
+                   velocity_sigma_mps: Optional[Tensor] = None):
         """Pure step (:func:`policy_law_step`)."""
         self._check(state)
-        return policy_law_step(self.params, state, t_s, d_filtered, mass_kg, active, altitude_m, estimate, doubt)
+        return policy_law_step(self.params, state, t_s, d_filtered, mass_kg, active, altitude_m, estimate, doubt,
+                               velocity_sigma_mps)
 
 
 __all__ = ["PolicyNet", "PolicyOptions", "PolicyController", "policy_law_step", "policy_observation", "load_policy",

@@ -291,6 +291,8 @@ def act(stages, state: LoopState, est: Estimate) -> Tuple[Any, Any, Command]:
     kw = {"estimate": (est.d_hat, est.confidence)} if getattr(fns.controller, "needs_estimate", False) else {}
     if getattr(fns.controller, "needs_doubt", False):  # make_filter checked that the filter gives it
         kw["doubt"] = f_out[3]
+    if getattr(fns.controller, "needs_velocity_sigma", False):  # make_filter checked that the filter gives it
+        kw["velocity_sigma_mps"] = f_out[4]
     c_st, ctl = call_plugin(fns.controller_name, "__call__", fns.controller.step_state, state.stage_state.controller,
                             flight_time_s(stages, state), d_f, state.m_kg, state.active, z_hat, **kw)
     checked_thrust_out(ctl, state.batch_size, state.z_m.device, fns.controller_name)
