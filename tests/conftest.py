@@ -129,6 +129,30 @@ def half_estimator_source() -> str:
     return HALF_ESTIMATOR_SOURCE
 
 
+class BlindEstimator:
+    """An object-API estimator on a scene with no usable events: never an estimate, confidence 0."""
+
+    needs_events = False
+
+    def __init__(self, batch_size):
+        self.batch_size = batch_size
+
+    def reset(self, mask=None):
+        pass
+
+    def update(self, events, t_us, truth=None):
+        return torch.full((self.batch_size,), float("nan"), dtype=torch.float32)
+
+    def confidence(self):
+        return torch.zeros(self.batch_size, dtype=torch.float32)
+
+
+@pytest.fixture
+def blind_estimator():
+    """:class:`BlindEstimator` (the class: ``blind_estimator(B)`` builds one for B descents)."""
+    return BlindEstimator
+
+
 @pytest.fixture
 def one_thread():
     """One torch thread for the test (small tensors on a shared 2-core machine run far faster on

@@ -214,39 +214,22 @@ def test_filter_constructors_name_bad_options():
         EfferenceFitFilter(z, v, 0.1, iterations=0)
 
 
-class _Blind:
-    """An estimator on a scene with no events at all: never an estimate, confidence 0."""
-
-    needs_events = False
-
-    def __init__(self, batch_size):
-        self.batch_size = batch_size
-
-    def reset(self, mask=None):
-        pass
-
-    def update(self, events, t_us, truth=None):
-        return torch.full((self.batch_size,), NAN, dtype=torch.float32)
-
-    def confidence(self):
-        return torch.zeros(self.batch_size, dtype=torch.float32)
-
 
 @pytest.mark.parametrize("filt", ["efference", "efference_fit"])
-def test_closed_loop_without_any_estimate_flies_on_the_efference_copy(tmp_path, filt):
+def test_closed_loop_without_any_estimate_flies_on_the_efference_copy(tmp_path, filt, blind_estimator):
     """tau_p at 100 kN on a featureless scene: the moving average has nothing and the law holds its
     last thrust (no landing); the efference filters predict D from the known thrust and land."""
     from dvsland.sim import simulate
 
     over = ["logging.tensorboard=false", "logging.figures=false", "simulation.t_max_s=120"]
-    res = simulate("realistic", estimator=_Blind(2), sites="D", quiet=True, out=tmp_path / filt,
+    res = simulate("realistic", estimator=blind_estimator(2), sites="D", quiet=True, out=tmp_path / filt,
                    overrides=over + [f"controller.filter={filt}"])
     outcomes = [r["outcome"] for r in res.runs]
     assert outcomes == ["success", "success"], res.runs
     assert all(r["missing_estimates"] > 600 for r in res.runs)
     assert all(abs(r["v_end_mps"]) < 20.0 for r in res.runs)
     assert torch.isfinite(torch.as_tensor(res.traces["thrust_n"][:-1])).all()
-    ma = simulate("realistic", estimator=_Blind(2), sites="D", quiet=True, out=tmp_path / "ma",
+    ma = simulate("realistic", estimator=blind_estimator(2), sites="D", quiet=True, out=tmp_path / "ma",
                   overrides=over + ["controller.filter=moving_average"])
     assert all(r["outcome"] != "success" for r in ma.runs)
 

@@ -85,42 +85,25 @@ class TestLaw:
         from dvsland.control.policy import PolicyController
 
         tau0 = _t(40.0, 40.0)
-        pol = PolicyController(tau0, 0.5, 1.62, 9000.0, base="div_gs", base_options={"v_min_mps": 2.0, "v_min_sigma": 2.0})
+        pol = PolicyController(tau0, 0.5, 1.62, 9000.0, base="div_gs",
+                               base_options={"v_min_mps": 2.0, "v_min_sigma": 2.0})
         assert pol.needs_velocity_sigma and pol.needs_altitude
         out = pol(100.0, _t(-0.04, -0.04), _t(9e3, 9e3), altitude_m=_t(20.0, 20.0), velocity_sigma_mps=_t(1.0, 1.0))
         assert torch.isfinite(out.thrust_n).all()
         assert not PolicyController(tau0, 0.5, 1.62, 9000.0, base="div_gs").needs_velocity_sigma
 
 
-class _Blind:
-    """An estimator on a scene with no usable events: never an estimate, confidence 0."""
-
-    needs_events = False
-
-    def __init__(self, batch_size):
-        self.batch_size = batch_size
-
-    def reset(self, mask=None):
-        pass
-
-    def update(self, events, t_us, truth=None):
-        return torch.full((self.batch_size,), NAN, dtype=torch.float32)
-
-    def confidence(self):
-        return torch.zeros(self.batch_size, dtype=torch.float32)
-
-
-def test_without_any_estimate_the_grown_floor_lands_where_the_plain_one_stops_high(tmp_path):
+def test_without_any_estimate_the_grown_floor_lands_where_the_plain_one_stops_high(tmp_path, blind_estimator):
     """montecarlo_efference's dispersed starts, no estimate at all: the filter flies its prior, whose
     velocity is up to 5 % off (sigma_v 3 m/s). A 2 m/s floor lets the true velocity reach 0 high up
     (4 of these 5 climb away); with the floor grown by 2 sigma_v every descent lands."""
     from dvsland.sim import simulate
 
     over = ["logging.tensorboard=false", "logging.figures=false", "simulation.n_seeds=5"]
-    plain = simulate("montecarlo_efference", estimator=_Blind(5), sites="I", quiet=True, out=tmp_path / "plain",
-                     overrides=over)
-    grown = simulate("montecarlo_efference", estimator=_Blind(5), sites="I", quiet=True, out=tmp_path / "grown",
-                     overrides=over + ["controller.div_gs.v_min_sigma=2"])
+    plain = simulate("montecarlo_efference", estimator=blind_estimator(5), sites="I", quiet=True,
+                     out=tmp_path / "plain", overrides=over)
+    grown = simulate("montecarlo_efference", estimator=blind_estimator(5), sites="I", quiet=True,
+                     out=tmp_path / "grown", overrides=over + ["controller.div_gs.v_min_sigma=2"])
     assert sum(r["outcome"] != "success" for r in plain.runs) >= 3, plain.runs
     assert [r["outcome"] for r in grown.runs] == ["success"] * 5, grown.runs
     assert all(abs(r["v_end_mps"]) < 25.0 for r in grown.runs)

@@ -23,7 +23,8 @@ know about its own velocity: v_min + v_min_sigma sigma_v, sigma_v the filter's p
 deviation of the velocity (``FilterOut.velocity_sigma_mps``). A craft whose filter fused no
 estimate flies on its prior (sigma_v = the dispersion of v0, 3 m/s on ``montecarlo_efference``);
 its velocity may be off by that much, and a floor of 2 m/s alone then lets the true velocity reach
-0, so the craft hovers and climbs away. The floor falls back to v_min as estimates come in. The constant-TTC-decrease descent alone reaches 50 m at 11-14 m/s on the paper's sites. A
+0, so the craft hovers and climbs away. The floor falls back to v_min as estimates come in.
+The constant-TTC-decrease descent alone reaches 50 m at 11-14 m/s on the paper's sites. A
 missing filtered estimate holds the last thrust (or hovers).
 
 Params :class:`~dvsland.control.base.LawParams` (options: :class:`dvsland.config.schema.DivGSConfig`),
