@@ -25,9 +25,9 @@ B = 3  # descents per batch: the seeds of one window kind run side by side
 SHIPPED = [("cmax", {}), ("dpr", {}), ("dpr", {"baseline_steps": 5}), ("snn", {}), ("learned", {}),
            ("learned", {"checkpoint": "spiking"}), ("learned", {"checkpoint": "cnn_landing"}),
            ("learned", {"checkpoint": "cnn_wide"}), ("learned", {"checkpoint": "cnn_dagger"}),
-           ("learned", {"checkpoint": "spiking8"})]
+           ("learned", {"checkpoint": "spiking8"}), ("learned", {"checkpoint": "cnn_both"})]
 IDS = ["cmax", "dpr", "dpr5", "snn", "learned-cnn", "learned-spiking", "learned-cnn-landing", "learned-cnn-wide",
-       "learned-cnn-dagger", "learned-spiking8"]
+       "learned-cnn-dagger", "learned-spiking8", "learned-cnn-both"]
 
 
 def build(name: str, extra: dict, batch: int = B, cfg=None) -> DivergenceEstimator:

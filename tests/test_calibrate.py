@@ -352,12 +352,13 @@ def test_shipped_tables_load_and_are_valid():
     for name, path in shipped.items():
         p, obj = load_calibration(path)
         check_params(p)
-        est, sensor = name.rsplit("_", 1)
-        assert obj["estimator"] == est and sensor in SHIPPED_SETS
+        owner, sensor = name.rsplit("_", 1)  # an estimator, or a shipped checkpoint's file stem
+        est = obj["estimator"]
+        assert sensor in SHIPPED_SETS and (owner == est or obj["fit"]["checkpoint"].startswith(f"{owner}.pt "))
         fit = obj["fit"]
         assert fit["seeds"] and 0 not in fit["seeds"], "shipped tables are fitted on seeds other than the evaluation's 0"
         assert fit["n_estimates"] > 5000
-        assert resolve_calibration(sensor, est)[1]["estimator"] == est
+        assert resolve_calibration(sensor, est, fit.get("checkpoint"))[1]["fit"] == fit
         # monotone in the raw confidence at every feature knot
         y = p.sigma_knots[None, :] + p.log10_scale
         assert (y[:, 1:] >= y[:, :-1] - 1e-5).all(), name
@@ -365,6 +366,19 @@ def test_shipped_tables_load_and_are_valid():
     text = (Path(__file__).parents[1] / "pyproject.toml").read_text()
     assert '"calibration/*.json"' in text
     assert SHIPPED_DIR.name == "calibration"
+
+
+def test_a_shipped_checkpoint_with_its_own_tables_gets_them():
+    """``ideal`` / ``realistic`` pick ``<checkpoint stem>_<set>.json`` where it ships (cnn_both),
+    else ``<estimator>_<set>.json`` (the shipped CNN's)."""
+    for sensor in SHIPPED_SETS:
+        own = make_estimator(load_config("paper", [f"estimator.calibration={sensor}",
+                                                   "estimator.learned.checkpoint=cnn_both"]), 2, "cpu", name="learned")
+        assert own.calibration is not None
+        plain = make_estimator(load_config("paper", [f"estimator.calibration={sensor}"]), 2, "cpu", name="learned")
+        assert not torch.equal(own.calibration.log10_scale, plain.calibration.log10_scale)
+    with pytest.raises(ValueError, match="was fitted on the checkpoint learned_cnn_both.pt"):
+        resolve_calibration("learned_cnn_both_realistic", "learned", "learned_cnn.pt sha256:4dade5de1845")
 
 
 def test_a_table_is_refused_for_another_checkpoint():

@@ -310,6 +310,8 @@ class LearnedConfig:
                               "procedural textures zoomed at |D| up to 0.6 1/s (dvsland dataset zoom), "
                               "'cnn_dagger' = cnn_wide trained on its own closed-loop flights through the realistic "
                               "pixel (two rounds), "
+                              "'cnn_both' = the shipped CNN fine-tuned on its own datasets flown through both "
+                              "pixels (ideal and realistic_sensor), "
                               "'spiking' = the shipped spiking model, "
                               "'spiking8' = the spiking model on eight control steps (0.8 s) of events")
     min_events: int = opt(20, "windows with fewer events give no estimate (NaN)", rng=(1, 1000000000))

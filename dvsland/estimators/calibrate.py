@@ -472,7 +472,9 @@ def resolve_calibration(value: str, estimator: str, checkpoint: Optional[str] = 
     """The table that ``estimator.calibration = value`` selects for ``estimator``, or None.
 
     ``none`` (or empty): None. A shipped set (``ideal``, ``realistic``): the shipped
-    ``<estimator>_<set>.json``. A shipped name (``cmax_realistic``) or a path to a ``.json`` file:
+    ``<checkpoint file's stem>_<set>.json`` where one ships for the checkpoint the estimator reads
+    (``learned_cnn_both_realistic.json`` for ``learned_cnn_both.pt``), else ``<estimator>_<set>.json``.
+    A shipped name (``cmax_realistic``) or a path to a ``.json`` file:
     that table. A table fitted for another estimator, or (``checkpoint``: the text
     ``"<file> sha256:<digits>"`` of the checkpoint the estimator reads) for another checkpoint, is
     refused. Errors (ValueError) name ``estimator.calibration``, and list the shipped names.
@@ -484,7 +486,8 @@ def resolve_calibration(value: str, estimator: str, checkpoint: Optional[str] = 
     shipped = shipped_calibrations()
     names = ", ".join(sorted(shipped)) or "none"
     if v in SHIPPED_SETS:
-        key = f"{est}_{v}"
+        own = f"{Path(str(checkpoint).split(' sha256:', 1)[0]).stem}_{v}" if checkpoint else None
+        key = own if own in shipped else f"{est}_{v}"
         if key not in shipped:
             raise ValueError(f"{CONFIG_KEY}: no shipped {v!r} calibration for estimator {est!r} (shipped: {names}); "
                              f"fit one (docs/estimators.md) and give its path")

@@ -40,12 +40,14 @@ from .inputs import InputSpec, camera_map, coord_channels, events_voxel_grid, pi
 #: the shipped checkpoints by name (trained by `dvsland train`, commands in docs/learning.md): the CNN,
 #: the CNN fine-tuned on events of the realistic pixel as well ("Through a realistic pixel"), the CNN
 #: fine-tuned on the landing loss through the closed loop (`dvsland train-loop --what estimator`,
-#: docs/train_loop.md), the spiking model, and the spiking model on eight windows (docs/learning.md)
+#: docs/train_loop.md), the CNN fine-tuned on the recipe's datasets flown through both pixels, the
+#: spiking model, and the spiking model on eight windows (docs/learning.md)
 SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"),
            "cnn_realistic": Path(__file__).with_name("learned_cnn_realistic.pt"),
            "cnn_landing": Path(__file__).with_name("learned_cnn_landing.pt"),
            "cnn_wide": Path(__file__).with_name("learned_cnn_wide.pt"),
            "cnn_dagger": Path(__file__).with_name("learned_cnn_dagger.pt"),
+           "cnn_both": Path(__file__).with_name("learned_cnn_both.pt"),
            "spiking": Path(__file__).with_name("learned_spiking.pt"),
            "spiking8": Path(__file__).with_name("learned_spiking8.pt")}
 
@@ -242,9 +244,9 @@ def default_focal_px(sensor_size) -> float:
 
 
 def resolve_checkpoint(checkpoint: str) -> Path:
-    """``""`` or ``"cnn"`` -> the shipped CNN, ``"cnn_realistic"`` -> the CNN fine-tuned through the
-    realistic pixel, ``"cnn_landing"`` -> the CNN fine-tuned on the landing loss, ``"spiking"`` -> the
-    shipped spiking model, else a path."""
+    """``""`` or ``"cnn"`` -> the shipped CNN, another name of :data:`SHIPPED` (``"cnn_realistic"``,
+    ``"cnn_landing"``, ``"cnn_wide"``, ``"cnn_dagger"``, ``"cnn_both"``, ``"spiking"``, ``"spiking8"``)
+    -> that checkpoint, else a path."""
     key = str(checkpoint or "cnn")
     return SHIPPED.get(key, Path(key))
 
@@ -257,6 +259,8 @@ class LearnedEstimator(DivergenceEstimator):
         checkpoint: path of a ``dvsland train --model`` checkpoint; ``""``/``"cnn"`` = the shipped
             CNN, ``"cnn_realistic"`` = the CNN fine-tuned through the realistic pixel,
             ``"cnn_landing"`` = the CNN fine-tuned on the landing loss through the closed loop,
+            ``"cnn_wide"``, ``"cnn_dagger"``, ``"cnn_both"`` = the CNN fine-tuned on zoomed textures,
+            on its own closed-loop flights, on its datasets through both pixels (docs/learning.md),
             ``"spiking"`` = the shipped spiking model, ``"spiking8"`` = the spiking model on eight
             control steps (0.8 s) of events.
         min_events: windows with fewer events give NaN, in [1, 1e9].
