@@ -486,7 +486,7 @@ def resolve_calibration(value: str, estimator: str, checkpoint: Optional[str] = 
     shipped = shipped_calibrations()
     names = ", ".join(sorted(shipped)) or "none"
     if v in SHIPPED_SETS:
-        own = f"{Path(str(checkpoint).split(' sha256:', 1)[0]).stem}_{v}" if checkpoint else None
+        own = f"{_checkpoint_stem(checkpoint)}_{v}" if checkpoint else None
         key = own if own in shipped else f"{est}_{v}"
         if key not in shipped:
             raise ValueError(f"{CONFIG_KEY}: no shipped {v!r} calibration for estimator {est!r} (shipped: {names}); "
@@ -515,6 +515,12 @@ def _sha(text: str) -> str:
     cut to the 12 digits the reports keep."""
     t = str(text)
     return (t.split("sha256:", 1)[1].strip() if "sha256:" in t else t.strip())[:12]
+
+
+def _checkpoint_stem(text: str) -> str:
+    """The file stem of a checkpoint text ``"file sha256:abc..."`` (``learned_cnn_both`` of
+    ``"learned_cnn_both.pt sha256:aac95e06d692"``), the other half of what :func:`_sha` reads."""
+    return Path(str(text).split("sha256:", 1)[0].strip()).stem
 
 
 def checkpoint_sha256(estimator) -> Optional[str]:
