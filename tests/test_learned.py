@@ -128,6 +128,48 @@ def test_bad_model_settings_name_the_parameter():
         build_model("nope", {})
 
 
+def test_spiking_depth_and_hidden_options():
+    base = SpikingVoxelNet(n_bins=4, width=4, slice_dt_s=0.02)
+    assert "depth" not in base.settings() and "hidden" not in base.settings()  # shipped checkpoints: unchanged
+    torch.manual_seed(0)
+    net = SpikingVoxelNet(n_bins=4, width=4, slice_dt_s=0.02, depth=3, hidden=8)
+    assert net.settings()["depth"] == 3 and net.settings()["hidden"] == 8
+    rebuilt, _ = build_model("spiking", net.settings())
+    rebuilt.load_state_dict(net.state_dict())  # the settings rebuild the same tensors
+    with torch.no_grad():
+        for conv in (net.conv1, net.conv2, net.conv3):
+            conv.weight.mul_(6.0)  # enough drive that every layer spikes
+    spec = InputSpec((64, 64), 4, 2)
+    vox = torch.randn(3, 4, *spec.grid_hw) * 3
+    mu, lv = net(vox, coord_channels(spec, (31.5, 31.5)), torch.ones(3))
+    assert mu.shape == (3,) and torch.isfinite(mu).all() and torch.isfinite(lv).all()
+    act = net.last_activity
+    assert (act["spikes"] > 0).all() and (act["synops"] > act["spikes"]).all()
+    with pytest.raises(ValueError, match="depth must be 2 or 3"):
+        SpikingVoxelNet(depth=4)
+    with pytest.raises(ValueError, match=r"hidden must be in \[0, 1024\]"):
+        SpikingVoxelNet(hidden=-1)
+
+
+def test_spiking_depth3_nir_round_trip_agrees(tmp_path):
+    pytest.importorskip("nir")
+    pytest.importorskip("nirtorch")
+    from dvsland.estimators.learned.nir_export import export_nir, from_nir, run_nir
+
+    torch.manual_seed(2)
+    net = SpikingVoxelNet(n_bins=4, width=4, slice_dt_s=0.02, depth=3, hidden=8).eval()
+    with torch.no_grad():
+        for conv in (net.conv1, net.conv2, net.conv3):
+            conv.weight.mul_(6.0)
+    spec = InputSpec((64, 64), 4, 2)
+    coords = coord_channels(spec, (31.5, 31.5))
+    vox, lc = torch.randn(2, 4, *spec.grid_hw) * 3, torch.full((2,), 5.0)
+    with torch.no_grad():
+        want = net(vox, coords, lc)
+    got = run_nir(from_nir(export_nir(net, spec.grid_hw, tmp_path / "s3.nir")), net, vox, coords, lc)
+    assert torch.allclose(got[0], want[0], atol=1e-5) and torch.allclose(got[1], want[1], atol=1e-5)
+
+
 # ------------------------------------------------------------------ estimator
 @pytest.fixture
 def ckpt(tmp_path):

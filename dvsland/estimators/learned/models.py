@@ -63,31 +63,47 @@ class VoxelCNN(nn.Module):
 
 class SpikingVoxelNet(nn.Module):
     """Spiking CNN: per time bin k, current conv1([vox_k, coords]) -> LIF (width) -> conv2 ->
-    LIF (2 width); layer-2 spike counts over the bins, mean-pooled over space and weighted by the
-    radius about the principal point -> linear (with log_count) -> (mu, log_var).
+    LIF (2 width) [-> conv3 -> LIF (2 width) when ``depth`` = 3]; the last layer's spike counts over
+    the bins, mean-pooled over space and weighted by the radius about the principal point (and
+    max-pooled when ``depth`` = 3) -> a linear head (or, with ``hidden`` > 0, one hidden ReLU layer
+    of that many units) with log_count -> (mu, log_var).
 
     ``slice_dt_s``: the LIF step (control interval / n_bins); ``tau_mem_s``, ``tau_syn_s``: time
-    constants. Activity of the last forward pass: :attr:`last_activity` (spikes (B,), synops (B,)).
+    constants. ``depth`` 2 and ``hidden`` 0 (the defaults) are the shipped ``spiking`` and
+    ``spiking8`` networks. Activity of the last forward pass: :attr:`last_activity` (spikes (B,),
+    synops (B,)).
     """
 
     def __init__(self, n_bins: int = 8, width: int = 12, slice_dt_s: float = 0.0125, tau_mem_s: float = 0.05,
-                 tau_syn_s: float = 0.025):
+                 tau_syn_s: float = 0.025, depth: int = 2, hidden: int = 0):
         super().__init__()
         if not 1 <= int(width) <= 256:
             raise ValueError(f"width must be in [1, 256], got {width}")
+        if int(depth) not in (2, 3):
+            raise ValueError(f"depth must be 2 or 3, got {depth}")
+        if not 0 <= int(hidden) <= 1024:
+            raise ValueError(f"hidden must be in [0, 1024], got {hidden}")
         self.n_bins, self.width, self.slice_dt_s = int(n_bins), int(width), float(slice_dt_s)
+        self.depth, self.hidden = int(depth), int(hidden)
         self.p = LIFParameters(tau_mem_s=tau_mem_s, tau_syn_s=tau_syn_s, v_th=1.0)
         self.p.check_dt(self.slice_dt_s)
         c = self.width
         self.conv1 = nn.Conv2d(3, c, 3, stride=2, padding=1)
         self.conv2 = nn.Conv2d(c, 2 * c, 3, stride=2, padding=1)
-        self.head = nn.Linear(4 * c + 1, 2)
+        if self.depth == 3:
+            self.conv3 = nn.Conv2d(2 * c, 2 * c, 3, stride=2, padding=1)
+        n_feat = (6 if self.depth == 3 else 4) * c + 1
+        self.head = nn.Linear(n_feat, 2) if not self.hidden else nn.Sequential(
+            nn.Linear(n_feat, self.hidden), nn.ReLU(), nn.Linear(self.hidden, 2))
         self.last_activity: Dict[str, torch.Tensor] = {}
 
     def settings(self) -> Dict[str, float]:
         """Constructor keyword arguments that rebuild this network."""
-        return {"n_bins": self.n_bins, "width": self.width, "slice_dt_s": self.slice_dt_s,
-                "tau_mem_s": self.p.tau_mem_s, "tau_syn_s": self.p.tau_syn_s}
+        out = {"n_bins": self.n_bins, "width": self.width, "slice_dt_s": self.slice_dt_s,
+               "tau_mem_s": self.p.tau_mem_s, "tau_syn_s": self.p.tau_syn_s}
+        if self.depth != 2 or self.hidden:  # the shipped checkpoints' settings stay as they were
+            out.update(depth=self.depth, hidden=self.hidden)
+        return out
 
     def slice_inputs(self, vox: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
         """The network's input per time step: (B, n_bins, 3, h, w) float32 = [normalised bin k, coords]."""
@@ -95,32 +111,42 @@ class SpikingVoxelNet(nn.Module):
         xy = coords.expand(B, -1, -1, -1)[:, None].expand(-1, self.n_bins, -1, -1, -1)
         return torch.cat([_normalise(vox)[:, :, None], xy], dim=2)
 
-    def readout(self, count2: torch.Tensor, coords: torch.Tensor, log_count: torch.Tensor):
-        """(mu, log_var) (B,) from the layer-2 spike counts of a window, (B, 2 width, h2, w2)."""
+    def readout(self, count: torch.Tensor, coords: torch.Tensor, log_count: torch.Tensor):
+        """(mu, log_var) (B,) from the last layer's spike counts of a window, (B, 2 width, h', w')."""
         r = coords.norm(dim=1, keepdim=True)  # (1, 1, h, w) radius about the principal point
-        r2 = nn.functional.adaptive_avg_pool2d(r, count2.shape[-2:])
-        f = torch.cat([count2.mean(dim=(2, 3)), (count2 * r2).mean(dim=(2, 3)), log_count[:, None]], dim=1)
-        mu, log_var = self.head(f).unbind(1)
+        r2 = nn.functional.adaptive_avg_pool2d(r, count.shape[-2:])
+        feats = [count.mean(dim=(2, 3)), (count * r2).mean(dim=(2, 3))]
+        if self.depth == 3:
+            feats.append(count.amax(dim=(2, 3)))
+        mu, log_var = self.head(torch.cat([*feats, log_count[:, None]], dim=1)).unbind(1)
         return mu, log_var.clamp(-12.0, 6.0)
+
+    def _layers(self):
+        """The convolutions after the first, in order (each feeds a LIF layer)."""
+        return (self.conv2, self.conv3) if self.depth == 3 else (self.conv2,)
 
     def forward(self, vox: torch.Tensor, coords: torch.Tensor, log_count: torch.Tensor):
         B = vox.shape[0]
         cur = self.conv1(self.slice_inputs(vox, coords).flatten(0, 1)).unflatten(0, (B, self.n_bins))
         step = lif_step if torch.is_grad_enabled() else lif_step_inference
+        layers = self._layers()
         s1 = lif_state(cur[:, 0].shape, cur.device)
-        s2 = None
-        count2, n1 = 0.0, 0.0
+        states = [None] * len(layers)
+        count, n_in = 0.0, [0.0] * len(layers)  # n_in[j]: spikes into layers[j] (its synops' source)
         for k in range(self.n_bins):  # the time steps of the window (n_bins, a few)
-            z1, s1 = step(cur[:, k], s1, self.p, self.slice_dt_s)
-            c2 = self.conv2(z1)
-            s2 = lif_state(c2.shape, c2.device) if s2 is None else s2
-            z2, s2 = step(c2, s2, self.p, self.slice_dt_s)
-            count2 = count2 + z2
-            n1 = n1 + z1.sum(dim=(1, 2, 3))
-        n2 = count2.sum(dim=(1, 2, 3))
-        fan1 = self.conv2.out_channels * 9 / 4.0  # a layer-1 spike's targets (3x3 kernel, stride 2)
-        self.last_activity = {"spikes": (n1 + n2).detach(), "synops": (n1 * fan1 + n2 * self.head.in_features).detach()}
-        return self.readout(count2, coords, log_count)
+            z, s1 = step(cur[:, k], s1, self.p, self.slice_dt_s)
+            for j, conv in enumerate(layers):
+                n_in[j] = n_in[j] + z.sum(dim=(1, 2, 3))
+                c = conv(z)
+                states[j] = lif_state(c.shape, c.device) if states[j] is None else states[j]
+                z, states[j] = step(c, states[j], self.p, self.slice_dt_s)
+            count = count + z
+        n_out = count.sum(dim=(1, 2, 3))
+        head_in = self.head.in_features if not self.hidden else self.head[0].in_features
+        # a spike's targets: 3x3 kernel, stride 2 -> out_channels x 9 / 4 neurons of the next layer
+        synops = sum(n * (conv.out_channels * 9 / 4.0) for n, conv in zip(n_in, layers)) + n_out * head_in
+        self.last_activity = {"spikes": (sum(n_in) + n_out).detach(), "synops": synops.detach()}
+        return self.readout(count, coords, log_count)
 
 
 #: the built-in models by name

@@ -4,11 +4,12 @@
 the optional extra ``dvsland[nir]``)::
 
     input (3, h, w) -> Conv2d 3x3 stride 2 -> CubaLIF (width, h1, w1)
-                    -> Conv2d 3x3 stride 2 -> CubaLIF (2 width, h2, w2) -> output (spikes)
+                    -> Conv2d 3x3 stride 2 -> CubaLIF (2 width, h2, w2)
+                    [-> Conv2d 3x3 stride 2 -> CubaLIF (2 width, h3, w3) when depth = 3] -> output (spikes)
 
 The per-time-step input (the normalised voxel bin and the two coordinate channels,
 :meth:`~.models.SpikingVoxelNet.slice_inputs`) and the read-out of the summed layer-2 spikes
-(:meth:`~.models.SpikingVoxelNet.readout`, a linear map to mu and log_var) stay outside the
+(:meth:`~.models.SpikingVoxelNet.readout`, a linear map or small MLP to mu and log_var) stay outside the
 graph, as the input encoding does for ``snn``. Neurons use NIR's CubaLIF with the forward-Euler
 step of :mod:`dvsland.estimators.snn.nir_export` (w_in = tau_syn / dt).
 :func:`run_nir` runs a re-imported graph over a window and returns what the model returns.
@@ -33,9 +34,9 @@ def to_nir(net: SpikingVoxelNet, grid_hw):
     f32 = lambda t: t.detach().cpu().numpy().astype(np.float32)  # noqa: E731
     h, w = (int(v) for v in grid_hw)
     with torch.no_grad():
-        c1 = net.conv1(torch.zeros(1, 3, h, w))
-        c2 = net.conv2(c1)
-    s1, s2 = tuple(c1.shape[1:]), tuple(c2.shape[1:])
+        shapes = [tuple(net.conv1(torch.zeros(1, 3, h, w)).shape[1:])]
+        for m in net._layers():
+            shapes.append(tuple(m(torch.zeros(1, *shapes[-1])).shape[1:]))
     p, dt = net.p, net.slice_dt_s
 
     def lif(shape):
@@ -48,14 +49,15 @@ def to_nir(net: SpikingVoxelNet, grid_hw):
                           dilation=(1, 1), groups=1, bias=f32(m.bias))
 
     nodes = {"input": nir.Input(input_type={"input": np.array([3, h, w])}),
-             "conv1": conv(net.conv1, (h, w)), "lif1": lif(s1),
-             "conv2": conv(net.conv2, s1[1:]), "lif2": lif(s2),
-             "output": nir.Output(output_type={"output": np.array(s2)})}
+             "conv1": conv(net.conv1, (h, w)), "lif1": lif(shapes[0])}
+    for k, m in enumerate(net._layers(), start=2):
+        nodes.update({f"conv{k}": conv(m, shapes[k - 2][1:]), f"lif{k}": lif(shapes[k - 1])})
+    nodes["output"] = nir.Output(output_type={"output": np.array(shapes[-1])})
     order = list(nodes)
     return nir.NIRGraph(nodes=nodes, edges=list(zip(order[:-1], order[1:])),
                         metadata={"dt_s": dt, "producer": "dvsland learned spiking",
                                   "input": "[voxel bin / mean |voxel|, x, y coordinate channels]",
-                                  "output": "layer-2 spikes; summed over the window into SpikingVoxelNet.readout"})
+                                  "output": "last layer's spikes; summed over the window into SpikingVoxelNet.readout"})
 
 
 def export_nir(net: SpikingVoxelNet, grid_hw, path) -> Path:
