@@ -318,6 +318,19 @@ class LearnedConfig:
 
 
 @dataclass
+class FusedConfig:
+    """Several estimators on the same events, one estimate, 'fused' (not in paper; docs/estimators.md)."""
+
+    members: str = opt("cmax,learned", "the member estimators, comma-separated (at least two; each built from its "
+                                       "own section, e.g. estimator.cmax, estimator.learned)")
+    rule: str = opt("precision", "how their estimates combine: 'precision' = the inverse-variance mean of their "
+                                 "relative sigmas, inflated where they disagree; 'priority' = the first member whose "
+                                 "confidence reaches min_confidence, else the most confident",
+                    choices=("precision", "priority"))
+    min_confidence: float = opt(0.15, "the bar of rule 'priority'", rng=(0.0, 1.0))
+
+
+@dataclass
 class AbstainConfig:
     """The motion-evidence test every event estimator runs behind (not in paper): a window that shows
     no moving scene (sensor noise, a static scene, a global flicker) gives no estimate."""
@@ -351,6 +364,8 @@ class EstimatorConfig:
     oracle: OracleConfig = opt(None, "parameters of 'oracle'", factory=OracleConfig)
     snn: SNNConfig = opt(None, "parameters of 'snn'", factory=SNNConfig)
     learned: LearnedConfig = opt(None, "parameters of 'learned'", factory=LearnedConfig)
+    fused: FusedConfig = opt(None, "parameters of 'fused' (its members' own sections hold theirs)",
+                             factory=FusedConfig)
     abstain: AbstainConfig = opt(None, "the motion-evidence test every event estimator runs behind",
                                  factory=AbstainConfig)
     calibration: str = opt("none", "post-hoc confidence calibration (not in paper): 'none' = the estimator's own "

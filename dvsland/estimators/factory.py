@@ -9,6 +9,7 @@ from dvsland.config import Config
 
 from .abstain import DEFAULT_ABSTAIN, AbstainParams, check_abstain_params
 from .calibrate import calibration_off, checkpoint_sha256, params_to, resolve_calibration
+from .fused import member_names
 from .registry import get_estimator, split_alias
 
 
@@ -38,9 +39,14 @@ def make_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: str 
     params.setdefault("dt_s", cfg.dt_s)
     params.setdefault("seed", cfg.simulation.seed if seed is None else seed)
     params.setdefault("principal_point_px", cfg.camera.principal_point_px)
+    fused = split_alias(name)[1] == "fused"
+    if fused:  # each member from its own section, with its own motion-evidence test and calibration
+        params["members"] = [(m, make_estimator(cfg, batch_size, device, name=m, seed=seed))
+                             for m in member_names(params["members"])]
     est = get_estimator(name, batch_size, (cfg.camera.width_px, cfg.camera.height_px), device, **params)
-    apply_abstain(est, getattr(cfg.estimator, "abstain", None))
-    apply_calibration(est, cfg, name)
+    if not fused:
+        apply_abstain(est, getattr(cfg.estimator, "abstain", None))
+        apply_calibration(est, cfg, name)
     return est
 
 
