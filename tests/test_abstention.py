@@ -28,6 +28,8 @@ SHIPPED = [("cmax", {}), ("dpr", {}), ("dpr", {"baseline_steps": 5}), ("snn", {}
            ("learned", {"checkpoint": "spiking8"}), ("learned", {"checkpoint": "cnn_both"})]
 IDS = ["cmax", "dpr", "dpr5", "snn", "learned-cnn", "learned-spiking", "learned-cnn-landing", "learned-cnn-wide",
        "learned-cnn-dagger", "learned-spiking8", "learned-cnn-both"]
+#: and the combination of two of them (its members run the test; it abstains where they all do)
+WITH_FUSED, IDS_FUSED = SHIPPED + [("fused", {})], IDS + ["fused-cmax-learned"]
 
 
 def build(name: str, extra: dict, batch: int = B, cfg=None) -> DivergenceEstimator:
@@ -108,7 +110,7 @@ def max_confidence_after_first_second(est: DivergenceEstimator, window, seed: in
     return worst
 
 
-@pytest.mark.parametrize("name,extra", SHIPPED, ids=IDS)
+@pytest.mark.parametrize("name,extra", WITH_FUSED, ids=IDS_FUSED)
 @pytest.mark.parametrize("kind", list(KINDS))
 def test_every_estimator_abstains_without_motion(name, extra, kind):
     est = build(name, extra)
