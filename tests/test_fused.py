@@ -138,3 +138,9 @@ class TestFromConfig:
                                               "estimator.learned.checkpoint=cnn_both"])
         est = make_estimator(cfg, 2)
         assert est.checkpoint == est.members[1].checkpoint and str(est.checkpoint).endswith("learned_cnn_both.pt")
+
+    def test_realistic_sensor_flies_it_with_the_cnn_of_its_own_flights(self):
+        assert load_config("realistic_sensor", ["estimator.name=fused"]).estimator.learned.checkpoint == "cnn_dagger"
+        assert load_config("realistic_sensor", ["estimator.name=learned"]).estimator.learned.checkpoint == ""
+        over = ["estimator.name=fused", "estimator.learned.checkpoint=cnn_both"]  # a --set wins
+        assert load_config("realistic_sensor", over).estimator.learned.checkpoint == "cnn_both"
