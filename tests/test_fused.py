@@ -144,3 +144,21 @@ class TestFromConfig:
         assert load_config("realistic_sensor", ["estimator.name=learned"]).estimator.learned.checkpoint == ""
         over = ["estimator.name=fused", "estimator.learned.checkpoint=cnn_both"]  # a --set wins
         assert load_config("realistic_sensor", over).estimator.learned.checkpoint == "cnn_both"
+
+
+class TestCalibration:
+    def test_each_member_flies_its_own_table(self):
+        cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic"])
+        cmax, learned = make_estimator(cfg, 2).members
+        assert cmax.calibration is not None and learned.calibration is not None  # cmax_realistic, cnn_dagger's
+
+    def test_evaluate_checks_the_members_tables_before_running(self):
+        from dvsland.cli.cmd_evaluate import _check_calibration_key
+
+        cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic"])
+        _check_calibration_key(cfg, ["fused"], False)  # both members have a shipped table
+        cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic",
+                                               "estimator.fused.members=cmax,dpr"])
+        msg = "estimator.calibration: no shipped 'realistic' calibration for estimator 'dpr'"
+        with pytest.raises(ValueError, match=msg):
+            _check_calibration_key(cfg, ["fused"], False)

@@ -91,7 +91,8 @@ def fuse_priority(d: torch.Tensor, c: torch.Tensor, min_confidence: float) -> Tu
     pick = rank.argmax(0, keepdim=True)
     d_out, c_out = d.gather(0, pick)[0], c.gather(0, pick)[0]
     none = ~ok.any(0)
-    return torch.where(none, torch.full_like(d_out, float("nan")), d_out), torch.where(none, torch.zeros_like(c_out), c_out)
+    nan = torch.full_like(d_out, float("nan"))
+    return torch.where(none, nan, d_out), torch.where(none, torch.zeros_like(c_out), c_out)
 
 
 @register_estimator("fused")
