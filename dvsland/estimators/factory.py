@@ -32,7 +32,8 @@ def make_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: str 
 
     The estimator receives ``dt_s`` (the frame interval), ``seed`` and ``principal_point_px`` (the
     camera's focus of expansion, None = the sensor centre) in addition to its params (each only
-    where its constructor takes it; see :func:`get_estimator`).
+    where its constructor takes it; see :func:`get_estimator`). ``fused`` gets its members built
+    here, each from its own section with its own motion-evidence test and calibration.
     """
     name = name or cfg.estimator.name
     params = estimator_params(cfg, name)
