@@ -157,6 +157,7 @@ class TestCalibration:
 
         cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic"])
         _check_calibration_key(cfg, ["fused"], False)  # both members have a shipped table
+        _check_calibration_key(cfg, ["both=fused"], False)  # under an alias too
         cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic",
                                                "estimator.fused.members=cmax,dpr"])
         msg = "estimator.calibration: no shipped 'realistic' calibration for estimator 'dpr'"

@@ -246,12 +246,11 @@ def _check_calibration_key(cfg, specs, fit: bool) -> None:
     """``estimator.calibration`` resolved for every estimator named, before the run folder exists
     (its errors name the key); ``--fit-calibration`` needs raw confidences."""
     from dvsland.estimators.calibrate import calibration_off, resolve_calibration
-    from dvsland.estimators.fused import member_names
+    from dvsland.estimators.factory import calibration_names
 
     value = getattr(cfg.estimator, "calibration", "none")
     for name in _spec_names(specs).values():
-        # fused is not calibrated itself: each of its members is, by its own table
-        for n in member_names(cfg.estimator.fused.members) if name.split("[", 1)[0] == "fused" else (name,):
+        for n in calibration_names(cfg, name):
             resolve_calibration(value, n)
     if fit and not calibration_off(value):
         raise ValueError(f"--fit-calibration fits raw confidences: run it with estimator.calibration=none "

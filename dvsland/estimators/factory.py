@@ -40,7 +40,7 @@ def make_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: str 
     params.setdefault("dt_s", cfg.dt_s)
     params.setdefault("seed", cfg.simulation.seed if seed is None else seed)
     params.setdefault("principal_point_px", cfg.camera.principal_point_px)
-    fused = split_alias(name)[1] == "fused"
+    fused = _is_fused(name)
     if fused:  # each member from its own section, with its own motion-evidence test and calibration
         params["members"] = [(m, make_estimator(cfg, batch_size, device, name=m, seed=seed))
                              for m in member_names(params["members"])]
@@ -49,6 +49,17 @@ def make_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: str 
         apply_abstain(est, getattr(cfg.estimator, "abstain", None))
         apply_calibration(est, cfg, name)
     return est
+
+
+def _is_fused(name: str) -> bool:
+    """Whether estimator ``name`` (an alias ``A=fused`` and options ``fused[...]`` included) is ``fused``."""
+    return split_alias(name)[1].split("[", 1)[0].strip() == "fused"
+
+
+def calibration_names(cfg: Config, name: str) -> tuple:
+    """The estimators whose calibration tables ``name`` flies with: ``fused`` is not calibrated
+    itself, its members (``estimator.fused.members``) are, each by its own table; any other is itself."""
+    return member_names(cfg.estimator.fused.members) if _is_fused(name) else (name,)
 
 
 def apply_calibration(est, cfg: Config, name: str) -> None:
