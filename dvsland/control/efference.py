@@ -50,6 +50,7 @@ from typing import NamedTuple, Optional, Tuple
 import torch
 
 from dvsland.config.schema import EfferenceConfig
+from dvsland.estimators.base import confidence_rel_sigma
 
 from .filter import DivergenceFilter, FilterOut
 
@@ -59,21 +60,6 @@ Tensor = torch.Tensor
 #: ``controller.efference`` options that are not this filter's (the loop's, and ``efference_fit``'s):
 #: one config section serves both filters
 _NOT_MINE = ("prior_state", "cauchy_c", "iterations", "forget_s")
-
-
-def confidence_rel_sigma(confidence: Tensor) -> Tensor:
-    """Relative standard error sigma_rel = 0.1 sqrt(1/c - 1) of an estimate with confidence c,
-    the inverse of the estimators' c = 1 / (1 + (sigma_rel / 0.1)^2).
-
-    Args:
-        confidence: (B,) float in [0, 1].
-
-    Returns:
-        (B,) same dtype: 0 at c = 1, inf at c = 0 or where c is not finite (no information).
-    """
-    c = confidence.clamp(0.0, 1.0)
-    ok = torch.isfinite(confidence) & (c > 0)
-    return torch.where(ok, 0.1 * (1.0 / torch.where(ok, c, 1.0) - 1.0).clamp_min(0.0).sqrt(), float("inf"))
 
 
 def cap_covariance(pzz: Tensor, pzv: Tensor, pvv: Tensor, sz_max: Tensor, sv_max: Tensor):

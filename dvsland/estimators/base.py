@@ -77,6 +77,21 @@ def confidence_from_rel_std(rel_std: torch.Tensor, d_hat: torch.Tensor) -> torch
     return torch.where(ok, c, torch.zeros_like(c)).clamp(0.0, 1.0)
 
 
+def confidence_rel_sigma(confidence: torch.Tensor) -> torch.Tensor:
+    """Relative standard error sigma_rel = 0.1 sqrt(1/c - 1) of an estimate with confidence c,
+    the inverse of the estimators' c = 1 / (1 + (sigma_rel / 0.1)^2).
+
+    Args:
+        confidence: (B,) float in [0, 1].
+
+    Returns:
+        (B,) same dtype: 0 at c = 1, inf at c = 0 or where c is not finite (no information).
+    """
+    c = confidence.clamp(0.0, 1.0)
+    ok = torch.isfinite(confidence) & (c > 0)
+    return torch.where(ok, 0.1 * (1.0 / torch.where(ok, c, 1.0) - 1.0).clamp_min(0.0).sqrt(), float("inf"))
+
+
 class DivergenceEstimator:
     """Base class of divergence estimators (batched).
 

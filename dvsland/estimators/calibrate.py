@@ -3,7 +3,7 @@ calibrated probability.
 
 Every estimator returns a confidence c per estimate; the filters and the calibration report read it
 as a relative standard error ``sigma_rel(c) = 0.1 sqrt(1/c - 1)``
-(:func:`dvsland.control.efference.confidence_rel_sigma`). An estimator whose errors are larger
+(:func:`dvsland.estimators.base.confidence_rel_sigma`). An estimator whose errors are larger
 (or smaller) than that claims is over- (under-) confident. Calibration rescales the claimed sigma
 by a factor read from a table, and turns the result back into a confidence::
 

@@ -26,7 +26,7 @@ from typing import Any, Dict, NamedTuple, Optional, Sequence, Tuple
 
 import torch
 
-from .base import DivergenceEstimator, EstimateOut, Truth
+from .base import DivergenceEstimator, EstimateOut, Truth, confidence_from_rel_std, confidence_rel_sigma
 from .registry import get_estimator, register_estimator
 
 #: the combination rules
@@ -67,7 +67,8 @@ def fuse_precision(d: torch.Tensor, c: torch.Tensor) -> Tuple[torch.Tensor, torc
     """
     ok = torch.isfinite(d) & (c > 0)
     cc = c.clamp(0.0, _C_MAX)
-    w = torch.where(ok, cc / (0.01 * (1.0 - cc)), torch.zeros_like(cc))  # 1 / sigma_rel^2
+    sig = confidence_rel_sigma(cc)
+    w = torch.where(ok, 1.0 / (sig * sig), torch.zeros_like(cc))  # 1 / sigma_rel^2
     w_sum = w.sum(0)
     d0 = torch.where(ok, d, torch.zeros_like(d))
     mean = (w * d0).sum(0) / w_sum.clamp_min(1e-30)
@@ -76,8 +77,8 @@ def fuse_precision(d: torch.Tensor, c: torch.Tensor) -> Tuple[torch.Tensor, torc
     chi2 = (w * rel * rel).sum(0)
     birge = torch.where(n > 1, chi2 / (n - 1).clamp_min(1).to(chi2.dtype), torch.ones_like(chi2)).clamp_min(1.0)
     var = birge / w_sum.clamp_min(1e-30)  # sigma_rel^2 of the combined estimate
-    conf = torch.where(n > 0, 1.0 / (1.0 + var / 0.01), torch.zeros_like(var))
-    return torch.where(n > 0, mean, torch.full_like(mean, float("nan"))), conf.to(torch.float32)
+    d_out = torch.where(n > 0, mean, torch.full_like(mean, float("nan")))
+    return d_out, confidence_from_rel_std(var.sqrt(), d_out)
 
 
 def fuse_priority(d: torch.Tensor, c: torch.Tensor, min_confidence: float) -> Tuple[torch.Tensor, torch.Tensor]:

@@ -1,7 +1,7 @@
 """Calibration of an estimator's confidence: does its predicted error match its real error?
 
 Every estimator returns ``(D_hat, confidence)`` per step. The filters read the confidence c as a
-relative standard error (:func:`dvsland.control.efference.confidence_rel_sigma`, the inverse of
+relative standard error (:func:`dvsland.estimators.base.confidence_rel_sigma`, the inverse of
 :func:`dvsland.estimators.base.confidence_from_rel_std`)::
 
     sigma_rel(c) = 0.1 * sqrt(1 / c - 1)        (0 at c = 1, 0.1 at c = 0.5, inf at c = 0)
@@ -24,7 +24,7 @@ from typing import Dict, Optional, Sequence
 import numpy as np
 import torch
 
-from dvsland.control.efference import confidence_rel_sigma
+from dvsland.estimators.base import confidence_rel_sigma
 from dvsland.estimators.calibrate import flat_sample
 from dvsland.estimators.snn.data import SITE_TYPES
 
@@ -50,7 +50,7 @@ def site_type(site: str) -> str:
 
 def rel_sigma(confidence) -> np.ndarray:
     """Predicted relative standard error of each estimate: the filters' mapping
-    (:func:`~dvsland.control.efference.confidence_rel_sigma`).
+    (:func:`~dvsland.estimators.base.confidence_rel_sigma`).
 
     Args:
         confidence: (N,) float in [0, 1].
