@@ -145,6 +145,13 @@ class TestFromConfig:
         over = ["estimator.name=fused", "estimator.learned.checkpoint=cnn_both"]  # a --set wins
         assert load_config("realistic_sensor", over).estimator.learned.checkpoint == "cnn_both"
 
+    def test_realistic_sensor_lets_the_filter_read_fuseds_weak_estimates(self):
+        # the filter's bar falls from the preset's 0.15 to 0.015 for fused only, and a --set wins
+        assert load_config("realistic_sensor", ["estimator.name=fused"]).controller.efference.min_confidence == 0.015
+        assert load_config("realistic_sensor", ["estimator.name=cmax"]).controller.efference.min_confidence == 0.15
+        over = ["estimator.name=fused", "controller.efference.min_confidence=0.3"]
+        assert load_config("realistic_sensor", over).controller.efference.min_confidence == 0.3
+
 
 class TestCalibration:
     def test_each_member_flies_its_own_table(self):
