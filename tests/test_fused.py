@@ -154,16 +154,31 @@ class TestFromConfig:
 
 
 class TestCalibration:
-    def test_each_member_flies_its_own_table(self):
+    def test_the_realistic_set_calibrates_fuseds_output_with_its_own_table(self):
         cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic"])
-        cmax, learned = make_estimator(cfg, 2).members
-        assert cmax.calibration is not None and learned.calibration is not None  # cmax_realistic, cnn_dagger's
+        est = make_estimator(cfg, 2)
+        assert est.calibration is not None and est.calibration.feature == "abs_d_hat"  # fused_realistic.json
+        assert all(m.calibration is None for m in est.members)  # the table was fitted on the raw members
 
-    def test_evaluate_checks_the_members_tables_before_running(self):
+    def test_other_members_or_checkpoint_fly_the_members_tables(self):
+        for over in (["estimator.learned.checkpoint=cnn_both"],  # fused_realistic was fitted on cnn_dagger
+                     ["estimator.fused.members=learned,cmax"]):  # ... as cmax,learned
+            cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic"] + over)
+            est = make_estimator(cfg, 2)
+            assert est.calibration is None and all(m.calibration is not None for m in est.members)
+
+    def test_a_named_table_must_be_fuseds(self):
+        cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=fused_realistic"])
+        assert make_estimator(cfg, 2).calibration is not None
+        cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=cmax_realistic"])
+        with pytest.raises(ValueError, match="estimator.calibration: 'cmax_realistic' was fitted for estimator 'cmax'"):
+            make_estimator(cfg, 2)
+
+    def test_evaluate_checks_the_tables_before_running(self):
         from dvsland.cli.cmd_evaluate import _check_calibration_key
 
         cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic"])
-        _check_calibration_key(cfg, ["fused"], False)  # both members have a shipped table
+        _check_calibration_key(cfg, ["fused"], False)  # fused's own table ships
         _check_calibration_key(cfg, ["both=fused"], False)  # under an alias too
         cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic",
                                                "estimator.fused.members=cmax,dpr"])

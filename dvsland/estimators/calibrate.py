@@ -473,7 +473,8 @@ def resolve_calibration(value: str, estimator: str, checkpoint: Optional[str] = 
 
     ``none`` (or empty): None. A shipped set (``ideal``, ``realistic``): the shipped
     ``<checkpoint file's stem>_<set>.json`` where one ships for the checkpoint the estimator reads
-    (``learned_cnn_both_realistic.json`` for ``learned_cnn_both.pt``), else ``<estimator>_<set>.json``.
+    and was fitted for this estimator (``learned_cnn_both_realistic.json`` for ``learned_cnn_both.pt``),
+    else ``<estimator>_<set>.json``.
     A shipped name (``cmax_realistic``) or a path to a ``.json`` file:
     that table. A table fitted for another estimator, or (``checkpoint``: the text
     ``"<file> sha256:<digits>"`` of the checkpoint the estimator reads) for another checkpoint, is
@@ -487,7 +488,7 @@ def resolve_calibration(value: str, estimator: str, checkpoint: Optional[str] = 
     names = ", ".join(sorted(shipped)) or "none"
     if v in SHIPPED_SETS:
         own = f"{_checkpoint_stem(checkpoint)}_{v}" if checkpoint else None
-        key = own if own in shipped else f"{est}_{v}"
+        key = own if own in shipped and _fitted_for(shipped[own]) == est else f"{est}_{v}"
         if key not in shipped:
             raise ValueError(f"{CONFIG_KEY}: no shipped {v!r} calibration for estimator {est!r} (shipped: {names}); "
                              f"fit one (docs/estimators.md) and give its path")
@@ -508,6 +509,16 @@ def resolve_calibration(value: str, estimator: str, checkpoint: Optional[str] = 
         raise ValueError(f"{CONFIG_KEY}: {v!r} was fitted on the checkpoint {fit_ck}, but this {est} reads "
                          f"{checkpoint}; fit a table for it (docs/estimators.md)")
     return params, obj
+
+
+def _fitted_for(path: Path) -> str:
+    """The estimator a table file was fitted for ('' where it cannot be read): a checkpoint's own
+    table (``learned_cnn_dagger_realistic``) serves the estimator that reads the checkpoint, not a
+    ``fused`` one that holds it."""
+    try:
+        return _base_name(json.loads(Path(path).read_text()).get("estimator", ""))
+    except (OSError, ValueError, AttributeError):
+        return ""
 
 
 def _sha(text: str) -> str:

@@ -8,7 +8,8 @@ from typing import Any
 from dvsland.config import Config
 
 from .abstain import DEFAULT_ABSTAIN, AbstainParams, check_abstain_params
-from .calibrate import calibration_off, checkpoint_sha256, params_to, resolve_calibration
+from .calibrate import (SHIPPED_SETS, calibration_off, checkpoint_sha256, params_to, resolve_calibration,
+                        shipped_calibrations)
 from .fused import member_names
 from .registry import get_estimator, split_alias
 
@@ -33,21 +34,29 @@ def make_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: str 
     The estimator receives ``dt_s`` (the frame interval), ``seed`` and ``principal_point_px`` (the
     camera's focus of expansion, None = the sensor centre) in addition to its params (each only
     where its constructor takes it; see :func:`get_estimator`). ``fused`` gets its members built
-    here, each from its own section with its own motion-evidence test and calibration.
+    here, each from its own section with its own motion-evidence test, and is calibrated by
+    :func:`calibrate_fused`.
     """
-    name = name or cfg.estimator.name
+    return _build(cfg, batch_size, device, name or cfg.estimator.name, seed, calibrate=True)
+
+
+def _build(cfg: Config, batch_size: int, device: Any, name: str, seed: int | None, calibrate: bool):
     params = estimator_params(cfg, name)
     params.setdefault("dt_s", cfg.dt_s)
     params.setdefault("seed", cfg.simulation.seed if seed is None else seed)
     params.setdefault("principal_point_px", cfg.camera.principal_point_px)
     fused = _is_fused(name)
-    if fused:  # each member from its own section, with its own motion-evidence test and calibration
-        params["members"] = [(m, make_estimator(cfg, batch_size, device, name=m, seed=seed))
+    if fused:  # each member from its own section, with its own motion-evidence test; calibrated below
+        params["members"] = [(m, _build(cfg, batch_size, device, m, seed, calibrate=False))
                              for m in member_names(params["members"])]
     est = get_estimator(name, batch_size, (cfg.camera.width_px, cfg.camera.height_px), device, **params)
-    if not fused:
+    if fused:
+        if calibrate:
+            calibrate_fused(est, cfg, name)
+    else:
         apply_abstain(est, getattr(cfg.estimator, "abstain", None))
-        apply_calibration(est, cfg, name)
+        if calibrate:
+            apply_calibration(est, cfg, name)
     return est
 
 
@@ -56,10 +65,49 @@ def _is_fused(name: str) -> bool:
     return split_alias(name)[1].split("[", 1)[0].strip() == "fused"
 
 
+def _fused_set_table(cfg: Config, checkpoint=False) -> bool:
+    """Whether ``estimator.calibration`` is a shipped set (``ideal``, ``realistic``) whose
+    ``fused_<set>.json`` ships for these members (``estimator.fused.members``) and, unless
+    ``checkpoint`` is False (not known yet), for this checkpoint (the text of
+    :func:`~.calibrate.checkpoint_sha256`, None where no member reads one): a ``fused`` table
+    describes one combination."""
+    v = str(getattr(cfg.estimator, "calibration", "none")).strip()
+    if v not in SHIPPED_SETS or f"fused_{v}" not in shipped_calibrations():
+        return False
+    try:
+        _, obj = resolve_calibration(v, "fused", checkpoint or None)
+    except ValueError:  # fitted on another checkpoint
+        return False
+    fit = obj.get("fit") or {}
+    fitted = str((fit.get("estimator_params") or {}).get("members", ""))
+    if [m.strip() for m in fitted.split(",")] != [m.strip() for m in str(cfg.estimator.fused.members).split(",")]:
+        return False
+    return checkpoint is False or (checkpoint is None) == (fit.get("checkpoint") is None)
+
+
+def calibrate_fused(est, cfg: Config, name: str) -> None:
+    """Calibrate a built ``fused``: its combined output by ``fused``'s own table (its members then
+    fly raw) where ``estimator.calibration`` names one (a shipped name or a path: it must have been
+    fitted for ``fused``) or is a set whose ``fused_<set>.json`` ships for these members and their
+    checkpoint (:func:`_fused_set_table`); else each member by its own table."""
+    value = getattr(cfg.estimator, "calibration", "none")
+    if calibration_off(value):
+        return
+    if str(value).strip() not in SHIPPED_SETS or _fused_set_table(cfg, checkpoint_sha256(est)):
+        apply_calibration(est, cfg, name)
+        return
+    for label, member in zip(est.member_labels, est.members):
+        apply_calibration(member, cfg, label)
+
+
 def calibration_names(cfg: Config, name: str) -> tuple:
-    """The estimators whose calibration tables ``name`` flies with: ``fused`` is not calibrated
-    itself, its members (``estimator.fused.members``) are, each by its own table; any other is itself."""
-    return member_names(cfg.estimator.fused.members) if _is_fused(name) else (name,)
+    """The estimators whose calibration tables ``name`` flies with (checked before a run): ``fused``
+    its own where ``estimator.calibration`` is a name or path, or a set with a shipped ``fused``
+    table for its members; else its members' (``estimator.fused.members``); any other is itself."""
+    value = getattr(cfg.estimator, "calibration", "none")
+    if _is_fused(name) and str(value).strip() in SHIPPED_SETS and not _fused_set_table(cfg):
+        return member_names(cfg.estimator.fused.members)
+    return (name,)
 
 
 def apply_calibration(est, cfg: Config, name: str) -> None:
