@@ -167,6 +167,14 @@ class TestCalibration:
             est = make_estimator(cfg, 2)
             assert est.calibration is None and all(m.calibration is not None for m in est.members)
 
+    def test_tables_members_flies_the_members_tables(self):
+        cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic",
+                                               "estimator.fused.tables=members"])
+        est = make_estimator(cfg, 2)
+        assert est.calibration is None and all(m.calibration is not None for m in est.members)
+        with pytest.raises(ConfigError, match="estimator.fused.tables"):
+            load_config("realistic_sensor", ["estimator.fused.tables=both"])
+
     def test_a_named_table_must_be_fuseds(self):
         cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=fused_realistic"])
         assert make_estimator(cfg, 2).calibration is not None

@@ -46,13 +46,14 @@ def _build(cfg: Config, batch_size: int, device: Any, name: str, seed: int | Non
     params.setdefault("seed", cfg.simulation.seed if seed is None else seed)
     params.setdefault("principal_point_px", cfg.camera.principal_point_px)
     fused = _is_fused(name)
+    tables = params.pop("tables", "own") if fused else None  # the factory's choice, not the estimator's
     if fused:  # each member from its own section, with its own motion-evidence test; calibrated below
         params["members"] = [(m, _build(cfg, batch_size, device, m, seed, calibrate=False))
                              for m in member_names(params["members"])]
     est = get_estimator(name, batch_size, (cfg.camera.width_px, cfg.camera.height_px), device, **params)
     if fused:
         if calibrate:
-            calibrate_fused(est, cfg, name)
+            calibrate_fused(est, cfg, name, tables)
     else:
         apply_abstain(est, getattr(cfg.estimator, "abstain", None))
         if calibrate:
@@ -85,15 +86,16 @@ def _fused_set_table(cfg: Config, checkpoint=False) -> bool:
     return checkpoint is False or (checkpoint is None) == (fit.get("checkpoint") is None)
 
 
-def calibrate_fused(est, cfg: Config, name: str) -> None:
+def calibrate_fused(est, cfg: Config, name: str, tables: str = "own") -> None:
     """Calibrate a built ``fused``: its combined output by ``fused``'s own table (its members then
     fly raw) where ``estimator.calibration`` names one (a shipped name or a path: it must have been
-    fitted for ``fused``) or is a set whose ``fused_<set>.json`` ships for these members and their
-    checkpoint (:func:`_fused_set_table`); else each member by its own table."""
+    fitted for ``fused``) or, with ``tables="own"`` (``estimator.fused.tables``), is a set whose
+    ``fused_<set>.json`` ships for these members and their checkpoint (:func:`_fused_set_table`);
+    else each member by its own table."""
     value = getattr(cfg.estimator, "calibration", "none")
     if calibration_off(value):
         return
-    if str(value).strip() not in SHIPPED_SETS or _fused_set_table(cfg, checkpoint_sha256(est)):
+    if str(value).strip() not in SHIPPED_SETS or (tables == "own" and _fused_set_table(cfg, checkpoint_sha256(est))):
         apply_calibration(est, cfg, name)
         return
     for label, member in zip(est.member_labels, est.members):
@@ -105,7 +107,8 @@ def calibration_names(cfg: Config, name: str) -> tuple:
     its own where ``estimator.calibration`` is a name or path, or a set with a shipped ``fused``
     table for its members; else its members' (``estimator.fused.members``); any other is itself."""
     value = getattr(cfg.estimator, "calibration", "none")
-    if _is_fused(name) and str(value).strip() in SHIPPED_SETS and not _fused_set_table(cfg):
+    own = cfg.estimator.fused.tables == "own" and _fused_set_table(cfg)
+    if _is_fused(name) and str(value).strip() in SHIPPED_SETS and not own:
         return member_names(cfg.estimator.fused.members)
     return (name,)
 
