@@ -154,8 +154,9 @@ class TestFromConfig:
 
 
 class TestCalibration:
-    def test_the_realistic_set_calibrates_fuseds_output_with_its_own_table(self):
-        cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic"])
+    def test_tables_own_calibrates_fuseds_output_with_its_own_table(self):
+        cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic",
+                                               "estimator.fused.tables=own"])
         est = make_estimator(cfg, 2)
         assert est.calibration is not None and est.calibration.feature == "abs_d_hat"  # fused_realistic.json
         assert all(m.calibration is None for m in est.members)  # the table was fitted on the raw members
@@ -163,13 +164,13 @@ class TestCalibration:
     def test_other_members_or_checkpoint_fly_the_members_tables(self):
         for over in (["estimator.learned.checkpoint=cnn_both"],  # fused_realistic was fitted on cnn_dagger
                      ["estimator.fused.members=learned,cmax"]):  # ... as cmax,learned
-            cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic"] + over)
+            cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic",
+                                                   "estimator.fused.tables=own"] + over)
             est = make_estimator(cfg, 2)
             assert est.calibration is None and all(m.calibration is not None for m in est.members)
 
-    def test_tables_members_flies_the_members_tables(self):
-        cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic",
-                                               "estimator.fused.tables=members"])
+    def test_by_default_the_members_fly_their_own_tables(self):
+        cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic"])
         est = make_estimator(cfg, 2)
         assert est.calibration is None and all(m.calibration is not None for m in est.members)
         with pytest.raises(ConfigError, match="estimator.fused.tables"):
@@ -186,8 +187,11 @@ class TestCalibration:
         from dvsland.cli.cmd_evaluate import _check_calibration_key
 
         cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic"])
-        _check_calibration_key(cfg, ["fused"], False)  # fused's own table ships
+        _check_calibration_key(cfg, ["fused"], False)  # both members' tables ship
         _check_calibration_key(cfg, ["both=fused"], False)  # under an alias too
+        own = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic",
+                                               "estimator.fused.tables=own"])
+        _check_calibration_key(own, ["fused"], False)  # fused's own table ships
         cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic",
                                                "estimator.fused.members=cmax,dpr"])
         msg = "estimator.calibration: no shipped 'realistic' calibration for estimator 'dpr'"

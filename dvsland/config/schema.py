@@ -328,9 +328,11 @@ class FusedConfig:
                                  "confidence reaches min_confidence, else the most confident",
                     choices=("precision", "priority"))
     min_confidence: float = opt(0.15, "the bar of rule 'priority'", rng=(0.0, 1.0))
-    tables: str = opt("own", "with estimator.calibration a set (ideal, realistic): 'own' = calibrate the combined "
-                             "output by fused's own table where one ships for these members and checkpoint (the "
-                             "members fly raw), else each member by its own; 'members' = always each member by its own",
+    tables: str = opt("members", "with estimator.calibration a set (ideal, realistic): 'members' = each member by "
+                                 "its own table; 'own' = the combined output by fused's own table where one ships "
+                                 "for these members and checkpoint (the members fly raw; calibrated per step, but "
+                                 "its confident biased estimates crashed closed-loop descents on H and I), else "
+                                 "each member by its own",
                       choices=("own", "members"))
 
 

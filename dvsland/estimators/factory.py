@@ -46,7 +46,7 @@ def _build(cfg: Config, batch_size: int, device: Any, name: str, seed: int | Non
     params.setdefault("seed", cfg.simulation.seed if seed is None else seed)
     params.setdefault("principal_point_px", cfg.camera.principal_point_px)
     fused = _is_fused(name)
-    tables = params.pop("tables", "own") if fused else None  # the factory's choice, not the estimator's
+    tables = params.pop("tables", "members") if fused else None  # the factory's choice, not the estimator's
     if fused:  # each member from its own section, with its own motion-evidence test; calibrated below
         params["members"] = [(m, _build(cfg, batch_size, device, m, seed, calibrate=False))
                              for m in member_names(params["members"])]
@@ -86,7 +86,7 @@ def _fused_set_table(cfg: Config, checkpoint=False) -> bool:
     return checkpoint is False or (checkpoint is None) == (fit.get("checkpoint") is None)
 
 
-def calibrate_fused(est, cfg: Config, name: str, tables: str = "own") -> None:
+def calibrate_fused(est, cfg: Config, name: str, tables: str = "members") -> None:
     """Calibrate a built ``fused``: its combined output by ``fused``'s own table (its members then
     fly raw) where ``estimator.calibration`` names one (a shipped name or a path: it must have been
     fitted for ``fused``) or, with ``tables="own"`` (``estimator.fused.tables``), is a set whose
