@@ -329,10 +329,9 @@ class FusedConfig:
                     choices=("precision", "priority"))
     min_confidence: float = opt(0.15, "the bar of rule 'priority'", rng=(0.0, 1.0))
     tables: str = opt("members", "with estimator.calibration a set (ideal, realistic): 'members' = each member by "
-                                 "its own table; 'own' = the combined output by fused's own table where one ships "
-                                 "for these members and checkpoint (the members fly raw; calibrated per step, but "
-                                 "its confident biased estimates crashed closed-loop descents on H and I), else "
-                                 "each member by its own",
+                                 "its own table (more accurate); 'own' = the combined output by fused's own table "
+                                 "where one ships for these members and checkpoint, the members raw (better "
+                                 "calibrated per step), else each member by its own",
                       choices=("own", "members"))
 
 
