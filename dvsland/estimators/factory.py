@@ -17,15 +17,23 @@ from .registry import get_estimator, split_alias
 def estimator_params(cfg: Config, name: str | None = None) -> dict:
     """Keyword parameters of estimator ``name`` (default ``cfg.estimator.name``) from the config.
 
-    Built-ins take their section (``estimator.dpr``, ``estimator.cmax``, ``estimator.oracle``);
-    any other estimator takes the free-form ``estimator.params``.
+    Built-ins take their section (``estimator.dpr``, ``estimator.cmax``, ``estimator.oracle``)
+    without the keys the factory reads itself (``estimator.fused.tables``); any other estimator
+    takes the free-form ``estimator.params``.
     """
     name = name or cfg.estimator.name
     _, spec = split_alias(name)  # 'fast=dpr' takes estimator.dpr
     section = getattr(cfg.estimator, spec, None)
     if dataclasses.is_dataclass(section):
-        return dataclasses.asdict(section)
+        params = dataclasses.asdict(section)
+        for key in FACTORY_KEYS.get(spec.split("[", 1)[0].strip(), ()):
+            params.pop(key, None)
+        return params
     return dict(cfg.estimator.params)
+
+
+#: keys of an estimator's config section that the factory reads, not the estimator's constructor
+FACTORY_KEYS = {"fused": ("tables",)}
 
 
 def make_estimator(cfg: Config, batch_size: int, device: Any = "cpu", name: str | None = None, seed: int | None = None):
@@ -46,14 +54,13 @@ def _build(cfg: Config, batch_size: int, device: Any, name: str, seed: int | Non
     params.setdefault("seed", cfg.simulation.seed if seed is None else seed)
     params.setdefault("principal_point_px", cfg.camera.principal_point_px)
     fused = _is_fused(name)
-    tables = params.pop("tables", "members") if fused else None  # the factory's choice, not the estimator's
     if fused:  # each member from its own section, with its own motion-evidence test; calibrated below
         params["members"] = [(m, _build(cfg, batch_size, device, m, seed, calibrate=False))
                              for m in member_names(params["members"])]
     est = get_estimator(name, batch_size, (cfg.camera.width_px, cfg.camera.height_px), device, **params)
     if fused:
         if calibrate:
-            calibrate_fused(est, cfg, name, tables)
+            calibrate_fused(est, cfg, name, cfg.estimator.fused.tables)
     else:
         apply_abstain(est, getattr(cfg.estimator, "abstain", None))
         if calibrate:
