@@ -26,7 +26,7 @@ def estimator_params(cfg: Config, name: str | None = None) -> dict:
     section = getattr(cfg.estimator, spec, None)
     if dataclasses.is_dataclass(section):
         params = dataclasses.asdict(section)
-        for key in FACTORY_KEYS.get(spec.split("[", 1)[0].strip(), ()):
+        for key in FACTORY_KEYS.get(spec, ()):  # a section is found for a plain name only
             params.pop(key, None)
         return params
     return dict(cfg.estimator.params)
@@ -87,8 +87,12 @@ def _fused_set_table(cfg: Config, checkpoint=False) -> bool:
     except ValueError:  # fitted on another checkpoint
         return False
     fit = obj.get("fit") or {}
-    fitted = str((fit.get("estimator_params") or {}).get("members", ""))
-    if [m.strip() for m in fitted.split(",")] != [m.strip() for m in str(cfg.estimator.fused.members).split(",")]:
+    try:
+        same = member_names((fit.get("estimator_params") or {}).get("members", "")) == member_names(
+            cfg.estimator.fused.members)
+    except ValueError:  # a table without (valid) members, or invalid configured ones: not this combination
+        same = False
+    if not same:
         return False
     return checkpoint is False or (checkpoint is None) == (fit.get("checkpoint") is None)
 
@@ -113,11 +117,11 @@ def calibration_names(cfg: Config, name: str) -> tuple:
     """The estimators whose calibration tables ``name`` flies with (checked before a run): ``fused``
     its own where ``estimator.calibration`` is a name or path, or a set with a shipped ``fused``
     table for its members; else its members' (``estimator.fused.members``); any other is itself."""
-    value = getattr(cfg.estimator, "calibration", "none")
-    own = cfg.estimator.fused.tables == "own" and _fused_set_table(cfg)
-    if _is_fused(name) and str(value).strip() in SHIPPED_SETS and not own:
-        return member_names(cfg.estimator.fused.members)
-    return (name,)
+    if not _is_fused(name) or str(getattr(cfg.estimator, "calibration", "none")).strip() not in SHIPPED_SETS:
+        return (name,)
+    if cfg.estimator.fused.tables == "own" and _fused_set_table(cfg):
+        return (name,)
+    return member_names(cfg.estimator.fused.members)
 
 
 def apply_calibration(est, cfg: Config, name: str) -> None:
