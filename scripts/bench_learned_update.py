@@ -21,7 +21,12 @@ import sys
 import time
 from pathlib import Path
 
-import torch
+if __name__ == "__main__":  # keep freed memory as the dvsland command does (before torch allocates)
+    from dvsland.allocator import tune_allocator
+
+    tune_allocator()
+
+import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -46,6 +51,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--checkpoint", default="")
+    ap.add_argument("--donate", type=int, default=1, help="1: the object API's default (the ring written in place); "
+                    "0: a new ring per update, as the pure step builds it in the loop")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     from measure_learned_zoom import _events, _frames
@@ -63,7 +70,8 @@ def main(argv=None) -> int:
         evs = _events(cfg, _frames(cfg.camera, d, B, 12, 1000.0, 7))
         ev = evs[-1]
         for mode in a.modes.split(","):
-            est = get_estimator("learned", B, (W, H), checkpoint=a.checkpoint, fast=mode)
+            est = get_estimator("learned", B, (W, H), checkpoint=a.checkpoint, fast=mode,
+                                donate=bool(a.donate))
             for k, e in enumerate(evs[:-1], start=1):
                 est.update(e, 100_000 * k)
             t = [100_000 * len(evs)]

@@ -361,6 +361,21 @@ def test_learned_donate_writes_the_ring_in_place_with_the_same_estimates():
     assert _same(d, a.d_hat) and tree_equal(obj.state, pure)
 
 
+def test_learned_object_api_donates_its_own_ring_by_default():
+    """update writes the held ring in place (the object owns it); donate=False copies it; same numbers."""
+    default = get_estimator("learned", B, (128, 128), min_events=5)
+    copying = get_estimator("learned", B, (128, 128), min_events=5, donate=False)
+    _, steps = _stage_and_steps("learned")
+    for ev, t in steps[:-1]:
+        default.update(ev, t)
+        copying.update(ev, t)
+    ring_d, ring_c = default.state.ring, copying.state.ring
+    ev, t = steps[-1]
+    d_default, d_copying = default.update(ev, t), copying.update(ev, t)
+    assert default.state.ring is ring_d and copying.state.ring is not ring_c
+    assert _same(d_default, d_copying) and tree_equal(default.state, copying.state)
+
+
 def test_learned_ring_position_is_shared_and_kept_by_a_restart():
     est, steps = _stage_and_steps("learned", n=3)
     state, _ = _run(est, est.init_state(), steps)

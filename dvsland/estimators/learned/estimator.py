@@ -275,7 +275,10 @@ class LearnedEstimator(DivergenceEstimator):
             in bfloat16 (faster on a CPU with AVX512-BF16; D_hat moves by up to about 1 %), ``""``
             the model as trained (the reference "ring" agrees with to float32 rounding).
         donate: the object API's steps write each new window into the held ring in place (no
-            copy of the ring per step; a state kept from before then changes too). Off by default.
+            copy of the ring per step: the object owns the state it holds, so this is the default;
+            a state read from ``state`` before an update shares the ring and changes with it:
+            ``tree_clone`` it to keep it). ``False``: a new ring per update. :meth:`step_state`
+            never donates unless its caller asks.
 
     Params: ``params`` (:class:`LearnedConfig`) and ``consts`` (:class:`LearnedConsts`); state:
     :class:`LearnedState`.
@@ -283,7 +286,7 @@ class LearnedEstimator(DivergenceEstimator):
 
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, checkpoint: str = "",
                  min_events: int = 20, principal_point_px=None, focal_px: Optional[float] = None,
-                 fast: str = "ring", donate: bool = False):
+                 fast: str = "ring", donate: bool = True):
         super().__init__(batch_size, sensor_size, device, dt_s, principal_point_px=principal_point_px)
         check_range("estimator.learned.min_events", min_events, 1, 1e9)
         self.checkpoint = resolve_checkpoint(checkpoint)
