@@ -170,6 +170,55 @@ def test_spiking_depth3_nir_round_trip_agrees(tmp_path):
     assert torch.allclose(got[0], want[0], atol=1e-5) and torch.allclose(got[1], want[1], atol=1e-5)
 
 
+def test_spiking_delay_feeds_the_previous_bin_and_per_step_reads_each_step():
+    base = SpikingVoxelNet(n_bins=4, width=4, slice_dt_s=0.02)
+    assert "delay" not in base.settings() and "per_step" not in base.settings()  # shipped: unchanged
+    torch.manual_seed(1)
+    net = SpikingVoxelNet(n_bins=4, width=4, slice_dt_s=0.02, delay=1, per_step=True)
+    assert net.settings()["delay"] == 1 and net.settings()["per_step"] is True
+    assert net.conv1.in_channels == 4 and net.head.in_features == 4 * 4 * 4 + 1
+    rebuilt, _ = build_model("spiking", net.settings())
+    rebuilt.load_state_dict(net.state_dict())
+    spec = InputSpec((64, 64), 4, 2)
+    coords = coord_channels(spec, (31.5, 31.5))
+    vox = torch.randn(3, 4, *spec.grid_hw) * 3
+    x = net.slice_inputs(vox, coords)  # (B, T, [bin k, bin k - 1, x, y], h, w)
+    assert x.shape == (3, 4, 4, *spec.grid_hw)
+    assert torch.equal(x[:, 1:, 1], x[:, :-1, 0]) and (x[:, 0, 1] == 0).all()
+    assert torch.equal(x[:, :, 2:], coords.expand(3, 4, -1, -1, -1))
+    with torch.no_grad():
+        net.conv1.weight.mul_(6.0)
+        net.conv2.weight.mul_(6.0)
+        mu, lv = net(vox, coords, torch.ones(3))
+        # the per-step head reads when the spikes came: the window's steps reversed read differently
+        # while the summed count (and so the sum read-out) cannot tell
+        mu_rev, _ = net(vox.flip(1), coords, torch.ones(3))
+    assert mu.shape == (3,) and torch.isfinite(mu).all() and torch.isfinite(lv).all()
+    assert (net.last_activity["spikes"] > 0).all()
+    assert not torch.allclose(mu, mu_rev)
+    with pytest.raises(ValueError, match=r"delay must be in \[0, n_bins - 1 = 3\]"):
+        SpikingVoxelNet(n_bins=4, delay=4)
+
+
+def test_spiking_delay_per_step_nir_round_trip_agrees(tmp_path):
+    pytest.importorskip("nir")
+    pytest.importorskip("nirtorch")
+    from dvsland.estimators.learned.nir_export import export_nir, from_nir, run_nir
+
+    torch.manual_seed(3)
+    net = SpikingVoxelNet(n_bins=4, width=4, slice_dt_s=0.02, delay=1, per_step=True).eval()
+    with torch.no_grad():
+        net.conv1.weight.mul_(6.0)
+        net.conv2.weight.mul_(6.0)
+    spec = InputSpec((64, 64), 4, 2)
+    coords = coord_channels(spec, (31.5, 31.5))
+    vox, lc = torch.randn(2, 4, *spec.grid_hw) * 3, torch.full((2,), 5.0)
+    with torch.no_grad():
+        want = net(vox, coords, lc)
+    got = run_nir(from_nir(export_nir(net, spec.grid_hw, tmp_path / "sd.nir")), net, vox, coords, lc)
+    assert torch.allclose(got[0], want[0], atol=1e-5) and torch.allclose(got[1], want[1], atol=1e-5)
+
+
 # ------------------------------------------------------------------ estimator
 @pytest.fixture
 def ckpt(tmp_path):

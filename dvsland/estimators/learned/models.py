@@ -19,7 +19,7 @@ exp(log_var / 2).
 
 from __future__ import annotations
 
-from typing import Dict, Tuple
+from typing import Dict, Optional, Tuple
 
 import torch
 from torch import nn
@@ -70,12 +70,15 @@ class SpikingVoxelNet(nn.Module):
 
     ``slice_dt_s``: the LIF step (control interval / n_bins); ``tau_mem_s``, ``tau_syn_s``: time
     constants. ``depth`` 2 and ``hidden`` 0 (the defaults) are the shipped ``spiking`` and
-    ``spiking8`` networks. Activity of the last forward pass: :attr:`last_activity` (spikes (B,),
+    ``spiking8`` networks. ``delay`` > 0 adds that many earlier bins to each step's input (synaptic
+    delays; :meth:`slice_inputs`); ``per_step`` reads the last layer's pooled spikes of every time
+    step apart (the head sees when they came) instead of their sum over the window. Activity of the last forward pass: :attr:`last_activity` (spikes (B,),
     synops (B,)).
     """
 
     def __init__(self, n_bins: int = 8, width: int = 12, slice_dt_s: float = 0.0125, tau_mem_s: float = 0.05,
-                 tau_syn_s: float = 0.025, depth: int = 2, hidden: int = 0):
+                 tau_syn_s: float = 0.025, depth: int = 2, hidden: int = 0, delay: int = 0,
+                 per_step: bool = False):
         super().__init__()
         if not 1 <= int(width) <= 256:
             raise ValueError(f"width must be in [1, 256], got {width}")
@@ -83,16 +86,18 @@ class SpikingVoxelNet(nn.Module):
             raise ValueError(f"depth must be 2 or 3, got {depth}")
         if not 0 <= int(hidden) <= 1024:
             raise ValueError(f"hidden must be in [0, 1024], got {hidden}")
+        if not 0 <= int(delay) < int(n_bins):
+            raise ValueError(f"delay must be in [0, n_bins - 1 = {int(n_bins) - 1}], got {delay}")
         self.n_bins, self.width, self.slice_dt_s = int(n_bins), int(width), float(slice_dt_s)
-        self.depth, self.hidden = int(depth), int(hidden)
+        self.depth, self.hidden, self.delay, self.per_step = int(depth), int(hidden), int(delay), bool(per_step)
         self.p = LIFParameters(tau_mem_s=tau_mem_s, tau_syn_s=tau_syn_s, v_th=1.0)
         self.p.check_dt(self.slice_dt_s)
         c = self.width
-        self.conv1 = nn.Conv2d(3, c, 3, stride=2, padding=1)
+        self.conv1 = nn.Conv2d(3 + self.delay, c, 3, stride=2, padding=1)
         self.conv2 = nn.Conv2d(c, 2 * c, 3, stride=2, padding=1)
         if self.depth == 3:
             self.conv3 = nn.Conv2d(2 * c, 2 * c, 3, stride=2, padding=1)
-        n_feat = (6 if self.depth == 3 else 4) * c + 1
+        n_feat = 4 * c * (self.n_bins if self.per_step else 1) + (2 * c if self.depth == 3 else 0) + 1
         self.head = nn.Linear(n_feat, 2) if not self.hidden else nn.Sequential(
             nn.Linear(n_feat, self.hidden), nn.ReLU(), nn.Linear(self.hidden, 2))
         self.last_activity: Dict[str, torch.Tensor] = {}
@@ -103,19 +108,36 @@ class SpikingVoxelNet(nn.Module):
                "tau_mem_s": self.p.tau_mem_s, "tau_syn_s": self.p.tau_syn_s}
         if self.depth != 2 or self.hidden:  # the shipped checkpoints' settings stay as they were
             out.update(depth=self.depth, hidden=self.hidden)
+        if self.delay:
+            out.update(delay=self.delay)
+        if self.per_step:
+            out.update(per_step=True)
         return out
 
+    @property
+    def in_channels(self) -> int:
+        """Input channels per time step: the bin, ``delay`` earlier bins and the two coordinates."""
+        return 3 + self.delay
+
     def slice_inputs(self, vox: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
-        """The network's input per time step: (B, n_bins, 3, h, w) float32 = [normalised bin k, coords]."""
+        """The network's input per time step: (B, n_bins, 3 + delay, h, w) float32 = [normalised bin k,
+        bins k-1 .. k-delay (zeros before the window's first bin), coords]. The delayed copies are
+        synaptic delays: a neuron of the first layer sees where events were one step ago beside where
+        they are now, so it can respond to motion between bins."""
         B = vox.shape[0]
         xy = coords.expand(B, -1, -1, -1)[:, None].expand(-1, self.n_bins, -1, -1, -1)
-        return torch.cat([_normalise(vox)[:, :, None], xy], dim=2)
+        v = _normalise(vox)
+        lagged = [nn.functional.pad(v, (0, 0, 0, 0, j, 0))[:, :self.n_bins] for j in range(self.delay + 1)]
+        return torch.cat([torch.stack(lagged, dim=2), xy], dim=2)
 
-    def readout(self, count: torch.Tensor, coords: torch.Tensor, log_count: torch.Tensor):
-        """(mu, log_var) (B,) from the last layer's spike counts of a window, (B, 2 width, h', w')."""
+    def readout(self, count: torch.Tensor, coords: torch.Tensor, log_count: torch.Tensor,
+                steps: Optional[torch.Tensor] = None):
+        """(mu, log_var) (B,) from the last layer's spike counts of a window, (B, 2 width, h', w'), or
+        with ``per_step`` from its spikes at each time step ``steps`` (B, n_bins, 2 width, h', w')."""
         r = coords.norm(dim=1, keepdim=True)  # (1, 1, h, w) radius about the principal point
         r2 = nn.functional.adaptive_avg_pool2d(r, count.shape[-2:])
-        feats = [count.mean(dim=(2, 3)), (count * r2).mean(dim=(2, 3))]
+        src = steps.flatten(1, 2) if self.per_step else count  # per step: when the spikes came, too
+        feats = [src.mean(dim=(2, 3)), (src * r2).mean(dim=(2, 3))]
         if self.depth == 3:
             feats.append(count.amax(dim=(2, 3)))
         mu, log_var = self.head(torch.cat([*feats, log_count[:, None]], dim=1)).unbind(1)
@@ -133,6 +155,7 @@ class SpikingVoxelNet(nn.Module):
         s1 = lif_state(cur[:, 0].shape, cur.device)
         states = [None] * len(layers)
         count, n_in = 0.0, [0.0] * len(layers)  # n_in[j]: spikes into layers[j] (its synops' source)
+        outs = []  # the last layer's spikes per step (``per_step`` read-out)
         for k in range(self.n_bins):  # the time steps of the window (n_bins, a few)
             z, s1 = step(cur[:, k], s1, self.p, self.slice_dt_s)
             for j, conv in enumerate(layers):
@@ -141,12 +164,14 @@ class SpikingVoxelNet(nn.Module):
                 states[j] = lif_state(c.shape, c.device) if states[j] is None else states[j]
                 z, states[j] = step(c, states[j], self.p, self.slice_dt_s)
             count = count + z
+            if self.per_step:
+                outs.append(z)
         n_out = count.sum(dim=(1, 2, 3))
         head_in = self.head.in_features if not self.hidden else self.head[0].in_features
         # a spike's targets: 3x3 kernel, stride 2 -> out_channels x 9 / 4 neurons of the next layer
         synops = sum(n * (conv.out_channels * 9 / 4.0) for n, conv in zip(n_in, layers)) + n_out * head_in
         self.last_activity = {"spikes": (sum(n_in) + n_out).detach(), "synops": synops.detach()}
-        return self.readout(count, coords, log_count)
+        return self.readout(count, coords, log_count, torch.stack(outs, dim=1) if outs else None)
 
 
 #: the built-in models by name

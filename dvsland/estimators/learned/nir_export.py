@@ -34,7 +34,7 @@ def to_nir(net: SpikingVoxelNet, grid_hw):
     f32 = lambda t: t.detach().cpu().numpy().astype(np.float32)  # noqa: E731
     h, w = (int(v) for v in grid_hw)
     with torch.no_grad():
-        shapes = [tuple(net.conv1(torch.zeros(1, 3, h, w)).shape[1:])]
+        shapes = [tuple(net.conv1(torch.zeros(1, net.in_channels, h, w)).shape[1:])]
         for m in net._layers():
             shapes.append(tuple(m(torch.zeros(1, *shapes[-1])).shape[1:]))
     p, dt = net.p, net.slice_dt_s
@@ -48,7 +48,7 @@ def to_nir(net: SpikingVoxelNet, grid_hw):
         return nir.Conv2d(input_shape=shape_in, weight=f32(m.weight), stride=tuple(m.stride), padding=tuple(m.padding),
                           dilation=(1, 1), groups=1, bias=f32(m.bias))
 
-    nodes = {"input": nir.Input(input_type={"input": np.array([3, h, w])}),
+    nodes = {"input": nir.Input(input_type={"input": np.array([net.in_channels, h, w])}),
              "conv1": conv(net.conv1, (h, w)), "lif1": lif(shapes[0])}
     for k, m in enumerate(net._layers(), start=2):
         nodes.update({f"conv{k}": conv(m, shapes[k - 2][1:]), f"lif{k}": lif(shapes[k - 1])})
@@ -56,7 +56,7 @@ def to_nir(net: SpikingVoxelNet, grid_hw):
     order = list(nodes)
     return nir.NIRGraph(nodes=nodes, edges=list(zip(order[:-1], order[1:])),
                         metadata={"dt_s": dt, "producer": "dvsland learned spiking",
-                                  "input": "[voxel bin / mean |voxel|, x, y coordinate channels]",
+                                  "input": "[voxel bin / mean |voxel|, (delay) earlier bins, x, y coordinate channels]",
                                   "output": "last layer's spikes; summed over the window into SpikingVoxelNet.readout"})
 
 
@@ -89,8 +89,9 @@ def run_nir(module, net: SpikingVoxelNet, vox: torch.Tensor, coords: torch.Tenso
     """(mu, log_var) (B,) of a window through the re-imported graph ``module`` and ``net``'s
     input and read-out (the same call as ``net(vox, coords, log_count)``)."""
     x = net.slice_inputs(vox, coords)
-    state, count2 = None, 0.0
+    state, count2, outs = None, 0.0, []
     for k in range(net.n_bins):
         z, state = module(x[:, k], state)
         count2 = count2 + z
-    return net.readout(count2, coords, log_count)
+        outs.append(z)
+    return net.readout(count2, coords, log_count, torch.stack(outs, dim=1) if net.per_step else None)
