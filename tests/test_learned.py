@@ -151,22 +151,24 @@ def test_spiking_depth_and_hidden_options():
         SpikingVoxelNet(hidden=-1)
 
 
-def test_spiking_depth3_nir_round_trip_agrees(tmp_path):
+@pytest.mark.parametrize("settings", [{"depth": 3, "hidden": 8}, {"delay": 1, "per_step": True}],
+                         ids=["depth3", "delay_per_step"])
+def test_spiking_variants_nir_round_trip_agrees(tmp_path, settings):
     pytest.importorskip("nir")
     pytest.importorskip("nirtorch")
     from dvsland.estimators.learned.nir_export import export_nir, from_nir, run_nir
 
     torch.manual_seed(2)
-    net = SpikingVoxelNet(n_bins=4, width=4, slice_dt_s=0.02, depth=3, hidden=8).eval()
+    net = SpikingVoxelNet(n_bins=4, width=4, slice_dt_s=0.02, **settings).eval()
     with torch.no_grad():
-        for conv in (net.conv1, net.conv2, net.conv3):
+        for conv in (net.conv1, *net._layers()):
             conv.weight.mul_(6.0)
     spec = InputSpec((64, 64), 4, 2)
     coords = coord_channels(spec, (31.5, 31.5))
     vox, lc = torch.randn(2, 4, *spec.grid_hw) * 3, torch.full((2,), 5.0)
     with torch.no_grad():
         want = net(vox, coords, lc)
-    got = run_nir(from_nir(export_nir(net, spec.grid_hw, tmp_path / "s3.nir")), net, vox, coords, lc)
+    got = run_nir(from_nir(export_nir(net, spec.grid_hw, tmp_path / "s.nir")), net, vox, coords, lc)
     assert torch.allclose(got[0], want[0], atol=1e-5) and torch.allclose(got[1], want[1], atol=1e-5)
 
 
@@ -198,25 +200,6 @@ def test_spiking_delay_feeds_the_previous_bin_and_per_step_reads_each_step():
     assert not torch.allclose(mu, mu_rev)
     with pytest.raises(ValueError, match=r"delay must be in \[0, n_bins - 1 = 3\]"):
         SpikingVoxelNet(n_bins=4, delay=4)
-
-
-def test_spiking_delay_per_step_nir_round_trip_agrees(tmp_path):
-    pytest.importorskip("nir")
-    pytest.importorskip("nirtorch")
-    from dvsland.estimators.learned.nir_export import export_nir, from_nir, run_nir
-
-    torch.manual_seed(3)
-    net = SpikingVoxelNet(n_bins=4, width=4, slice_dt_s=0.02, delay=1, per_step=True).eval()
-    with torch.no_grad():
-        net.conv1.weight.mul_(6.0)
-        net.conv2.weight.mul_(6.0)
-    spec = InputSpec((64, 64), 4, 2)
-    coords = coord_channels(spec, (31.5, 31.5))
-    vox, lc = torch.randn(2, 4, *spec.grid_hw) * 3, torch.full((2,), 5.0)
-    with torch.no_grad():
-        want = net(vox, coords, lc)
-    got = run_nir(from_nir(export_nir(net, spec.grid_hw, tmp_path / "sd.nir")), net, vox, coords, lc)
-    assert torch.allclose(got[0], want[0], atol=1e-5) and torch.allclose(got[1], want[1], atol=1e-5)
 
 
 # ------------------------------------------------------------------ estimator
