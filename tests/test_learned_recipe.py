@@ -63,6 +63,31 @@ def test_training_is_seeded_and_resume_continues_exactly(data, tmp_path):
         train(data, tmp_path / "part.pt", RecipeSettings(**{**FAST, "lr": 1e-4}), resume=True, **quiet)
 
 
+def test_ema_ships_the_weight_average_and_resume_continues_it(data, tmp_path):
+    quiet = dict(progress=False, log=lambda *a: None)
+    ema = {**FAST, "ema": 0.9}
+    full = train(data, tmp_path / "ema.pt", RecipeSettings(**ema), **quiet)
+    avg = full["last"]["ema"]
+    assert avg["n_averaged"] > 2 and full["train"]["ema"] == 0.9
+    best = 0 if full["history"][0]["val"]["all"]["median_rel_error"] <= full["history"][1]["val"]["all"][
+        "median_rel_error"] else 1
+    if best == 1:  # the best epoch is the last: its average is the shipped state
+        assert all(torch.equal(full["state_dict"][k], avg["state_dict"][k]) for k in avg["state_dict"])
+    # the average is not the last weights: validated and shipped apart from them
+    assert any(not torch.equal(full["last"]["state_dict"][k], avg["state_dict"][k]) for k in avg["state_dict"])
+    plain = train(data, tmp_path / "plain.pt", RecipeSettings(**FAST), **quiet)
+    assert all(torch.equal(plain["last"]["state_dict"][k], full["last"]["state_dict"][k])
+               for k in avg["state_dict"])  # the average does not touch the training itself
+    assert plain["history"][1]["val_loss"] != pytest.approx(full["history"][1]["val_loss"], rel=1e-9)
+    train(data, tmp_path / "part.pt", RecipeSettings(**{**ema, "epochs": 1}), **quiet)
+    resumed = train(data, tmp_path / "part.pt", RecipeSettings(**ema), resume=True, **quiet)
+    assert resumed["last"]["ema"]["n_averaged"] == avg["n_averaged"]
+    assert all(torch.allclose(resumed["last"]["ema"]["state_dict"][k], avg["state_dict"][k], rtol=1e-4, atol=1e-6)
+               for k in avg["state_dict"])
+    with pytest.raises(ValueError, match=r"ema must be in \[0.0, 0.99999\]"):
+        RecipeSettings(ema=1.0).check()
+
+
 def test_bad_settings_name_the_setting(data, tmp_path):
     with pytest.raises(ValueError, match="batch_size"):
         RecipeSettings(batch_size=0).check()

@@ -143,6 +143,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     tr.add_argument("--max-minutes", type=ranged(float, 0.01, 100000.0, "--max-minutes"), default=None,
                     help="stop training after this many wall-clock minutes (the time on the clock; on a shared "
                          "machine it buys less training than the same CPU time)")
+    tr.add_argument("--ema", type=ranged(float, 0.0, 0.99999, "--ema"), default=None, metavar="DECAY",
+                    help="recipe: validate, keep and ship an exponential moving average of the weights, updated "
+                         "after every optimizer step with this decay (e.g. 0.999: about the last 1,000 steps; "
+                         "default 0: the weights as trained)")
     tr.add_argument("--max-cpu-minutes", type=ranged(float, 0.01, 100000.0, "--max-cpu-minutes"), default=None,
                     help="recipe: stop training after this many CPU-minutes of this process (all threads; reading "
                          "the data before the first epoch not counted); quick: 9")

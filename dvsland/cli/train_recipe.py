@@ -56,8 +56,9 @@ def recipe_settings(args, cfg):
     if name == "spiking":
         ms.setdefault("slice_dt_s", cfg.dt_s * n_windows / nb)
     given = {"epochs": args.epochs, "max_minutes": args.max_minutes, "batch_size": args.batch, "lr": args.lr,
-             "patience": args.patience, "max_cpu_minutes": getattr(args, "max_cpu_minutes", None)}
-    defaults = {"epochs": 30, "batch_size": 64, "lr": 2e-3, "patience": 6}
+             "patience": args.patience, "max_cpu_minutes": getattr(args, "max_cpu_minutes", None),
+             "ema": getattr(args, "ema", None)}
+    defaults = {"epochs": 30, "batch_size": 64, "lr": 2e-3, "patience": 6, "ema": 0.0}
     over = {k: v if v is not None else base.get(k, defaults.get(k)) for k, v in given.items()}
     rest = {k: v for k, v in base.items() if k in ("schedule", "val_max_samples", "echo")}
     return RecipeSettings(model=name, model_settings=ms, n_bins=nb,

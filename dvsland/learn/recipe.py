@@ -64,6 +64,7 @@ class RecipeSettings:
     val_max_samples: int = 6000
     schedule: str = "cosine"
     echo: int = 1
+    ema: float = 0.0
 
     def check(self) -> "RecipeSettings":
         """ValueError naming the setting for a value outside its range (or an empty model name)."""
@@ -75,7 +76,7 @@ class RecipeSettings:
             if not lo <= int(getattr(self, name)) <= hi:
                 raise ValueError(f"{name} must be in [{lo}, {hi}], got {getattr(self, name)}")
         for name, lo, hi in (("lr", 0.0, 1.0), ("weight_decay", 0.0, 1.0), ("l1_weight", 0.0, 100.0),
-                             ("max_drop", 0.0, 0.95)):
+                             ("max_drop", 0.0, 0.95), ("ema", 0.0, 0.99999)):
             v = float(getattr(self, name))
             if not (lo <= v <= hi) or (name == "lr" and v == 0):
                 raise ValueError(f"{name} must be in [{lo}, {hi}]{' (> 0)' if name == 'lr' else ''}, got {v}")
@@ -302,16 +303,22 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
     model_desc = {"name": s.model, "class": cls_path, "settings": net.settings()}
     prov = _provenance(data_dir, tr, va)
     opt = torch.optim.AdamW(net.parameters(), lr=s.lr, weight_decay=s.weight_decay)
+    avg = _averaged(net, s)
     run = {"epoch": 0, "history": [], "best_val": math.inf, "bad_epochs": 0, "best_state": net.state_dict(),
            "seconds": 0.0, "cpu_seconds": 0.0}
     out = Path(out)
+    resumed_last: dict = {}
     if resume:
-        _start_from(*_resume_state(out, model_desc, prov, s, net, opt), net, opt, run, log, out)
+        ck, finetune = _resume_state(out, model_desc, prov, s, net, opt)
+        _start_from(ck, finetune, net, opt, run, log, out)
+        resumed_last = {} if finetune else ck["last"]
     elif init is not None:
         _start_from(_init_state(init, model_desc, spec, net), True, net, opt, run, log, Path(init))
         prov["init"] = str(init)
     if run.get("finetuned_from") is not None:
         prov["finetuned_from"] = run["finetuned_from"]
+    if avg is not None:  # the average starts from the weights the run starts from (or goes on with its own)
+        _load_average(avg, net, resumed_last)
     writer = _writer(tb_dir)
     val_idx = _val_subset(va, s.val_max_samples)
     clock = Clock(s, run["seconds"], run["cpu_seconds"])
@@ -321,14 +328,15 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
     while run["epoch"] < s.epochs and run["bad_epochs"] < s.patience and not (
             clock.up(run["seconds"], run["cpu_seconds"]) and run["history"]):
         ep = run["epoch"]
-        train_loss, lr = _run_epoch(net, opt, tr, spec, coords, s, ep, clock, progress)
-        rec = _validate(net, va, val_idx, spec, coords, s, ep, train_loss, clock.wall())
+        train_loss, lr = _run_epoch(net, opt, tr, spec, coords, s, ep, clock, progress, avg)
+        judged = net if avg is None else avg.module  # with ema: the average is the model
+        rec = _validate(judged, va, val_idx, spec, coords, s, ep, train_loss, clock.wall())
         rec.update(lr=lr, cpu_seconds=clock.cpu())
         run["history"].append(rec)
         _tensorboard(writer, rec)
         if rec["val"]["all"]["median_rel_error"] < run["best_val"]:
             run.update(best_val=rec["val"]["all"]["median_rel_error"], bad_epochs=0,
-                       best_state=copy.deepcopy(net.state_dict()))
+                       best_state=copy.deepcopy(judged.state_dict()))
         else:
             run["bad_epochs"] += 1
         run.update(epoch=ep + 1, seconds=clock.wall(), cpu_seconds=clock.cpu())
@@ -337,16 +345,40 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
             f"within 1/2 sigma {100 * rec['val']['all']['within_1sigma']:.0f}/"
             f"{100 * rec['val']['all']['within_2sigma']:.0f} %, {run['seconds']:.0f} s wall, "
             f"{run['cpu_seconds']:.0f} s CPU")
-        _save(out, net, opt, spec, model_desc, prov, s, run, final=None)
+        _save(out, net, opt, spec, model_desc, prov, s, run, final=None, avg=avg)
     if writer is not None:
         writer.close()
-    return _finish(out, net, opt, spec, coords, model_desc, prov, s, run, data_dir, va, log)
+    return _finish(out, net, opt, spec, coords, model_desc, prov, s, run, data_dir, va, log, avg)
+
+
+def _averaged(net, s: RecipeSettings):
+    """``ema`` > 0: an exponential moving average of ``net``'s weights, updated after every optimizer
+    step (:class:`torch.optim.swa_utils.AveragedModel`); validated, kept and shipped in place of the
+    last weights, which move by more from batch to batch than the model improves. Else None."""
+    if not s.ema:
+        return None
+    from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+    return AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(float(s.ema)))
+
+
+def _load_average(avg, net, last: dict) -> None:
+    """Start ``avg`` from a resumed run's average (``last["ema"]``), else from ``net``'s weights."""
+    state = last.get("ema")
+    if isinstance(state, dict) and "state_dict" in state:
+        check_state_dict(state["state_dict"], net, "--resume (its weight average)")
+        avg.module.load_state_dict(state["state_dict"])
+        avg.n_averaged.fill_(int(state.get("n_averaged", 1)))
+    else:
+        avg.module.load_state_dict(net.state_dict())
+        avg.n_averaged.fill_(1)  # counted as averaged once: the next update blends (not copies) the weights
 
 
 def _run_epoch(net, opt, tr: Windows, spec, coords, s: RecipeSettings, epoch: int, clock: Clock,
-               progress) -> tuple:
+               progress, avg=None) -> tuple:
     """One pass over the train split in batches (seeded order and augmentation), cut short when
-    ``clock`` is up; (mean loss, the last learning rate)."""
+    ``clock`` is up; (mean loss, the last learning rate). ``avg``: the weight average to update
+    after every optimizer step (:func:`_averaged`)."""
     gen = torch.Generator().manual_seed(s.seed * 100003 + epoch)
     order = torch.randperm(tr.n_samples, generator=gen)
     net.train()
@@ -371,6 +403,8 @@ def _run_epoch(net, opt, tr: Windows, spec, coords, s: RecipeSettings, epoch: in
             loss.backward()
             torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
             opt.step()
+            if avg is not None:
+                avg.update_parameters(net)
             total, count = total + float(loss.detach()), count + 1
         if clock.up():
             break
@@ -423,19 +457,21 @@ def _tensorboard(writer, rec: dict) -> None:
     writer.flush()
 
 
-def _save(out, net, opt, spec: InputSpec, model_desc, prov, s, run, final) -> None:
+def _save(out, net, opt, spec: InputSpec, model_desc, prov, s, run, final, avg=None) -> None:
     blob = {"model": model_desc, "input": spec._asdict(), "state_dict": run["best_state"], "data": prov,
             "train": dataclasses.asdict(s), "history": run["history"], "epoch": run["epoch"],
             "best_val": run["best_val"], "bad_epochs": run["bad_epochs"],
             "last": {"state_dict": net.state_dict(), "optimizer": opt.state_dict(), "seconds": run["seconds"],
                      "cpu_seconds": run["cpu_seconds"]}}
+    if avg is not None:
+        blob["last"]["ema"] = {"state_dict": avg.module.state_dict(), "n_averaged": int(avg.n_averaged)}
     if final is not None:
         blob["final"] = final
     blob["input"]["sensor_size"] = list(spec.sensor_size)
     save_checkpoint(out, blob)
 
 
-def _finish(out, net, opt, spec, coords, model_desc, prov, s, run, data_dir, va, log) -> dict:
+def _finish(out, net, opt, spec, coords, model_desc, prov, s, run, data_dir, va, log, avg=None) -> dict:
     """Score the best weights on the whole val and the test split; write the final checkpoint."""
     best = copy.deepcopy(net)
     best.load_state_dict(run["best_state"])
@@ -446,7 +482,7 @@ def _finish(out, net, opt, spec, coords, model_desc, prov, s, run, data_dir, va,
     except ValueError as exc:  # a dataset without a test split
         final["test_error"] = str(exc)
     final["train_seconds"], final["train_cpu_seconds"] = run["seconds"], run["cpu_seconds"]
-    _save(out, net, opt, spec, model_desc, prov, s, run, final)
+    _save(out, net, opt, spec, model_desc, prov, s, run, final, avg=avg)
     for split in ("val", "test"):
         if split in final:
             a = final[split]["all"]

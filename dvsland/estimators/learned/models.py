@@ -168,6 +168,8 @@ class SpikingVoxelNet(nn.Module):
                 outs.append(z)
         n_out = count.sum(dim=(1, 2, 3))
         head_in = self.head.in_features if not self.hidden else self.head[0].in_features
+        if self.per_step:  # a spike reaches its own step's block of the read-out's inputs only
+            head_in = (head_in - 1) / self.n_bins + 1
         # a spike's targets: 3x3 kernel, stride 2 -> out_channels x 9 / 4 neurons of the next layer
         synops = sum(n * (conv.out_channels * 9 / 4.0) for n, conv in zip(n_in, layers)) + n_out * head_in
         self.last_activity = {"spikes": (sum(n_in) + n_out).detach(), "synops": synops.detach()}
