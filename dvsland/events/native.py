@@ -46,6 +46,14 @@ _SRC = r"""
 #include <cstring>
 #include <vector>
 
+// x86-64: a second copy for CPUs with AVX2/FMA (floor, ceil and fma as single instructions; the
+// same IEEE results: no contraction, -ffp-contract=off), picked at load time by the dynamic loader.
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define DVS_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
+#else
+#define DVS_CLONES
+#endif
+
 // LSD radix sort of non-negative int64 keys below 2^bits by their bits lo_bit..bits-1, in place, stable;
 // 11-bit digits. With lo_bit = 0 the keys end fully sorted; with lo_bit > 0 keys equal in those bits
 // keep their input order (the emulator's keys come in pixel order, which is their low bits' order).
@@ -209,7 +217,7 @@ extern "C" void dvs_refractory_keep(const int64_t* pix, const int64_t* t, int64_
 // The active pixels, those with an active 8-neighbour and the cells' active pixels of one element's
 // occupancy image img ((H + 2) x (W + 2), zero border; 0 = no event), added to its outputs: a dense pass
 // over the pixels, three rows at a time (vectorised), for windows with many events.
-static void dense_counts(const uint8_t* img, int64_t H, int64_t W, int64_t cell, int64_t Hc, int64_t Wc,
+__attribute__((always_inline)) static inline void dense_counts(const uint8_t* img, int64_t H, int64_t W, int64_t cell, int64_t Hc, int64_t Wc,
                          float* cells, float* active, float* with_nb, std::vector<int32_t>& col) {
   const int64_t Wp = W + 2;
   int64_t n_act = 0, n_nb = 0;
@@ -255,7 +263,7 @@ static void dense_counts(const uint8_t* img, int64_t H, int64_t W, int64_t cell,
 // The counts are integers (exact whatever the order): from a dense pass over the pixels where the
 // window holds at least one event per 10 pixels, else event by event (where the two cost the same).
 // Outputs zeroed by the caller.
-extern "C" void dvs_motion_counts(const int64_t* b, const int64_t* x, const int64_t* y, const int64_t* t,
+extern "C" DVS_CLONES void dvs_motion_counts(const int64_t* b, const int64_t* x, const int64_t* y, const int64_t* t,
                                   const int8_t* p, int64_t n, int64_t B, int64_t H, int64_t W, int64_t cell,
                                   int64_t t_us, float* cells, float* active, float* with_nb, float* sums) {
   const int64_t Wp = W + 2, P = (H + 2) * Wp;
@@ -346,13 +354,6 @@ static inline double clamp_lohi(double x, double lo, double hi) { x = x < lo ? l
 
 struct Cand { int64_t code; double cnt, first, step; };  // one pixel with >= 1 emitted event
 
-// x86-64: a second copy for CPUs with AVX2/FMA (floor, ceil and fma as single instructions; the
-// same IEEE results: no contraction, -ffp-contract=off), picked at load time by the dynamic loader.
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define DVS_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
-#else
-#define DVS_CLONES
-#endif
 
 // th_on_map / th_off_map: per-pixel thresholds (or null: the scalars th_on / th_off); r_elem: per-
 // element refractory periods (or null: the scalar r). As the torch path: with maps the candidate
