@@ -53,9 +53,15 @@ def test_unknown_recipe_is_refused_naming_the_option(tmp_path, capsys, data):
     assert "--recipe 'quik'" in capsys.readouterr().err and not (tmp_path / "x.pt").exists()
 
 
-def test_cpu_cap_outside_the_recipe_is_refused(tmp_path, capsys):
+def test_recipe_options_outside_the_recipe_are_refused(tmp_path, capsys):
     assert main(["train", "--max-cpu-minutes", "1", "--out", str(tmp_path / "x.pt")]) == 2
     assert "--max-cpu-minutes is an option of the recipe" in capsys.readouterr().err
+    assert main(["train", "--ema", "0.99", "--out", str(tmp_path / "x.pt")]) == 2
+    assert "--ema is an option of the recipe" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # argparse's range check, before anything runs
+        main(["train", "--model", "cnn", "--data", "x", "--ema", "1.5", "--out", str(tmp_path / "x.pt")])
+    assert exc.value.code == 2 and not (tmp_path / "x.pt").exists()
+    assert "--ema must be from 0.0 to 0.99999, got '1.5'" in capsys.readouterr().err
 
 
 def test_budget_schedule_warms_up_and_decays_and_cosine_is_per_epoch():

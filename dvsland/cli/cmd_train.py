@@ -282,7 +282,7 @@ def run_train(args) -> int:
 
         return run_recipe(args, check_out_path)
     for flag, value in (("--max-cpu-minutes", args.max_cpu_minutes), ("--n-windows", args.n_windows),
-                        ("--patience", args.patience)):
+                        ("--patience", args.patience), ("--ema", args.ema)):
         if value is not None:
             raise ValueError(f"{flag} is an option of the recipe (--model NAME --data DIR); the snn (no --model) "
                              f"takes --max-minutes, --epochs and --steps")
