@@ -307,18 +307,7 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
     run = {"epoch": 0, "history": [], "best_val": math.inf, "bad_epochs": 0, "best_state": net.state_dict(),
            "seconds": 0.0, "cpu_seconds": 0.0}
     out = Path(out)
-    resumed_last: dict = {}
-    if resume:
-        ck, finetune = _resume_state(out, model_desc, prov, s, net, opt)
-        _start_from(ck, finetune, net, opt, run, log, out)
-        resumed_last = {} if finetune else ck["last"]
-    elif init is not None:
-        _start_from(_init_state(init, model_desc, spec, net), True, net, opt, run, log, Path(init))
-        prov["init"] = str(init)
-    if run.get("finetuned_from") is not None:
-        prov["finetuned_from"] = run["finetuned_from"]
-    if avg is not None:  # the average starts from the weights the run starts from (or goes on with its own)
-        _load_average(avg, net, resumed_last)
+    _start_run(out, resume, init, model_desc, prov, spec, s, net, opt, run, avg, log)
     writer = _writer(tb_dir)
     val_idx = _val_subset(va, s.val_max_samples)
     clock = Clock(s, run["seconds"], run["cpu_seconds"])
@@ -349,6 +338,25 @@ def train(data_dir, out, settings: RecipeSettings = RecipeSettings(), resume: bo
     if writer is not None:
         writer.close()
     return _finish(out, net, opt, spec, coords, model_desc, prov, s, run, data_dir, va, log, avg)
+
+
+def _start_run(out: Path, resume: bool, init, model_desc: dict, prov: dict, spec: InputSpec, s: RecipeSettings,
+               net, opt, run: dict, avg, log: Callable) -> None:
+    """Load what the run starts from into ``net``, ``opt``, ``run`` and ``prov``: ``--resume``'s
+    stored run (or, on other data, its best weights), ``--init``'s weights, or nothing; then start the
+    weight average ``avg`` from those weights (or go on with a resumed run's own average)."""
+    resumed_last: dict = {}
+    if resume:
+        ck, finetune = _resume_state(out, model_desc, prov, s, net, opt)
+        _start_from(ck, finetune, net, opt, run, log, out)
+        resumed_last = {} if finetune else ck["last"]
+    elif init is not None:
+        _start_from(_init_state(init, model_desc, spec, net), True, net, opt, run, log, Path(init))
+        prov["init"] = str(init)
+    if run.get("finetuned_from") is not None:
+        prov["finetuned_from"] = run["finetuned_from"]
+    if avg is not None:
+        _load_average(avg, net, resumed_last)
 
 
 def _averaged(net, s: RecipeSettings):
