@@ -72,8 +72,8 @@ class SpikingVoxelNet(nn.Module):
     constants. ``depth`` 2 and ``hidden`` 0 (the defaults) are the shipped ``spiking`` and
     ``spiking8`` networks. ``delay`` > 0 adds that many earlier bins to each step's input (synaptic
     delays; :meth:`slice_inputs`); ``per_step`` reads the last layer's pooled spikes of every time
-    step apart (the head sees when they came) instead of their sum over the window. Activity of the last forward pass: :attr:`last_activity` (spikes (B,),
-    synops (B,)).
+    step apart (the head sees when they came) instead of their sum over the window. Activity of
+    the last forward pass: :attr:`last_activity` (spikes (B,), synops (B,)).
     """
 
     def __init__(self, n_bins: int = 8, width: int = 12, slice_dt_s: float = 0.0125, tau_mem_s: float = 0.05,
