@@ -217,8 +217,11 @@ extern "C" void dvs_refractory_keep(const int64_t* pix, const int64_t* t, int64_
 // The active pixels, those with an active 8-neighbour and the cells' active pixels of one element's
 // occupancy image img ((H + 2) x (W + 2), zero border; 0 = no event), added to its outputs: a dense pass
 // over the pixels, three rows at a time (vectorised), for windows with many events.
-__attribute__((always_inline)) static inline void dense_counts(const uint8_t* img, int64_t H, int64_t W, int64_t cell, int64_t Hc, int64_t Wc,
-                         float* cells, float* active, float* with_nb, std::vector<int32_t>& col) {
+// (inlined into each clone of dvs_motion_counts)
+__attribute__((always_inline)) static inline void dense_counts(const uint8_t* img, int64_t H, int64_t W,
+                                                               int64_t cell, int64_t Hc, int64_t Wc, float* cells,
+                                                               float* active, float* with_nb,
+                                                               std::vector<int32_t>& col) {
   const int64_t Wp = W + 2;
   int64_t n_act = 0, n_nb = 0;
   col.assign(size_t(W), 0);
