@@ -45,7 +45,8 @@ def test_cli_recipe_quick_is_the_named_recipe_and_options_win():
     assert (s.lr, s.max_cpu_minutes, s.n_windows, s.model_settings) == (1e-3, 5.0, 4, {"width": 8})
     plain = _cli_settings(["--data", "x"])  # no recipe: the defaults as before
     assert (plain.n_bins, plain.pool_px, plain.n_windows, plain.schedule, plain.patience) == (4, 2, 1, "cosine", 6)
-    assert plain.max_cpu_minutes is None
+    assert plain.max_cpu_minutes is None and plain.ema == 0.0
+    assert _cli_settings(["--data", "x", "--ema", "0.999"]).ema == 0.999
 
 
 def test_unknown_recipe_is_refused_naming_the_option(tmp_path, capsys, data):
