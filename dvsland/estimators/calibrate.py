@@ -516,8 +516,8 @@ def _fitted_for(path: Path) -> str:
     table (``learned_cnn_dagger_realistic``) serves the estimator that reads the checkpoint, not a
     ``fused`` one that holds it."""
     try:
-        return _base_name(json.loads(Path(path).read_text()).get("estimator", ""))
-    except (OSError, ValueError, AttributeError):
+        return _base_name(load_calibration(path)[1].get("estimator", ""))
+    except ValueError:
         return ""
 
 

@@ -93,7 +93,7 @@ class SpikingVoxelNet(nn.Module):
         self.p = LIFParameters(tau_mem_s=tau_mem_s, tau_syn_s=tau_syn_s, v_th=1.0)
         self.p.check_dt(self.slice_dt_s)
         c = self.width
-        self.conv1 = nn.Conv2d(3 + self.delay, c, 3, stride=2, padding=1)
+        self.conv1 = nn.Conv2d(self.in_channels, c, 3, stride=2, padding=1)
         self.conv2 = nn.Conv2d(c, 2 * c, 3, stride=2, padding=1)
         if self.depth == 3:
             self.conv3 = nn.Conv2d(2 * c, 2 * c, 3, stride=2, padding=1)
