@@ -114,8 +114,8 @@ class RingCNN(nn.Module):
         if self.dtype != torch.float32:
             ring = ring.to(self.dtype).contiguous(memory_format=torch.channels_last)
         y = F.conv2d(ring, wq, None, self.stride, self.padding)
-        if self.dtype == torch.float32:  # in place: the bits of addcdiv (one rounding each) and ReLU
-            y = y.div_(s.view(B, 1, 1, 1)).add_(self.const).relu_()
+        if self.dtype == torch.float32:  # addcdiv into y (one pass: the bits of div then add) and ReLU
+            y = torch.addcdiv(self.const, y, s.view(B, 1, 1, 1), out=y).relu_()
         else:  # one rounding to bfloat16 of the sum (in place would round twice)
             y = torch.addcdiv(self.const, y, s.view(B, 1, 1, 1).to(self.dtype)).relu_()
         for conv in self.convs:
