@@ -381,6 +381,19 @@ def test_a_shipped_checkpoint_with_its_own_tables_gets_them():
         resolve_calibration("learned_cnn_both_realistic", "learned", "learned_cnn.pt sha256:4dade5de1845")
 
 
+def test_the_spiking_model_flies_its_own_ideal_table_and_no_realistic_one():
+    """``spiking8`` ships an ideal table of its own; through the realistic pixel it has none, and the
+    shipped CNN's realistic table is refused for it (fitted on another checkpoint)."""
+    spk = make_estimator(load_config("paper", ["estimator.calibration=ideal", "estimator.learned.checkpoint=spiking8"]),
+                         2, "cpu", name="learned")
+    plain = make_estimator(load_config("paper", ["estimator.calibration=ideal"]), 2, "cpu", name="learned")
+    assert spk.calibration is not None
+    assert not torch.equal(spk.calibration.log10_scale, plain.calibration.log10_scale)
+    cfg = load_config("paper", ["estimator.calibration=realistic", "estimator.learned.checkpoint=spiking8"])
+    with pytest.raises(ValueError, match="estimator.calibration: 'realistic' was fitted on the checkpoint learned_cnn.pt"):
+        make_estimator(cfg, 2, "cpu", name="learned")
+
+
 def test_a_table_is_refused_for_another_checkpoint():
     est = make_estimator(load_config("paper", ["estimator.calibration=realistic"]), 2, "cpu", name="learned")
     assert est.calibration is not None
