@@ -313,7 +313,8 @@ class LearnedConfig:
                               "'cnn_both' = the shipped CNN fine-tuned on its own datasets flown through both "
                               "pixels (ideal and realistic_sensor), "
                               "'spiking' = the shipped spiking model, "
-                              "'spiking8' = the spiking model on eight control steps (0.8 s) of events")
+                              "'spiking8' = the spiking model on eight control steps (0.8 s) of events, "
+                              "'spiking8_both' = spiking8 fine-tuned on its datasets flown through both pixels")
     min_events: int = opt(20, "windows with fewer events give no estimate (NaN)", rng=(1, 1000000000))
 
 
