@@ -315,7 +315,8 @@ def evaluate(cfg: Config, estimators: Sequence[str] = ("dpr", "cmax"), sites: Op
     for seg in segs:
         run[seg.start:seg.stop] = True
     flown = valid & run[None, :]
-    rel_dz = np.abs(alt - z_ref[:, :K + 1]) / z_ref[:, :K + 1]
+    with np.errstate(divide="ignore", invalid="ignore"):  # z_ref is 0 past a descent's end: not read there
+        rel_dz = np.abs(alt - z_ref[:, :K + 1]) / z_ref[:, :K + 1]
     flown_desc = Descents(desc.sites, desc.t_s, alt, vel, valid)
     res = EvaluationResult(flown_desc, d_hat, scored, {n: np.asarray(v) for n, v in times.items()}, n_events,
                            wall_ms_per_step={n: np.asarray(v) for n, v in walls.items()}, time_base=base,
