@@ -257,8 +257,8 @@ def test_bad_values_name_the_key(tmp_path):
     for value, what in bad.items():
         if value == "ideal":  # a shipped set the estimator has no table for
             with pytest.raises(ValueError, match=CONFIG_KEY) as ei:
-                make_estimator(cfg(value), 2, "cpu", name="snn")
-            assert "no shipped 'ideal' calibration for estimator 'snn'" in str(ei.value)
+                make_estimator(cfg(value), 2, "cpu", name="oracle")
+            assert "no shipped 'ideal' calibration for estimator 'oracle'" in str(ei.value)
             continue
         with pytest.raises(ValueError, match=CONFIG_KEY) as ei:
             make_estimator(cfg(value), 2, "cpu", name="cmax")

@@ -193,7 +193,7 @@ class TestCalibration:
                                                "estimator.fused.tables=own"])
         _check_calibration_key(own, ["fused"], False)  # fused's own table ships
         cfg = load_config("realistic_sensor", ["estimator.name=fused", "estimator.calibration=realistic",
-                                               "estimator.fused.members=cmax,snn"])
-        msg = "estimator.calibration: no shipped 'realistic' calibration for estimator 'snn'"
+                                               "estimator.fused.members=cmax,oracle"])
+        msg = "estimator.calibration: no shipped 'realistic' calibration for estimator 'oracle'"
         with pytest.raises(ValueError, match=msg):
             _check_calibration_key(cfg, ["fused"], False)
