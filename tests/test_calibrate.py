@@ -397,7 +397,7 @@ def test_the_spiking_model_flies_its_own_ideal_table_and_no_realistic_one():
 def test_a_table_is_refused_for_another_checkpoint():
     est = make_estimator(load_config("paper", ["estimator.calibration=realistic"]), 2, "cpu", name="learned")
     assert est.calibration is not None
-    cfg = load_config("paper", ["estimator.calibration=realistic", "estimator.learned.checkpoint=cnn_realistic"])
+    cfg = load_config("paper", ["estimator.calibration=realistic", "estimator.learned.checkpoint=spiking"])
     with pytest.raises(ValueError, match="estimator.calibration: 'realistic' was fitted on the checkpoint learned_cnn.pt"):
         make_estimator(cfg, 2, "cpu", name="learned")
 
