@@ -368,12 +368,14 @@ def test_shipped_tables_load_and_are_valid():
     assert SHIPPED_DIR.name == "calibration"
 
 
-def test_a_shipped_checkpoint_with_its_own_tables_gets_them():
-    """``ideal`` / ``realistic`` pick ``<checkpoint stem>_<set>.json`` where it ships (cnn_both),
-    else ``<estimator>_<set>.json`` (the shipped CNN's)."""
-    for sensor in SHIPPED_SETS:
+@pytest.mark.parametrize("checkpoint,sensors", [("cnn_both", SHIPPED_SETS), ("spiking8", ("ideal",))])
+def test_a_shipped_checkpoint_with_its_own_tables_gets_them(checkpoint, sensors):
+    """``ideal`` / ``realistic`` pick ``<checkpoint stem>_<set>.json`` where it ships (cnn_both both,
+    spiking8 ideal), else ``<estimator>_<set>.json`` (the shipped CNN's)."""
+    for sensor in sensors:
         own = make_estimator(load_config("paper", [f"estimator.calibration={sensor}",
-                                                   "estimator.learned.checkpoint=cnn_both"]), 2, "cpu", name="learned")
+                                                   f"estimator.learned.checkpoint={checkpoint}"]), 2, "cpu",
+                             name="learned")
         assert own.calibration is not None
         plain = make_estimator(load_config("paper", [f"estimator.calibration={sensor}"]), 2, "cpu", name="learned")
         assert not torch.equal(own.calibration.log10_scale, plain.calibration.log10_scale)
@@ -381,23 +383,12 @@ def test_a_shipped_checkpoint_with_its_own_tables_gets_them():
         resolve_calibration("learned_cnn_both_realistic", "learned", "learned_cnn.pt sha256:4dade5de1845")
 
 
-def test_the_spiking_model_flies_its_own_ideal_table_and_no_realistic_one():
-    """``spiking8`` ships an ideal table of its own; through the realistic pixel it has none, and the
-    shipped CNN's realistic table is refused for it (fitted on another checkpoint)."""
-    spk = make_estimator(load_config("paper", ["estimator.calibration=ideal", "estimator.learned.checkpoint=spiking8"]),
-                         2, "cpu", name="learned")
-    plain = make_estimator(load_config("paper", ["estimator.calibration=ideal"]), 2, "cpu", name="learned")
-    assert spk.calibration is not None
-    assert not torch.equal(spk.calibration.log10_scale, plain.calibration.log10_scale)
-    cfg = load_config("paper", ["estimator.calibration=realistic", "estimator.learned.checkpoint=spiking8"])
-    with pytest.raises(ValueError, match="estimator.calibration: 'realistic' was fitted on the checkpoint learned_cnn.pt"):
-        make_estimator(cfg, 2, "cpu", name="learned")
-
-
-def test_a_table_is_refused_for_another_checkpoint():
+@pytest.mark.parametrize("checkpoint", ["spiking", "spiking8"])
+def test_a_table_is_refused_for_another_checkpoint(checkpoint):
+    """A checkpoint without a realistic table of its own is refused the shipped CNN's."""
     est = make_estimator(load_config("paper", ["estimator.calibration=realistic"]), 2, "cpu", name="learned")
     assert est.calibration is not None
-    cfg = load_config("paper", ["estimator.calibration=realistic", "estimator.learned.checkpoint=spiking"])
+    cfg = load_config("paper", ["estimator.calibration=realistic", f"estimator.learned.checkpoint={checkpoint}"])
     with pytest.raises(ValueError, match="estimator.calibration: 'realistic' was fitted on the checkpoint learned_cnn.pt"):
         make_estimator(cfg, 2, "cpu", name="learned")
 
