@@ -283,6 +283,32 @@ def test_baseline_divergence_exact_for_pure_zoom():
     assert torch.isnan(d).all() and (n == 0).all() and torch.isinf(rel).all()
 
 
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 15), weighting=st.sampled_from(["none", "length"]))
+def test_eq8_with_spread_is_pairwise_and_the_one_step_baseline_bit_for_bit(seed, n, weighting):
+    """dpr's one-step path computes the pairs' lengths once: Eq. 8 and the baseline spread it gives
+    are those of pairwise_divergence and baseline_divergence (lag 1 for the pairs tracked at both
+    steps), bit for bit, with untracked (NaN) centroids and coincident ones among them."""
+    from dvsland.estimators.divergence import baseline_divergence, eq8_with_spread
+
+    g = torch.Generator().manual_seed(seed)
+    B = 4
+    prev = torch.rand(B, n, 2, generator=g) * 128
+    cur = prev * (1 + 0.05 * torch.rand(B, n, 1, generator=g)) + torch.randn(B, n, 2, generator=g)
+    prev[0, 0] = float("nan")
+    cur[1, -1] = cur[1, 0]  # a zero-length pair now
+    valid = torch.rand(B, n, generator=g) < 0.8
+    dt = 0.05 + torch.rand(B, generator=g, dtype=torch.float64) * 0.1
+    el = 0.05 + torch.rand(B, generator=g, dtype=torch.float64) * 0.1
+    d, k, rel = eq8_with_spread(prev, cur, valid, dt, el, weighting=weighting)
+    d_ref, k_ref = pairwise_divergence(prev, cur, valid, dt, weighting=weighting)
+    lag = (valid.unsqueeze(2) & valid.unsqueeze(1)).to(torch.int64)
+    pp = torch.stack([prev.unsqueeze(2).expand(-1, -1, n, -1), prev.unsqueeze(1).expand(-1, n, -1, -1)], 3)
+    rel_ref = baseline_divergence(cur, pp, lag, el.view(-1, 1, 1).expand(-1, n, n).contiguous())[2]
+    assert torch.equal(d.nan_to_num(7.0), d_ref.nan_to_num(7.0)) and torch.equal(k, k_ref)
+    assert torch.equal(rel, rel_ref)
+
+
 def test_dpr_baseline_variant_tracks_zoom_resets_by_mask_and_gives_nan():
     D = torch.tensor([-0.3, -0.15, -0.15])
     est = get_estimator("dpr", 3, (W, H), dt_s=0.1, n_min=10, radius_px=3.0, baseline_steps=5)

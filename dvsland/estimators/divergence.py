@@ -39,15 +39,30 @@ def pairwise_divergence(prev_xy: torch.Tensor, cur_xy: torch.Tensor, valid: torc
         raise ValueError(f"dt_s must be > 0, got {dt_s}")
     if weighting not in ("none", "length"):
         raise ValueError(f"weighting must be 'none' or 'length', got {weighting!r}")
-    N = prev_xy.shape[1]
-    # both steps at once: (2, B, N, 2) float64
+    l0, l1 = _lengths(prev_xy, cur_xy)
+    return _eq8(_pairs(valid, l0, min_length_px), l0, l1, dt_s, min_length_px, weighting)
+
+
+def _lengths(prev_xy: torch.Tensor, cur_xy: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The pairs' lengths (l0, l1), each (B, N, N) float64 px, at both steps at once (exact: no
+    cdist); an untracked (NaN) centroid counts as (0, 0)."""
     pc = torch.stack([prev_xy, cur_xy]).to(torch.float64).nan_to_num_(0.0)
-    ll = torch.linalg.vector_norm(pc.unsqueeze(3) - pc.unsqueeze(2), dim=-1)  # (2, B, N, N), exact (no cdist)
-    l0, l1 = ll[0], ll[1]
+    ll = torch.linalg.vector_norm(pc.unsqueeze(3) - pc.unsqueeze(2), dim=-1)  # (2, B, N, N)
+    return ll[0], ll[1]
+
+
+def _pairs(valid: torch.Tensor, l0: torch.Tensor, min_length_px: float) -> torch.Tensor:
+    """Eq. 8's pairs (B, N, N) bool: i < j, both tracked, not shorter than ``min_length_px`` before."""
     use = valid.unsqueeze(-1) & valid.unsqueeze(-2)
-    use &= _upper(N, str(valid.device))
+    use &= _upper(valid.shape[1], str(valid.device))
     use &= l0 > min_length_px
-    term = torch.where(use, (1.0 - l1 / l0.clamp_min(min_length_px)) / dt_s, _zero64(str(valid.device)))
+    return use
+
+
+def _eq8(use, l0, l1, dt_s, min_length_px: float, weighting: str) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 8's mean over the pairs ``use`` of the lengths ``l0`` -> ``l1`` (B, N, N) float64 over
+    ``dt_s`` (a float or (B, 1, 1) float64): (d (B,) float32, NaN without a pair; n_pairs (B,) int64)."""
+    term = torch.where(use, (1.0 - l1 / l0.clamp_min(min_length_px)) / dt_s, _zero64(str(use.device)))
     n = use.sum((-1, -2))
     if weighting == "length":
         w = torch.where(use, l0, torch.zeros_like(l0))
@@ -96,6 +111,45 @@ def baseline_divergence(cur_xy: torch.Tensor, past_xy: torch.Tensor, lag: torch.
     l0 = torch.linalg.vector_norm(p[..., 0, :] - p[..., 1, :], dim=-1)
     use = (lag >= 1) & _upper(N, str(cur_xy.device)) & (l0 > min_length_px) & (l1 > min_length_px)
     el = torch.where(use, elapsed_s.to(torch.float64), torch.ones_like(l0))
+    d, n, rel = _weighted_pairs(use, l0, l1, el, min_length_px)
+    d = torch.where(n > 0, d, torch.full_like(d, float("nan")))
+    return d.to(torch.float32), n, rel
+
+
+def eq8_with_spread(prev_xy: torch.Tensor, cur_xy: torch.Tensor, valid: torch.Tensor, dt_s: torch.Tensor,
+                    elapsed_s: torch.Tensor, min_length_px: float = 1e-6,
+                    weighting: str = "none") -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Eq. 8 between two consecutive steps and the spread of its pairs, from one pair of length matrices.
+
+    The same values, bit for bit, as ``pairwise_divergence(prev_xy, cur_xy, valid, dt_s, min_length_px,
+    weighting)`` beside the ``rel_std`` of ``baseline_divergence`` over a one-step baseline (every pair
+    tracked at both steps has lag 1 and was ``elapsed_s`` apart), which computed the same lengths twice.
+
+    Args:
+        prev_xy, cur_xy: (B, N, 2) float32 centroids at the last step and now, px (NaN = untracked).
+        valid: (B, N) bool, centroids tracked at both steps.
+        dt_s: (B,) float64 time between the steps, s (Eq. 8's dt).
+        elapsed_s: (B,) float64 time between the two windows' mean event times, s (the spread's).
+
+    Returns:
+        d (B,) float32 1/s (NaN without a pair), n_pairs (B,) int64, rel_std (B,) float64 (inf with
+        fewer than two pairs of the baseline rule).
+    """
+    l0, l1 = _lengths(prev_xy, cur_xy)
+    pair = _pairs(valid, l0, min_length_px)
+    d, n = _eq8(pair, l0, l1, dt_s.to(torch.float64).view(-1, 1, 1), min_length_px, weighting)
+    # the spread (baseline_divergence's formulas; its pairs also need l1 > min_length_px)
+    use = pair & (l1 > min_length_px)
+    el = torch.where(use, elapsed_s.to(torch.float64).view(-1, 1, 1), torch.ones_like(l0))
+    return d, n, _weighted_pairs(use, l0, l1, el, min_length_px)[2]
+
+
+def _weighted_pairs(use: torch.Tensor, l0: torch.Tensor, l1: torch.Tensor, el: torch.Tensor,
+                    min_length_px: float) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`baseline_divergence`'s inverse-variance average of its pairs ``use`` (B, N, N) bool from
+    the lengths then and now ``l0``, ``l1`` and the elapsed times ``el`` (B, N, N) float64 (1 where
+    unused): (d (B,) float64, 0 without a pair; n_pairs (B,) int64; rel_std (B,) float64)."""
+    B = use.shape[0]
     term = torch.where(use, -torch.log(l1.clamp_min(min_length_px) / l0.clamp_min(min_length_px)) / el,
                        torch.zeros_like(l0))
     w = torch.where(use, (l0 * el) ** 2, torch.zeros_like(l0))
@@ -105,6 +159,4 @@ def baseline_divergence(cur_xy: torch.Tensor, past_xy: torch.Tensor, lag: torch.
     var = (w * (term - d.view(B, 1, 1)) ** 2).sum((-1, -2)) / ws.clamp_min(1e-12)
     n_eff = ws ** 2 / (w * w).sum((-1, -2)).clamp_min(1e-24)
     se = torch.sqrt(var / (n_eff - 1).clamp_min(1e-12))
-    rel = torch.where(n > 1, se / d.abs().clamp_min(1e-6), torch.full_like(se, float("inf")))
-    d = torch.where(n > 0, d, torch.full_like(d, float("nan")))
-    return d.to(torch.float32), n, rel
+    return d, n, torch.where(n > 1, se / d.abs().clamp_min(1e-6), torch.full_like(se, float("inf")))

@@ -41,7 +41,7 @@ from dvsland.pytree import check_state_like, tree_where
 from .base import DivergenceEstimator, EstimateOut, Truth, confidence_from_rel_std
 from .abstain import EVIDENCE_KEY
 from .density_peaks import density_peaks
-from .divergence import baseline_divergence, pairwise_divergence
+from .divergence import baseline_divergence, eq8_with_spread
 from .meanshift import meanshift_flat
 from .registry import register_estimator
 
@@ -226,21 +226,21 @@ def _divergence(p: DPRConfig, c: DPRConsts, state: DPRState, cen, keep, dt, t_me
     (d (B,) float32 1/s, n_pairs (B,) int64, rel_std (B,) float64, slot ages (B, N) int64)."""
     kb = p.baseline_steps + 1
     age_now = torch.where(keep, state.slot_age + 1, torch.zeros_like(state.slot_age)).clamp(max=p.baseline_steps)
+    if p.baseline_steps == 1:
+        # the paper's Eq. 8; rel from the same pairs over one step (hist's last entry is state.centroids,
+        # the window mean time then hist_t's last), for the confidence. While the ring fills after a
+        # reset the window's mean event time advances by dt / 2 per step instead of dt: Eq. 8 then uses
+        # dt / 2 (not in paper; removes a x2 bias at start)
+        d, n_pairs, rel = eq8_with_spread(state.centroids, cen, keep, dt, t_mean - state.hist_t[:, -1],
+                                          weighting=p.pair_weighting)
+        return d * torch.where(age <= c.n_ring, c.two_one[0], c.two_one[1]), n_pairs, rel, age_now
     lag = torch.minimum(age_now.unsqueeze(2), age_now.unsqueeze(1))  # (B, N, N)
     ring = (kb - lag) % kb  # hist index of the step `lag` steps ago (lag 0: unused, the oldest)
     hp = state.hist.permute(0, 2, 1, 3)  # (B, N, kb, 2)
     past_i = hp.gather(2, ring.unsqueeze(-1).expand(-1, -1, -1, 2))
     past_j = hp.gather(2, ring.transpose(1, 2).unsqueeze(-1).expand(-1, -1, -1, 2)).transpose(1, 2)
     elapsed = t_mean.view(-1, 1, 1) - state.hist_t.gather(1, ring.flatten(1)).view_as(ring)
-    d_b, n_b, rel = baseline_divergence(cen, torch.stack([past_i, past_j], 3), lag, elapsed)
-    if p.baseline_steps > 1:
-        return d_b, n_b, rel, age_now
-    # the paper's Eq. 8 (rel from the same pairs over one step, for the confidence). While the ring
-    # fills after a reset the window's mean event time advances by dt / 2 per step instead of dt:
-    # Eq. 8 then uses dt / 2 (not in paper; removes a x2 bias at start)
-    d, n_pairs = pairwise_divergence(state.centroids, cen, keep, dt, weighting=p.pair_weighting)
-    d = d * torch.where(age <= c.n_ring, c.two_one[0], c.two_one[1])
-    return d, n_pairs, rel, age_now
+    return (*baseline_divergence(cen, torch.stack([past_i, past_j], 3), lag, elapsed), age_now)
 
 
 def _reinitialise(p: DPRConfig, c: DPRConsts, image, centroids, valid, counts):
