@@ -177,6 +177,23 @@ def test_recipe_init_is_used_and_checked(tmp_path, capsys, cnn_ckpt):
     assert "--init" in _one_line_error(capsys)
 
 
+def test_recipe_init_onto_other_cells(tmp_path, capsys, cnn_ckpt):
+    """--init may start a run on cells of another size (--pool-px: the networks pool over space, so
+    the weights fit); the run's checkpoint records its own cells. Other bins are still refused."""
+    ds = data_of(cnn_ckpt)
+    out = tmp_path / "p4.pt"
+    assert main(["train", *RECIPE, "--epochs", "1", "--pool-px", "4", "--data", ds, "--init", str(cnn_ckpt),
+                 "--out", str(out)]) == 0
+    capsys.readouterr()
+    ck = torch.load(out, map_location="cpu", weights_only=True)
+    before = torch.load(cnn_ckpt, map_location="cpu", weights_only=True)
+    assert ck["input"]["pool_px"] == 4 and before["input"]["pool_px"] == 2 and ck["data"]["init"] == str(cnn_ckpt)
+    assert main(["train", *RECIPE, "--n-bins", "2", "--data", ds, "--init", str(cnn_ckpt),
+                 "--out", str(tmp_path / "b.pt")]) == 2
+    err = _one_line_error(capsys)
+    assert "--init" in err and "n_bins" in err, err
+
+
 # ------------------------------------------------------------------ item 16: the description's numbers
 @pytest.mark.parametrize("value", [float("nan"), float("inf"), 0.0, -0.1])
 def test_snn_d_scale_must_be_a_positive_number(tmp_path, value):

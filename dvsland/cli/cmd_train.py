@@ -125,7 +125,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                        help="network steps (time slices) per control step")
     model.add_argument("--init", default=None, metavar="CKPT",
                        help="start from this checkpoint's weights (fine-tuning): an snn checkpoint, or with --model a "
-                            "learned one of the same model and settings; checked like every checkpoint")
+                            "learned one of the same model, settings, bins and windows (its cells may differ: --pool-px refines "
+                            "it onto finer ones); checked like every checkpoint")
 
     tr = p.add_argument_group("training", "both modes unless marked (recipe defaults: epochs 30, batch 64, lr 2e-3)")
     tr.add_argument("--epochs", type=ranged(int, 1, 100_000, "--epochs"), default=None,

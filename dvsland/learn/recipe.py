@@ -250,15 +250,18 @@ def _check_counters(ck: dict, where: str) -> None:
 
 def _init_state(init, model_desc: dict, spec: InputSpec, net) -> dict:
     """The checkpoint ``init`` (``--init``) to start from, checked: the same model and settings as
-    this run, the same bins, cells and windows of the input, finite weights that fit ``net``."""
+    this run, the same bins and windows of the input, finite weights that fit ``net``. The cells may
+    differ (``--pool-px``): the built-in networks pool over space, so their weights fit a grid of
+    any size, and a model can be refined onto finer cells (a feature then spans more cells than
+    the weights learned; the fine-tune adapts them)."""
     ck = read_checkpoint(init, "--init")
     where = f"--init: {short_path(init)}"
-    mine = {k: v for k, v in spec._asdict().items() if k in ("n_bins", "pool_px", "n_windows", "coord_scale_px")}
+    mine = {k: v for k, v in spec._asdict().items() if k in ("n_bins", "n_windows", "coord_scale_px")}
     theirs = {k: ck["input"].get(k) for k in mine} if isinstance(ck["input"], dict) else ck["input"]
     for what, old, new in (("model", ck["model"], model_desc), ("input", theirs, mine)):
         if old != new:
             raise ValueError(f"{where} holds another {what} ({old!r}; this run: {new!r}); pass the same --model, "
-                             f"--model-set, --n-bins, --pool-px and --n-windows")
+                             f"--model-set, --n-bins and --n-windows")
     check_state_dict(ck["state_dict"], net, where)
     return ck
 
@@ -351,8 +354,11 @@ def _start_run(out: Path, resume: bool, init, model_desc: dict, prov: dict, spec
         _start_from(ck, finetune, net, opt, run, log, out)
         resumed_last = {} if finetune else ck["last"]
     elif init is not None:
-        _start_from(_init_state(init, model_desc, spec, net), True, net, opt, run, log, Path(init))
+        ck = _init_state(init, model_desc, spec, net)
+        _start_from(ck, True, net, opt, run, log, Path(init))
         prov["init"] = str(init)
+        if ck["input"].get("pool_px") != spec.pool_px:
+            log(f"  its {ck['input'].get('pool_px')}-pixel cells become {spec.pool_px}-pixel ones (--pool-px)")
     if run.get("finetuned_from") is not None:
         prov["finetuned_from"] = run["finetuned_from"]
     if avg is not None:
