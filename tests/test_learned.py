@@ -314,8 +314,8 @@ def test_spiking_nir_round_trip_agrees(tmp_path):
     assert torch.allclose(got[0], want[0], atol=1e-5) and torch.allclose(got[1], want[1], atol=1e-5)
 
 
-@pytest.mark.parametrize("which", ["", "spiking", "spiking8", "spiking8_both", "spiking8_dagger", "cnn_realistic", "cnn_landing",
-                                   "cnn_wide", "cnn_dagger", "cnn_both"])
+@pytest.mark.parametrize("which", ["", "spiking", "spiking8", "spiking8_both", "spiking8_dagger", "spiking8_px2",
+                                   "cnn_realistic", "cnn_landing", "cnn_wide", "cnn_dagger", "cnn_both"])
 def test_shipped_checkpoints_load_and_estimate(which):
     from dvsland.estimators.learned.estimator import SHIPPED
 

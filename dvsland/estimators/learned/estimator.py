@@ -41,8 +41,9 @@ from .inputs import InputSpec, camera_map, coord_channels, events_voxel_grid, pi
 #: the CNN fine-tuned on events of the realistic pixel as well ("Through a realistic pixel"), the CNN
 #: fine-tuned on the landing loss through the closed loop (`dvsland train-loop --what estimator`,
 #: docs/train_loop.md), the CNN fine-tuned on the recipe's datasets flown through both pixels, the
-#: spiking model, the spiking model on eight windows, that one fine-tuned through both pixels, and
-#: that one trained on its own closed-loop flights through the realistic pixel (DAgger; docs/learning.md)
+#: spiking model, the spiking model on eight windows, that one refined onto 2-pixel cells, that one
+#: fine-tuned through both pixels, and that one trained on its own closed-loop flights through the
+#: realistic pixel (DAgger; docs/learning.md)
 SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"),
            "cnn_realistic": Path(__file__).with_name("learned_cnn_realistic.pt"),
            "cnn_landing": Path(__file__).with_name("learned_cnn_landing.pt"),
@@ -51,6 +52,7 @@ SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"),
            "cnn_both": Path(__file__).with_name("learned_cnn_both.pt"),
            "spiking": Path(__file__).with_name("learned_spiking.pt"),
            "spiking8": Path(__file__).with_name("learned_spiking8.pt"),
+           "spiking8_px2": Path(__file__).with_name("learned_spiking8_px2.pt"),
            "spiking8_both": Path(__file__).with_name("learned_spiking8_both.pt"),
            "spiking8_dagger": Path(__file__).with_name("learned_spiking8_dagger.pt")}
 
@@ -249,7 +251,7 @@ def default_focal_px(sensor_size) -> float:
 def resolve_checkpoint(checkpoint: str) -> Path:
     """``""`` or ``"cnn"`` -> the shipped CNN, another name of :data:`SHIPPED` (``"cnn_realistic"``,
     ``"cnn_landing"``, ``"cnn_wide"``, ``"cnn_dagger"``, ``"cnn_both"``, ``"spiking"``, ``"spiking8"``,
-    ``"spiking8_both"``, ``"spiking8_dagger"``) -> that checkpoint, else a path."""
+    ``"spiking8_px2"``, ``"spiking8_both"``, ``"spiking8_dagger"``) -> that checkpoint, else a path."""
     key = str(checkpoint or "cnn")
     return SHIPPED.get(key, Path(key))
 
@@ -265,9 +267,10 @@ class LearnedEstimator(DivergenceEstimator):
             ``"cnn_wide"``, ``"cnn_dagger"``, ``"cnn_both"`` = the CNN fine-tuned on zoomed textures,
             on its own closed-loop flights, on its datasets through both pixels (docs/learning.md),
             ``"spiking"`` = the shipped spiking model, ``"spiking8"`` = the spiking model on eight
-            control steps (0.8 s) of events, ``"spiking8_both"`` = ``spiking8`` fine-tuned on its
-            datasets flown through both pixels, ``"spiking8_dagger"`` = that one trained on its own
-            closed-loop flights through the realistic pixel (DAgger).
+            control steps (0.8 s) of events, ``"spiking8_px2"`` = ``spiking8`` refined onto 2-pixel
+            cells (the ideal pixel's best spiking model), ``"spiking8_both"`` = ``spiking8``
+            fine-tuned on its datasets flown through both pixels, ``"spiking8_dagger"`` = that one
+            trained on its own closed-loop flights through the realistic pixel (DAgger).
         min_events: windows with fewer events give NaN, in [1, 1e9].
         principal_point_px: focus of expansion: the events are resampled about it onto the
             checkpoint's reference canvas (:mod:`.inputs`), whose centre it becomes.
