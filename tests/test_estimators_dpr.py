@@ -307,6 +307,8 @@ def test_eq8_with_spread_is_pairwise_and_the_one_step_baseline_bit_for_bit(seed,
     rel_ref = baseline_divergence(cur, pp, lag, el.view(-1, 1, 1).expand(-1, n, n).contiguous())[2]
     assert torch.equal(d.nan_to_num(7.0), d_ref.nan_to_num(7.0)) and torch.equal(k, k_ref)
     assert torch.equal(rel, rel_ref)
+    with pytest.raises(ValueError, match="weighting must be 'none' or 'length'"):
+        eq8_with_spread(prev, cur, valid, dt, el, weighting="median")
 
 
 def test_dpr_baseline_variant_tracks_zoom_resets_by_mask_and_gives_nan():

@@ -37,8 +37,6 @@ def pairwise_divergence(prev_xy: torch.Tensor, cur_xy: torch.Tensor, valid: torc
         dt_s = dt_s.to(torch.float64).view(-1, 1, 1)  # (B, 1, 1): no check here (a device sync)
     elif not dt_s > 0:
         raise ValueError(f"dt_s must be > 0, got {dt_s}")
-    if weighting not in ("none", "length"):
-        raise ValueError(f"weighting must be 'none' or 'length', got {weighting!r}")
     l0, l1 = _lengths(prev_xy, cur_xy)
     return _eq8(_pairs(valid, l0, min_length_px), l0, l1, dt_s, min_length_px, weighting)
 
@@ -61,7 +59,10 @@ def _pairs(valid: torch.Tensor, l0: torch.Tensor, min_length_px: float) -> torch
 
 def _eq8(use, l0, l1, dt_s, min_length_px: float, weighting: str) -> Tuple[torch.Tensor, torch.Tensor]:
     """Eq. 8's mean over the pairs ``use`` of the lengths ``l0`` -> ``l1`` (B, N, N) float64 over
-    ``dt_s`` (a float or (B, 1, 1) float64): (d (B,) float32, NaN without a pair; n_pairs (B,) int64)."""
+    ``dt_s`` (a float or (B, 1, 1) float64): (d (B,) float32, NaN without a pair; n_pairs (B,) int64).
+    ValueError for a ``weighting`` other than "none" or "length" (both public entries pass it here)."""
+    if weighting not in ("none", "length"):
+        raise ValueError(f"weighting must be 'none' or 'length', got {weighting!r}")
     term = torch.where(use, (1.0 - l1 / l0.clamp_min(min_length_px)) / dt_s, _zero64(str(use.device)))
     n = use.sum((-1, -2))
     if weighting == "length":
