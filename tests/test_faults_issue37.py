@@ -191,6 +191,48 @@ def test_signal_in_the_first_seconds_is_never_a_traceback(sig):
         assert p.returncode in (0, 130, -getattr(signal, sig)), (delay, p.returncode, err)
 
 
+_CHILD_CALLBACK = """
+import os, signal, sys, time, weakref
+import dvsland.cli.main as m
+from dvsland.runs import guarded_run
+
+class A:
+    pass
+
+def callback(_ref):  # the signal handler runs inside this weakref callback, whose exceptions are unraisable
+    os.kill(os.getpid(), getattr(signal, sys.argv[1]))
+    for _ in range(1000):
+        pass
+
+def command(args):
+    a = A()
+    ref = weakref.ref(a, callback)
+    del a
+    time.sleep(20)
+    return 0
+
+def run(argv, started):
+    started.append("cmd")
+    return guarded_run(command)(None)
+
+m._run = run
+sys.exit(m.main([]))
+"""
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_signal_inside_an_unraisable_callback_still_interrupts(sig):
+    """An interrupt raised inside a weakref callback (CPython prints and drops it) still ends the
+    command in one line and status 130, not a traceback and a command that runs on."""
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-c", _CHILD_CALLBACK, sig], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 130, (p.returncode, p.stderr)
+    assert "Traceback" not in p.stderr and "Exception ignored" not in p.stderr, p.stderr
+    assert p.stderr.strip().startswith("dvsland: interrupted") and len(p.stderr.strip().splitlines()) == 1
+
+
 # ------------------------------------------------------------------ 8. build-native after a SIGKILL
 _CHILD_BUILD = """
 import os, sys, time

@@ -53,6 +53,42 @@ def _own_signals() -> dict:
     return old
 
 
+def _resend_later(signum: int) -> None:
+    """Send ``signum`` to this process again in 50 ms, from a daemon thread (which does not keep a
+    finishing process alive)."""
+    import os
+    import threading
+
+    timer = threading.Timer(0.05, os.kill, (os.getpid(), signum))
+    timer.daemon = True
+    timer.start()
+
+
+class _InterruptInCallback:
+    """A ``sys.unraisablehook`` for the length of :func:`main`: an interrupt that lands while Python
+    runs a callback whose exceptions it cannot raise (a weakref callback such as the import lock's,
+    a ``__del__``, a finaliser) was printed as "Exception ignored in ... Traceback ... KeyboardInterrupt"
+    and then dropped, so the command went on as if never interrupted. Here it is kept quiet and the
+    signal is sent again 50 ms later, when it lands in ordinary code and ends the command as usual.
+    Any other unraisable exception goes to the hook that was there before."""
+
+    def __init__(self):
+        self.previous = None
+
+    def __call__(self, unraisable) -> None:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            _resend_later(signal.SIGTERM if "SIGTERM" in str(unraisable.exc_value) else signal.SIGINT)
+            return
+        (self.previous or sys.__unraisablehook__)(unraisable)
+
+    def install(self) -> None:
+        self.previous, sys.unraisablehook = sys.unraisablehook, self
+
+    def remove(self) -> None:
+        if sys.unraisablehook is self:
+            sys.unraisablehook = self.previous
+
+
 class _TorchImportGuard:
     """A ``sys.meta_path`` finder that holds SIGINT and SIGTERM back while torch imports (wherever
     a command first imports it) and delivers the interrupt once it is imported: a KeyboardInterrupt
@@ -110,10 +146,7 @@ class _HeldLoader:
             for s, h in old.items():
                 signal.signal(s, h if h is not None else signal.SIG_DFL)
         if caught:  # sent again once the import is done: raised here, it failed the import and left
-            import os  # torch half registered (a later import: "Only a single TORCH_LIBRARY ...")
-            import threading
-
-            threading.Timer(0.05, os.kill, (os.getpid(), caught[0])).start()
+            _resend_later(caught[0])  # torch half registered (a later import: "Only a single TORCH_LIBRARY ...")
 
     def __getattr__(self, name):  # anything else the import system asks of the real loader
         return getattr(self.loader, name)
@@ -129,8 +162,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         from dvsland.allocator import tune_allocator
 
         tune_allocator()
-    guard = _TorchImportGuard()
+    guard, in_callback = _TorchImportGuard(), _InterruptInCallback()
     guard.install()
+    in_callback.install()
     started = []
     try:
         return _run(argv, started)
@@ -152,6 +186,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             except KeyboardInterrupt:
                 continue
         guard.remove()
+        in_callback.remove()
         for s, h in old.items():
             try:
                 signal.signal(s, h if h is not None else signal.SIG_DFL)
