@@ -319,6 +319,10 @@ class LearnedConfig:
                               "'spiking8_dagger' = spiking8_both trained on its own closed-loop flights through the "
                               "realistic pixel")
     min_events: int = opt(20, "windows with fewer events give no estimate (NaN)", rng=(1, 1000000000))
+    flips: int = opt(1, "mirrored copies of each window the network reads, their estimates averaged (test-time "
+                        "mirroring; the recipe trains on mirrored windows): 1 = the window alone, 2 = and its 180 "
+                        "degree turn, 4 = and its mirrorings in x and y, 8 = and their transposes; each copy costs "
+                        "one more forward", choices=(1, 2, 4, 8))
 
 
 @dataclass

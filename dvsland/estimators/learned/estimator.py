@@ -34,6 +34,7 @@ from ..registry import register_estimator
 from .checkpoint import load_checkpoint
 from .models import SpikingVoxelNet, VoxelCNN
 from .fast import RingCNN
+from .flips import check_flips, run_copies
 from .rows import rows_path, run_rows
 from .inputs import InputSpec, camera_map, coord_channels, events_voxel_grid, pixel_cells, row_counts
 
@@ -202,13 +203,14 @@ def _learned_step(p: LearnedConfig, c: LearnedConsts, state: LearnedState, event
     activity: Dict[str, torch.Tensor] = {}
     ok = n >= p.min_events
     rows_only = rows_path(ring) and not train  # the network on the rows with an estimate only
-    if c.ring_net is not None and rows_only:
-        mu, log_var = c.ring_net.forward_rows(ring, sums, q, torch.log1p(total), ok)
-    elif c.ring_net is not None:
-        mu, log_var = c.ring_net(ring, sums, q, torch.log1p(total))
+    ring_net = c.ring_net if p.flips == 1 else None  # mirrored copies: the model as trained
+    if ring_net is not None and rows_only:
+        mu, log_var = ring_net.forward_rows(ring, sums, q, torch.log1p(total), ok)
+    elif ring_net is not None:
+        mu, log_var = ring_net(ring, sums, q, torch.log1p(total))
     else:
         mu, log_var, activity = _model_forward(c, ordered_ring(st, spec), torch.log1p(total),
-                                               ok if rows_only else None)
+                                               ok if rows_only else None, p.flips)
     nan = torch.full((), float("nan"), device=ring.device)
     d = torch.where(ok, -torch.exp(mu), nan).to(torch.float32)
     sig = torch.where(ok, torch.exp(0.5 * log_var), nan).to(torch.float32)
@@ -217,22 +219,28 @@ def _learned_step(p: LearnedConfig, c: LearnedConsts, state: LearnedState, event
     return st, EstimateOut(d, conf, {"sigma_rel": sig, "n_events": st.n_events, "confidence": conf, **activity})
 
 
-def _model_forward(c: LearnedConsts, vox: torch.Tensor, log_count: torch.Tensor, need: Optional[torch.Tensor]):
+def _model_forward(c: LearnedConsts, vox: torch.Tensor, log_count: torch.Tensor, need: Optional[torch.Tensor],
+                   flips: int = 1):
     """(mu, log_var, activity) of the model without a ring net: on the rows of ``need`` (B,) bool
     only where given and ``c.rows_exact`` is set (:func:`~.rows.run_rows`; a row not run has 0
-    spikes and synaptic operations), else on every row."""
+    spikes and synaptic operations), else on every row; each row as the pool of its ``flips``
+    mirrored copies (:mod:`.flips`)."""
     keys: list = []
 
-    def call(v, lc):
+    def net(v, lc):
         mu, log_var = c.model(v, c.coords, lc)
         act = getattr(c.model, "last_activity", {})
         keys[:] = list(act)
         return (mu, log_var, *(act[k] for k in keys))
 
+    def call(v, lc):
+        return run_copies(net, v, flips, lc)
+
     if need is None or c.rows_exact is None:
         out = call(vox, log_count)
     else:  # (with no row needed, the padding rows run: the activity keeps its keys)
-        out = run_rows(call, (vox, log_count), need, c.rows_exact)
+        exact = c.rows_exact if flips == 1 else c.rows_exact.setdefault(("flips", flips), {})  # another batch shape
+        out = run_rows(call, (vox, log_count), need, exact)
     return out[0], out[1], {k: v.clone() for k, v in zip(keys, out[2:])}
 
 
@@ -287,6 +295,9 @@ class LearnedEstimator(DivergenceEstimator):
             a state read from ``state`` before an update shares the ring and changes with it:
             ``tree_clone`` it to keep it). ``False``: a new ring per update. :meth:`step_state`
             never donates unless its caller asks.
+        flips: 1 (default), 2, 4 or 8 mirrored copies of each window, their estimates averaged
+            (test-time mirroring, :mod:`.flips`): each copy costs one more forward; with more
+            than 1 the CNN runs as trained (``fast`` does not apply).
 
     Params: ``params`` (:class:`LearnedConfig`) and ``consts`` (:class:`LearnedConsts`); state:
     :class:`LearnedState`.
@@ -294,12 +305,13 @@ class LearnedEstimator(DivergenceEstimator):
 
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, checkpoint: str = "",
                  min_events: int = 20, principal_point_px=None, focal_px: Optional[float] = None,
-                 fast: str = "ring", donate: bool = True):
+                 fast: str = "ring", donate: bool = True, flips: int = 1):
         super().__init__(batch_size, sensor_size, device, dt_s, principal_point_px=principal_point_px)
         check_range("estimator.learned.min_events", min_events, 1, 1e9)
         self.checkpoint = resolve_checkpoint(checkpoint)
-        self.params = LearnedConfig(checkpoint=str(checkpoint), min_events=int(min_events))
         net, self.spec, ck = load_checkpoint(self.checkpoint)
+        flips = check_flips(flips, self.spec.sensor_size, self.spec.pool_px)
+        self.params = LearnedConfig(checkpoint=str(checkpoint), min_events=int(min_events), flips=flips)
         self.model = net.to(self.device)
         self.meta = {k: ck.get(k) for k in ("model", "input", "data", "train")}
         if fast not in ("ring", "bf16", ""):
@@ -313,7 +325,7 @@ class LearnedEstimator(DivergenceEstimator):
         self.coords = coord_channels(self.spec, ((W0 - 1) / 2.0, (H0 - 1) / 2.0), self.device)
         #: the CNN on its circular ring (:mod:`.fast`); None for other models (they get the ordered ring)
         self.ring_net = None
-        if fast and type(self.model) is VoxelCNN:
+        if fast and type(self.model) is VoxelCNN and flips == 1:
             self.ring_net = RingCNN(self.model, self.coords, self.spec.n_windows,
                                     dtype=torch.bfloat16 if fast == "bf16" else torch.float32)
         self.donate = bool(donate)
