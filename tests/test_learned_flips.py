@@ -8,7 +8,7 @@ import torch
 from dvsland.estimators.learned.flips import check_flips, mirrored_copies, pool_copies, run_copies
 from dvsland.events import Events
 
-from test_learned import _checkpoint, _events, _plain
+from test_learned import _checkpoint, _events, _plain, ckpt  # noqa: F401 - ckpt: the fixture of a small CNN checkpoint
 
 
 def _mirror(ev: Events, W=128, H=128, x=False, y=False, transpose=False) -> Events:
@@ -20,14 +20,6 @@ def _mirror(ev: Events, W=128, H=128, x=False, y=False, transpose=False) -> Even
     if transpose:
         ex, ey = ey, ex
     return Events(b=ev.b, x=ex, y=ey, t=ev.t, p=ev.p)
-
-
-@pytest.fixture
-def ckpt(tmp_path):
-    torch.manual_seed(0)
-    path = tmp_path / "m.pt"
-    _checkpoint(path)
-    return path
 
 
 @pytest.fixture
