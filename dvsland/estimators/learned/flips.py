@@ -8,9 +8,9 @@ mirrors every sample in x and y and transposes it, each with probability 1/2), s
 estimates of the mirrored copies of one window are equally good guesses whose errors differ; their
 mean is a better one (test-time augmentation).
 
-``flips`` copies of each row, each copy a batched forward of the B rows: 1 (the window alone, the default), 2 (and
-its 180 degree turn), 4 (and its mirrorings in x and in y), 8 (and the transposes of these four:
-the whole symmetry group of a square canvas). The estimate is the mean of the copies' mu (log|D|);
+``flips`` copies of each row, each copy one batched forward of the B rows: 1 (the window alone, the
+default), 2 (and its 180 degree turn), 4 (and its mirrorings in x and in y), 8 (and the transposes
+of these four: the whole symmetry group of a square canvas). The estimate is the mean of the copies' mu (log|D|);
 its predicted variance is the copies' mean variance plus the variance of their mu (the spread of a
 mixture of the copies' Gaussians). Spikes and synaptic operations add up over the copies: they are
 the update's cost.
