@@ -28,10 +28,12 @@ SHIPPED = [("cmax", {}), ("dpr", {}), ("dpr", {"baseline_steps": 5}), ("snn", {}
            ("learned", {"checkpoint": "spiking8"}), ("learned", {"checkpoint": "cnn_both"}),
            ("learned", {"checkpoint": "spiking8_both"}), ("learned", {"checkpoint": "spiking8_dagger"}),
            ("learned", {"checkpoint": "spiking8_px2"}), ("learned", {"checkpoint": "cnn_both", "flips": 8}),
-           ("learned", {"checkpoint": "spiking8_px2", "flips": 2})]
+           ("learned", {"checkpoint": "spiking8_px2", "flips": 2}), ("learned", {"checkpoint": "spiking8_px2_more"}),
+           ("learned", {"checkpoint": "spiking8_px2_more", "flips": 8})]
 IDS = ["cmax", "dpr", "dpr5", "snn", "learned-cnn", "learned-spiking", "learned-cnn-landing", "learned-cnn-wide",
        "learned-cnn-dagger", "learned-spiking8", "learned-cnn-both", "learned-spiking8-both",
-       "learned-spiking8-dagger", "learned-spiking8-px2", "learned-cnn-both-flips8", "learned-spiking8-px2-flips2"]
+       "learned-spiking8-dagger", "learned-spiking8-px2", "learned-cnn-both-flips8", "learned-spiking8-px2-flips2",
+       "learned-spiking8-px2-more", "learned-spiking8-px2-more-flips8"]
 #: and the combination of two of them (its members run the test; it abstains where they all do)
 WITH_FUSED, IDS_FUSED = SHIPPED + [("fused", {})], IDS + ["fused-cmax-learned"]
 

@@ -315,7 +315,8 @@ def test_spiking_nir_round_trip_agrees(tmp_path):
 
 
 @pytest.mark.parametrize("which", ["", "spiking", "spiking8", "spiking8_both", "spiking8_dagger", "spiking8_px2",
-                                   "cnn_realistic", "cnn_landing", "cnn_wide", "cnn_dagger", "cnn_both"])
+                                   "spiking8_px2_more", "cnn_realistic", "cnn_landing", "cnn_wide", "cnn_dagger",
+                                   "cnn_both"])
 def test_shipped_checkpoints_load_and_estimate(which):
     from dvsland.estimators.learned.estimator import SHIPPED
 

@@ -315,6 +315,7 @@ class LearnedConfig:
                               "'spiking' = the shipped spiking model, "
                               "'spiking8' = the spiking model on eight control steps (0.8 s) of events, "
                               "'spiking8_px2' = spiking8 refined onto 2-pixel cells, "
+                              "'spiking8_px2_more' = spiking8_px2 fine-tuned on four more seeds of both laws, "
                               "'spiking8_both' = spiking8 fine-tuned on its datasets flown through both pixels, "
                               "'spiking8_dagger' = spiking8_both trained on its own closed-loop flights through the "
                               "realistic pixel")

@@ -43,8 +43,9 @@ from .inputs import InputSpec, camera_map, coord_channels, events_voxel_grid, pi
 #: fine-tuned on the landing loss through the closed loop (`dvsland train-loop --what estimator`,
 #: docs/train_loop.md), the CNN fine-tuned on the recipe's datasets flown through both pixels, the
 #: spiking model, the spiking model on eight windows, that one refined onto 2-pixel cells, that one
-#: fine-tuned through both pixels, and that one trained on its own closed-loop flights through the
-#: realistic pixel (DAgger; docs/learning.md)
+#: fine-tuned on four more seeds of both laws, the eight-window model fine-tuned through both pixels,
+#: and that one trained on its own closed-loop flights through the realistic pixel (DAgger;
+#: docs/learning.md)
 SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"),
            "cnn_realistic": Path(__file__).with_name("learned_cnn_realistic.pt"),
            "cnn_landing": Path(__file__).with_name("learned_cnn_landing.pt"),
@@ -54,6 +55,7 @@ SHIPPED = {"cnn": Path(__file__).with_name("learned_cnn.pt"),
            "spiking": Path(__file__).with_name("learned_spiking.pt"),
            "spiking8": Path(__file__).with_name("learned_spiking8.pt"),
            "spiking8_px2": Path(__file__).with_name("learned_spiking8_px2.pt"),
+           "spiking8_px2_more": Path(__file__).with_name("learned_spiking8_px2_more.pt"),
            "spiking8_both": Path(__file__).with_name("learned_spiking8_both.pt"),
            "spiking8_dagger": Path(__file__).with_name("learned_spiking8_dagger.pt")}
 
@@ -259,7 +261,8 @@ def default_focal_px(sensor_size) -> float:
 def resolve_checkpoint(checkpoint: str) -> Path:
     """``""`` or ``"cnn"`` -> the shipped CNN, another name of :data:`SHIPPED` (``"cnn_realistic"``,
     ``"cnn_landing"``, ``"cnn_wide"``, ``"cnn_dagger"``, ``"cnn_both"``, ``"spiking"``, ``"spiking8"``,
-    ``"spiking8_px2"``, ``"spiking8_both"``, ``"spiking8_dagger"``) -> that checkpoint, else a path."""
+    ``"spiking8_px2"``, ``"spiking8_px2_more"``, ``"spiking8_both"``, ``"spiking8_dagger"``) -> that
+    checkpoint, else a path."""
     key = str(checkpoint or "cnn")
     return SHIPPED.get(key, Path(key))
 
@@ -276,7 +279,8 @@ class LearnedEstimator(DivergenceEstimator):
             on its own closed-loop flights, on its datasets through both pixels (docs/learning.md),
             ``"spiking"`` = the shipped spiking model, ``"spiking8"`` = the spiking model on eight
             control steps (0.8 s) of events, ``"spiking8_px2"`` = ``spiking8`` refined onto 2-pixel
-            cells (the ideal pixel's best spiking model), ``"spiking8_both"`` = ``spiking8``
+            cells, ``"spiking8_px2_more"`` = that one fine-tuned on four more seeds of both laws
+            (the ideal pixel's best spiking model), ``"spiking8_both"`` = ``spiking8``
             fine-tuned on its datasets flown through both pixels, ``"spiking8_dagger"`` = that one
             trained on its own closed-loop flights through the realistic pixel (DAgger).
         min_events: windows with fewer events give NaN, in [1, 1e9].
