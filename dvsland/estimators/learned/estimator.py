@@ -241,8 +241,7 @@ def _model_forward(c: LearnedConsts, vox: torch.Tensor, log_count: torch.Tensor,
     if need is None or c.rows_exact is None:
         out = call(vox, log_count)
     else:  # (with no row needed, the padding rows run: the activity keeps its keys)
-        exact = c.rows_exact if flips == 1 else c.rows_exact.setdefault(("flips", flips), {})  # another batch shape
-        out = run_rows(call, (vox, log_count), need, exact)
+        out = run_rows(call, (vox, log_count), need, c.rows_exact)  # copies run in turn: the same batch shapes
     return out[0], out[1], {k: v.clone() for k, v in zip(keys, out[2:])}
 
 
