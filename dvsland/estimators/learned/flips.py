@@ -57,7 +57,7 @@ def mirrored_copies(vox: torch.Tensor, flips: int) -> List[torch.Tensor]:
 
 def run_copies(net: Callable, vox: torch.Tensor, flips: int, *args):
     """``net(copy, *args)`` -> (mu, log_var, *activity) of each mirrored copy of ``vox`` in turn (one
-    batch of B rows at a time: a batch of ``flips`` B rows ran 1.4 times slower per row on a CPU),
+    batch of B rows at a time: one batch of ``flips`` B rows cost 1.4 to 2.8 times more per row on a CPU),
     pooled by :func:`pool_copies`; with ``flips`` 1 the call as it is."""
     if flips == 1:
         return net(vox, *args)
