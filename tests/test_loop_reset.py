@@ -40,6 +40,18 @@ def test_reset_leaves_other_descents_bit_identical(est):
         assert torch.equal(outs[-1].thrust_n[1], fresh_outs[-1].thrust_n[1])
 
 
+def test_restarted_descent_estimates_from_the_same_flight_step_as_a_new_one():
+    """A descent restarted while its batch-mate flies on gets its first estimate at the flight step a
+    new descent gets its first (cmax needs a full window: its estimator state restarts with the
+    emulator, not one step before it)."""
+    st = _stages("cmax", "A,D")
+    _, fresh_outs = fly_steps(st, init_state(st), 8)
+    s, _ = fly_steps(st, init_state(st), 3)
+    _, outs = fly_steps(st, reset_where(st, s, torch.tensor([True, False, False, False])), 8)
+    first = [next(i for i, o in enumerate(seq) if not torch.isnan(o.d_est[0])) for seq in (fresh_outs, outs)]
+    assert first[0] == first[1]
+
+
 def test_restarted_descent_gets_new_start_and_clean_bookkeeping():
     st = _stages("oracle", "D")
     s = init_state(st, z_m=torch.tensor([60.0, 3000.0]), v_mps=-10.0)

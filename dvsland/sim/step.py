@@ -265,6 +265,9 @@ def estimate(stages, state: LoopState, events, t_us: int, grad: bool = False) ->
     st, out = call_plugin(name, "update", fns.estimator.step_state, st, events, t_us, truth)
     d_hat = check_batch_tensor(out.d_hat, B, dev, name, "update", detach=not grad).to(dtype=torch.float64)
     if stages.events is not None and state.restarted is not None:
+        # a restarted descent leaves this step as a new one leaves its first frame: no estimate, and
+        # an estimator state that has seen nothing (so its first window starts on the next step)
+        st = fns.estimator.reset_where(st, state.restarted)
         d_hat = torch.where(state.restarted, torch.full_like(d_hat, float("nan")), d_hat)
     d_hat, bad = sanitise_estimates(d_hat)  # +-inf or absurd |D_hat| -> NaN, counted
     if grad == "straight_through":
