@@ -25,6 +25,9 @@ STAGE_BENCHES = {
     "throughput": ("throughput", ["--device", "{device}", "--batches", "18,63,256", "--json", "{json}"],
                    ["--device", "{device}", "--batches", "18,63", "--steps", "10", "--estimators", "oracle,learned",
                     "--json", "{json}"]),
+    "fleet": ("fleet", ["--device", "{device}", "--batch", "18", "--descents", "54", "--estimator", "learned",
+                        "--json", "{json}"],
+              ["--device", "{device}", "--batch", "9", "--descents", "18", "--estimator", "oracle", "--json", "{json}"]),
     "sim": ("stage_sim", ["--threads", "1", "--set", "render.threads=1", "--json", "{json}", "--out", "{dir}"],
             ["--threads", "1", "--set", "render.threads=1", "--sites", "A,D,H", "--json", "{json}", "--out", "{dir}"]),
 }

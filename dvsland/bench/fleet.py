@@ -1,0 +1,89 @@
+"""Whole descents per minute: a fleet of ``--descents`` descents through ``--batch`` slots.
+
+    python -m dvsland.bench.fleet --device cuda --batch 8192 --descents 16384 --estimator learned
+    python -m dvsland.bench.fleet --batch 18 --descents 36 --estimator oracle         # this CPU
+    dvsland bench fleet [--device cuda] [--quick]                                      # into a bench run folder
+
+:func:`dvsland.sim.fleet.fly_fleet` on the preset (``montecarlo_efference`` as shipped unless
+``--set`` changes it): every slot restarts as soon as its descent ends, so no descent waits for its
+batch-mates. Reported: set-up seconds (terrain, stages), the flight's wall time, whole descents per
+minute over the whole flight (the first descents' start to the last one's end: ramp and tail
+included) and in the steady part (from the first restart until the last descent has started: every
+slot busy), steps, and the outcome counts. One JSON line on stdout; ``--json`` writes it to a file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Dict, List, Sequence
+
+import torch
+
+
+def run_fleet(estimator: str, batch_size: int, n_descents: int, device: str, preset: str = "montecarlo_efference",
+              overrides: Sequence[str] = (), check_every: int = 4, max_steps=None) -> Dict:
+    """One fleet: set-up, flight, descents per minute (whole and steady), outcomes."""
+    from dvsland.config import load_config
+    from dvsland.envs.layout import fit_layout
+    from dvsland.sim.fleet import fly_fleet
+    from dvsland.stages import build_stages
+
+    t0 = time.perf_counter()
+    cfg = load_config(preset, [f"estimator.name={estimator}", "render.threads=1", f"simulation.device={device}",
+                               *overrides])
+    stages = build_stages(cfg, fit_layout(cfg, None, batch_size), device)
+    setup_s = time.perf_counter() - t0
+    checks: List[tuple] = []
+    t_fly = time.perf_counter()
+    result = fly_fleet(stages, n_descents, check_every=check_every, max_steps=max_steps,
+                       on_check=lambda step, ended, started: checks.append((time.perf_counter() - t_fly, step,
+                                                                            ended, started)))
+    steady = steady_rate(checks, stages.batch_size, result.n_started)
+    return {"estimator": estimator, "B": stages.batch_size, "device": str(device), "descents": n_descents,
+            "check_every": check_every, "setup_s": round(setup_s, 2), "wall_s": round(result.wall_s, 2),
+            "steps": result.steps, "descent_steps_per_s": round(stages.batch_size * result.steps / max(result.wall_s, 1e-9)),
+            "descents_per_min": round(result.descents_per_minute(), 1), "steady_descents_per_min": steady,
+            "n_ended": result.n_ended, "complete": result.complete,
+            "mean_flight_s": round(float(result.descents["t_end_s"].mean()), 2) if result.n_ended else None,
+            "outcomes": result.outcome_counts()}
+
+
+def steady_rate(checks: Sequence[tuple], batch_size: int, n_started: int):
+    """Descents ended per minute between the first restart and the check at which the last descent
+    started (every slot busy); None when the fleet never restarted a slot. ``checks``: (wall s,
+    step, ended, started) per check."""
+    first = next((c for c in checks if c[3] > batch_size), None)
+    last = next((c for c in checks if c[3] >= n_started), None)
+    if first is None or last is None or last[0] <= first[0]:
+        return None
+    return round(60.0 * (last[2] - first[2]) / (last[0] - first[0]), 1)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--batch", type=int, default=18, help="slots B")
+    ap.add_argument("--descents", type=int, default=36, help="whole descents to fly")
+    ap.add_argument("--estimator", default="learned")
+    ap.add_argument("--preset", default="montecarlo_efference")
+    ap.add_argument("--check-every", type=int, default=4, help="steps between checks for ended descents")
+    ap.add_argument("--max-steps", type=int, default=None, help="stop after this many steps")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], help="config override (repeatable)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--json", default=None, help="also write the row and the machine to this JSON file")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    from dvsland.bench.throughput import machine
+
+    row = run_fleet(a.estimator, a.batch, a.descents, a.device, a.preset, a.overrides, a.check_every, a.max_steps)
+    print(json.dumps(row), flush=True)
+    if a.json:
+        Path(a.json).write_text(json.dumps({"machine": machine(), "rows": [row]}, indent=1) + "\n")
+    return 0 if row["n_ended"] else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
