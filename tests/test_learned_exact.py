@@ -48,6 +48,24 @@ def test_ring_net_matches_the_reference_bit_for_bit(dtype, K):
             assert torch.equal(got[0], ref[0]) and torch.equal(got[1], ref[1]), (q, got, ref)
 
 
+@pytest.mark.parametrize("K", [1, 4])
+def test_ring_net_channels_last_matches_the_default_layout(K):
+    """The float32 ring channels-last (what a GPU runs) gives the default layout's numbers."""
+    torch.manual_seed(K)
+    net = VoxelCNN(n_bins=4, width=8).eval()
+    spec = InputSpec((64, 48), 4, 2, n_windows=K)
+    coords = coord_channels(spec, (31.5, 23.5))
+    plain, cl = RingCNN(net, coords, K), RingCNN(net, coords, K, channels_last=True)
+    assert cl.channels_last and not plain.channels_last
+    ring = torch.randint(-3, 4, (5, 4, *spec.grid_hw)).to(torch.float32)
+    abs_sums = ring.abs().view(5, K, -1).sum(2)
+    log_count = torch.log1p(torch.full((5,), 700.0))
+    with torch.no_grad():
+        for q in range(K):
+            got, ref = cl(ring, abs_sums, torch.full((5,), q), log_count), plain(ring, abs_sums, q, log_count)
+            assert all(torch.allclose(a, b, rtol=1e-5, atol=1e-5) for a, b in zip(got, ref))
+
+
 def test_ring_net_refuses_an_unknown_feature_layout():
     net = VoxelCNN(n_bins=4, width=8).eval()
     net.features[2] = torch.nn.Identity()

@@ -330,7 +330,8 @@ class LearnedEstimator(DivergenceEstimator):
         self.ring_net = None
         if fast and type(self.model) is VoxelCNN and flips == 1:
             self.ring_net = RingCNN(self.model, self.coords, self.spec.n_windows,
-                                    dtype=torch.bfloat16 if fast == "bf16" else torch.float32)
+                                    dtype=torch.bfloat16 if fast == "bf16" else torch.float32,
+                                    channels_last=torch.device(self.device).type == "cuda")
         self.donate = bool(donate)
         self.consts = LearnedConsts(self.batch_size, self.dt_s, self.spec, self.cmap, self.cells, self.coords,
                                     self.model, self.ring_net,

@@ -51,10 +51,13 @@ class RingCNN(nn.Module):
         dtype: ``torch.float32`` (default) or ``torch.bfloat16``: the convolutions in bfloat16,
             channels-last (about twice as fast on a CPU with AVX512-BF16; the head stays float32;
             mu moves by about 1e-2, see docs/learning.md).
+        channels_last: run the float32 convolutions channels-last too (on a GPU: cuDNN's kernels
+            want that layout and would otherwise transpose every input and output; the same numbers
+            up to the convolution's own rounding). Always on in bfloat16.
     """
 
     def __init__(self, net: VoxelCNN, coords: torch.Tensor, n_windows: int,
-                 dtype: torch.dtype = torch.float32):
+                 dtype: torch.dtype = torch.float32, channels_last: bool = False):
         super().__init__()
         conv1 = net.features[0]
         nb, K = net.n_bins, int(n_windows)
@@ -64,8 +67,9 @@ class RingCNN(nn.Module):
             self.w_vox = w[:, :nb].reshape(w.shape[0], K, self.bpw, *w.shape[2:]).clone()
             self.const = F.conv2d(coords.to(w), w[:, nb:], conv1.bias, conv1.stride, conv1.padding)
         self.dtype = dtype
+        self.channels_last = bool(channels_last) or dtype != torch.float32
         self.rest = net.features[1:]
-        if dtype != torch.float32:
+        if self.channels_last:
             import copy
 
             self.rest = copy.deepcopy(self.rest).to(dtype).to(memory_format=torch.channels_last)
@@ -111,7 +115,7 @@ class RingCNN(nn.Module):
         else:
             wq = self.w_by_newest[int(newest)]
         s = (abs_sums.sum(1) / float(nb * h * w)).clamp_min(1e-3)
-        if self.dtype != torch.float32:
+        if self.channels_last:
             ring = ring.to(self.dtype).contiguous(memory_format=torch.channels_last)
         y = F.conv2d(ring, wq, None, self.stride, self.padding)
         if self.dtype == torch.float32:  # addcdiv into y (one pass: the bits of div then add) and ReLU
