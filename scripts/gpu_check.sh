@@ -12,10 +12,12 @@
 # Here, once: `bash scripts/gpu_check.sh --wheels` downloads the packages the device machine lacks
 # into .whl/ (git-ignored through .git/info/exclude). Then, with the device tool:
 #   run(command="bash scripts/gpu_check.sh", carry=[".whl"], timeout_s=570)
-# PARTS="1 2 3 5 6" (the default) picks the parts to run. On 2026-11-27 an H200 took 75 s (1),
-# about 150 s (2, with COMPILED=0), 133 s (3), 182 s (5, 600 seeds) and did not reach 6 within 560 s:
-# with a 15-minute lease, run "1 2 3" and "5 6" as two calls on the same warm machine. Part 4 (the
-# campaign in several processes on one card) finished no shard in 120 s and is left out by default.
+# PARTS="1 2 3 5 6" (the default) picks the parts to run; part 7 (FLEET_N whole descents through
+# FLEET_B slots that restart as theirs end, at most FLEET_STEPS steps) runs when named. On 2026-11-27
+# an H200 took 75 s (1), about 150 s (2, with COMPILED=0), 133 s (3), 182 s (5, 600 seeds) and did not
+# reach 6 within 560 s: with a 15-minute lease, run "1 2 3" and "5 6" as two calls on the same warm
+# machine. On 2026-11-28, 45 s (1), 30 s (2) and 132 s (3). Part 4 (the campaign in several processes
+# on one card) finished no shard in 120 s and is left out by default.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 if [ "${1:-}" = "--wheels" ]; then
@@ -93,5 +95,13 @@ if [[ $PARTS == *" 6 "* ]]; then
     grep -m1 "^B = " "$RES/profile_${eb%:*}_${eb#*:}.txt" | tee -a "$SUM"
     snapshot
   done
+fi
+# 7. whole descents per minute in a fleet (dvsland.sim.fly_fleet: every slot restarts as its descent ends)
+if [[ $PARTS == *" 7 "* ]]; then
+  echo "## 7. fleet" | tee -a "$SUM"
+  timeout "${FLEET_LIMIT:-200}" python3 -m dvsland.bench.fleet --device cuda --batch "${FLEET_B:-8192}" \
+    --descents "${FLEET_N:-24576}" --estimator "${FLEET_EST:-learned}" --max-steps "${FLEET_STEPS:-3500}" "${FIX[@]}" \
+    --json "$RES/fleet.json" > "$RES/fleet.log" 2>&1; tail -2 "$RES/fleet.log" | tee -a "$SUM"
+  snapshot
 fi
 exit 0
