@@ -309,11 +309,7 @@ def _box_canvas(sensor_box, Hc: int, Wc: int) -> Tuple[int, int, int, int]:
 def _splat_sums_torch(xc, yc, b, half, scale, ginv_t, wt, centre_xy, sensor_box, box):
     """The torch path of :func:`_splat_sums` for (G, E) ``scale`` and (G, B) ``ginv_t``: the
     reference of the compiled kernel, operation for operation in float32. ``box`` (x_off, y_off,
-    Hb, Wb) is the crop of the canvas that the counted weight falls in (:func:`_box_canvas`).
-
-    The image sums come from the canvas (:func:`_canvas_sums`) or, on the devices of
-    :data:`SUMS_AT_EVENTS`, are read back at the events (:func:`_event_sums`); both are exact
-    integer sums, so they give the same bits."""
+    Hb, Wb) is the crop of the canvas that the counted weight falls in (:func:`_box_canvas`)."""
     G, B = ginv_t.shape
     ox, oy, Hb, Wb = box
     P = Hb * Wb
@@ -339,47 +335,13 @@ def _splat_sums_torch(xc, yc, b, half, scale, ginv_t, wt, centre_xy, sensor_box,
     base = img * P + (y0.to(torch.int64) - oy) * Wb + (x0.to(torch.int64) - ox)
     canvas = torch.zeros(G * B * 2 * P, dtype=torch.int64, device=b.device)
     zero = torch.zeros((), dtype=torch.int64, device=b.device)
-    corners = [(base + off, torch.where(inside, (wk * WEIGHT_UNIT).round().to(torch.int64), zero))
-               for off, wk in ((0, wy0 - a), (1, a), (Wb, wy1 - c), (Wb + 1, c))]
-    for addr, q in corners:
-        canvas.index_add_(0, addr.view(-1), q.view(-1))
-    if b.device.type in SUMS_AT_EVENTS:
-        return _event_sums(canvas, corners, img, half, G, B, P)
-    return _canvas_sums(canvas, G, B, P)
-
-
-#: devices whose torch path reads the image sums back at the events (:func:`_event_sums`) instead of
-#: over the whole canvas (:func:`_canvas_sums`); the same bits either way
-SUMS_AT_EVENTS = ("cuda",)
-
-
-def _canvas_sums(canvas, G: int, B: int, P: int):
-    """(n (B, G, 2), s (B, G, 3)) int64 of the (G B 2 P) images: sums, and sum I0^2, I1^2, I0 I1."""
+    for off, wk in ((0, wy0 - a), (1, a), (Wb, wy1 - c), (Wb + 1, c)):
+        q = torch.where(inside, (wk * WEIGHT_UNIT).round().to(torch.int64), zero)
+        canvas.index_add_(0, (base + off).view(-1), q.view(-1))
     ims = canvas.view(G, B, 2, P)
     i0, i1 = ims[:, :, 0], ims[:, :, 1]
     n = ims.sum(-1).permute(1, 0, 2)  # (B, G, 2)
     s = torch.stack([(i0 * i0).sum(-1), (i1 * i1).sum(-1), (i0 * i1).sum(-1)], -1).permute(1, 0, 2)
-    return n, s
-
-
-def _event_sums(canvas, corners, img, half, G: int, B: int, P: int):
-    """:func:`_canvas_sums` read back at the events: sum_pixels I^2 is the sum over the events'
-    corners of weight x I at the corner, and sum_pixels I0 I1 that of half 0's corners with I1. The
-    canvas is never read whole (on a GPU at B = 8192 one candidate's canvas is 2.3 GB, and each
-    pass over it some 0.6 ms); the gathers and one sum per image touch only the events' pixels.
-    ``corners``: the four (address (G, E), integer weight (G, E)) of the splat; ``img`` (G, E)."""
-    is0 = half == 0
-    to_other = torch.where(is0, P, -P)  # (E,) the same pixel on the other half's image
-    n_e, own, cross = (torch.zeros_like(img) for _ in range(3))
-    for addr, q in corners:
-        n_e += q
-        own += q * canvas.index_select(0, addr.view(-1)).view_as(q)
-        cross += q * canvas.index_select(0, (addr + to_other).view(-1)).view_as(q)
-    sums = torch.zeros(G * B * 2, 3, dtype=torch.int64, device=img.device)
-    sums.index_add_(0, img.view(-1), torch.stack([n_e, own, cross * is0], -1).view(-1, 3))
-    sums = sums.view(G, B, 2, 3)
-    n = sums[..., 0].permute(1, 0, 2)  # (B, G, 2)
-    s = torch.stack([sums[:, :, 0, 1], sums[:, :, 1, 1], sums[:, :, 0, 2]], -1).permute(1, 0, 2)
     return n, s
 
 
