@@ -90,6 +90,30 @@ def test_emulator_caps_events_per_step():
     assert len(emu.step(frames1, 100_000)) == 2 * 16 * 16 * 16  # log(5)/0.1 = 16.09 crossings
 
 
+def test_event_cap_grows_with_the_batch():
+    """A large batch's step may emit max_events_per_descent x B events: the 20 M cap of one step
+    stopped an 8,192-descent fleet near the ground (20.2 M events) on a card with 139 GiB free."""
+    from dvsland.config.validate import check_event_rates, event_cap_of, memory_parts
+
+    frames0, frames1 = torch.full((2, 16, 16), 0.1), torch.full((2, 16, 16), 0.5)  # 8,192 events per step
+    for per_descent, ok in ((0, False), (4_000, False), (4_096, True)):
+        emu = EventEmulator(threshold=0.1, max_events_per_step=1_000, max_events_per_descent=per_descent)
+        emu.reset(frames0, 0)
+        if ok:
+            assert len(emu.step(frames1, 100_000)) == 2 * 16 * 16 * 16
+        else:
+            with pytest.raises(ValueError, match=f"max_events_per_descent = {per_descent} x 2 descents"):
+                emu.step(frames1, 100_000)
+    cfg = _cfg()
+    assert cfg.emulator.max_events_per_descent == 10_000 and EventEmulator.from_config(cfg.emulator) \
+        .params.max_events_per_descent == 10_000
+    assert event_cap_of(cfg, 576) == 20_000_000 and event_cap_of(cfg, 8192) == 81_920_000
+    assert memory_parts(cfg, batch_size=8192)["events"] == 81_920_000 * 48
+    check_event_rates(_cfg("emulator.background_rate_hz=4"), batch_size=8192)  # 55 M events: under the cap
+    with pytest.raises(ConfigError, match="max_events_per_descent = 0 x B"):
+        check_event_rates(_cfg("emulator.background_rate_hz=4", "emulator.max_events_per_descent=0"), batch_size=8192)
+
+
 def test_config_caps_flow_into_emulator():
     cfg = _cfg("emulator.max_events_per_step=123")
     assert EventEmulator.from_config(cfg.emulator).max_events_per_step == 123

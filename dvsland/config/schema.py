@@ -182,6 +182,10 @@ class EmulatorConfig:
     max_events_per_step: int = opt(20_000_000, "most events one step may emit (all cameras together); more is "
                                    "an error naming this parameter, raised before the events are allocated "
                                    "(about 48 bytes per event at the peak; not in paper)", rng=(1, 10**11))
+    max_events_per_descent: int = opt(10_000, "a step of B descents may emit up to this times B events where that "
+                                      "is more than max_events_per_step: the cap grows with a large batch (B = 8192: "
+                                      "82 M events, about 3.7 GiB); 0 = max_events_per_step alone (not in paper)",
+                                      rng=(0, 10**9))
     # front-end denoising of every step's events (dvsland.events.denoise; docs/events.md), not in paper
     denoise: str = opt("none", "front-end event filters: 'none', or 'baf', 'refractory', 'hot_pixel' joined by '+' "
                        "(applied left to right, e.g. 'hot_pixel+baf'; tonic's definitions)")

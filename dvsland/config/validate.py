@@ -394,7 +394,7 @@ def memory_parts(cfg: Config, n_sites: Optional[int] = None, batch_size: Optiona
     site = max(SITE_BYTES_PER_PX * float(W * H), lg.n_levels * tex * ATLAS_BYTES_PER_TEXEL)
     parts = {"pixels": n_sites * site + B * STATE_BYTES_PER_PX * float(W * H),
              "terrain": tex * PREP_BYTES_PER_TEXEL,
-             "events": float(getattr(cfg.emulator, "max_events_per_step", 0) or 0) * BYTES_PER_EVENT, "cmax": 0.0}
+             "events": float(event_cap_of(cfg, B)) * BYTES_PER_EVENT, "cmax": 0.0}
     if cfg.estimator.name == "cmax":
         cm = cfg.estimator.cmax
         G = max(cm.n_grid, cm.refine_points)
@@ -402,6 +402,14 @@ def memory_parts(cfg: Config, n_sites: Optional[int] = None, batch_size: Optiona
         parts["cmax"] = B * (2.0 * (W + 3) * (H + 3) * CMAX_BYTES_PER_CANVAS_PX
                              + n_ev * (G * CMAX_BYTES_PER_EVENT_CANDIDATE + CMAX_BYTES_PER_EVENT))
     return parts
+
+
+def event_cap_of(cfg: Config, batch_size: int) -> int:
+    """The most events one step of ``batch_size`` descents may emit: the larger of
+    ``emulator.max_events_per_step`` and ``emulator.max_events_per_descent`` x ``batch_size``."""
+    em = cfg.emulator
+    return max(int(getattr(em, "max_events_per_step", 0) or 0),
+               int(getattr(em, "max_events_per_descent", 0) or 0) * int(batch_size))
 
 
 def _batch(cfg: Config, batch_size: Optional[int]) -> int:
@@ -432,7 +440,9 @@ def check_memory(cfg: Config, n_sites: Optional[int] = None, batch_size: Optiona
         f"{limit / 2 ** 30:.1f} GiB{limit_from}: {gib['pixels']} for the {cfg.camera.width_px}x{cfg.camera.height_px} px camera "
         f"(terrain tiles and {SITE_BYTES_PER_PX} B per pixel per site + {STATE_BYTES_PER_PX} B per pixel per "
         f"descent, B = {_batch(cfg, batch_size)}), {gib['terrain']} to prepare a terrain level, {gib['events']} for "
-        f"emulator.max_events_per_step = {getattr(cfg.emulator, 'max_events_per_step', 0)} x {BYTES_PER_EVENT} B"
+        f"{event_cap_of(cfg, _batch(cfg, batch_size))} events per step (emulator.max_events_per_step = "
+        f"{getattr(cfg.emulator, 'max_events_per_step', 0)}, emulator.max_events_per_descent = "
+        f"{getattr(cfg.emulator, 'max_events_per_descent', 0)} x B) x {BYTES_PER_EVENT} B"
         + (f", {gib['cmax']} for the cmax search (estimator.cmax.n_grid = {cm.n_grid})" if parts["cmax"] else "")
         + "; use fewer sites, settings or seeds, a smaller camera, a lower emulator.max_events_per_step or "
           "estimator.cmax.n_grid, or raise simulation.max_memory_gb")
@@ -475,13 +485,13 @@ def check_event_rates(cfg: Config, batch_size: Optional[int] = None, source: Opt
     ``emulator.max_events_per_step``; the message names the setting with the largest share and its
     value (values inside the schema's ranges can do this: ``background_rate_hz = 1e4`` on a DVS128
     at 10 Hz is 1000 events per pixel per step). A refractory period bounds a pixel's count."""
-    parts, cap = event_rate_parts(cfg), int(cfg.emulator.max_events_per_step)
+    parts = event_rate_parts(cfg)
     per_px = sum(parts.values())
     r_us = float(cfg.emulator.refractory_us)
     if r_us > 0:
         per_px = min(per_px, cfg.dt_s * 1e6 / r_us)
     B, W, H = _batch(cfg, batch_size), cfg.camera.width_px, cfg.camera.height_px
-    n = per_px * B * W * H
+    n, cap = per_px * B * W * H, event_cap_of(cfg, B)
     if n <= cap:
         return
     top = max(parts, key=parts.get)
@@ -490,6 +500,8 @@ def check_event_rates(cfg: Config, batch_size: Optional[int] = None, source: Opt
         f"{top}{_where(source)}: one control step would emit at least about {n:.3g} events "
         f"(B = {B} descents x {W}x{H} px x {per_px:.3g} per pixel per step"
         + (f", with {', '.join(others)}" if others else "")
-        + f"), above emulator.max_events_per_step = {cap} (about {n * BYTES_PER_EVENT / 2 ** 30:.3g} GiB at "
-          f"{BYTES_PER_EVENT} B per event); {'raise' if 'threshold' in top else 'lower'} {top.split(' = ')[0]}, fly fewer "
-          f"descents or raise emulator.max_events_per_step if the memory is there")
+        + f"), above the cap of {cap} (emulator.max_events_per_step = {cfg.emulator.max_events_per_step}, "
+          f"emulator.max_events_per_descent = {cfg.emulator.max_events_per_descent} x B; about "
+          f"{n * BYTES_PER_EVENT / 2 ** 30:.3g} GiB at {BYTES_PER_EVENT} B per event); "
+          f"{'raise' if 'threshold' in top else 'lower'} {top.split(' = ')[0]}, fly fewer descents or raise "
+          f"emulator.max_events_per_step or emulator.max_events_per_descent if the memory is there")

@@ -142,6 +142,7 @@ class EmulatorParams:
     seed: int = 0
     pixel_model: pm.PixelModelParams = pm.PixelModelParams()
     max_events_per_step: Optional[int] = 20_000_000
+    max_events_per_descent: int = 0
     device: Optional[torch.device] = None
     denoiser: Optional[EventDenoiser] = None
     threshold_scale: Optional[torch.Tensor] = None
@@ -217,13 +218,16 @@ class EmulatorState(NamedTuple):
 def make_params(threshold: float = 0.1, threshold_off: Optional[float] = None, refractory_us: float = 15.0,
                 log_eps: float = 1e-4, interpolation: str = "log", device=None, mismatch_sigma: float = 0.0,
                 background_rate_hz: float = 0.0, seed: int = 0, max_events_per_step: Optional[int] = 20_000_000,
-                denoiser: Optional[EventDenoiser] = None, **pixel_model) -> EmulatorParams:
+                denoiser: Optional[EventDenoiser] = None, max_events_per_descent: int = 0,
+                **pixel_model) -> EmulatorParams:
     """Checked :class:`EmulatorParams` from the constructor's arguments (``pixel_model``: the fields of
     :class:`~dvsland.events.pixel_model.PixelModelParams`); ValueError naming a bad one."""
     if interpolation not in _INTERPOLATIONS:
         raise ValueError(f"interpolation must be one of {_INTERPOLATIONS}, got {interpolation!r}")
     if max_events_per_step is not None and not int(max_events_per_step) >= 1:
         raise ValueError(f"max_events_per_step must be an integer >= 1 or None, got {max_events_per_step}")
+    if not int(max_events_per_descent) >= 0:
+        raise ValueError(f"max_events_per_descent must be an integer >= 0, got {max_events_per_descent}")
     pmp = pm.PixelModelParams(**pixel_model)
     if interpolation != "log":
         for name, on in (("photoreceptor_cutoff_hz", pmp.lowpass), ("leak_rate_hz / hot_pixel_fraction", pmp.drift)):
@@ -237,7 +241,7 @@ def make_params(threshold: float = 0.1, threshold_off: Optional[float] = None, r
         interpolation=interpolation, mismatch_sigma=_nonneg("mismatch_sigma", mismatch_sigma),
         background_rate_hz=_nonneg("background_rate_hz", background_rate_hz), seed=int(seed), pixel_model=pmp,
         max_events_per_step=None if max_events_per_step is None else int(max_events_per_step),
-        device=None if device is None else torch.device(device),
+        max_events_per_descent=int(max_events_per_descent), device=None if device is None else torch.device(device),
         denoiser=denoiser if denoiser is not None and denoiser.active else None)
 
 
@@ -473,28 +477,40 @@ class _Step:
         self.r_max = params.refractory_us if r is None else float(r.max())  # a CPU tensor: no sync
         self.spacing_may_bind = self.r_max > 0
         self.n_step = 0.0
+        self.cap = event_cap(params, B)
 
     def count(self, counts: torch.Tensor) -> Optional[float]:
         """Add (A,) per-pixel event counts to this step's total; ValueError above the cap. Returns
         their sum (a host float: one sync per block), or None without a cap (no sync)."""
-        if self.params.max_events_per_step is None:
+        if self.cap is None:
             return None
         return self.add(float(counts.sum()))  # one sync per block
 
     def add(self, n: float) -> float:
         """Add ``n`` events (a count already on the host) to this step's total; ValueError above the
-        cap (``max_events_per_step``); returns ``n``."""
-        cap = self.params.max_events_per_step
+        cap (:func:`event_cap`); returns ``n``."""
+        cap = self.cap
         if cap is None:
             return n
         self.n_step += n
         if self.n_step > cap:
+            p, B = self.params, self.state.lref.shape[0]
             raise ValueError(
                 f"emulator.max_events_per_step: this step would emit at least {self.n_step:.4g} events, above "
-                f"the cap of {cap} (about {self.n_step * 48 / 2 ** 30:.3g} GiB at 48 B per "
-                f"event); raise emulator.threshold or lower the batch / sensor size, or raise the cap if the "
-                f"memory is there. The state given to the step is unchanged")
+                f"the cap of {cap} (about {self.n_step * 48 / 2 ** 30:.3g} GiB at 48 B per event; the larger "
+                f"of emulator.max_events_per_step = {p.max_events_per_step} and emulator.max_events_per_descent "
+                f"= {p.max_events_per_descent} x {B} descents); raise emulator.threshold or lower the batch / "
+                f"sensor size, or raise the cap if the memory is there. The state given to the step is unchanged")
         return n
+
+
+def event_cap(params: EmulatorParams, batch_size: int) -> Optional[int]:
+    """The most events one step of ``batch_size`` descents may emit: the larger of
+    ``max_events_per_step`` and ``max_events_per_descent`` x ``batch_size`` (None: no cap)."""
+    cap = params.max_events_per_step
+    if cap is None:
+        return None
+    return max(int(cap), int(params.max_events_per_descent) * int(batch_size))
 
 
 _LAYOUTS: dict = {}
@@ -653,7 +669,7 @@ def _native_pixel_events(ctx: _Step, l1: torch.Tensor) -> torch.Tensor:
     writes the working L_ref and t_last (from the state's, in the same pass)."""
     layout, state = ctx.layout, ctx.state
     n_out = torch.zeros(1, dtype=torch.float64)
-    cap = ctx.params.max_events_per_step
+    cap = ctx.cap
     none = l1.new_empty(0)
     if ctx.th_scalar:
         th_on, th_off, on_map, off_map = float(ctx.th_on), float(ctx.th_off), none, none
@@ -793,6 +809,8 @@ class EventEmulator:
             step that would emit more raises ValueError naming ``emulator.max_events_per_step``
             before its events are allocated (about 48 bytes each at the peak); the state is then
             unchanged. None = no cap.
+        max_events_per_descent: a step of B descents may emit up to this times B events when that is
+            more than ``max_events_per_step`` (so the cap grows with a large batch); 0 = off.
         denoise, denoise_*: the front-end filters (:class:`dvsland.events.denoise.EventDenoiser`).
 
     Usage::
@@ -814,7 +832,8 @@ class EventEmulator:
                  hot_pixel_fraction: float = 0.0, hot_pixel_rate_hz: float = 100.0,
                  max_events_per_step: Optional[int] = 20_000_000, denoise: str = "none",
                  denoise_baf_time_us: float = 10_000.0, denoise_baf_neighbours: int = 4,
-                 denoise_refractory_us: float = 1_000.0, denoise_hot_pixel_rate_hz: float = 50.0):
+                 denoise_refractory_us: float = 1_000.0, denoise_hot_pixel_rate_hz: float = 50.0,
+                 max_events_per_descent: int = 0):
         denoiser = EventDenoiser(denoise, denoise_baf_time_us, denoise_baf_neighbours, denoise_refractory_us,
                                  denoise_hot_pixel_rate_hz)
         #: the settings (:class:`EmulatorParams`); per-element values of set_element_params join at reset
@@ -824,7 +843,7 @@ class EventEmulator:
             full_irradiance=full_irradiance, shot_noise_rate_hz=shot_noise_rate_hz,
             shot_noise_bright_factor=shot_noise_bright_factor, leak_rate_hz=leak_rate_hz,
             leak_rate_sigma=leak_rate_sigma, hot_pixel_fraction=hot_pixel_fraction,
-            hot_pixel_rate_hz=hot_pixel_rate_hz)
+            hot_pixel_rate_hz=hot_pixel_rate_hz, max_events_per_descent=max_events_per_descent)
         #: the state the object API holds (None before :meth:`reset`)
         self.state: Optional[EmulatorState] = None
 
@@ -850,6 +869,7 @@ class EventEmulator:
                    seed=seed, **{f.name: getattr(cfg, f.name) for f in dataclasses.fields(pm.PixelModelParams)
                                  if hasattr(cfg, f.name)},
                    max_events_per_step=getattr(cfg, "max_events_per_step", 20_000_000),
+                   max_events_per_descent=getattr(cfg, "max_events_per_descent", 0),
                    **{k: getattr(cfg, k) for k in _DENOISE_KEYS if hasattr(cfg, k)})
 
     # ------------------------------------------------------------------ the stage contract
