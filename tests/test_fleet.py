@@ -43,6 +43,7 @@ def test_smoke_and_shapes():
     assert r.outcome_counts() == {"timeout": 7} and r.descents_per_minute() > 0
     rows = fleet_rows(stages, r)
     assert len(rows) == 7 and rows[0]["site"] in ("A", "B", "C") and rows[0]["outcome"] == "timeout"
+    assert rows[0]["estimator"] == "oracle" and isinstance(rows[0]["lowest_altitude_m"], float)
 
 
 @pytest.mark.parametrize("check_every", [1, 4])
@@ -100,7 +101,8 @@ def test_event_estimator_flies_whole_descents_and_restarts():
 
 
 def test_bench_row_and_steady_rate():
-    row = run_fleet("oracle", 3, 9, "cpu", overrides=["simulation.t_max_s=2.0", *FIX], check_every=1)
+    runs, row = run_fleet("oracle", 3, 9, "cpu", overrides=["simulation.t_max_s=2.0", *FIX], check_every=1)
+    assert len(runs) == 9 and row["landed_by_site"] == {"A": [0, 3], "B": [0, 3], "C": [0, 3]}
     assert row["n_ended"] == 9 and row["complete"] and row["outcomes"] == {"timeout": 9}
     assert row["descents_per_min"] > 0 and row["steady_descents_per_min"] is not None
     assert steady_rate([(0.0, 1, 0, 3), (1.0, 2, 3, 6), (2.0, 3, 6, 9)], 3, 9) == 180.0

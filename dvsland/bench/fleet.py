@@ -9,7 +9,9 @@
 batch-mates. Reported: set-up seconds (terrain, stages), the flight's wall time, whole descents per
 minute over the whole flight (the first descents' start to the last one's end: ramp and tail
 included) and in the steady part (from the first restart until the last descent has started: every
-slot busy), steps, and the outcome counts. One JSON line on stdout; ``--json`` writes it to a file.
+slot busy), steps, the outcome counts and the landings by site. One JSON line and a per-site table
+(as a campaign's: success rate with its 95 % interval, lowest altitude, fuel) on stdout; ``--json``
+writes the line to a file, ``--runs-csv`` one row per descent.
 """
 
 from __future__ import annotations
@@ -25,10 +27,12 @@ import torch
 
 def run_fleet(estimator: str, batch_size: int, n_descents: int, device: str, preset: str = "montecarlo_efference",
               overrides: Sequence[str] = (), check_every: int = 4, max_steps=None) -> Dict:
-    """One fleet: set-up, flight, descents per minute (whole and steady), outcomes."""
+    """One fleet: (its descents' rows (:func:`dvsland.sim.fleet.fleet_rows`), a dict of set-up,
+    flight, descents per minute (whole and steady), outcomes and landings by site)."""
     from dvsland.config import load_config
     from dvsland.envs.layout import fit_layout
-    from dvsland.sim.fleet import fly_fleet
+    from dvsland.report.stats import group_stats
+    from dvsland.sim.fleet import fleet_rows, fly_fleet
     from dvsland.stages import build_stages
 
     t0 = time.perf_counter()
@@ -42,13 +46,15 @@ def run_fleet(estimator: str, batch_size: int, n_descents: int, device: str, pre
                        on_check=lambda step, ended, started: checks.append((time.perf_counter() - t_fly, step,
                                                                             ended, started)))
     steady = steady_rate(checks, stages.batch_size, result.n_started)
-    return {"estimator": estimator, "B": stages.batch_size, "device": str(device), "descents": n_descents,
+    rows = fleet_rows(stages, result)
+    return rows, {"estimator": estimator, "B": stages.batch_size, "device": str(device), "descents": n_descents,
             "check_every": check_every, "setup_s": round(setup_s, 2), "wall_s": round(result.wall_s, 2),
             "steps": result.steps, "descent_steps_per_s": round(stages.batch_size * result.steps / max(result.wall_s, 1e-9)),
             "descents_per_min": round(result.descents_per_minute(), 1), "steady_descents_per_min": steady,
             "n_ended": result.n_ended, "complete": result.complete,
             "mean_flight_s": round(float(result.descents["t_end_s"].mean()), 2) if result.n_ended else None,
-            "outcomes": result.outcome_counts()}
+            "outcomes": result.outcome_counts(),
+            "landed_by_site": {g["site"]: [g["n_success"], g["n"]] for g in group_stats(rows, ["site"])}}
 
 
 def steady_rate(checks: Sequence[tuple], batch_size: int, n_started: int):
@@ -74,14 +80,22 @@ def main(argv=None) -> int:
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="config override (repeatable)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=None, help="also write the row and the machine to this JSON file")
+    ap.add_argument("--runs-csv", default=None, help="write one row per ended descent to this CSV file")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     from dvsland.bench.throughput import machine
+    from dvsland.report.stats import format_group_table, group_stats, write_csv
 
-    row = run_fleet(a.estimator, a.batch, a.descents, a.device, a.preset, a.overrides, a.check_every, a.max_steps)
+    runs, row = run_fleet(a.estimator, a.batch, a.descents, a.device, a.preset, a.overrides, a.check_every,
+                          a.max_steps)
     print(json.dumps(row), flush=True)
+    by = ["site", "label", "estimator"]
+    by_site = sorted(runs, key=lambda r: (r["site"], r["label"]))
+    print(format_group_table(group_stats(by_site, by), by, markdown=True), flush=True)
     if a.json:
         Path(a.json).write_text(json.dumps({"machine": machine(), "rows": [row]}, indent=1) + "\n")
+    if a.runs_csv:
+        write_csv(a.runs_csv, runs)
     return 0 if row["n_ended"] else 1
 
 

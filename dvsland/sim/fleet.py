@@ -206,16 +206,22 @@ def _count(name: str, value, lo: int, hi: int) -> int:
 
 
 def fleet_rows(stages, result: FleetResult) -> List[dict]:
-    """One dict per ended descent (site, scene, restart, outcome name, end values), for a table or JSON."""
+    """One dict per ended descent, with the keys of a campaign's runs where they mean the same
+    (``site``, ``scene``, ``label``, ``estimator``, ``outcome``, ``t_end_s``, ``lowest_altitude_m``,
+    ``v_end_mps``, ``fuel_used_kg``, ...; no ``v_at_50m_mps``: a fleet keeps no traces), plus
+    ``slot``, ``restart``, ``noise_seed`` and ``end_step``: for :func:`dvsland.report.stats.group_stats`."""
+    from dvsland.estimators.registry import estimator_label
+
     L, d = stages.layout, result.descents
+    est = estimator_label(stages.cfg.estimator.name)
+    renamed = {"lowest_m": "lowest_altitude_m"}
+    cols = {k: d[k].tolist() for k in FLEET_FIELDS}
     rows = []
     for i in range(result.n_ended):
-        b = int(d["slot"][i])
-        row = {"slot": b, "site": L.site[b], "scene": L.scene[b], "label": L.label[b], "restart": int(d["restart"][i]),
-               "outcome": OUTCOMES[int(d["outcome"][i])]}
-        row.update({k: float(d[k][i]) for k in ("t_end_s", "z_end_m", "v_end_mps", "lowest_m", "fuel_used_kg",
-                                                 "max_thrust_n", "z0_m", "v0_mps")})
-        row.update({k: int(d[k][i]) for k in ("noise_seed", "missing_estimates", "end_step")})
+        b = cols["slot"][i]
+        row = {"slot": b, "site": L.site[b], "scene": L.scene[b], "label": L.label[b], "estimator": est,
+               "restart": cols["restart"][i], "outcome": OUTCOMES[cols["outcome"][i]]}
+        row.update({renamed.get(k, k): cols[k][i] for k in FLEET_FIELDS if k not in ("slot", "restart", "outcome")})
         rows.append(row)
     return rows
 
