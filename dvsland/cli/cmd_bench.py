@@ -3,7 +3,8 @@
 
 A thin command over :func:`dvsland.bench.run_bench`: speed against error, closed-loop success,
 scaling with B and the economies, written to one run folder (bench.json, bench.md, pareto.png,
-scaling.png); the stage benchmarks (render, events, estimators, renderers, throughput, sim) on request.
+scaling.png); the stage benchmarks (render, events, estimators, renderers, throughput, fleet, sim) on
+request.
 """
 
 from __future__ import annotations
