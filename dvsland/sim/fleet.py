@@ -88,15 +88,23 @@ class FleetResult(NamedTuple):
         return {name: int(c) for name, c in zip(OUTCOMES, counts) if c}
 
 
-def restart_conditions(stages, restart: torch.Tensor):
-    """The start and noise seed of each slot's restart ``restart`` ((B,) int64, >= 1 where used).
+def slot_keys(stages) -> tuple:
+    """The two keys of each slot's restart draws: (its seed, its site's key), (B,) int64 each on the
+    stages' device (made once per fleet: a host loop over the slots' site names)."""
+    L, dev = stages.layout, torch.device(stages.device)
+    return L.tensor("seed", dev, torch.int64), torch.as_tensor([site_key(s) for s in L.site], dtype=torch.int64,
+                                                                device=dev)
+
+
+def restart_conditions(stages, restart: torch.Tensor, keys: Optional[tuple] = None):
+    """The start and noise seed of each slot's restart ``restart`` ((B,) int64, >= 1 where used);
+    ``keys``: :func:`slot_keys` (made here when None).
 
     Returns:
         (z0_m, v0_mps, noise_seed): (B,) float64 m, float64 m/s and int64, on the stages' device.
     """
     L, dev, f64 = stages.layout, torch.device(stages.device), torch.float64
-    keys = (L.tensor("seed", dev, torch.int64),
-            torch.as_tensor([site_key(s) for s in L.site], dtype=torch.int64, device=dev), restart.to(dev))
+    keys = (*(slot_keys(stages) if keys is None else keys), restart.to(dev))
     disp = stages.cfg.dispersion
     z0 = _nominal(L, "z0_m", "z0_scale", dev) * _scale(disp, "z0_scale", keys, _TAG_Z)
     v0 = _nominal(L, "v0_mps", "v0_scale", dev) * _scale(disp, "v0_scale", keys, _TAG_V)
@@ -161,7 +169,8 @@ def fly_fleet(stages, n_descents: int, check_every: int = 4, max_steps: Optional
     pending = torch.arange(B, device=dev) < n_descents  # slots holding a descent not yet recorded
     if n_descents < B:
         state = state._replace(active=state.active & pending)
-    n_started, parts, mass0 = min(B, n_descents), [], float(stages.settings.mass_kg)
+    n_started, n_ended, parts, mass0 = min(B, n_descents), 0, [], float(stages.settings.mass_kg)
+    keys = slot_keys(stages)
     t0, steps = time.perf_counter(), 0
     while True:
         state, _ = loop_step(stages, state)
@@ -172,12 +181,12 @@ def fly_fleet(stages, n_descents: int, check_every: int = 4, max_steps: Optional
         idx = torch.nonzero(pending & ~state.active).squeeze(1)  # the check's one sync
         if idx.numel():
             parts.append(_take(state, idx, restart, z0, v0, mass0, steps))
+            n_ended += int(idx.numel())
             n_new = min(int(idx.numel()), n_descents - n_started)
             pending[idx[n_new:]] = False
             if n_new:
-                state, restart, z0, v0 = _restart(stages, state, idx[:n_new], restart, z0, v0)
+                state, restart, z0, v0 = _restart(stages, state, idx[:n_new], restart, z0, v0, keys)
                 n_started += n_new
-        n_ended = sum(int(p["slot"].numel()) for p in parts)
         if on_check is not None:
             on_check(steps, n_ended, n_started)
         if n_ended >= n_started or last:
@@ -186,15 +195,15 @@ def fly_fleet(stages, n_descents: int, check_every: int = 4, max_steps: Optional
         torch.cuda.synchronize(dev)
     wall = time.perf_counter() - t0
     descents = {k: torch.cat([p[k] for p in parts]).cpu() if parts else torch.zeros(0) for k in FLEET_FIELDS}
-    return FleetResult(descents, steps, wall, n_started, complete=sum(int(p["slot"].numel()) for p in parts) >= n_started)
+    return FleetResult(descents, steps, wall, n_started, complete=n_ended >= n_started)
 
 
-def _restart(stages, state: LoopState, idx: torch.Tensor, restart, z0, v0):
+def _restart(stages, state: LoopState, idx: torch.Tensor, restart, z0, v0, keys):
     """Restart slots ``idx`` with their next descents: (state, restart, z0, v0) updated."""
     mask = torch.zeros_like(state.active)
     mask[idx] = True
     restart = torch.where(mask, restart + 1, restart)
-    z_new, v_new, seed_new = restart_conditions(stages, restart)
+    z_new, v_new, seed_new = restart_conditions(stages, restart, keys)
     state = reset_where(stages, state, mask, z_m=z_new, v_mps=v_new, seed=seed_new)
     return state, restart, torch.where(mask, z_new, z0), torch.where(mask, v_new, v0)
 
@@ -226,4 +235,4 @@ def fleet_rows(stages, result: FleetResult) -> List[dict]:
     return rows
 
 
-__all__ = ["fly_fleet", "FleetResult", "FLEET_FIELDS", "restart_conditions", "fleet_rows"]
+__all__ = ["fly_fleet", "FleetResult", "FLEET_FIELDS", "restart_conditions", "slot_keys", "fleet_rows"]
