@@ -107,3 +107,17 @@ def test_bench_row_and_steady_rate():
     assert row["descents_per_min"] > 0 and row["steady_descents_per_min"] is not None
     assert steady_rate([(0.0, 1, 0, 3), (1.0, 2, 3, 6), (2.0, 3, 6, 9)], 3, 9) == 180.0
     assert steady_rate([(0.0, 1, 0, 3)], 3, 3) is None
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_fleet_on_cuda_matches_cpu():
+    """The same fleet on the GPU: the same descents end in the same slots with the same outcomes."""
+    def fleet(dev):
+        cfg = load_config("montecarlo_efference", ["estimator.name=learned", "simulation.t_max_s=2.0",
+                                                   f"simulation.device={dev}", *FIX])
+        return fly_fleet(build_stages(cfg, fit_layout(cfg, None, 4), dev), 10, check_every=2)
+
+    cpu, gpu = fleet("cpu"), fleet("cuda")
+    for k in ("slot", "restart", "outcome", "end_step"):
+        assert torch.equal(cpu.descents[k], gpu.descents[k]), k
+    assert torch.allclose(cpu.descents["z_end_m"], gpu.descents["z_end_m"], rtol=1e-6)
