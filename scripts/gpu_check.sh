@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The one prepared device check for a lent GPU machine (H100/H200, about 9 minutes by default): the
 # CUDA tests, the throughput table of `dvsland bench throughput` on CUDA (eager; with COMPILED=1 also
-# learned at B = 8192 with simulation.compile=true), the 450-descent cmax campaign in one process (and,
+# learned at B = 8192 with simulation.compile=true; with LATE=1 also after 1,200 steps, near the ground), the 450-descent cmax campaign in one process (and,
 # as part 4, in CAMPAIGN_WORKERS processes sharing the card), whole `learned` descents per minute
 # (LEARNED_SEEDS x 9 descents flown to the end, LEARNED_WORKERS processes), and where a step's time
 # goes by dvsland function.
@@ -56,6 +56,11 @@ if [[ $PARTS == *" 2 "* ]]; then
   timeout 250 python3 -m dvsland.bench.throughput --device cuda --batches "${BATCHES:-576,4608,8192}" \
     --estimators learned,cmax --steps 10 --env-batches 4608 --env-steps 20 "${FIX[@]}" \
     --out "$RES" > "$RES/throughput.log" 2>&1; tail -14 "$RES/throughput.log" | tee -a "$SUM"
+  if [[ ${LATE:-0} == 1 ]]; then  # LATE=1 adds learned at B = 8192 after 1,200 steps (near the ground; about a minute)
+    timeout 150 python3 -m dvsland.bench.throughput --device cuda --batches 8192 --estimators learned --steps 10 \
+      --warmup 1200 "${FIX[@]}" > "$RES/throughput_late.log" 2>&1
+    tail -3 "$RES/throughput_late.log" | tee -a "$SUM"
+  fi
   if [[ ${COMPILED:-0} == 1 ]]; then  # COMPILED=1 adds the compiled case (about a minute)
     timeout 100 python3 -m dvsland.bench.throughput --device cuda --batches 8192 --estimators learned --steps 10 \
       "${FIX[@]}" --set simulation.compile=true > "$RES/throughput_compiled.log" 2>&1
