@@ -122,3 +122,21 @@ def test_fleet_on_cuda_matches_cpu():
         assert torch.equal(cpu.descents[k], gpu.descents[k]), k
     # the CNN and the float32 passes round differently on the card: the paths agree, not the bits
     assert torch.allclose(cpu.descents["z_end_m"], gpu.descents["z_end_m"], rtol=1e-3)
+
+
+def test_rows_are_written_as_they_end_and_survive_an_interrupt(tmp_path):
+    from dvsland.bench.fleet import RowsCsv
+
+    path, calls = tmp_path / "runs.csv", []
+
+    def write_then_stop(rows):
+        calls.append(len(rows))
+        out.write(rows)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt), RowsCsv(path) as out:
+        run_fleet("oracle", 3, 12, "cpu", overrides=["simulation.t_max_s=2.0", *FIX], check_every=1,
+                  on_rows=write_then_stop)
+    lines = path.read_text().splitlines()
+    assert lines[0].startswith("slot,site,scene,label,estimator,restart,outcome") and len(lines) == 1 + sum(calls) == 7

@@ -26,9 +26,10 @@ import torch
 
 
 def run_fleet(estimator: str, batch_size: int, n_descents: int, device: str, preset: str = "montecarlo_efference",
-              overrides: Sequence[str] = (), check_every: int = 4, max_steps=None) -> Dict:
+              overrides: Sequence[str] = (), check_every: int = 4, max_steps=None, on_rows=None) -> Dict:
     """One fleet: (its descents' rows (:func:`dvsland.sim.fleet.fleet_rows`), a dict of set-up,
-    flight, descents per minute (whole and steady), outcomes and landings by site)."""
+    flight, descents per minute (whole and steady), outcomes and landings by site). ``on_rows(rows)``:
+    called with each check's ended descents as rows, as they end."""
     from dvsland.config import load_config
     from dvsland.envs.layout import fit_layout
     from dvsland.report.stats import group_stats
@@ -44,7 +45,8 @@ def run_fleet(estimator: str, batch_size: int, n_descents: int, device: str, pre
     t_fly = time.perf_counter()
     result = fly_fleet(stages, n_descents, check_every=check_every, max_steps=max_steps,
                        on_check=lambda step, ended, started: checks.append((time.perf_counter() - t_fly, step,
-                                                                            ended, started)))
+                                                                            ended, started)),
+                       on_ended=None if on_rows is None else (lambda d: on_rows(fleet_rows(stages, d))))
     steady = steady_rate(checks, stages.batch_size, result.n_started)
     rows = fleet_rows(stages, result)
     return rows, {"estimator": estimator, "B": stages.batch_size, "device": str(device), "descents": n_descents,
@@ -80,23 +82,52 @@ def main(argv=None) -> int:
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="config override (repeatable)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=None, help="also write the row and the machine to this JSON file")
-    ap.add_argument("--runs-csv", default=None, help="write one row per ended descent to this CSV file")
+    ap.add_argument("--runs-csv", default=None, help="write one row per ended descent to this CSV file, as "
+                    "they end (a fleet stopped half-way keeps what it flew)")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     from dvsland.bench.throughput import machine
-    from dvsland.report.stats import format_group_table, group_stats, write_csv
+    from dvsland.report.stats import format_group_table, group_stats
 
-    runs, row = run_fleet(a.estimator, a.batch, a.descents, a.device, a.preset, a.overrides, a.check_every,
-                          a.max_steps)
+    with RowsCsv(a.runs_csv) as out:
+        runs, row = run_fleet(a.estimator, a.batch, a.descents, a.device, a.preset, a.overrides, a.check_every,
+                              a.max_steps, on_rows=out.write if a.runs_csv else None)
     print(json.dumps(row), flush=True)
     by = ["site", "label", "estimator"]
     by_site = sorted(runs, key=lambda r: (r["site"], r["label"]))
     print(format_group_table(group_stats(by_site, by), by, markdown=True), flush=True)
     if a.json:
         Path(a.json).write_text(json.dumps({"machine": machine(), "rows": [row]}, indent=1) + "\n")
-    if a.runs_csv:
-        write_csv(a.runs_csv, runs)
     return 0 if row["n_ended"] else 1
+
+
+class RowsCsv:
+    """A CSV file of dict rows written as they come (the header from the first rows; flushed after
+    each write), or nothing when ``path`` is None."""
+
+    def __init__(self, path):
+        self.path, self.fh, self.writer = path, None, None
+
+    def __enter__(self):
+        if self.path:
+            self.fh = open(self.path, "w", newline="")
+        return self
+
+    def write(self, rows) -> None:
+        import csv
+
+        if not rows or self.fh is None:
+            return
+        if self.writer is None:
+            self.writer = csv.DictWriter(self.fh, fieldnames=list(rows[0]))
+            self.writer.writeheader()
+        self.writer.writerows(rows)
+        self.fh.flush()
+
+    def __exit__(self, *exc):
+        if self.fh is not None:
+            self.fh.close()
+        return False
 
 
 if __name__ == "__main__":

@@ -142,7 +142,8 @@ def _take(state: LoopState, idx: torch.Tensor, restart, z0, v0, mass0: float, st
 
 
 def fly_fleet(stages, n_descents: int, check_every: int = 4, max_steps: Optional[int] = None,
-              on_check: Optional[Callable[[int, int, int], None]] = None) -> FleetResult:
+              on_check: Optional[Callable[[int, int, int], None]] = None,
+              on_ended: Optional[Callable[[Dict[str, torch.Tensor]], None]] = None) -> FleetResult:
     """Fly ``n_descents`` whole descents through the B slots of ``stages`` (see the module's text).
 
     Args:
@@ -153,6 +154,9 @@ def fly_fleet(stages, n_descents: int, check_every: int = 4, max_steps: Optional
             ``check_every - 1`` steps for its restart; each check is one host synchronisation.
         max_steps: stop after this many steps even if descents still fly (None: until all ended).
         on_check: optional ``on_check(step, n_ended, n_started)`` after each check (progress).
+        on_ended: optional ``on_ended(descents)`` with the descents that ended since the last check
+            ({field: (n,) CPU tensor}, as :attr:`FleetResult.descents`): to write them as they come,
+            so that a fleet stopped half-way keeps what it flew.
 
     Returns:
         :class:`FleetResult`.
@@ -182,6 +186,8 @@ def fly_fleet(stages, n_descents: int, check_every: int = 4, max_steps: Optional
         if idx.numel():
             parts.append(_take(state, idx, restart, z0, v0, mass0, steps))
             n_ended += int(idx.numel())
+            if on_ended is not None:
+                on_ended({k: v.cpu() for k, v in parts[-1].items()})
             n_new = min(int(idx.numel()), n_descents - n_started)
             pending[idx[n_new:]] = False
             if n_new:
@@ -214,19 +220,21 @@ def _count(name: str, value, lo: int, hi: int) -> int:
     return int(value)
 
 
-def fleet_rows(stages, result: FleetResult) -> List[dict]:
+def fleet_rows(stages, result) -> List[dict]:
     """One dict per ended descent, with the keys of a campaign's runs where they mean the same
     (``site``, ``scene``, ``label``, ``estimator``, ``outcome``, ``t_end_s``, ``lowest_altitude_m``,
     ``v_end_mps``, ``fuel_used_kg``, ...; no ``v_at_50m_mps``: a fleet keeps no traces), plus
-    ``slot``, ``restart``, ``noise_seed`` and ``end_step``: for :func:`dvsland.report.stats.group_stats`."""
+    ``slot``, ``restart``, ``noise_seed`` and ``end_step``: for :func:`dvsland.report.stats.group_stats`.
+    ``result``: a :class:`FleetResult` or its ``descents`` dict (what ``on_ended`` is given)."""
     from dvsland.estimators.registry import estimator_label
 
-    L, d = stages.layout, result.descents
+    L = stages.layout
+    d = result.descents if isinstance(result, FleetResult) else result
     est = estimator_label(stages.cfg.estimator.name)
     renamed = {"lowest_m": "lowest_altitude_m"}
     cols = {k: d[k].tolist() for k in FLEET_FIELDS}
     rows = []
-    for i in range(result.n_ended):
+    for i in range(len(cols["slot"])):
         b = cols["slot"][i]
         row = {"slot": b, "site": L.site[b], "scene": L.scene[b], "label": L.label[b], "estimator": est,
                "restart": cols["restart"][i], "outcome": OUTCOMES[cols["outcome"][i]]}
