@@ -62,7 +62,7 @@ from typing import NamedTuple, Optional, Tuple
 import numpy as np
 import torch
 
-from dvsland.pytree import check_state_like, tree_where
+from dvsland.pytree import check_state_like, tree_map, tree_where
 
 from . import denoise as dn
 from . import native
@@ -443,9 +443,41 @@ def emulator_reset_where(params: EmulatorParams, state: EmulatorState, mask: tor
         raise ValueError(f"{_STAGE}: mask must be a (B,) = ({B},) bool tensor, got shape {tuple(mask.shape)} "
                          f"{mask.dtype}")
     seeds = state.seed if seed is None else torch.where(mask, _checked_seed(seed, B, state.seed.device), state.seed)
-    fresh = emulator_init(dataclasses.replace(params, device=state.lref.device), frames, t_us, seeds)
-    check_state(params, fresh, tuple(state.lref.shape))
-    return tree_where(mask, fresh, state)
+    p = dataclasses.replace(params, device=state.lref.device)
+    rows = mask.nonzero().squeeze(1)  # one sync: a restart, not the step's path
+    if rows.numel() == B:
+        fresh = emulator_init(p, frames, t_us, seeds)
+        check_state(params, fresh, tuple(state.lref.shape))
+        return tree_where(mask, fresh, state)
+    if rows.numel() == 0:
+        return state
+    # only the restarted rows are initialised (their draws are keyed by their own seeds: the bits
+    # of a whole batch's init at those rows); a fleet restarts a few of 8,192 descents at a time
+    fresh = emulator_init(params_rows(p, rows), frames.index_select(0, rows.to(frames.device)), t_us,
+                          seeds.index_select(0, rows))
+    return put_rows(state, rows, fresh)
+
+
+def params_rows(params: EmulatorParams, rows: torch.Tensor) -> EmulatorParams:
+    """``params`` of the descents ``rows`` (K,) int64: the per-descent values (B,) taken at those rows."""
+    vals = params.element_values()
+    if not vals:
+        return params
+    r = rows.to("cpu")  # the per-descent values are CPU tensors
+    return dataclasses.replace(params, **{k: v.index_select(0, r) for k, v in vals.items()})
+
+
+def put_rows(state: EmulatorState, rows: torch.Tensor, part: EmulatorState) -> EmulatorState:
+    """``state`` with every batch-first leaf's rows ``rows`` (K,) int64 replaced by ``part``'s (K, ...)
+    (a new state; ``state`` is not written). Both must have the same fields set."""
+    B = state.lref.shape[0]
+    out = {}
+    for name, full, new in zip(EmulatorState._fields, state, part):
+        if (full is None) != (new is None):
+            raise ValueError(f"{_STAGE}: state field {name!r} is set in one state and not the other")
+        out[name] = None if full is None else tree_map(
+            lambda f, n: f.index_copy(0, rows, n) if f.dim() >= 1 and f.shape[0] == B else n, full, new)
+    return EmulatorState(**out)
 
 
 # ------------------------------------------------------------------------ the pure step

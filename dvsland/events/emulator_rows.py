@@ -14,24 +14,14 @@ them.
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Tuple
 
 import torch
 
 from dvsland.pytree import tree_map
 
-from .emulator import EmulatorParams, EmulatorState, emulator_step
+from .emulator import EmulatorParams, EmulatorState, emulator_step, params_rows  # noqa: F401 (re-export)
 from .events import Events
-
-
-def params_rows(params: EmulatorParams, rows: torch.Tensor) -> EmulatorParams:
-    """``params`` of the descents ``rows`` (K,) int64: the per-descent values (B,) taken at those rows."""
-    vals = params.element_values()
-    if not vals:
-        return params
-    r = rows.to("cpu")  # the per-descent values are CPU tensors
-    return dataclasses.replace(params, **{k: v.index_select(0, r) for k, v in vals.items()})
 
 
 def state_rows(state: EmulatorState, rows: torch.Tensor) -> EmulatorState:
