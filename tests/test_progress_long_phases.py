@@ -79,7 +79,7 @@ def test_quiet_campaign_prints_no_bar(tmp_path, capsys):
 def test_pool_workers_report_their_steps(tmp_path, capsys, seen):
     """--workers 2: the workers write their steps into shared slots; the driver's bar moves
     between the shard ends (not only 0, 50 and 100 %)."""
-    sets = SETS[:-1] + ["simulation.t_max_s=6"]
+    sets = SETS[:-1] + ["simulation.t_max_s=20"]  # long enough for several of the driver's 0.25 s polls
     res = build_dataset("montecarlo_efference", out=tmp_path / "d", n_seeds=2, sites="A", shard_size=1,
                         overrides=sets, quiet=False, workers=2)
     assert res.status == "complete" and res.n_shards_built == 2
