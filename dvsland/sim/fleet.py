@@ -18,9 +18,10 @@ Which descents fly:
   new sensor-noise seed, by counter-based draws of (the slot's seed, its site, r). A restart's
   conditions therefore depend on its slot and r only, never on when it started, the batch size or
   the device. Its flight is that of a new descent with those conditions up to rounding: the filter's
-  sums run over the batch's longer history (with the ``oracle``, within 1e-12 relative: tested),
-  and an estimator that hashes event times (``cmax``'s dithering) draws other, equally likely,
-  values for a descent that started at another step of the batch's clock.
+  sums run over the batch's longer history (with the ``oracle``, within 1e-12 relative: tested).
+  With event estimators it is the same descent in distribution, not to the bit: ``cmax`` dithers
+  its events by a hash of their time, and the learned ring keeps its slot position (the
+  convolution sums its channels in another order).
 
 Slots are restarted in slot order at a check (every ``check_every`` steps: a check is one host
 synchronisation); once ``n_descents`` have started, finished slots stay finished (frozen, and off
