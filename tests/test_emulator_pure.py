@@ -106,19 +106,25 @@ def test_reset_where_leaves_the_others_bit_identical(kw):
         assert torch.equal(x[~mask], y[~mask])
 
 
+def _devices():
+    return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", _devices())
 @pytest.mark.parametrize("kw", CONFIGS, ids=IDS)
-def test_reset_where_initialises_only_the_restarted_rows(kw):
+def test_reset_where_initialises_only_the_restarted_rows(kw, device):
     """The restarted rows get the bits of a whole batch's init at those rows (per-descent sensor
-    values too): only they are initialised, and the others are not touched."""
-    frames = _frames(B=4)
-    emu = EventEmulator(seed=6, **kw)
+    values too): only they are initialised, and the others are not touched (also on CUDA)."""
+    frames = _frames(B=4).to(device)
+    emu = EventEmulator(seed=6, device=device, **kw)
     emu.set_element_params(threshold_scale=torch.tensor([0.9, 1.0, 1.1, 1.2], dtype=torch.float64),
                            element_seeds=torch.tensor([5, 6, 7, 8]))
     st = emu.init_state(frames[0], 0)
     st, _ = emu.step_state(st, frames[1], 10_000)
-    seeds = torch.tensor([100, 101, 102, 103])
+    seeds = torch.tensor([100, 101, 102, 103], device=device)
     whole = emu.init_state(frames[2], 10_000, seed=seeds)
     for mask in (torch.tensor([False, True, False, True]), torch.tensor([True, False, False, False])):
+        mask = mask.to(device)
         rs = emu.reset_where(st, mask, frames[2], 10_000, seed=seeds)
         assert tree_equal(rs, pytree.tree_where(mask, whole, st))
 
