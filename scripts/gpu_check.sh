@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
-# The one prepared device check for a lent GPU machine (H100/H200, about 9 minutes by default): the
+# The one prepared device check for a lent GPU machine (H100/H200, about 7 minutes by default): the
 # CUDA tests, the throughput table of `dvsland bench throughput` on CUDA (eager; with COMPILED=1 also
-# learned at B = 8192 with simulation.compile=true; with LATE=1 also after 1,200 steps, near the ground), the 450-descent cmax campaign in one process (and,
-# as part 4, in CAMPAIGN_WORKERS processes sharing the card), whole `learned` descents per minute
-# (LEARNED_SEEDS x 9 descents flown to the end, LEARNED_WORKERS processes), and where a step's time
-# goes by dvsland function.
+# learned at B = 8192 with simulation.compile=true; with LATE=1 also after 1,200 steps, near the
+# ground), the 450-descent cmax campaign in one process (and, as part 4, in CAMPAIGN_WORKERS
+# processes sharing the card), whole `learned` descents per minute (part 5: LEARNED_SEEDS x 9
+# descents flown to the end in LEARNED_WORKERS processes; part 7: a fleet), and where a step's time
+# goes by dvsland function (part 6).
 # $OUT/summary.log gathers the figures as they come; $OUT/results.tgz (refreshed after every part, so
 # a run cut short still brings back what it finished) holds every log, table and profile. Without
 # $OUT (a machine of your own) both go to /tmp/gpu_check.
@@ -12,12 +13,12 @@
 # Here, once: `bash scripts/gpu_check.sh --wheels` downloads the packages the device machine lacks
 # into .whl/ (git-ignored through .git/info/exclude). Then, with the device tool:
 #   run(command="bash scripts/gpu_check.sh", carry=[".whl"], timeout_s=570)
-# PARTS="1 2 3 5 6" (the default) picks the parts to run; part 7 (FLEET_N whole descents through
-# FLEET_B slots that restart as theirs end, at most FLEET_STEPS steps) runs when named. On 2026-11-27
-# an H200 took 75 s (1), about 150 s (2, with COMPILED=0), 133 s (3), 182 s (5, 600 seeds) and did not
-# reach 6 within 560 s: with a 15-minute lease, run "1 2 3" and "5 6" as two calls on the same warm
-# machine. On 2026-11-28, 45 s (1), 30 s (2) and 132 s (3). Part 4 (the campaign in several processes
-# on one card) finished no shard in 120 s and is left out by default.
+# PARTS="1 2 3 7" (the default) picks the parts to run: part 7 flies FLEET_N whole descents through
+# FLEET_B slots that restart as theirs end, for at most FLEET_STEPS steps (whole descents per minute;
+# it replaces part 5, whole batches flown to their last descent). On 2026-11-28 an H200 took 45 s (1),
+# 30 s (2), 132 s (3), about 50 s (6, two profiles) and 250 s (7, 3,200 steps); the default parts take
+# about 7 minutes, which leaves a 15-minute lease room for a rerun. On 2026-11-27: 182 s (5, 600
+# seeds). Part 4 (the campaign in several processes on one card) finished no shard in 120 s.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 if [ "${1:-}" = "--wheels" ]; then
@@ -42,7 +43,7 @@ fi
 export PYTHONPATH="${PYTHONPATH:+$PYTHONPATH:}$PWD" PYTHONUNBUFFERED=1 PYOPENGL_PLATFORM=egl
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee -a "$SUM"
 python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())" | tee -a "$SUM"
-PARTS=" ${PARTS:-1 2 3 5 6} "
+PARTS=" ${PARTS:-1 2 3 7} "
 FIX=(--set dispersion.terrain_variants=1 --set 'dispersion.sun_elevation_deg={kind: "off"}')
 # 1. the CUDA tests (every test that names cuda, and tests/test_cuda_loop.py; they skip on a CPU machine)
 if [[ $PARTS == *" 1 "* ]]; then
@@ -105,7 +106,7 @@ fi
 if [[ $PARTS == *" 7 "* ]]; then
   echo "## 7. fleet" | tee -a "$SUM"
   timeout "${FLEET_LIMIT:-200}" python3 -m dvsland.bench.fleet --device cuda --batch "${FLEET_B:-8192}" \
-    --descents "${FLEET_N:-24576}" --estimator "${FLEET_EST:-learned}" --max-steps "${FLEET_STEPS:-3500}" "${FIX[@]}" \
+    --descents "${FLEET_N:-24576}" --estimator "${FLEET_EST:-learned}" --max-steps "${FLEET_STEPS:-3200}" "${FIX[@]}" \
     --json "$RES/fleet.json" > "$RES/fleet.log" 2>&1; tail -2 "$RES/fleet.log" | tee -a "$SUM"
   snapshot
 fi
