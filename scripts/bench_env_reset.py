@@ -10,6 +10,7 @@ shipped law's commands (``action="thrust_n"``), one torch thread:
   of restarts is printed).
 
     python scripts/bench_env_reset.py --steps 600
+    python scripts/bench_env_reset.py --steps 300 --estimator learned   # with the event camera
 
 Prints one JSON line per mode: steps, wall s, CPU s, env steps/s, descent-steps/s, restarts.
 """
@@ -41,16 +42,19 @@ def fly(env, n: int, info) -> tuple:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=600)
+    ap.add_argument("--estimator", default="oracle", help="an event estimator makes the env render and "
+                    "emulate (its restarts restart the event camera too)")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     for mode in ("disabled", "next_step"):
-        env = LandingVectorEnv(config="paper", sites="D,E,F,G", estimator="oracle", observation="oracle",
+        env = LandingVectorEnv(config="paper", sites="D,E,F,G", estimator=a.estimator, observation="oracle",
                                action="thrust_n", overrides=OVERRIDES, autoreset_mode=mode)
         _, info = env.reset(seed=0)
         if mode == "next_step":  # fly to the region where descents end and restart
             _, _, _, _, info = fly(env, 960, info)
         n, wall, cpu, restarts, _ = fly(env, a.steps, info)
         print(json.dumps({"mode": "no reset" if mode == "disabled" else "per-descent reset", "B": env.num_envs,
+                          "estimator": a.estimator,
                           "steps": n, "wall_s": round(wall, 3), "cpu_s": round(cpu, 3),
                           "env_steps_per_s": round(n / wall, 1), "descent_steps_per_s": round(n * env.num_envs / wall),
                           "restarts": restarts}))
