@@ -20,13 +20,14 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import Dict, List, Sequence
+from typing import Dict, List, Sequence, Tuple
 
 import torch
 
 
 def run_fleet(estimator: str, batch_size: int, n_descents: int, device: str, preset: str = "montecarlo_efference",
-              overrides: Sequence[str] = (), check_every: int = 4, max_steps=None, on_rows=None) -> Dict:
+              overrides: Sequence[str] = (), check_every: int = 4, max_steps=None,
+              on_rows=None) -> Tuple[List[dict], Dict]:
     """One fleet: (its descents' rows (:func:`dvsland.sim.fleet.fleet_rows`), a dict of set-up,
     flight, descents per minute (whole and steady), outcomes and landings by site). ``on_rows(rows)``:
     called with each check's ended descents as rows, as they end."""
@@ -49,9 +50,10 @@ def run_fleet(estimator: str, batch_size: int, n_descents: int, device: str, pre
                        on_ended=None if on_rows is None else (lambda d: on_rows(fleet_rows(stages, d))))
     steady = steady_rate(checks, stages.batch_size, result.n_started)
     rows = fleet_rows(stages, result)
-    return rows, {"estimator": estimator, "B": stages.batch_size, "device": str(device), "descents": n_descents,
+    B = stages.batch_size
+    return rows, {"estimator": estimator, "B": B, "device": str(device), "descents": n_descents,
             "check_every": check_every, "setup_s": round(setup_s, 2), "wall_s": round(result.wall_s, 2),
-            "steps": result.steps, "descent_steps_per_s": round(stages.batch_size * result.steps / max(result.wall_s, 1e-9)),
+            "steps": result.steps, "descent_steps_per_s": round(B * result.steps / max(result.wall_s, 1e-9)),
             "descents_per_min": round(result.descents_per_minute(), 1), "steady_descents_per_min": steady,
             "n_ended": result.n_ended, "complete": result.complete,
             "mean_flight_s": round(float(result.descents["t_end_s"].mean()), 2) if result.n_ended else None,

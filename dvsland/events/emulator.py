@@ -475,9 +475,14 @@ def put_rows(state: EmulatorState, rows: torch.Tensor, part: EmulatorState) -> E
     for name, full, new in zip(EmulatorState._fields, state, part):
         if (full is None) != (new is None):
             raise ValueError(f"{_STAGE}: state field {name!r} is set in one state and not the other")
-        out[name] = None if full is None else tree_map(
-            lambda f, n: f.index_copy(0, rows, n) if f.dim() >= 1 and f.shape[0] == B else n, full, new)
+        out[name] = None if full is None else tree_map(lambda f, n: rows_into(f, rows, n, B), full, new)
     return EmulatorState(**out)
+
+
+def rows_into(full: torch.Tensor, rows: torch.Tensor, part: torch.Tensor, batch_size: int) -> torch.Tensor:
+    """A copy of the leaf ``full`` with its rows ``rows`` (K,) int64 set to ``part`` (K, ...) when it is
+    batch first ((batch_size, ...)); else ``part`` itself (a leaf shared by the batch)."""
+    return full.index_copy(0, rows, part) if full.dim() >= 1 and full.shape[0] == batch_size else part
 
 
 # ------------------------------------------------------------------------ the pure step

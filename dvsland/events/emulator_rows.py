@@ -20,7 +20,7 @@ import torch
 
 from dvsland.pytree import tree_map
 
-from .emulator import EmulatorParams, EmulatorState, emulator_step, params_rows  # noqa: F401 (re-export)
+from .emulator import EmulatorParams, EmulatorState, emulator_step, params_rows, rows_into
 from .events import Events
 
 
@@ -35,10 +35,6 @@ def _merge(state: EmulatorState, old_rows: EmulatorState, new_rows: EmulatorStat
     """``state`` with the rows' fields replaced by ``new_rows``'s, every clock at ``t_us``; a field the
     step kept (the same object as in ``old_rows``: thresholds, seeds, leak maps) is kept whole."""
     B = state.lref.shape[0]
-
-    def put(full: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
-        return full.index_copy(0, rows, part) if full.dim() >= 1 and full.shape[0] == B else part
-
     out = {}
     for name, full, was, part in zip(EmulatorState._fields, state, old_rows, new_rows):
         if full is None or part is was:
@@ -46,7 +42,7 @@ def _merge(state: EmulatorState, old_rows: EmulatorState, new_rows: EmulatorStat
         elif part is None:
             raise ValueError(f"emulator_step_rows: state field {name!r} vanished in the step")
         else:
-            out[name] = tree_map(put, full, part)
+            out[name] = tree_map(lambda f, p: rows_into(f, rows, p, B), full, part)
     out["t_us"] = torch.full_like(state.t_us, int(t_us))
     return EmulatorState(**out)
 
