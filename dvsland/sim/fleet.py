@@ -65,18 +65,21 @@ class FleetResult(NamedTuple):
         steps: control steps the fleet flew.
         wall_s: wall seconds of the flight (set-up excluded).
         n_started: descents started (== N unless ``max_steps`` stopped the fleet first).
-        complete: every started descent ended.
     """
 
     descents: Dict[str, torch.Tensor]
     steps: int
     wall_s: float
     n_started: int
-    complete: bool
 
     @property
     def n_ended(self) -> int:
         return int(self.descents["slot"].numel())
+
+    @property
+    def complete(self) -> bool:
+        """Every started descent ended."""
+        return self.n_ended >= self.n_started
 
     def descents_per_minute(self) -> float:
         """Whole descents ended per minute of wall time."""
@@ -202,7 +205,7 @@ def fly_fleet(stages, n_descents: int, check_every: int = 4, max_steps: Optional
         torch.cuda.synchronize(dev)
     wall = time.perf_counter() - t0
     descents = {k: torch.cat([p[k] for p in parts]).cpu() if parts else torch.zeros(0) for k in FLEET_FIELDS}
-    return FleetResult(descents, steps, wall, n_started, complete=n_ended >= n_started)
+    return FleetResult(descents, steps, wall, n_started)
 
 
 def _restart(stages, state: LoopState, idx: torch.Tensor, restart, z0, v0, keys):
