@@ -109,6 +109,25 @@ def test_relief_matches_its_definition(kernels):
     assert r.shape == (3, 6, 6) and torch.equal(r, want[:, None, None].expand(3, 6, 6))
 
 
+@pytest.mark.parametrize("hw", [(6, 6), (5, 9), (1, 4), (3, 1), (64, 64)])
+def test_relief_upsampled_in_its_pass_equals_upsample2x(kernels, hw):
+    """``upsample2x=True`` gives :func:`dvsland.render.fast._upsample2x` of the plain ranges, bit for bit
+    (a varying height field, so the ranges differ from point to point; edges and 1-wide fields)."""
+    from dvsland.render.fast import _upsample2x
+
+    h, w = hw
+    g = torch.Generator().manual_seed(3)
+    atlas = torch.rand(32, 64, generator=g) * 40.0
+    slopes = torch.randn(2, 2, h, w, generator=g) * 0.3
+    z = torch.tensor([100.0, 20.0, 500.0])
+    inv, inv_lo = torch.tensor([0.01, 0.05, 0.002]), torch.tensor([1.0, 0.5, 0.25])
+    args = (atlas, torch.zeros(2, 3), slopes, torch.tensor([0, 1, 1]), z, inv, inv_lo, 2)
+    plain = kernels.relief(*args)
+    up = kernels.relief(*args, upsample2x=True)
+    assert up.shape == (3, 2 * h, 2 * w) and plain.unique().numel() > 3
+    assert torch.equal(up, _upsample2x(plain))
+
+
 def test_atlas_too_large_for_int32_indices_is_left_to_torch():
     """2^31 texels or more (about 1,100 dispersed scenes) cannot be indexed by the passes: the renderer
     then samples with grid_sample (checked on meta tensors: no memory)."""

@@ -327,9 +327,8 @@ class FastRenderer(Renderer):
         off = torch.stack([(lvl * ax + bx) / wa - 1.0, oy])[..., None, None]  # (2, B, 1, 1)
         inv = torch.exp2(-lvl)[:, None, None]
         if kern is not None:
-            rng_n = kern.relief(self.atlas_height[0, 0], off, slopes, site_idx, z, inv, inv_lo, self.parallax_iters,
-                                self.threads)
-            return _upsample2x(rng_n) if half else rng_n
+            return kern.relief(self.atlas_height[0, 0], off, slopes, site_idx, z, inv, inv_lo, self.parallax_iters,
+                               self.threads, upsample2x=half)  # the upsampling in the same pass
         sl = slopes.index_select(1, site_idx)  # (2, B, h', w')
         hh, ww = sl.shape[2:]
         rng = z

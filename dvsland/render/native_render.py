@@ -102,16 +102,49 @@ DVS_CLONES static void levels_range(const Tex t, const float* off, int64_t B, co
   }
 }
 
+// Bilinear 2x upsampling of one (h, w) field into (2h, 2w), align_corners=False with edge clamping, as
+// fast._upsample2x: columns first, then rows, each output value lerp(x, neighbour, 0.25) = x + 0.25 (n - x)
+// (torch's lerp with a weight below 0.5; 0.25 (n - x) is exact, so with or without an fma the same bits).
+DVS_INLINE float quarter_to(float x, float n) { return x + 0.25f * (n - x); }
+
+static void upsample2x_field(const float* __restrict x, int64_t h, int64_t w, float* __restrict col,
+                             float* __restrict out) {
+  for (int64_t i = 0; i < h; ++i) {  // columns: col (h, 2w)
+    const float* xi = x + i * w;
+    float* ci = col + i * 2 * w;
+    for (int64_t j = 0; j < w; ++j) {
+      const float c = xi[j];
+      ci[2 * j] = quarter_to(c, xi[j > 0 ? j - 1 : 0]);
+      ci[2 * j + 1] = quarter_to(c, xi[j + 1 < w ? j + 1 : w - 1]);
+    }
+  }
+  const int64_t W2 = 2 * w;
+  for (int64_t i = 0; i < h; ++i) {  // rows: out (2h, 2w)
+    const float* c = col + i * W2;
+    const float* up = col + (i > 0 ? i - 1 : 0) * W2;
+    const float* dn = col + (i + 1 < h ? i + 1 : h - 1) * W2;
+    float* o0 = out + (2 * i) * W2;
+    float* o1 = o0 + W2;
+    for (int64_t k = 0; k < W2; ++k) {
+      o0[k] = quarter_to(c[k], up[k]);
+      o1[k] = quarter_to(c[k], dn[k]);
+    }
+  }
+}
+
 // Relief ranges of frames [f0, f1): r = z, then iters times r = max(z - h(off + slope r inv), 0.05 z);
-// out = r * inv_lo (see FastRenderer._relief_range, the torch path).
+// out = r * inv_lo (see FastRenderer._relief_range, the torch path), upsampled 2x when up2 (out (B, 4 Q),
+// the (hh, ww) field of Q points upsampled into (2 hh, 2 ww)).
 DVS_CLONES static void relief_range(const Tex t, const float* off, int64_t B, const float* slopes, int64_t S,
                                     const int64_t* site, const float* z, const float* inv, const float* inv_lo,
-                                    int64_t iters, float* out, int64_t Q, int64_t f0, int64_t f1) {
+                                    int64_t iters, float* out, int64_t Q, int64_t up2, int64_t hh, int64_t f0,
+                                    int64_t f1) {
+  std::vector<float> half(up2 ? 3 * Q : 0);  // the frame's field, then its column pass
   for (int64_t f = f0; f < f1; ++f) {
     const int64_t s = site[f];
     const float* __restrict slx = slopes + s * Q;
     const float* __restrict sly = slopes + (S + s) * Q;
-    float* __restrict r = out + f * Q;
+    float* __restrict r = up2 ? half.data() : out + f * Q;
     const float zf = z[f], inv_f = inv[f], ox = off[f], oy = off[B + f], floor_m = zf * 0.05f;
     for (int64_t q = 0; q < Q; ++q) r[q] = zf;
     for (int64_t it = 0; it < iters; ++it) {
@@ -123,6 +156,7 @@ DVS_CLONES static void relief_range(const Tex t, const float* off, int64_t B, co
     }
     const float k = inv_lo[f];
     for (int64_t q = 0; q < Q; ++q) r[q] = r[q] * k;
+    if (up2) upsample2x_field(r, hh, Q / hh, half.data() + Q, out + f * 4 * Q);
   }
 }
 
@@ -147,16 +181,18 @@ int64_t render_levels(const float* atlas, int64_t Ha, int64_t Wa, const float* o
   return 0;
 }
 
-// out (B, Q) = the relief's ray ranges times inv_lo. atlas (Ha, Wa) heights; off (2, B); slopes (2, S, Q);
-// site (B,); z, inv, inv_lo (B,). Returns 0, or -1 on a bad size or site index.
+// out (B, Q) = the relief's ray ranges times inv_lo; with up2, out (B, 4 Q) = those of each (hh, Q / hh)
+// field upsampled 2x. atlas (Ha, Wa) heights; off (2, B); slopes (2, S, Q); site (B,); z, inv, inv_lo (B,).
+// Returns 0, or -1 on a bad size or site index.
 int64_t render_relief(const float* atlas, int64_t Ha, int64_t Wa, const float* off, int64_t B, const float* slopes,
                       int64_t S, const int64_t* site, const float* z, const float* inv, const float* inv_lo,
-                      int64_t iters, float* out, int64_t Q, int64_t n_threads) {
+                      int64_t iters, float* out, int64_t Q, int64_t up2, int64_t hh, int64_t n_threads) {
   if (Ha < 1 || Wa < 1 || Ha * Wa >= (int64_t(1) << 31) || B < 0 || S < 1 || Q < 1 || iters < 0) return -1;
+  if (up2 && (hh < 1 || Q % hh != 0)) return -1;
   for (int64_t f = 0; f < B; ++f) if (site[f] < 0 || site[f] >= S) return -1;
   const Tex t = texture(atlas, Ha, Wa);
   parallel_ranges(B, n_threads, [&](int64_t f0, int64_t f1) {
-    relief_range(t, off, B, slopes, S, site, z, inv, inv_lo, iters, out, Q, f0, f1);
+    relief_range(t, off, B, slopes, S, site, z, inv, inv_lo, iters, out, Q, up2, hh, f0, f1);
   });
   return 0;
 }
@@ -171,7 +207,7 @@ _I64, _P = ctypes.c_int64, ctypes.c_void_p
 #: the C functions' (argument types, result type)
 _SIGNATURES = {
     "render_levels": ([_P, _I64, _I64, _P, _I64, _P, _I64, _P, _P, _I64, _P, _P, _I64, _P, _I64, _I64], _I64),
-    "render_relief": ([_P, _I64, _I64, _P, _I64, _P, _I64, _P, _P, _P, _P, _I64, _P, _I64, _I64], _I64),
+    "render_relief": ([_P, _I64, _I64, _P, _I64, _P, _I64, _P, _P, _P, _P, _I64, _P, _I64, _I64, _I64, _I64], _I64),
 }
 
 
@@ -218,19 +254,22 @@ class Kernels:
         return out
 
     def relief(self, atlas: torch.Tensor, off: torch.Tensor, slopes: torch.Tensor, site_idx: torch.Tensor,
-               z: torch.Tensor, inv: torch.Tensor, inv_lo: torch.Tensor, iters: int, threads: int = 1) -> torch.Tensor:
+               z: torch.Tensor, inv: torch.Tensor, inv_lo: torch.Tensor, iters: int, threads: int = 1,
+               upsample2x: bool = False) -> torch.Tensor:
         """(B, h, w) relief ray ranges (m) times ``inv_lo``: per point r = z, then ``iters`` times
         r = max(z - height(off + slopes[:, site] r inv), 0.05 z), heights sampled from ``atlas`` (Ha, Wa).
-        off (2, B); slopes (2, S, h, w); z, inv, inv_lo (B,); all float32, site_idx int64 (B,)."""
+        off (2, B); slopes (2, S, h, w); z, inv, inv_lo (B,); all float32, site_idx int64 (B,). With
+        ``upsample2x``: (B, 2 h, 2 w), each field upsampled as :func:`dvsland.render.fast._upsample2x`
+        (the same bits), in the same pass."""
         b = z.numel()
         s, hh, ww = slopes.shape[1:]
         q = hh * ww
         site = _sites(site_idx, b)
-        out = torch.empty(b, hh, ww)
+        out = torch.empty(b, 2 * hh, 2 * ww) if upsample2x else torch.empty(b, hh, ww)
         status = self._lib.render_relief(
             _f32(atlas, "atlas", atlas.numel()), atlas.shape[-2], atlas.shape[-1], _f32(off, "off", 2 * b), b,
             _f32(slopes, "slopes", 2 * s * q), s, site.data_ptr(), _f32(z, "z", b), _f32(inv, "inv", b),
-            _f32(inv_lo, "inv_lo", b), int(iters), out.data_ptr(), q, int(threads))
+            _f32(inv_lo, "inv_lo", b), int(iters), out.data_ptr(), q, int(upsample2x), hh, int(threads))
         if status < 0:
             raise RuntimeError(f"native render: bad sizes or a site index outside [0, {s - 1}]")
         return out
