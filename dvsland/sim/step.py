@@ -204,9 +204,8 @@ def render(stages, state: LoopState, all_active: Optional[bool] = None,
     if state.last_frames is None or all_active:
         return stages.events.render(alt, state.scene_idx, in_range=True)
     idx = state.active.nonzero().squeeze(1) if rows is None else rows
-    frames = state.last_frames.clone()
-    frames[idx] = stages.events.render(alt[idx], state.scene_idx[idx], in_range=True).to(frames.dtype)
-    return frames
+    new = stages.events.render(alt.index_select(0, idx), state.scene_idx.index_select(0, idx), in_range=True)
+    return state.last_frames.index_copy(0, idx, new.to(state.last_frames.dtype))  # one pass: copy and put
 
 
 #: the built-in emulator steps only the flying descents once they are at most this share of the batch
