@@ -298,9 +298,11 @@ def start_kernel_builds(cfg: Config, estimator: Any = None, renderer: Any = None
     """Start compiling, in one background thread, the C++ kernels that a CPU run with ``estimator``
     and ``renderer`` (None: the configured one) loads on first use and finds neither built nor
     loaded (:func:`dvsland.native_build.build_in_background`): the terrain's and the renderer's
-    for the fast renderer, the emulator's, and ``cmax``'s or ``dpr``'s for those estimators. The
+    for the fast renderer, the emulator's, ``cmax``'s or ``dpr``'s for those estimators, and the
+    ``efference_fit`` filter's for that filter. The
     compiler runs beside the scenes' preparation instead of before the first steps; each kernel's
     first use waits for its build. Returns the builds started (0 on a warm cache)."""
+    from dvsland.control import native_fit
     from dvsland.estimators import native_cmax, native_dpr
     from dvsland.estimators.cmax import CMaxEstimator
     from dvsland.estimators.dpr import DPREstimator
@@ -317,6 +319,8 @@ def start_kernel_builds(cfg: Config, estimator: Any = None, renderer: Any = None
         libraries.append(native_cmax.LIBRARY)
     elif isinstance(estimator, DPREstimator):
         libraries.append(native_dpr.LIBRARY)
+    if cfg.controller.filter == "efference_fit":
+        libraries.append(native_fit.LIBRARY)
     return build_in_background(libraries)
 
 

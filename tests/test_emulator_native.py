@@ -176,8 +176,9 @@ def test_native_kernel_respects_the_event_cap(fresh):
 
 def test_cli_build_native_builds_both_kernels_and_reports(monkeypatch, capsys):
     """`dvsland build-native` builds the terrain's, the renderer's, the emulator's, cmax's and dpr's kernels
-    (compile mocked here) and returns 1 when one cannot be built, naming it."""
+    and the efference_fit filter's (compile mocked here) and returns 1 when one cannot be built, naming it."""
     from dvsland.cli.main import main
+    from dvsland.control import native_fit
     from dvsland.estimators import native_cmax, native_dpr
     from dvsland.render import native_render
     from dvsland.terrain import native_noise
@@ -188,10 +189,12 @@ def test_cli_build_native_builds_both_kernels_and_reports(monkeypatch, capsys):
     monkeypatch.setattr(native.LIBRARY, "build", lambda verbose=False: built.append("events"))
     monkeypatch.setattr(native_cmax.LIBRARY, "build", lambda verbose=False: built.append("cmax"))
     monkeypatch.setattr(native_dpr.LIBRARY, "build", lambda verbose=False: built.append("dpr"))
-    assert main(["build-native"]) == 0 and built == ["terrain", "render", "events", "cmax", "dpr"]
+    monkeypatch.setattr(native_fit.LIBRARY, "build", lambda verbose=False: built.append("fit"))
+    assert main(["build-native"]) == 0 and built == ["terrain", "render", "events", "cmax", "dpr", "fit"]
     out = capsys.readouterr().out
     assert all(f"dvsland.{m}" in out for m in ("terrain.native_noise", "render.native_render", "events.native",
-                                               "estimators.native_cmax", "estimators.native_dpr"))
+                                               "estimators.native_cmax", "estimators.native_dpr",
+                                               "control.native_fit"))
 
     def broken(verbose=False):
         raise RuntimeError("no compiler")

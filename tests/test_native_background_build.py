@@ -71,6 +71,19 @@ def test_a_run_starts_the_builds_of_the_kernels_it_uses(estimator, renderer, wan
     assert [lib.prefix.split("_")[1] for lib in asked] == want
 
 
+def test_the_efference_fit_filter_starts_its_kernels_build(monkeypatch):
+    from dvsland import stages
+    from dvsland.config import load_config
+    from dvsland.estimators import get_estimator
+
+    asked = []
+    monkeypatch.setattr(native_build, "build_in_background", lambda libs: asked.extend(libs) or 0)
+    cfg = load_config("montecarlo_efference")
+    assert cfg.controller.filter == "efference_fit"
+    assert stages.start_kernel_builds(cfg, get_estimator("learned", 2, (128, 128))) == 0
+    assert [lib.prefix.split("_")[1] for lib in asked] == ["terrain", "render", "events", "fit"]
+
+
 def _fork_and_load(lib) -> int:
     """Fork; the child loads ``lib`` within a 60 s alarm and exits 0 when its kernel answers; the
     child's wait status."""

@@ -53,7 +53,7 @@ TORCH_PATH_SYNC_BUDGET = {"learned": 6, "cmax": 11}
 
 @pytest.mark.parametrize("est", sorted(TORCH_PATH_SYNC_BUDGET))
 def test_torch_path_syncs_within_budget(est, monkeypatch):
-    from dvsland.control import efference_fit
+    from dvsland.control import efference_fit, native_fit
     from dvsland.estimators import native_cmax, native_dpr
     from dvsland.estimators.learned import rows
     from dvsland.events import denoise, emulator, native
@@ -65,6 +65,7 @@ def test_torch_path_syncs_within_budget(est, monkeypatch):
     monkeypatch.setattr(native.LIBRARY, "chosen", False)  # the compiled kernels off (use_native_sort(False))
     monkeypatch.setattr(native_cmax.LIBRARY, "chosen", False)
     monkeypatch.setattr(native_dpr.LIBRARY, "chosen", False)
+    monkeypatch.setattr(native_fit.LIBRARY, "chosen", False)
     assert not native.native_sort_enabled() and not native_cmax.enabled() and not native_dpr.LIBRARY.enabled()
     r = loop_syncs(est, steps=3, preset="montecarlo_efference", sites="A,D,I",
                    overrides=["dispersion.terrain_variants=1"])

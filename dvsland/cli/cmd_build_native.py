@@ -14,13 +14,14 @@ def register(subparsers) -> None:
                     "a C++ compiler: $CXX, c++, g++ or clang++) into the kernel cache (~/.cache/torch_extensions/dvsland, or $TORCH_EXTENSIONS_DIR). "
                     "Every process builds them on first use anyway where a compiler is found "
                     "(DVSLAND_NATIVE_TERRAIN / DVSLAND_NATIVE_RENDER / DVSLAND_NATIVE_SORT / DVSLAND_NATIVE_CMAX / "
-                    "DVSLAND_NATIVE_DPR = auto, the default) and uses them: the same terrain, frames, events and "
+                    "DVSLAND_NATIVE_DPR / DVSLAND_NATIVE_FIT = auto, the default) and uses them: the same terrain, frames, events and "
                     "estimates as the torch path, cmax 2.5-3.5x, the emulator and the renderer's sampling about 2x "
                     "cheaper (docs/howto/devices.md). This command reports the build's time and folder, or its error.")
     p.set_defaults(func=run_build_native)
 
 
 def run_build_native(args) -> int:
+    from dvsland.control import native_fit
     from dvsland.estimators import native_cmax, native_dpr
     from dvsland.events import native
     from dvsland.native_build import timed_build
@@ -31,4 +32,5 @@ def run_build_native(args) -> int:
     rc = max(rc, timed_build("the renderer kernels", native_render.LIBRARY))
     rc = max(rc, timed_build("the emulator kernels", native.LIBRARY))
     rc = max(rc, timed_build("the cmax kernel", native_cmax.LIBRARY))
-    return max(rc, timed_build("the dpr kernels (mean-shift, peak scores)", native_dpr.LIBRARY))
+    rc = max(rc, timed_build("the dpr kernels (mean-shift, peak scores)", native_dpr.LIBRARY))
+    return max(rc, timed_build("the efference_fit filter's round terms", native_fit.LIBRARY))

@@ -28,9 +28,10 @@ lock-out and no covariance that grows without measurements (theta is constant; P
 
 Model errors (thrust not applied as commanded, unknown mass) are outside the model: the filter
 assumes the dynamics of the simulator. Cost: O(steps so far) per element and step (the history is
-kept, 40 bytes per element and step): on one torch thread of a loaded 2-core CPU (load 7), median
-0.9 / 3.7 / 17 ms per step for B = 18 after 300 / 900 / 1800 steps without forgetting
-(docs/controllers.md). With ``forget_s`` > 0 the fit reads only the last 12 forget_s of estimates
+kept, 40 bytes per element and step). On a CPU each round's per-row terms run in one compiled pass
+(:mod:`dvsland.control.native_fit`, the same bits as the torch path; not with gradients): on one
+torch thread, about 0.8 / 2.8 / 4.0 ms per step for B = 18 after 300 / 1500 / 3000 steps without
+forgetting (the torch path: 1.5 / 6.9 / 14 ms; docs/measurements.md). With ``forget_s`` > 0 the fit reads only the last 12 forget_s of estimates
 (older ones weigh < exp(-12)), so the cost stops growing after 12 forget_s / dt steps. On a CPU a
 finished descent (not ``active``) costs nothing: only the descents in flight are fitted
 (:data:`CPU_COMPACT`), with the same bits, because each descent's sums run over its own rows.
@@ -58,6 +59,7 @@ import torch
 
 from dvsland.config.schema import EfferenceConfig
 
+from . import native_fit
 from .efference import PlannedStartFilter, check_filter_plan, check_positive, confidence_rel_sigma
 from .filter import FilterOut
 
@@ -181,16 +183,11 @@ def gate_surrogate(u2: Tensor, gate_sigma: Tensor) -> Tensor:
     return soft - soft.detach()
 
 
-def _gn_round(p: EfferenceFitParams, cols, fade: Optional[Tensor], theta: Tensor, info: Tensor, mask: Tensor):
-    """One robust Gauss-Newton round on theta over the history columns ``cols`` (:func:`fit_rounds`;
-    each (B, N), a descent's rows along the last dim; ``fade`` None = 1): (theta (B, 2), info (B, 3),
-    weights w (B, N), R (B, N)); descents not in ``mask`` keep theta, info. Each descent's sums run
-    over its own contiguous rows, so they do not depend on the other descents (a compacted batch
-    gives the same bits)."""
-    c = p.cfg
+def _terms_torch(c: EfferenceConfig, cols, fade: Optional[Tensor], dz: Tensor, dv: Tensor, pzz: Tensor, pzv: Tensor,
+                 pvv: Tensor):
+    """The torch path of one round's per-row terms (:func:`_gn_round`): (the five sums (wz jz, wz jv,
+    wv jv, wz res, wv res), each (B,), w and R of the newest row (B,) each)."""
     zdr, vdr, t, d0, have_sig, sig0, d0_abs = cols
-    iz, iv = 1.0 / p.sz0 ** 2, 1.0 / p.sv0 ** 2
-    dz, dv = theta[:, 0], theta[:, 1]
     z = (zdr + dz[:, None] + dv[:, None] * t).clamp_min(c.min_altitude_m)
     v = vdr + dv[:, None]
     h = v / z
@@ -201,10 +198,7 @@ def _gn_round(p: EfferenceFitParams, cols, fade: Optional[Tensor], theta: Tensor
     r = (c.meas_sigma_rel * h_abs + c.meas_sigma_abs) ** 2
     if sig0 is not None:  # the estimator's own error (meas_noise "confidence"); else it adds 0
         r = r + (sig0 * torch.maximum(d0_abs, h_abs)) ** 2
-    # current posterior covariance of theta: inverse of [[a, b], [b, c]]
-    det = (info[:, 0] * info[:, 2] - info[:, 1] ** 2).clamp_min(1e-300)
-    pzz, pzv, pvv = (info[:, 2] / det)[:, None], (-info[:, 1] / det)[:, None], (info[:, 0] / det)[:, None]
-    s = r + jz * jz * pzz + 2 * jz * jv * pzv + jv * jv * pvv
+    s = r + jz * jz * pzz[:, None] + 2 * jz * jv * pzv[:, None] + jv * jv * pvv[:, None]
     res = d0 - h
     u2 = res * res / s
     usable = have_sig & torch.isfinite(u2)
@@ -219,11 +213,36 @@ def _gn_round(p: EfferenceFitParams, cols, fade: Optional[Tensor], theta: Tensor
         w = w + torch.where(usable, cauchy(u2s), 0.0) * gate_surrogate(u2s, c.gate_sigma)
     w_info = w if fade is None else w * fade
     wz, wv = w_info * jz, w_info * jv
-    a = (wz * jz).sum(1) + iz
-    b = (wz * jv).sum(1)
-    cc = (wv * jv).sum(1) + iv
-    gz = (wz * res).sum(1) - dz * iz
-    gv = (wv * res).sum(1) - dv * iv
+    sums = ((wz * jz).sum(1), (wz * jv).sum(1), (wv * jv).sum(1), (wz * res).sum(1), (wv * res).sum(1))
+    return sums, w[:, -1], r[:, -1]
+
+
+def _gn_round(p: EfferenceFitParams, cols, fade: Optional[Tensor], theta: Tensor, info: Tensor, mask: Tensor,
+              kern=None):
+    """One robust Gauss-Newton round on theta over the history columns ``cols`` (:func:`fit_rounds`;
+    each (B, N), a descent's rows along the last dim; ``fade`` None = 1): (theta (B, 2), info (B, 3),
+    w and R of the newest row (B,) each); descents not in ``mask`` keep theta, info. Each descent's
+    sums run over its own contiguous rows, so they do not depend on the other descents (a compacted
+    batch gives the same bits). ``kern``: the compiled per-row terms (:mod:`dvsland.control.native_fit`,
+    the same bits), or None (torch)."""
+    c = p.cfg
+    iz, iv = 1.0 / p.sz0 ** 2, 1.0 / p.sv0 ** 2
+    dz, dv = theta[:, 0], theta[:, 1]
+    # current posterior covariance of theta: inverse of [[a, b], [b, c]]
+    det = (info[:, 0] * info[:, 2] - info[:, 1] ** 2).clamp_min(1e-300)
+    pzz, pzv, pvv = info[:, 2] / det, -info[:, 1] / det, info[:, 0] / det
+    if kern is None:
+        (szz, szv, svv, sz, sv), w, r = _terms_torch(c, cols, fade, dz, dv, pzz, pzv, pvv)
+    else:  # cols: the raw rows (5, B, N), contiguous
+        prod, w, r = kern.terms(cols, c.meas_noise == "confidence", fade, theta.contiguous(),
+                                torch.stack([pzz, pzv, pvv], 1), c.min_altitude_m, c.meas_sigma_rel,
+                                c.meas_sigma_abs, c.gate_sigma ** 2, c.cauchy_c ** 2)
+        szz, szv, svv, sz, sv = prod.sum(2).unbind(0)  # each row's sum as the torch path's sum(1)
+    a = szz + iz
+    b = szv
+    cc = svv + iv
+    gz = sz - dz * iz
+    gv = sv - dv * iv
     det = (a * cc - b * b).clamp_min(1e-300)
     step_z = (cc * gz - b * gv) / det
     step_v = (a * gv - b * gz) / det
@@ -233,6 +252,35 @@ def _gn_round(p: EfferenceFitParams, cols, fade: Optional[Tensor], theta: Tensor
     m = mask.unsqueeze(1)
     return (torch.where(m, torch.stack([new_z, new_v], 1), theta), torch.where(m, torch.stack([a, b, cc], 1), info),
             w, r)
+
+
+def _native_kernel(p: EfferenceFitParams, rows: Tensor, theta: Tensor, info: Tensor):
+    """The compiled terms for this fit (CPU, nothing carrying a gradient, the settings plain numbers), or None."""
+    c = p.cfg
+    plain = all(isinstance(v, (int, float)) for v in (c.gate_sigma, c.cauchy_c, c.meas_sigma_rel,
+                                                        c.meas_sigma_abs, c.min_altitude_m))
+    grads = torch.is_grad_enabled() and any(x.requires_grad for x in (rows, theta, info, p.sz0, p.sv0))
+    return native_fit.kernel_for(rows) if plain and not grads else None
+
+
+def _columns(c: EfferenceConfig, rows: Tensor, t_now: Tensor, prepared: bool = True):
+    """(the rounds' columns (zdr, vdr, t, D_hat, weighable, sigma_c or None, |D_hat| or None), each (B, N),
+    or None unless ``prepared``; the fade (B, N) with ``forget_s`` > 0, else None) of history ``rows``
+    (5, B, N): a row without an estimate gets z_dr 1e3, v_dr 0, t 0 and D_hat 0 (and weighs 0)."""
+    zdr, vdr, t, d, sig_c = rows.unbind(0)
+    have = torch.isfinite(d)
+    fade = None
+    if prepared or c.forget_s > 0:
+        t = torch.where(have, t, 0.0)
+        if c.forget_s > 0:
+            fade = torch.exp(-(t_now.unsqueeze(1) - t).clamp_min(0.0) / c.forget_s)
+    if not prepared:
+        return None, fade
+    d0 = torch.where(have, d, 0.0)
+    zdr, vdr = torch.where(have, zdr, 1e3), torch.where(have, vdr, 0.0)
+    fin_sig = torch.isfinite(sig_c)
+    sig0 = torch.where(fin_sig, sig_c, 0.0) if c.meas_noise == "confidence" else None
+    return (zdr, vdr, t, d0, have & fin_sig, sig0, d0.abs() if sig0 is not None else None), fade
 
 
 def fit_rounds(p: EfferenceFitParams, rows: Tensor, t_now: Tensor, theta: Tensor, info: Tensor, mask: Tensor):
@@ -251,18 +299,14 @@ def fit_rounds(p: EfferenceFitParams, rows: Tensor, t_now: Tensor, theta: Tensor
     ``forget_s``), so the rounds' values are those of the full expression, bit for bit.
     """
     c = p.cfg
-    zdr, vdr, t, d, sig_c = rows.unbind(0)
-    have = torch.isfinite(d)
-    d0 = torch.where(have, d, 0.0)
-    zdr, vdr, t = torch.where(have, zdr, 1e3), torch.where(have, vdr, 0.0), torch.where(have, t, 0.0)
-    fin_sig = torch.isfinite(sig_c)
-    sig0 = torch.where(fin_sig, sig_c, 0.0) if c.meas_noise == "confidence" else None
-    cols = (zdr, vdr, t, d0, have & fin_sig, sig0, d0.abs() if sig0 is not None else None)
-    fade = torch.exp(-(t_now.unsqueeze(1) - t).clamp_min(0.0) / c.forget_s) if c.forget_s > 0 else None
-    w = r = torch.zeros_like(d)
+    kern = _native_kernel(p, rows, theta, info)
+    cols, fade = _columns(c, rows, t_now, prepared=kern is None)
+    if kern is not None:  # it prepares the raw rows itself, in each round's one pass
+        cols = rows.contiguous()
+    w = r = None
     for _ in range(c.iterations):  # a fixed number of rounds: no data-dependent branch
-        theta, info, w, r = _gn_round(p, cols, fade, theta, info, mask)
-    return theta, info, w[:, -1] * r[:, -1]
+        theta, info, w, r = _gn_round(p, cols, fade, theta, info, mask, kern)
+    return theta, info, w * r
 
 
 #: on a CPU, fit only the descents in flight (reading the mask there is no device sync); off, or on
