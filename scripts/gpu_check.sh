@@ -5,7 +5,7 @@
 # ground), the 450-descent cmax campaign in one process (and, as part 4, in CAMPAIGN_WORKERS
 # processes sharing the card), whole `learned` descents per minute (part 5: LEARNED_SEEDS x 9
 # descents flown to the end in LEARNED_WORKERS processes; part 7: a fleet), and where a step's time
-# goes by dvsland function (part 6).
+# goes by dvsland function (part 6; PROFILE_SKIP=1300 profiles late in the flight, near the ground).
 # $OUT/summary.log gathers the figures as they come; $OUT/results.tgz (refreshed after every part, so
 # a run cut short still brings back what it finished) holds every log, table and profile. Without
 # $OUT (a machine of your own) both go to /tmp/gpu_check.
@@ -95,8 +95,11 @@ PY
 [[ $PARTS == *" 5 "* ]] && campaign campaign_learned learned "${LEARNED_SEEDS:-600}" "${LEARNED_WORKERS:-2}" 200
 # 6. where a step's time goes, by dvsland function (device time, the host's own time, launches)
 if [[ $PARTS == *" 6 "* ]]; then
+  # PROFILE_SKIP steps flown first (default 3: the first steps; 1300: late in the flight, near the ground,
+  # where whole descents spend their time: more events, a long filter history)
   for eb in ${PROFILES:-cmax:4608 learned:4608 cmax:576}; do
-    timeout 90 python3 scripts/gpu_profile_step.py --device cuda --batch "${eb#*:}" --estimator "${eb%:*}" --steps 3 \
+    timeout $((90 + ${PROFILE_SKIP:-3} / 8)) python3 scripts/gpu_profile_step.py --device cuda --batch "${eb#*:}" \
+      --estimator "${eb%:*}" --steps 3 --skip "${PROFILE_SKIP:-3}" \
       --rows 25 --lines 40 > "$RES/profile_${eb%:*}_${eb#*:}.txt" 2>&1
     grep -m1 "^B = " "$RES/profile_${eb%:*}_${eb#*:}.txt" | tee -a "$SUM"
     snapshot
