@@ -228,3 +228,15 @@ def test_unpacking_events_says_what_happened(tmp_path):
     with pytest.raises(TypeError, match="slice"):
         ev[torch.tensor(0)]
     assert len(ev[1:2]) == 1 and len(ev[torch.tensor([0, 1])]) == 2
+
+
+@pytest.mark.parametrize("share", [0.0, 0.5, 1.0])
+def test_mask_selection_keeps_each_field_and_the_order(share):
+    """``ev[mask]`` finds the kept positions once and takes every field at them: the same events, in
+    the same order, as masking each field (none kept, some, all)."""
+    ev = random_events()
+    mask = torch.rand(len(ev), generator=torch.Generator().manual_seed(1)) < share
+    sub = ev[mask]
+    assert len(sub) == int(mask.sum())
+    for k in ("b", "x", "y", "t", "p"):
+        assert torch.equal(getattr(sub, k), getattr(ev, k)[mask]) and getattr(sub, k).dtype == getattr(ev, k).dtype

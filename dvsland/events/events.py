@@ -137,6 +137,9 @@ class Events:
         if isinstance(index, torch.Tensor) and index.dtype == torch.bool:
             if index.shape != self.t.shape:
                 raise ValueError(f"mask must have shape ({len(self)},), got {tuple(index.shape)}")
+            # the kept positions found once for the five fields (a mask per field finds them five times)
+            idx = index.to(self.t.device).nonzero().squeeze(1)
+            return Events(**{k: getattr(self, k).index_select(0, idx) for k in _FIELDS})
         return Events(**{k: getattr(self, k)[index] for k in _FIELDS})
 
     def to(self, device: DeviceLike) -> "Events":
