@@ -35,6 +35,20 @@ def cpu_identity() -> tuple:
 
 
 @pytest.fixture(scope="session")
+def native_kernels():
+    """``native_kernels(library, what)``: the bindings of a compiled library
+    (:class:`dvsland.native_build.NativeLibrary`), built here when needed, whatever its mode; the test
+    is skipped where they cannot be built (no C++ compiler)."""
+    def load(library, what: str):
+        k = library.load(force=True)
+        if k is None:
+            pytest.skip(f"no C++ compiler: {what} cannot be built here")
+        return k
+
+    return load
+
+
+@pytest.fixture(scope="session")
 def recording_cpu() -> bool:
     """Whether this CPU is :data:`RECORDING_CPU` (the recorded references hold bit for bit)."""
     return cpu_identity() == RECORDING_CPU

@@ -15,11 +15,8 @@ F64 = torch.float64
 
 
 @pytest.fixture(scope="module")
-def kernels():
-    k = native_fit.LIBRARY.load(force=True)
-    if k is None:
-        pytest.skip("no C++ compiler: the compiled fit terms cannot be built here")
-    return k
+def kernels(native_kernels):
+    return native_kernels(native_fit.LIBRARY, "the compiled fit terms")
 
 
 def _both(make, steps, monkeypatch):

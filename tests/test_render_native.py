@@ -17,11 +17,8 @@ SITES = ["A", "E", "G", "H"]
 
 
 @pytest.fixture(scope="module")
-def kernels():
-    k = native_render.LIBRARY.load(force=True)
-    if k is None:
-        pytest.skip("no C++ compiler: the compiled render passes cannot be built here")
-    return k
+def kernels(native_kernels):
+    return native_kernels(native_render.LIBRARY, "the compiled render passes")
 
 
 def _same(a: torch.Tensor, b: torch.Tensor) -> None:
