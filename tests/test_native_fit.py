@@ -96,3 +96,31 @@ def test_rows_without_estimates_or_with_infinite_values_weigh_nothing(kernels):
     theta, pcov = torch.zeros(B, 2, dtype=F64), torch.eye(2, dtype=F64)[[0, 0, 1], [0, 1, 1]].view(1, 3)
     prod, w, _ = kernels.terms(hist, True, None, theta, pcov, 1.0, 0.05, 0.001, 9.0, 4.0)
     assert (prod[:, 0, 0] != 0).all() and (prod[:, 0, 1:] == 0).all() and w[0] == 0
+
+
+@pytest.mark.parametrize("options", [{}, {"meas_noise": "confidence", "forget_s": 2.0}])
+def test_restarted_descents_leading_blank_rows_give_the_torch_paths_bits(kernels, options, monkeypatch):
+    """Descents restarted mid-flight (a fleet's slots, an environment's autoreset) have blank rows
+    before their restart: the same bits as the torch path."""
+    z0, v0, steps = _flight(8)
+    restart = torch.zeros(len(z0), dtype=torch.bool)
+    restart[[0, 3, 5]] = True
+
+    def fly():
+        f = EfferenceFitFilter(z0, v0, DT, **options)
+        st, out = f.init_state(), []
+        for k, (d, conf, a, _) in enumerate(steps):
+            if k in (20, 41):
+                st = f.reset_where(st, restart if k == 20 else ~restart)
+            st, o = f.step_state(st, d, None, None if k == 0 else steps[k - 1][2], None, conf)
+            out.append((st, o))
+        return out
+
+    monkeypatch.setattr(native_fit.LIBRARY, "chosen", True)
+    native = fly()
+    monkeypatch.setattr(native_fit.LIBRARY, "chosen", False)
+    torch_path = fly()
+    hist = native[-1][0].rows_packed  # rows 0-19 (blank for all) dropped; 20-40 blank for those restarted at 41
+    assert torch.isnan(hist[1, :21, 3]).all() and torch.isfinite(hist[0, :21, 0]).all()
+    for (s1, o1), (s2, o2) in zip(native, torch_path):
+        assert tree_equal((s1, tuple(o1)), (s2, tuple(o2)))
