@@ -470,13 +470,17 @@ def test_density_peaks_compiled_scores_are_checked_against_torch():
     kern = native_dpr._LIB.load(force=True)
     if kern is None:
         pytest.skip("no C++ compiler here")
-    assert dp.compiled_scores_match(kern) and dp.compiled_scores_match(kern, 1)  # where oneDNN sums as here
+    assert dp.compiled_scores_match(kern)  # oneDNN's depthwise convolution of several images: the fused chain
 
-    class Unfused:  # the single image's order for several images: refused
+    class Unfused:  # the single image's order for several images (and the reverse): refused
         def peak_scores(self, img, kx, ky, nms_px, min_density, fused=True):
             return kern.peak_scores(img, kx, ky, nms_px, min_density, not fused)
 
-    assert not dp.compiled_scores_match(Unfused()) and not dp.compiled_scores_match(Unfused(), 1)
+    assert not dp.compiled_scores_match(Unfused())
+    # a single image is a plain convolution: rounded products added on most CPUs (then the kernel runs),
+    # another order on some (a 2-core Intel Xeon: then the torch path runs, as the parametrised test checks)
+    if dp.compiled_scores_match(kern, 1):
+        assert not dp.compiled_scores_match(Unfused(), 1)
 
     class Float64Sums:  # the same blur summed in float64, rounded once: other bits on some pixels
         def peak_scores(self, img, kx, ky, nms_px, min_density, fused=True):
