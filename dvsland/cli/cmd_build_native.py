@@ -10,12 +10,14 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "build-native", help="compile the C++ kernels of the terrain, the renderer, the emulator, cmax and dpr now (a "
                              "second or two each; otherwise done on first use)",
-        description="Compile the terrain's, the fast renderer's, the emulator's, cmax's and dpr's C++ kernels (needs "
+        description="Compile the terrain's, the fast renderer's, the emulator's, cmax's, dpr's and the efference_fit "
+                    "filter's C++ kernels (needs "
                     "a C++ compiler: $CXX, c++, g++ or clang++) into the kernel cache (~/.cache/torch_extensions/dvsland, or $TORCH_EXTENSIONS_DIR). "
                     "Every process builds them on first use anyway where a compiler is found "
                     "(DVSLAND_NATIVE_TERRAIN / DVSLAND_NATIVE_RENDER / DVSLAND_NATIVE_SORT / DVSLAND_NATIVE_CMAX / "
-                    "DVSLAND_NATIVE_DPR / DVSLAND_NATIVE_FIT = auto, the default) and uses them: the same terrain, frames, events and "
-                    "estimates as the torch path, cmax 2.5-3.5x, the emulator and the renderer's sampling about 2x "
+                    "DVSLAND_NATIVE_DPR / DVSLAND_NATIVE_FIT = auto, the default) and uses them: the same terrain, "
+                    "frames, events, estimates and fits as the torch path, cmax 2.5-3.5x, the emulator and the "
+                    "renderer's sampling about 2x "
                     "cheaper (docs/howto/devices.md). This command reports the build's time and folder, or its error.")
     p.set_defaults(func=run_build_native)
 

@@ -31,10 +31,11 @@ assumes the dynamics of the simulator. Cost: O(steps so far) per element and ste
 kept, 40 bytes per element and step). On a CPU each round's per-row terms run in one compiled pass
 (:mod:`dvsland.control.native_fit`, the same bits as the torch path; not with gradients): on one
 torch thread, about 0.8 / 2.8 / 4.0 ms per step for B = 18 after 300 / 1500 / 3000 steps without
-forgetting (the torch path: 1.5 / 6.9 / 14 ms; docs/measurements.md). With ``forget_s`` > 0 the fit reads only the last 12 forget_s of estimates
-(older ones weigh < exp(-12)), so the cost stops growing after 12 forget_s / dt steps. On a CPU a
-finished descent (not ``active``) costs nothing: only the descents in flight are fitted
-(:data:`CPU_COMPACT`), with the same bits, because each descent's sums run over its own rows.
+forgetting (the torch path: 1.5 / 6.9 / 14 ms; docs/measurements.md). With ``forget_s`` > 0 the fit
+reads only the last 12 forget_s of estimates (older ones weigh < exp(-12)), so the cost stops growing
+after 12 forget_s / dt steps. On a CPU a finished descent (not ``active``) costs nothing: only the
+descents in flight are fitted (:data:`CPU_COMPACT`), with the same bits, because each descent's sums
+run over its own rows.
 
 Output per step: the filtered divergence v_hat / z_hat (B,) float64, whether this step's estimate
 got weight > 0.5 (B,) int64, and :attr:`altitude_m` / :attr:`velocity_mps`.

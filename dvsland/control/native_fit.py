@@ -6,8 +6,9 @@ every descent, the predicted divergence, its Jacobian, the measurement variance,
 and the five products whose sums make the normal equations. The torch path does that in about 35
 elementwise passes over the (B, N) history, each a temporary; with the history growing by one row
 per step this was the ``control`` stage's cost late in a descent. This kernel reads the raw history
-rows and computes the same per-row values in one pass (the rows' preparation included), operation for operation as the torch path does (float64, no
-contraction: ``-ffp-contract=off``), and writes the five products; torch then sums them as before
+rows and computes the same per-row values in one pass (the rows' preparation included), operation
+for operation as the torch path does (float64, no contraction: ``-ffp-contract=off``), and writes
+the five products; torch then sums them as before
 (one ``sum`` over the rows of a (5, B, N) tensor, the same per-row reduction as five separate sums),
 so the fit's outputs are the same to the bit. Tests pin the two paths to equality.
 
