@@ -19,7 +19,8 @@
 # law with torch.compile: the filter's torch path is about a fifth of a step late in the flight).
 # On 2026-11-28 an H200 took 45 s (1), 30 s (2), 132 s (3), about 50 s (6, two profiles) and 250 s
 # (7, 3,200 steps); the default parts take about 7 minutes, which leaves a 15-minute lease room for a
-# rerun. On 2026-11-27: 182 s (5, 600 seeds). Part 4 (the campaign in several processes on one card) finished no shard in 120 s.
+# rerun. On 2026-11-27: 182 s (5, 600 seeds). Part 4 (the campaign in several processes on one card)
+# finished no shard in 120 s.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 if [ "${1:-}" = "--wheels" ]; then
