@@ -141,9 +141,12 @@ def bind_functions(lib: ctypes.CDLL, signatures: dict) -> ctypes.CDLL:
     return lib
 
 
-def tensor_address(t, dtype, what: str) -> Optional[int]:
+def tensor_address(t, dtype, what: str, numel: Optional[int] = None) -> Optional[int]:
     """The address of torch tensor ``t``'s data (None for an empty tensor), after checking that it is
-    a contiguous CPU tensor of ``dtype`` (the kernels read raw memory); RuntimeError naming ``what``."""
+    a contiguous CPU tensor of ``dtype`` (the kernels read raw memory) holding ``numel`` elements
+    (any number when None); RuntimeError naming ``what``."""
+    if numel is not None and t.numel() != numel:
+        raise RuntimeError(f"{what} must hold {numel} elements, got {tuple(t.shape)}")
     if t.dtype != dtype or t.device.type != "cpu" or not t.is_contiguous():
         raise RuntimeError(f"{what} must be a contiguous {dtype} CPU tensor, got {t.dtype} on {t.device}"
                            f"{'' if t.is_contiguous() else ' (not contiguous)'}")

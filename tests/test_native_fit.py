@@ -83,6 +83,8 @@ def test_kernel_checks_its_inputs(kernels):
         kernels.terms(hist, False, torch.ones(B, dtype=F64), theta, pcov, 1.0, 0.05, 0.001, 9.0, 4.0)
     with pytest.raises(RuntimeError, match="hist must be a contiguous torch.float64 CPU tensor"):
         kernels.terms(hist.float(), False, None, theta, pcov, 1.0, 0.05, 0.001, 9.0, 4.0)
+    with pytest.raises(RuntimeError, match=r"hist must have shape \(5, B, N\), got \(4, 2, 3\)"):
+        kernels.terms(hist[:4], False, None, theta, pcov, 1.0, 0.05, 0.001, 9.0, 4.0)
     with pytest.raises(RuntimeError, match="not contiguous"):
         kernels.terms(hist.transpose(1, 2).contiguous().transpose(1, 2), False, None, theta, pcov, 1.0, 0.05, 0.001,
                       9.0, 4.0)

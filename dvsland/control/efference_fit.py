@@ -264,24 +264,23 @@ def _native_kernel(p: EfferenceFitParams, rows: Tensor, theta: Tensor, info: Ten
     return native_fit.kernel_for(rows) if plain and not grads else None
 
 
-def _columns(c: EfferenceConfig, rows: Tensor, t_now: Tensor, prepared: bool = True):
-    """(the rounds' columns (zdr, vdr, t, D_hat, weighable, sigma_c or None, |D_hat| or None), each (B, N),
-    or None unless ``prepared``; the fade (B, N) with ``forget_s`` > 0, else None) of history ``rows``
-    (5, B, N): a row without an estimate gets z_dr 1e3, v_dr 0, t 0 and D_hat 0 (and weighs 0)."""
+def _columns(c: EfferenceConfig, rows: Tensor):
+    """The rounds' columns (zdr, vdr, t, D_hat, weighable, sigma_c or None, |D_hat| or None), each (B, N),
+    of history ``rows`` (5, B, N): a row without an estimate gets z_dr 1e3, v_dr 0, t 0 and D_hat 0 (and
+    weighs 0)."""
     zdr, vdr, t, d, sig_c = rows.unbind(0)
     have = torch.isfinite(d)
-    fade = None
-    if prepared or c.forget_s > 0:
-        t = torch.where(have, t, 0.0)
-        if c.forget_s > 0:
-            fade = torch.exp(-(t_now.unsqueeze(1) - t).clamp_min(0.0) / c.forget_s)
-    if not prepared:
-        return None, fade
     d0 = torch.where(have, d, 0.0)
-    zdr, vdr = torch.where(have, zdr, 1e3), torch.where(have, vdr, 0.0)
+    zdr, vdr, t = torch.where(have, zdr, 1e3), torch.where(have, vdr, 0.0), torch.where(have, t, 0.0)
     fin_sig = torch.isfinite(sig_c)
     sig0 = torch.where(fin_sig, sig_c, 0.0) if c.meas_noise == "confidence" else None
-    return (zdr, vdr, t, d0, have & fin_sig, sig0, d0.abs() if sig0 is not None else None), fade
+    return zdr, vdr, t, d0, have & fin_sig, sig0, d0.abs() if sig0 is not None else None
+
+
+def _fade(c: EfferenceConfig, t: Tensor, t_now: Tensor) -> Tensor:
+    """(B, N) float64 weight factor exp(-age / forget_s) of rows at times ``t`` (B, N) s (0 where a row
+    has no estimate), ``t_now`` (B,) s."""
+    return torch.exp(-(t_now.unsqueeze(1) - t).clamp_min(0.0) / c.forget_s)
 
 
 def fit_rounds(p: EfferenceFitParams, rows: Tensor, t_now: Tensor, theta: Tensor, info: Tensor, mask: Tensor):
@@ -301,9 +300,15 @@ def fit_rounds(p: EfferenceFitParams, rows: Tensor, t_now: Tensor, theta: Tensor
     """
     c = p.cfg
     kern = _native_kernel(p, rows, theta, info)
-    cols, fade = _columns(c, rows, t_now, prepared=kern is None)
-    if kern is not None:  # it prepares the raw rows itself, in each round's one pass
+    fade = None
+    if kern is None:
+        cols = _columns(c, rows)
+        if c.forget_s > 0:
+            fade = _fade(c, cols[2], t_now)
+    else:  # the kernel prepares the raw rows itself, in each round's one pass
         cols = rows.contiguous()
+        if c.forget_s > 0:
+            fade = _fade(c, torch.where(torch.isfinite(rows[3]), rows[2], 0.0), t_now)
     w = r = None
     for _ in range(c.iterations):  # a fixed number of rounds: no data-dependent branch
         theta, info, w, r = _gn_round(p, cols, fade, theta, info, mask, kern)

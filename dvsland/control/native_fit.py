@@ -88,18 +88,19 @@ DVS_INLINE double raw_row(const Consts& c, const double* __restrict hist, int64_
                   have & fin_sig, fin_sig ? sc : 0.0, std::fabs(d0), FADE ? fade[k] : 1.0, prod, r);
 }
 
-// The rows [k0, k1) of one descent; out (5, B N) by product.
+// Row k's five products into out (5, B N), product by product.
+DVS_INLINE void put(double* __restrict out, int64_t BN, int64_t k, const double* prod) {
+  for (int q = 0; q < 5; ++q) out[q * BN + k] = prod[q];
+}
+
+// The rows [k0, k1) of one descent.
 template <bool SIG, bool FADE>
 DVS_INLINE void rows(const Consts& c, int64_t k0, int64_t k1, int64_t BN, const double* __restrict hist,
                      const double* __restrict fade, double* __restrict out) {
   for (int64_t k = k0; k < k1; ++k) {
     double prod[5], r;
     raw_row<SIG, FADE>(c, hist, BN, k, fade, prod, r);
-    out[k] = prod[0];
-    out[BN + k] = prod[1];
-    out[2 * BN + k] = prod[2];
-    out[3 * BN + k] = prod[3];
-    out[4 * BN + k] = prod[4];
+    put(out, BN, k, prod);
   }
 }
 
@@ -114,9 +115,12 @@ DVS_INLINE void terms(int64_t B, int64_t N, const double* hist, const double* fa
     const Consts c{theta[2 * b], theta[2 * b + 1], pcov[3 * b], pcov[3 * b + 1], pcov[3 * b + 2], min_alt, msr, msa,
                    g2, cc2};
     const int64_t k0 = b * N, k1 = k0 + N;
-    rows<SIG, FADE>(c, k0, k1, BN, hist, fade, out);
     double prod[5], r = 0.0, w = 0.0;
-    if (N > 0) w = raw_row<SIG, FADE>(c, hist, BN, k1 - 1, fade, prod, r);
+    if (N > 0) {  // every row but the last in the vectorised loop; the last gives w and r too
+      rows<SIG, FADE>(c, k0, k1 - 1, BN, hist, fade, out);
+      w = raw_row<SIG, FADE>(c, hist, BN, k1 - 1, fade, prod, r);
+      put(out, BN, k1 - 1, prod);
+    }
     w_last[b] = w;
     r_last[b] = r;
   }
@@ -150,15 +154,6 @@ _I64, _F64, _P = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 _SIGNATURES = {"fit_terms": ([_I64, _I64, _P, _I64, _P, _P, _P] + [_F64] * 5 + [_P] * 3, None)}
 
 
-def _f64(t: Optional[torch.Tensor], what: str, numel: int) -> Optional[int]:
-    """The address of a contiguous CPU float64 tensor of ``numel`` elements (None for None)."""
-    if t is None:
-        return None
-    if t.numel() != numel:
-        raise RuntimeError(f"native fit: {what} must hold {numel} elements, got {tuple(t.shape)}")
-    return tensor_address(t, torch.float64, f"native fit: {what}")
-
-
 class Kernels:
     """The loaded library's round terms on torch tensors (CPU)."""
 
@@ -178,9 +173,15 @@ class Kernels:
             min_alt, msr, msa: the altitude floor (m) and the measurement noise's relative and absolute parts.
             g2, cc2: the gate and the Cauchy scale, squared.
         """
+        if hist.dim() != 3 or hist.shape[0] != 5:
+            raise RuntimeError(f"native fit: hist must have shape (5, B, N), got {tuple(hist.shape)}")
         _, B, N = hist.shape
-        ptr = _f64(hist, "hist", 5 * B * N)
-        fd, th, pc = _f64(fade, "fade", B * N), _f64(theta, "theta", 2 * B), _f64(pcov, "pcov", 3 * B)
+
+        def address(t: Optional[torch.Tensor], what: str, numel: int) -> Optional[int]:
+            return None if t is None else tensor_address(t, torch.float64, f"native fit: {what}", numel)
+
+        ptr = address(hist, "hist", 5 * B * N)
+        fd, th, pc = address(fade, "fade", B * N), address(theta, "theta", 2 * B), address(pcov, "pcov", 3 * B)
         out = torch.empty(5, B, N, dtype=torch.float64)
         w_last, r_last = torch.empty(B, dtype=torch.float64), torch.empty(B, dtype=torch.float64)
         self._f(B, N, ptr, int(bool(sig)), fd, th, pc, float(min_alt), float(msr), float(msa), float(g2), float(cc2),

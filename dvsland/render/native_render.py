@@ -214,9 +214,7 @@ _SIGNATURES = {
 def _f32(t: torch.Tensor, what: str, numel: int) -> int:
     """The address of ``t`` after checking (:func:`~dvsland.native_build.tensor_address`) that it is a
     contiguous CPU float32 tensor, and that it holds ``numel`` elements."""
-    if t.numel() != numel:
-        raise RuntimeError(f"native render: {what} must hold {numel} elements, got {tuple(t.shape)}")
-    return tensor_address(t, torch.float32, f"native render: {what}")
+    return tensor_address(t, torch.float32, f"native render: {what}", numel)
 
 
 def _sites(site_idx: torch.Tensor, b: int) -> torch.Tensor:
