@@ -155,7 +155,7 @@ class LoopSettings(NamedTuple):
         estimator_name: the configured estimator's name (results and logs).
         compact: finished descents leave the step's hot path (``simulation.compact``).
         compile: the filter's and the law's steps run through ``torch.compile``
-            (``simulation.compile``).
+            (``simulation.compile``: "auto" is on for a CUDA device, off elsewhere).
     """
 
     dt_s: float
@@ -172,7 +172,8 @@ class LoopSettings(NamedTuple):
     compile: bool = False
 
     @classmethod
-    def from_config(cls, cfg: Config) -> "LoopSettings":
+    def from_config(cls, cfg: Config, device: Any = None) -> "LoopSettings":
+        """The settings of ``cfg``; ``device`` (default ``simulation.device``) resolves ``simulation.compile=auto``."""
         import math
 
         sim, dt = cfg.simulation, float(cfg.dt_s)
@@ -181,7 +182,17 @@ class LoopSettings(NamedTuple):
                    g_mps2=float(cfg.dynamics.g_mps2), mass_kg=float(cfg.dynamics.mass_kg),
                    render_min_altitude_m=float(cfg.render.min_altitude_m),
                    render_max_altitude_m=float(cfg.render.max_altitude_m), estimator_name=str(cfg.estimator.name),
-                   compact=bool(getattr(sim, "compact", True)), compile=bool(getattr(sim, "compile", False)))
+                   compact=bool(getattr(sim, "compact", True)), compile=_compile_on(sim, device))
+
+
+def _compile_on(sim: Any, device: Any = None) -> bool:
+    """Whether ``simulation.compile`` ("auto", "true", "false"; a bool too) fuses the filter and the law on
+    ``device`` (default ``simulation.device``): "auto" where it pays, on a CUDA device."""
+    mode = str(getattr(sim, "compile", "auto")).lower()
+    if mode != "auto":
+        return mode == "true"
+    dev = device if device is not None else getattr(sim, "device", "cpu")
+    return str(dev).split(":")[0] == "cuda"  # a torch.device or its name (this module imports no torch)
 
 
 @dataclass
@@ -290,7 +301,7 @@ def build_stages(cfg: Config, sites: Union[None, str, Sequence[str], Any] = None
     prior = params if cfg.controller.efference.prior_state == "dispersed" else _nominal_params(params, layout)
     filt = make_filter(cfg, prior, controller)
     return Stages(cfg, layout, est, events, controller, filter=filt, dynamics=LanderDynamics.from_config(cfg.dynamics),
-                  params=params, settings=LoopSettings.from_config(cfg), device=device,
+                  params=params, settings=LoopSettings.from_config(cfg, device), device=device,
                   scene_idx=layout.tensor("scene_idx", device, torch.int64))
 
 

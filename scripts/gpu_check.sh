@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # The one prepared device check for a lent GPU machine (H100/H200, about 7 minutes by default): the
-# CUDA tests, the throughput table of `dvsland bench throughput` on CUDA (eager; with COMPILED=1 also
-# learned at B = 8192 with simulation.compile=true; with LATE=1 also after 1,200 steps, near the
-# ground), the 450-descent cmax campaign in one process (and, as part 4, in CAMPAIGN_WORKERS
-# processes sharing the card), whole `learned` descents per minute (part 5: LEARNED_SEEDS x 9
-# descents flown to the end in LEARNED_WORKERS processes; part 7: a fleet), and where a step's time
-# goes by dvsland function (part 6; PROFILE_SKIP=1300 profiles late in the flight, near the ground).
+# CUDA tests, the throughput table of `dvsland bench throughput` on CUDA (as shipped: simulation.compile
+# =auto fuses the filter and the law on the card; EAGER=1 adds learned at B = 8192 uncompiled; LATE=1
+# adds it after 1,200 steps, near the ground, compiled and not), the 450-descent cmax campaign in one
+# process (and, as part 4, in CAMPAIGN_WORKERS processes sharing the card), whole `learned` descents
+# per minute (part 5: LEARNED_SEEDS x 9 descents flown to the end in LEARNED_WORKERS processes; part 7:
+# a fleet), and where a step's time goes by dvsland function (part 6; PROFILE_SKIP=1300 profiles late
+# in the flight, near the ground).
 # $OUT/summary.log gathers the figures as they come; $OUT/results.tgz (refreshed after every part, so
 # a run cut short still brings back what it finished) holds every log, table and profile. Without
 # $OUT (a machine of your own) both go to /tmp/gpu_check.
@@ -15,8 +16,7 @@
 #   run(command="bash scripts/gpu_check.sh", carry=[".whl"], timeout_s=570)
 # PARTS="1 2 3 7" (the default) picks the parts to run: part 7 flies FLEET_N whole descents through
 # FLEET_B slots that restart as theirs end, for at most FLEET_STEPS steps (whole descents per minute;
-# it replaces part 5, whole batches flown to their last descent; FLEET_COMPILE=1 fuses the filter and the
-# law with torch.compile: the filter's torch path is about a fifth of a step late in the flight).
+# it replaces part 5, whole batches flown to their last descent; FLEET_EAGER=1 flies it uncompiled).
 # On 2026-11-28 an H200 took 45 s (1), 30 s (2), 132 s (3), about 50 s (6, two profiles) and 250 s
 # (7, 3,200 steps); the default parts take about 7 minutes, which leaves a 15-minute lease room for a
 # rerun. On 2026-11-27: 182 s (5, 600 seeds). Part 4 (the campaign in several processes on one card)
@@ -49,7 +49,7 @@ PARTS=" ${PARTS:-1 2 3 7} "
 FIX=(--set dispersion.terrain_variants=1 --set 'dispersion.sun_elevation_deg={kind: "off"}')
 # 1. the CUDA tests (every test that names cuda, and tests/test_cuda_loop.py; they skip on a CPU machine)
 if [[ $PARTS == *" 1 "* ]]; then
-  s=$SECONDS; timeout 170 python3 -m pytest -q -p no:cacheprovider -k "cuda" tests/ > "$RES/cuda_tests.log" 2>&1
+  s=$SECONDS; timeout 240 python3 -m pytest -q -p no:cacheprovider -k "cuda" tests/ > "$RES/cuda_tests.log" 2>&1
   { echo "## 1. CUDA tests ($((SECONDS - s)) s)"; grep -E "passed|failed|FAILED|Error" "$RES/cuda_tests.log" | tail -15; } | tee -a "$SUM"
   snapshot
 fi
@@ -59,15 +59,19 @@ if [[ $PARTS == *" 2 "* ]]; then
   timeout 250 python3 -m dvsland.bench.throughput --device cuda --batches "${BATCHES:-576,4608,8192}" \
     --estimators learned,cmax --steps 10 --env-batches 4608 --env-steps 20 "${FIX[@]}" \
     --out "$RES" > "$RES/throughput.log" 2>&1; tail -14 "$RES/throughput.log" | tee -a "$SUM"
-  if [[ ${LATE:-0} == 1 ]]; then  # LATE=1 adds learned at B = 8192 after 1,200 steps (near the ground; about a minute)
-    timeout 150 python3 -m dvsland.bench.throughput --device cuda --batches 8192 --estimators learned --steps 10 \
-      --warmup 1200 "${FIX[@]}" > "$RES/throughput_late.log" 2>&1
-    tail -3 "$RES/throughput_late.log" | tee -a "$SUM"
+  # LATE=1 adds learned at B = 8192 after 1,200 steps (near the ground), as shipped (simulation.compile=auto:
+  # compiled on the card) and eager (compile=false); about a minute each
+  if [[ ${LATE:-0} == 1 ]]; then
+    for mode in auto false; do
+      timeout 150 python3 -m dvsland.bench.throughput --device cuda --batches 8192 --estimators learned --steps 10 \
+        --warmup 1200 "${FIX[@]}" --set simulation.compile=$mode > "$RES/throughput_late_$mode.log" 2>&1
+      echo "late, simulation.compile=$mode:" | tee -a "$SUM"; tail -3 "$RES/throughput_late_$mode.log" | tee -a "$SUM"
+    done
   fi
-  if [[ ${COMPILED:-0} == 1 ]]; then  # COMPILED=1 adds the compiled case (about a minute)
+  if [[ ${EAGER:-0} == 1 ]]; then  # EAGER=1 adds the first steps at B = 8192 uncompiled (about 30 s)
     timeout 100 python3 -m dvsland.bench.throughput --device cuda --batches 8192 --estimators learned --steps 10 \
-      "${FIX[@]}" --set simulation.compile=true > "$RES/throughput_compiled.log" 2>&1
-    tail -3 "$RES/throughput_compiled.log" | tee -a "$SUM"
+      "${FIX[@]}" --set simulation.compile=false > "$RES/throughput_eager.log" 2>&1
+    tail -3 "$RES/throughput_eager.log" | tee -a "$SUM"
   fi
   snapshot
 fi
@@ -112,7 +116,7 @@ if [[ $PARTS == *" 7 "* ]]; then
   echo "## 7. fleet" | tee -a "$SUM"
   timeout "${FLEET_LIMIT:-200}" python3 -m dvsland.bench.fleet --device cuda --batch "${FLEET_B:-8192}" \
     --descents "${FLEET_N:-24576}" --estimator "${FLEET_EST:-learned}" --max-steps "${FLEET_STEPS:-3200}" "${FIX[@]}" \
-    ${FLEET_COMPILE:+--set simulation.compile=true} \
+    ${FLEET_EAGER:+--set simulation.compile=false} \
     --json "$RES/fleet.json" > "$RES/fleet.log" 2>&1; tail -2 "$RES/fleet.log" | tee -a "$SUM"
   snapshot
 fi

@@ -40,3 +40,52 @@ def test_compiled_loop_flies_the_eager_descents():
         runs.append((torch.stack(zs), state))
     torch.testing.assert_close(runs[1][0], runs[0][0], rtol=1e-9, atol=1e-9)
     assert torch.equal(runs[1][1].active, runs[0][1].active)
+
+
+@pytest.mark.parametrize("value, device, on", [
+    ("auto", "cpu", False), ("auto", "cuda", True), ("auto", "cuda:1", True),
+    ("true", "cpu", True), ("false", "cuda", False), ("off", "cuda", False), ("yes", "cpu", True),
+])
+def test_auto_compiles_on_a_gpu_only(value, device, on):
+    from dvsland.stages import LoopSettings
+
+    cfg = load_config("montecarlo_efference", [f"simulation.compile={value}"])  # YAML reads off/yes as booleans
+    assert cfg.simulation.compile in ("auto", "true", "false")
+    assert LoopSettings.from_config(cfg, device).compile is on
+    cfg.simulation.device = device  # without a device: simulation.device's
+    assert LoopSettings.from_config(cfg).compile is on
+
+
+def test_compile_setting_checked():
+    from dvsland.config import ConfigError
+
+    assert load_config("montecarlo_efference").simulation.compile == "auto"
+    assert load_config("montecarlo_efference", ["simulation.compile=true"]).simulation.compile == "true"
+    with pytest.raises(ConfigError, match=r"simulation\.compile.*'fast'.*'auto', 'true', 'false'"):
+        load_config("montecarlo_efference", ["simulation.compile=fast"])
+
+
+class _Doubler:
+    def step_state(self, x, k=1):
+        if k < 0:
+            raise ValueError("k must be >= 0")
+        return 2 * x + k
+
+
+def test_a_failing_compile_runs_eagerly(monkeypatch):
+    calls = []
+
+    def broken(fn):
+        def run(*args, **kwargs):
+            calls.append(1)
+            raise RuntimeError("no working compiler")
+        return run
+
+    monkeypatch.setattr(torch, "compile", broken)
+    st = CompiledStage(_Doubler())
+    with pytest.warns(RuntimeWarning, match="torch.compile failed for _Doubler.*no working compiler"):
+        assert st.step_state(torch.tensor(3.0), k=1).item() == 7.0
+    assert st.step_state(torch.tensor(1.0)).item() == 3.0  # eager from then on: the compiled step is not tried again
+    assert len(calls) == 1
+    with pytest.raises(ValueError, match="k must be"):  # the step's own error, as the eager step raises it
+        CompiledStage(_Doubler()).step_state(torch.tensor(1.0), k=-1)

@@ -124,7 +124,10 @@ def build(cls, data: Any, path: str = "", source: Optional[str] = None):
         fpath = f"{path}.{name}" if path else name
         if name not in data:
             continue
-        kwargs[name] = convert(data[name], types[name], fpath, source, owner=cls, name=name)
+        value = data[name]
+        if isinstance(value, bool) and "true" in (f.metadata.get("choices") or ()):  # true/false/auto: YAML's bool
+            value = "true" if value else "false"
+        kwargs[name] = convert(value, types[name], fpath, source, owner=cls, name=name)
         _check_field(kwargs[name], f.metadata, fpath, source)
     obj = cls(**kwargs)
     return obj

@@ -22,6 +22,7 @@ The loop reads :func:`stage_fns` (built once per :class:`dvsland.stages.Stages`)
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, NamedTuple, Optional
 
 import torch
@@ -82,8 +83,10 @@ class CompiledStage:
     """A contract stage whose ``step_state`` runs through ``torch.compile`` (``simulation.compile``):
     the filter's and the law's hundreds of small elementwise ops per step become a few fused
     kernels (on a GPU the step is otherwise bound by kernel launches). Everything else (init,
-    reset, parameters) is the wrapped stage's. The first step of each batch shape compiles (tens of
-    seconds); results equal the eager path's within float rounding (tests/test_compile_stages.py).
+    reset, parameters) is the wrapped stage's. The first step of each batch shape compiles (about
+    10 s on an H200); results equal the eager path's within float rounding (tests/test_compile_stages.py).
+    Where compiling fails (no working Triton or C++ compiler, say), the step warns once and runs
+    eagerly from then on; an error of the step itself is raised as the eager step raises it.
 
     Args:
         stage: a stage under the contract (not an :class:`~dvsland.pytree.ObjectStage`).
@@ -91,7 +94,21 @@ class CompiledStage:
 
     def __init__(self, stage: Any):
         self.stage = stage
-        self.step_state = torch.compile(stage.step_state)  # a size that grows (a history) turns dynamic at its first change
+        self._compiled = torch.compile(stage.step_state)  # a size that grows (a history) turns dynamic at its first change
+        self._eager = False
+
+    def step_state(self, *args, **kwargs):
+        if self._eager:
+            return self.stage.step_state(*args, **kwargs)
+        try:
+            return self._compiled(*args, **kwargs)
+        except Exception as exc:  # noqa: BLE001 - the eager step below tells a compiler's failure from the step's
+            out = self.stage.step_state(*args, **kwargs)  # the step's own error raises here, as eager
+            self._eager = True
+            warnings.warn(f"simulation.compile: torch.compile failed for {type(self.stage).__name__} "
+                          f"({type(exc).__name__}: {str(exc)[:300]}); it runs eagerly (simulation.compile=false "
+                          "avoids the attempt)", RuntimeWarning, stacklevel=2)
+            return out
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.stage, name)
