@@ -75,7 +75,7 @@ class _Doubler:
 def test_a_failing_compile_runs_eagerly(monkeypatch):
     calls = []
 
-    def broken(fn):
+    def broken(fn, **options):
         def run(*args, **kwargs):
             calls.append(1)
             raise RuntimeError("no working compiler")
@@ -89,3 +89,25 @@ def test_a_failing_compile_runs_eagerly(monkeypatch):
     assert len(calls) == 1
     with pytest.raises(ValueError, match="k must be"):  # the step's own error, as the eager step raises it
         CompiledStage(_Doubler()).step_state(torch.tensor(1.0), k=-1)
+
+
+def test_a_new_batch_size_reuses_the_compiled_step(monkeypatch):
+    """Stage sets of other batch sizes (the next batch of a campaign, a bench's next B) and a history that
+    grows each step reuse the traced step: no recompile, so torch's recompile limit never turns it eager."""
+    from torch._dynamo.utils import counters
+
+    import dvsland.sim.contracts as contracts
+
+    torch._dynamo.reset()
+    counters.clear()
+    monkeypatch.setattr(contracts, "COMPILE_BACKEND", "eager")  # dynamo's tracing and guards, no code generation
+    graphs = []
+    for n_seeds in (2, 3, 1):
+        stages = _stages(True, n_seeds)
+        state = init_state(stages)
+        for _ in range(4):
+            state, _ = loop_step(stages, state)
+        assert state.z_m.shape[0] == 2 * n_seeds
+        graphs.append(counters["stats"]["unique_graphs"])
+    assert graphs[0] > 0
+    assert graphs[1] == graphs[0] and graphs[2] == graphs[0], graphs

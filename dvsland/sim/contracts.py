@@ -79,6 +79,11 @@ def _build(stages) -> StageFns:
     return StageFns(emu, est, filt, ctl, est_name, ctl_name)
 
 
+#: torch.compile's backend for :class:`CompiledStage` ("inductor": fused kernels; tests use "eager",
+#: which traces and guards the same way without generating code)
+COMPILE_BACKEND = "inductor"
+
+
 class CompiledStage:
     """A contract stage whose ``step_state`` runs through ``torch.compile`` (``simulation.compile``):
     the filter's and the law's hundreds of small elementwise ops per step become a few fused
@@ -94,7 +99,10 @@ class CompiledStage:
 
     def __init__(self, stage: Any):
         self.stage = stage
-        self._compiled = torch.compile(stage.step_state)  # a size that grows (a history) turns dynamic at its first change
+        # every size symbolic from the start: a history that grows and a new batch size (compaction, the
+        # next batch of a campaign, another stage set in the process) reuse the compiled step instead of
+        # recompiling it until torch's recompile limit (8) leaves it eager
+        self._compiled = torch.compile(stage.step_state, dynamic=True, backend=COMPILE_BACKEND)
         self._eager = False
 
     def step_state(self, *args, **kwargs):
