@@ -17,10 +17,11 @@
 # PARTS="1 2 3 7" (the default) picks the parts to run: part 7 flies FLEET_N whole descents through
 # FLEET_B slots that restart as theirs end, for at most FLEET_STEPS steps (whole descents per minute;
 # it replaces part 5, whole batches flown to their last descent; FLEET_EAGER=1 flies it uncompiled).
-# On 2026-11-28 an H200 took 45 s (1), 30 s (2), 132 s (3), about 50 s (6, two profiles) and 250 s
-# (7, 3,200 steps); the default parts take about 7 minutes, which leaves a 15-minute lease room for a
-# rerun. On 2026-11-27: 182 s (5, 600 seeds). Part 4 (the campaign in several processes on one card)
-# finished no shard in 120 s.
+# On 2026-11-28 an H200 took 45 s (1; 97 s once the filter and the law compiled by default), 30 s (2;
+# about 200 s with BATCHES=8192 LATE=1), 132 s (3), about 50 s (6, two profiles; about 100 s for one
+# with PROFILE_SKIP=1300) and 190-250 s (7, 3,200 steps); the default parts take about 8 minutes, so a
+# 15-minute lease has room for one more short call, not for a rerun. On 2026-11-27: 182 s (5, 600
+# seeds). Part 4 (the campaign in several processes on one card) finished no shard in 120 s.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 if [ "${1:-}" = "--wheels" ]; then
