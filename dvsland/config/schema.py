@@ -561,9 +561,9 @@ class SimulationConfig:
                         "estimator (false: the estimator still sees them; docs/campaigns.md)")
     compile: str = opt("auto", "run the filter's and the law's steps through torch.compile: a few fused kernels "
                        "instead of hundreds of small ones per step, after a one-off compile of about 10 s; auto = on "
-                       "a GPU (where it pays: +25 % descent-steps/s at B = 8192 on an H200, more near the ground), "
-                       "not on a CPU (where the filter's rounds run in a compiled kernel already and inductor "
-                       "needs a C++ compiler); true/false force it (docs/howto/devices.md)",
+                       "a GPU (where it pays: +7 % descent-steps/s over the first steps and +9.5 % near the ground "
+                       "at B = 8192 on an H200), not on a CPU (where the filter's rounds run in a compiled kernel "
+                       "already and inductor needs a C++ compiler); true/false force it (docs/howto/devices.md)",
                        choices=("auto", "true", "false"))
 
 
