@@ -357,7 +357,8 @@ def test_dpr_hot_pixel_cap_keeps_hot_pixels_out_of_the_centroids():
 @pytest.mark.parametrize("shape", [(128, 128), (31, 45)])
 def test_dpr_blur_equals_kornia(batch, shape):
     """The DPR blur (one depthwise convolution over the batch) gives kornia's gaussian blur
-    (filter2d_separable, zero border) bit for bit."""
+    (filter2d_separable, zero border) of a batch bit for bit; one image as kornia blurs it beside
+    another (kornia's blur of a single image alone sums in another order on some CPUs)."""
     import kornia
 
     from dvsland.estimators.density_peaks import _blur_depthwise, _gaussian_kernels
@@ -365,7 +366,8 @@ def test_dpr_blur_equals_kornia(batch, shape):
     g = torch.Generator().manual_seed(batch)
     img = torch.poisson(torch.rand(batch, *shape, generator=g) * 0.7, generator=g)
     kx, ky = _gaussian_kernels(13, 2.0, "cpu", torch.float32)
-    ref = kornia.filters.gaussian_blur2d(img.unsqueeze(1), (13, 13), (2.0, 2.0), border_type="constant")[:, 0]
+    two = img.expand(max(batch, 2), -1, -1).unsqueeze(1)
+    ref = kornia.filters.gaussian_blur2d(two, (13, 13), (2.0, 2.0), border_type="constant")[:batch, 0]
     out = _blur_depthwise(img, kx, ky)
     assert out.shape == img.shape
     assert torch.equal(out, ref)
@@ -443,8 +445,8 @@ def _peaks_both(img, n_max, sigma, nms):
                                                     (5, (130, 97), 3.0, 1), (1, (64, 200), 2.0, 3)])
 def test_density_peaks_compiled_equal_the_torch_path(batch, shape, sigma, nms, count_calls):
     """DPR's compiled blur, local maxima and scores (dvsland.estimators.native_dpr) give the torch
-    path's peaks, densities and validity bit for bit (several images: oneDNN's depthwise sums; one:
-    its plain convolution's), and the compiled pass ran where it matches this machine's torch path."""
+    path's peaks, densities and validity bit for bit (oneDNN's depthwise sums, one image as the first of
+    two), and the compiled pass ran where it matches this machine's torch path."""
     from dvsland.estimators import density_peaks as dp
     from dvsland.estimators import native_dpr
 
@@ -458,7 +460,27 @@ def test_density_peaks_compiled_equal_the_torch_path(batch, shape, sigma, nms, c
     (p1, d1, v1), (p0, d0, v0) = _peaks_both(img, 15, sigma, nms)
     assert torch.equal(p1.nan_to_num(-7), p0.nan_to_num(-7)) and torch.equal(d1, d0) and torch.equal(v1, v0)
     assert v1.any()
-    assert bool(calls) == dp.compiled_scores_match(kern, 1 if batch == 1 else 3)
+    assert bool(calls) == dp.compiled_scores_match(kern)
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_an_images_peaks_do_not_depend_on_the_images_blurred_with_it(native):
+    """DPR re-initialises only the descents that need it, one or several at a time: an image's blur,
+    peaks and densities are the same bits alone as within any batch, on the compiled and the torch path."""
+    from dvsland.estimators import native_dpr
+    from dvsland.estimators.density_peaks import density_peaks
+
+    g = torch.Generator().manual_seed(7)
+    img = torch.poisson(torch.rand(5, 128, 128, generator=g) * 0.3, generator=g)
+    native_dpr.use_native_dpr(native)
+    try:
+        whole = density_peaks(img, 15, 2.0, 3)
+        for sel in ([0], [3], [1, 2], [4, 0, 2]):
+            part = density_peaks(img[sel], 15, 2.0, 3)
+            for a, b in zip(part, whole):
+                assert torch.equal(a.nan_to_num(-7), b[sel].nan_to_num(-7))
+    finally:
+        native_dpr.use_native_dpr(None)
 
 
 def test_density_peaks_compiled_scores_are_checked_against_torch():
@@ -470,20 +492,25 @@ def test_density_peaks_compiled_scores_are_checked_against_torch():
     kern = native_dpr._LIB.load(force=True)
     if kern is None:
         pytest.skip("no C++ compiler here")
-    assert dp.compiled_scores_match(kern)  # oneDNN's depthwise convolution of several images: the fused chain
+    assert dp.compiled_scores_match(kern)  # oneDNN's depthwise convolution: the fused chain
 
-    class Unfused:  # the single image's order for several images (and the reverse): refused
-        def peak_scores(self, img, kx, ky, nms_px, min_density, fused=True):
-            return kern.peak_scores(img, kx, ky, nms_px, min_density, not fused)
+    class Unfused:  # rounded products added in tap order (a plain convolution's sums on many CPUs): refused
+        def peak_scores(self, img, kx, ky, nms_px, min_density):
+            k, r = kx.shape[-1], kx.shape[-1] // 2
+            x = torch.nn.functional.pad(img, (r, r, r, r))
+            h = torch.zeros(img.shape[0], img.shape[1] + 2 * r, img.shape[2])
+            for t in range(k):
+                h = h + x[:, :, t:t + img.shape[2]] * kx[0, t]
+            blurred = torch.zeros_like(img)
+            for t in range(k):
+                blurred = blurred + h[:, t:t + img.shape[1]] * ky[0, t]
+            is_peak = (blurred >= dp._max_filter(blurred, nms_px)) & (blurred > min_density)
+            return blurred, torch.where(is_peak, blurred, torch.full_like(blurred, -1.0))
 
     assert not dp.compiled_scores_match(Unfused())
-    # a single image is a plain convolution: rounded products added on most CPUs (then the kernel runs),
-    # another order on some (a 2-core Intel Xeon: then the torch path runs, as the parametrised test checks)
-    if dp.compiled_scores_match(kern, 1):
-        assert not dp.compiled_scores_match(Unfused(), 1)
 
     class Float64Sums:  # the same blur summed in float64, rounded once: other bits on some pixels
-        def peak_scores(self, img, kx, ky, nms_px, min_density, fused=True):
+        def peak_scores(self, img, kx, ky, nms_px, min_density):
             blurred = dp._blur_depthwise(img.double(), kx.double(), ky.double()).float()
             is_peak = (blurred >= dp._max_filter(blurred, nms_px)) & (blurred > min_density)
             return blurred, torch.where(is_peak, blurred, torch.full_like(blurred, -1.0))

@@ -3,11 +3,14 @@
 count image -> Gaussian blur (kornia) -> morphological local maxima (max-pool NMS) -> ranked by
 blurred density -> top ``n_max``. Pure functions, batched over B.
 
+The blur is one depthwise convolution over the images, and a single image is blurred as the first of
+two: an image's blur, and so its peaks, do not depend on how many images are blurred with it (a plain
+convolution of one image sums in another order, which differs between CPUs).
+
 On a CPU with the compiled ``dpr`` kernels (:mod:`.native_dpr`), the blur, the local maxima and the
 scores run as one pass per image, with the same bits as the torch path: the blur's sums as the
-fused multiply-add chain oneDNN's depthwise convolution computes for two images or more, and as the
-rounded products added in tap order of the plain convolution of a single image. Each is checked once
-per process on a small sample against the torch path; where it does not hold, the torch path runs.
+fused multiply-add chain oneDNN's depthwise convolution computes. This is checked once per process
+on a small sample against the torch path; where it does not hold, the torch path runs.
 """
 
 from __future__ import annotations
@@ -39,8 +42,11 @@ def _gaussian_kernels(k: int, sigma_px: float, device: str, dtype: torch.dtype):
 
 def _blur_depthwise(img: torch.Tensor, kx: torch.Tensor, ky: torch.Tensor) -> torch.Tensor:
     """Separable blur of ``img`` (B, H, W) float32 with 1-d kernels kx, ky (1, k), zero border:
-    rows then columns, the B images as the B channels of a grouped convolution -> (B, H, W)."""
+    rows then columns, the B images as the B channels of a grouped convolution -> (B, H, W). One image
+    is blurred as the first of two, so that its sums run as those of any batch's images."""
     B = img.shape[0]
+    if B == 1:
+        return _blur_depthwise(img.expand(2, -1, -1), kx, ky)[:1]
     k = kx.shape[-1]
     x = img.unsqueeze(0)
     h = F.conv2d(x, kx.view(1, 1, 1, k).expand(B, 1, 1, k), padding=(0, k // 2), groups=B)
@@ -63,16 +69,15 @@ def _torch_scores(img: torch.Tensor, kx: torch.Tensor, ky: torch.Tensor, nms_px:
 
 
 @functools.lru_cache(maxsize=8)
-def compiled_scores_match(kernels, batch: int = 3) -> bool:
+def compiled_scores_match(kernels) -> bool:
     """Whether ``kernels`` (a loaded :class:`~.native_dpr.Kernels`) give this machine's torch path's
-    blur and scores bit for bit for ``batch`` images (1: the single image's sums, else the depthwise
-    convolution's), on a sample of sparse count images (checked once per process)."""
+    blur and scores bit for bit, on a sample of three sparse count images (checked once per process)."""
     g = torch.Generator().manual_seed(1)
-    img = torch.poisson(torch.rand(batch, 37, 53, generator=g) * 1.5, generator=g)
+    img = torch.poisson(torch.rand(3, 37, 53, generator=g) * 1.5, generator=g)
     img[:, :, :20] = 0.0
     for sigma, nms in ((2.0, 3), (1.0, 5)):
         kx, ky = _gaussian_kernels(2 * int(math.ceil(3.0 * sigma)) + 1, sigma, "cpu", torch.float32)
-        got = kernels.peak_scores(img, kx, ky, nms, 0.0, batch > 1)
+        got = kernels.peak_scores(img, kx, ky, nms, 0.0)
         if not all(torch.equal(a, b) for a, b in zip(got, _torch_scores(img, kx, ky, nms, 0.0))):
             return False
     return True
@@ -125,13 +130,13 @@ def density_peaks(image: torch.Tensor, n_max: int, sigma_px: float = 2.0, nms_px
     k = 2 * int(math.ceil(3.0 * sigma_px)) + 1
     if H * W < 256 * 256:
         # kornia's gaussian_blur2d (filter2d_separable, zero border), with the 1-d kernels made once
-        # and the images as the channels of one depthwise convolution: the same values, 3-5x
-        # cheaper on a CPU than a batch of one-channel images; compiled where it gives the same bits
+        # and the images as the channels of one depthwise convolution: the same values up to the
+        # sums' rounding, 3-5x cheaper on a CPU than a batch of one-channel images; compiled where it
+        # gives the same bits
         kx, ky = _gaussian_kernels(k, float(sigma_px), str(img.device), img.dtype)
-        # (one image is a plain convolution, which oneDNN sums as rounded products: fused=False)
         kern = native_dpr.kernel_for(img)
-        if kern is not None and compiled_scores_match(kern, 1 if B == 1 else 3):
-            _, score = kern.peak_scores(img[:, 0].contiguous(), kx, ky, int(nms_px), float(min_density), B > 1)
+        if kern is not None and compiled_scores_match(kern):
+            _, score = kern.peak_scores(img[:, 0].contiguous(), kx, ky, int(nms_px), float(min_density))
         else:
             _, score = _torch_scores(img[:, 0], kx, ky, int(nms_px), float(min_density))
     else:

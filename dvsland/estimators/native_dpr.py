@@ -39,15 +39,12 @@ _SRC = r"""
 """ + CLONES + r"""
 // Density Peaks Ranking's scores of B images (H x W float32, contiguous): the separable Gaussian blur
 // (rows with kx, then columns with ky, k taps each, zero border) as a chain in tap order from 0 of
-// fused multiply-adds (FUSED: how oneDNN's depthwise convolution of two images or more sums) or of
-// rounded products added (a single image's plain convolution), checked against torch at first use;
-// the k_nms x k_nms running maximum (-inf outside), and score = blurred where it is a local maximum
-// above min_density, else -1. tmp: (H, W) and row: (2 W + k,) float32 scratch.
-template <bool FUSED> DVS_INLINE float madd(float x, float w, float acc) {
-  return FUSED ? __builtin_fmaf(x, w, acc) : acc + x * w;
-}
+// fused multiply-adds (how oneDNN's depthwise convolution of two images or more sums; the torch path
+// blurs a single image as the first of two), checked against torch at first use; the k_nms x k_nms
+// running maximum (-inf outside), and score = blurred where it is a local maximum above min_density,
+// else -1. tmp: (H, W) and row: (2 W + k,) float32 scratch.
+DVS_INLINE float madd(float x, float w, float acc) { return __builtin_fmaf(x, w, acc); }
 
-template <bool FUSED>
 DVS_INLINE void blur_rows_cols(const float* img, int64_t H, int64_t W, const float* kx, const float* ky, int64_t k,
                                float* o, float* tmp, float* pad) {
   const int64_t r = k / 2;
@@ -61,13 +58,13 @@ DVS_INLINE void blur_rows_cols(const float* img, int64_t H, int64_t W, const flo
       float acc[BJ] = {};
       for (int64_t t = 0; t < k; ++t) {
         const float w = kx[t];
-        for (int64_t u = 0; u < BJ; ++u) acc[u] = madd<FUSED>(pad[j + u + t], w, acc[u]);
+        for (int64_t u = 0; u < BJ; ++u) acc[u] = madd(pad[j + u + t], w, acc[u]);
       }
       for (int64_t u = 0; u < BJ; ++u) h[j + u] = acc[u];
     }
     for (; j < W; ++j) {
       float a = 0.0f;
-      for (int64_t t = 0; t < k; ++t) a = madd<FUSED>(pad[j + t], kx[t], a);
+      for (int64_t t = 0; t < k; ++t) a = madd(pad[j + t], kx[t], a);
       h[j] = a;
     }
   }
@@ -80,30 +77,27 @@ DVS_INLINE void blur_rows_cols(const float* img, int64_t H, int64_t W, const flo
       for (int64_t t = t0; t < t1; ++t) {
         const float* __restrict hr = tmp + (y + t - r) * W + j;
         const float w = ky[t];
-        for (int64_t u = 0; u < BJ; ++u) acc[u] = madd<FUSED>(hr[u], w, acc[u]);
+        for (int64_t u = 0; u < BJ; ++u) acc[u] = madd(hr[u], w, acc[u]);
       }
       for (int64_t u = 0; u < BJ; ++u) oy[j + u] = acc[u];
     }
     for (; j < W; ++j) {
       float a = 0.0f;
-      for (int64_t t = t0; t < t1; ++t) a = madd<FUSED>(tmp[(y + t - r) * W + j], ky[t], a);
+      for (int64_t t = t0; t < t1; ++t) a = madd(tmp[(y + t - r) * W + j], ky[t], a);
       oy[j] = a;
     }
   }
 }
 
 DVS_CLONES static void peak_scores(const float* img, int64_t B, int64_t H, int64_t W, const float* kx, const float* ky,
-                                   int64_t k, int64_t k_nms, float min_density, bool fused, float* blur, float* score,
-                                   float* tmp, float* row) {
+                                   int64_t k, int64_t k_nms, float min_density, float* blur, float* score, float* tmp,
+                                   float* row) {
   const int64_t r = k / 2, rn = k_nms / 2;
   float* __restrict pad = row + W;  // one zero-bordered input row (W + 2 r)
   for (int64_t j = 0; j < r; ++j) pad[j] = pad[W + r + j] = 0.0f;
   for (int64_t b = 0; b < B; ++b) {
     float* __restrict o = blur + b * H * W;
-    if (fused)
-      blur_rows_cols<true>(img + b * H * W, H, W, kx, ky, k, o, tmp, pad);
-    else
-      blur_rows_cols<false>(img + b * H * W, H, W, kx, ky, k, o, tmp, pad);
+    blur_rows_cols(img + b * H * W, H, W, kx, ky, k, o, tmp, pad);
     // the running maximum (exact in any order), separably: along rows into tmp, then down the columns
     for (int64_t y = 0; y < H; ++y) {
       const float* __restrict oy = o + y * W;
@@ -131,9 +125,9 @@ DVS_CLONES static void peak_scores(const float* img, int64_t B, int64_t H, int64
 }
 
 extern "C" void dpr_peak_scores(const float* img, int64_t B, int64_t H, int64_t W, const float* kx, const float* ky,
-                                int64_t k, int64_t k_nms, float min_density, int64_t fused, float* blur, float* score) {
+                                int64_t k, int64_t k_nms, float min_density, float* blur, float* score) {
   std::vector<float> tmp(size_t(H * W)), row(static_cast<size_t>(2 * W + k));
-  peak_scores(img, B, H, W, kx, ky, k, k_nms, min_density, fused != 0, blur, score, tmp.data(), row.data());
+  peak_scores(img, B, H, W, kx, ky, k, k_nms, min_density, blur, score, tmp.data(), row.data());
 }
 
 // The window of seed (cx, cy) on image img (Hp x Wp, float32): the sums (w, w dx, w dy) of the counts
@@ -223,7 +217,7 @@ _CFLAGS = ["-O3", "-ffp-contract=off", "-std=c++17"]
 _I64, _F64, _P = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 #: the C function's (argument types, result type)
 _SIGNATURES = {"dpr_meanshift": ([_P] + [_I64] * 6 + [_P, _P, _I64, _F64, _I64, _F64, _P], _I64),
-               "dpr_peak_scores": ([_P, _I64, _I64, _I64, _P, _P, _I64, _I64, ctypes.c_float, _I64, _P, _P], None)}
+               "dpr_peak_scores": ([_P, _I64, _I64, _I64, _P, _P, _I64, _I64, ctypes.c_float, _P, _P], None)}
 
 
 class Kernels:
@@ -234,12 +228,12 @@ class Kernels:
         self._f, self._scores = lib.dpr_meanshift, lib.dpr_peak_scores
 
     def peak_scores(self, img: torch.Tensor, kx: torch.Tensor, ky: torch.Tensor, nms_px: int,
-                    min_density: float, fused: bool = True) -> Tuple[torch.Tensor, torch.Tensor]:
+                    min_density: float) -> Tuple[torch.Tensor, torch.Tensor]:
         """(blurred (B, H, W), score (B, H, W)) float32 of images ``img`` (B, H, W) float32: the blur
         with the 1-d kernels ``kx`` (along W) and ``ky`` (along H), (1, k) float32 each, zero border, the
         ``nms_px`` running maximum and score = blurred at a local maximum above ``min_density``, else -1
         (:func:`~dvsland.estimators.density_peaks.density_peaks`' steps). The blur's sums run in tap
-        order as fused multiply-adds (``fused``) or as rounded products added."""
+        order as fused multiply-adds."""
         B, H, W = img.shape
         k = kx.numel()
         if ky.numel() != k or k % 2 != 1 or int(nms_px) % 2 != 1:
@@ -247,8 +241,8 @@ class Kernels:
                                f"{ky.numel()}, {nms_px}")
         ptr = [tensor_address(t, torch.float32, f"peak_scores: {n}") for n, t in (("img", img), ("kx", kx), ("ky", ky))]
         blur, score = torch.empty(B, H, W, dtype=torch.float32), torch.empty(B, H, W, dtype=torch.float32)
-        self._scores(ptr[0], B, H, W, ptr[1], ptr[2], k, int(nms_px), float(min_density), int(bool(fused)),
-                     blur.data_ptr(), score.data_ptr())
+        self._scores(ptr[0], B, H, W, ptr[1], ptr[2], k, int(nms_px), float(min_density), blur.data_ptr(),
+                     score.data_ptr())
         return blur, score
 
     def meanshift(self, img: torch.Tensor, have: int, W: int, H: int, seeds: torch.Tensor, valid: torch.Tensor,
