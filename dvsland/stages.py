@@ -188,11 +188,9 @@ class LoopSettings(NamedTuple):
 def _compile_on(sim: Any, device: Any = None) -> bool:
     """Whether ``simulation.compile`` ("auto", "true", "false"; a bool too) fuses the filter and the law on
     ``device`` (default ``simulation.device``): "auto" where it pays, on a CUDA device."""
-    mode = str(getattr(sim, "compile", "auto")).lower()
-    if mode != "auto":
-        return mode == "true"
-    dev = device if device is not None else getattr(sim, "device", "cpu")
-    return str(dev).split(":")[0] == "cuda"  # a torch.device or its name (this module imports no torch)
+    from dvsland.compiled import compile_on
+
+    return compile_on(getattr(sim, "compile", "auto"), device if device is not None else getattr(sim, "device", "cpu"))
 
 
 @dataclass

@@ -34,6 +34,7 @@ LAYERS: Tuple[str, ...] = (
     "dvsland.checks",       # argument checks
     "dvsland.pytree",       # the stage contract: state trees, counter-based random numbers, object stages
     "dvsland.native_build", # the build cache of the optional compiled kernels
+    "dvsland.compiled",     # torch.compile of the loop's pure functions, with an eager fallback
     "dvsland.allocator",    # the process's memory allocator, set for runs
     "dvsland.plugins",      # the registry mechanism of every extension point
     "dvsland.config",       # typed config, YAML, validation: imports no stage

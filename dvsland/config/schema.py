@@ -146,6 +146,10 @@ class RenderConfig:
     threads: int = opt(1, "CPU threads of the fast renderer's texture sampling: 1 = one part, torch's thread "
                           "count left alone; N > 1 or 0 (= all cores) switch torch to N threads inside each render "
                           "call (not in paper; docs/howto/devices.md)", rng=(0, 256))
+    compile: str = opt("false", "fuse the fast renderer's torch sampling (relief and both levels) with torch.compile: "
+                       "auto = on a CUDA device, where the torch path runs; the CPU's compiled kernels run "
+                       "regardless. Off by default: its speed on a GPU is unmeasured (docs/howto/devices.md)",
+                       choices=("auto", "true", "false"))
 
 
 @dataclass

@@ -39,6 +39,7 @@ from typing import Optional, Sequence
 import torch
 import torch.nn.functional as F
 
+from dvsland.compiled import CompiledFn, compile_on
 from dvsland.config import CameraConfig, RenderConfig
 from dvsland.terrain import load_site
 
@@ -69,6 +70,10 @@ class FastRenderer(Renderer):
             where they are enabled (``DVSLAND_NATIVE_RENDER``, built on first use where a C++ compiler
             is found): the same frames, bit for bit, in about half the time. False: torch's
             ``grid_sample`` always (the reference path).
+        compile: fuse the torch path's sampling (:func:`relief_ranges` and :func:`sample_levels`) with
+            ``torch.compile`` (default ``render.compile``: "auto" = on a CUDA device, "true", "false");
+            the frames equal the eager path's within float rounding; a compile that fails warns once and
+            runs eagerly.
 
     Attributes:
         prep_s: {site: wall seconds spent preparing its levels (0 when cached)}; prep_cpu_s the
@@ -82,10 +87,14 @@ class FastRenderer(Renderer):
                  device="cpu", level_size: Optional[int] = None, parallax_iters: int = 1,
                  disk_cache: bool = True, progress: bool = False, blend_levels: bool = True,
                  chunk: Optional[int] = None, threads: Optional[int] = None, suns=None, altitude_ranges=None,
-                 native: bool = True):
+                 native: bool = True, compile: Optional[str] = None):
         super().__init__(site_names, camera, render, device)
         self.native = bool(native)
         rc = self.render_config
+        self._compiled = None  # (relief, levels) CompiledFn of the torch path, or None (render.compile)
+        if compile_on(getattr(rc, "compile", "false") if compile is None else compile, self.device):
+            self._compiled = (CompiledFn(relief_ranges, "render.compile", "the relief's ray ranges"),
+                              CompiledFn(sample_levels, "render.compile", "the levels' sampling"))
         threads = rc.threads if threads is None else threads
         if threads < 0:
             raise ValueError(f"threads must be >= 0 (0 = all cores), got {threads}")
@@ -252,15 +261,6 @@ class FastRenderer(Renderer):
         finally:
             torch.set_num_threads(prev)
 
-    def _sample(self, texture: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-        """Bilinear, border-clamped ``grid_sample`` of a (1, 1, Ha, Wa) texture at grid (R, W, 2)
-        (normalised x, y; align_corners=False) -> (R, W), the grid rows split over the threads."""
-        r, w = grid.shape[:2]
-        n = self.threads if (self.threads > 1 and r % self.threads == 0) else 1
-        out = F.grid_sample(texture.expand(n, -1, -1, -1), grid.reshape(n, r // n, w, 2), mode="bilinear",
-                            padding_mode="border", align_corners=False)
-        return out.view(r, w)
-
     def _render_batches(self, altitude_m: torch.Tensor, site_idx: torch.Tensor) -> torch.Tensor:
         """(B, H, W) frames: the per-frame terms and the relief's ray ranges for the whole batch at once
         (small), then the two levels' sampling in sub-batches of ``chunk`` frames, whose grids stay
@@ -288,6 +288,9 @@ class FastRenderer(Renderer):
             return kern.levels(self.atlas_irradiance[0, 0], off, self._slopes, site_idx, rng_n, frac,
                                self._gain if gain is None else gain, out, self.threads)
         rows = None if gain is not None else self._gain.index_select(0, site_idx)  # (B, H, W) per frame
+        if self._compiled is not None:  # render.compile: the whole batch in one fused call
+            return self._compiled[1](self.atlas_irradiance, off, self._slopes.index_select(1, site_idx), rng_n,
+                                     frac, gain if rows is None else rows)
         step = min(b, sub_batch(b, self.chunk))
         grid = _LevelGrid(step, h, w, self.device, self.threads, self.atlas_irradiance)
         for i in range(0, b, step):  # a handful of operator calls per sub-batch (slices clamp at the end)
@@ -319,7 +322,6 @@ class FastRenderer(Renderer):
         coarser level on 2 x 2 pixel blocks (a smooth field), upsampled bilinearly. (B, H, W) ray
         ranges (m) times the level-lo scale ``inv_lo`` (B, 1, 1). ``kern``: the compiled passes
         (:mod:`dvsland.render.native_render`), which give the same bits, or None (torch)."""
-        b = lo.shape[0]
         ax, bx, wa = self._ox
         half = self._slopes_half is not None
         slopes = self._slopes_half if half else self._slopes  # (2, S, h', w')
@@ -329,16 +331,8 @@ class FastRenderer(Renderer):
         if kern is not None:
             return kern.relief(self.atlas_height[0, 0], off, slopes, site_idx, z, inv, inv_lo, self.parallax_iters,
                                self.threads, upsample2x=half)  # the upsampling in the same pass
-        sl = slopes.index_select(1, site_idx)  # (2, B, h', w')
-        hh, ww = sl.shape[2:]
-        rng = z
-        g = torch.empty_like(sl)
-        for _ in range(self.parallax_iters):
-            torch.addcmul(off, sl, rng * inv, out=g)  # (2, B, h', w') normalised atlas coordinates
-            hgt = self._sample(self.atlas_height, g.view(2, b * hh, ww).permute(1, 2, 0)).view(b, hh, ww)
-            rng = (z - hgt).clamp(min=0.05 * z)
-        rng_n = rng * inv_lo
-        return _upsample2x(rng_n) if half else rng_n
+        fn = relief_ranges if self._compiled is None else self._compiled[0]  # render.compile: fused
+        return fn(self.atlas_height, off, slopes.index_select(1, site_idx), z, inv, inv_lo, self.parallax_iters, half)
 
 
 class _LevelGrid:
@@ -367,6 +361,36 @@ class _LevelGrid:
         # its (parts, 1, 2 F H / parts, W) result is level lo's F frames, then level lo + 1's
         both = torch.grid_sampler(self.atlas, self.grid, 0, 1, False).view(self.shape)
         torch.lerp(both[0], both[1], frac, out=out).mul_(gain)
+
+
+def sample_levels(atlas: torch.Tensor, off: torch.Tensor, slopes: torch.Tensor, rng_n: torch.Tensor,
+                  frac: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
+    """(F, H, W) float32 frames, as :meth:`_LevelGrid.sample_into` computes them, as one pure function
+    of tensors (what ``render.compile`` fuses): the two levels' bilinear, border-clamped samples of
+    ``atlas`` (1, 1, Ha, Wa) at off (4, F, 1, 1) + slopes (2, F, H, W) x rng_n ((F, H, W) or (F, 1, 1);
+    level lo + 1: half of it), blended by frac (F, 1, 1), times gain ((H, W) or (F, H, W))."""
+    f, h, w = slopes.shape[1:]
+    g0 = torch.addcmul(off[:2], slopes, rng_n)  # (2 coordinates, F, H, W): level lo
+    g1 = torch.add(off[2:], g0, alpha=0.5)  # level lo + 1
+    grid = torch.stack([torch.stack([g0[0], g1[0]]), torch.stack([g0[1], g1[1]])], -1)  # (2 levels, F, H, W, 2)
+    both = torch.grid_sampler(atlas, grid.view(1, 2 * f * h, w, 2), 0, 1, False).view(2, f, h, w)
+    return torch.lerp(both[0], both[1], frac) * gain
+
+
+def relief_ranges(atlas_h: torch.Tensor, off: torch.Tensor, slopes: torch.Tensor, z: torch.Tensor, inv: torch.Tensor,
+                  inv_lo: torch.Tensor, iters: int, half: bool) -> torch.Tensor:
+    """The relief's ray ranges times ``inv_lo`` (F, 1, 1), as :meth:`FastRenderer._relief_range`'s torch
+    path computes them, as one pure function of tensors (what ``render.compile`` fuses): ``iters`` times
+    r = max(z - height(off (2, F, 1, 1) + slopes (2, F, h, w) r inv), 0.05 z), heights sampled from
+    ``atlas_h`` (1, 1, Ha, Wa); z, inv (F, 1, 1). (F, h, w), or (F, 2 h, 2 w) upsampled when ``half``."""
+    f, hh, ww = slopes.shape[1:]
+    rng = z
+    for _ in range(iters):
+        g = torch.addcmul(off, slopes, rng * inv)  # (2, F, h, w) normalised atlas coordinates
+        hgt = torch.grid_sampler(atlas_h, g.view(2, f * hh, ww).permute(1, 2, 0).unsqueeze(0), 0, 1, False)
+        rng = (z - hgt.view(f, hh, ww)).clamp(min=0.05 * z)
+    rng_n = rng * inv_lo
+    return _upsample2x(rng_n) if half else rng_n
 
 
 def sub_batch(batch_size: int, chunk: int) -> int:

@@ -22,11 +22,11 @@ The loop reads :func:`stage_fns` (built once per :class:`dvsland.stages.Stages`)
 
 from __future__ import annotations
 
-import warnings
 from typing import Any, NamedTuple, Optional
 
 import torch
 
+from dvsland.compiled import CompiledFn
 from dvsland.estimators import EstimateOut
 from dvsland.plugins import PluginError, call_plugin, check_batch_tensor
 from dvsland.pytree import ObjectStage, ObjectState, check_state_like, has_stage_contract, tree_leaves
@@ -88,10 +88,10 @@ class CompiledStage:
     """A contract stage whose ``step_state`` runs through ``torch.compile`` (``simulation.compile``):
     the filter's and the law's hundreds of small elementwise ops per step become a few fused
     kernels (on a GPU the step is otherwise bound by kernel launches). Everything else (init,
-    reset, parameters) is the wrapped stage's. The first step of each batch shape compiles (about
-    10 s on an H200); results equal the eager path's within float rounding (tests/test_compile_stages.py).
-    Where compiling fails (no working Triton or C++ compiler, say), the step warns once and runs
-    eagerly from then on; an error of the step itself is raised as the eager step raises it.
+    reset, parameters) is the wrapped stage's. The first step compiles (about 10 s on an H200), with
+    every size symbolic, so another batch size or a longer history reuses it; results equal the eager
+    path's within float rounding (tests/test_compile_stages.py). Where compiling fails, the step warns
+    once and runs eagerly from then on (:class:`dvsland.compiled.CompiledFn`).
 
     Args:
         stage: a stage under the contract (not an :class:`~dvsland.pytree.ObjectStage`).
@@ -99,24 +99,10 @@ class CompiledStage:
 
     def __init__(self, stage: Any):
         self.stage = stage
-        # every size symbolic from the start: a history that grows and a new batch size (compaction, the
-        # next batch of a campaign, another stage set in the process) reuse the compiled step instead of
-        # recompiling it until torch's recompile limit (8) leaves it eager
-        self._compiled = torch.compile(stage.step_state, dynamic=True, backend=COMPILE_BACKEND)
-        self._eager = False
+        self._fn = CompiledFn(stage.step_state, "simulation.compile", type(stage).__name__, backend=COMPILE_BACKEND)
 
     def step_state(self, *args, **kwargs):
-        if self._eager:
-            return self.stage.step_state(*args, **kwargs)
-        try:
-            return self._compiled(*args, **kwargs)
-        except Exception as exc:  # noqa: BLE001 - the eager step below tells a compiler's failure from the step's
-            out = self.stage.step_state(*args, **kwargs)  # the step's own error raises here, as eager
-            self._eager = True
-            warnings.warn(f"simulation.compile: torch.compile failed for {type(self.stage).__name__} "
-                          f"({type(exc).__name__}: {str(exc)[:300]}); it runs eagerly (simulation.compile=false "
-                          "avoids the attempt)", RuntimeWarning, stacklevel=2)
-            return out
+        return self._fn(*args, **kwargs)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.stage, name)
