@@ -2,8 +2,8 @@
 # The one prepared device check for a lent GPU machine (H100/H200, about 7 minutes by default): the
 # CUDA tests, the throughput table of `dvsland bench throughput` on CUDA (as shipped: simulation.compile
 # =auto fuses the filter and the law on the card; EAGER=1 adds learned at B = 8192 uncompiled; LATE=1
-# adds it after 1,200 steps, near the ground, compiled and not; RENDER_COMPILE=1 adds it with the renderer's
-# sampling fused too, render.compile=auto), the 450-descent cmax campaign in one
+# adds it after 1,200 steps, near the ground, compiled and not; FUSED=1 adds it with the renderer's sampling
+# and the emulator's pixel step fused too: render.compile / emulator.compile=auto), the 450-descent cmax campaign in one
 # process (and, as part 4, in CAMPAIGN_WORKERS processes sharing the card), whole `learned` descents
 # per minute (part 5: LEARNED_SEEDS x 9 descents flown to the end in LEARNED_WORKERS processes; part 7:
 # a fleet), and where a step's time goes by dvsland function (part 6; PROFILE_SKIP=1300 profiles late
@@ -70,14 +70,17 @@ if [[ $PARTS == *" 2 "* ]]; then
       echo "late, simulation.compile=$mode:" | tee -a "$SUM"; tail -3 "$RES/throughput_late_$mode.log" | tee -a "$SUM"
     done
   fi
-  # RENDER_COMPILE=1 adds learned at B = 8192 with the fast renderer's torch sampling fused too (render.compile=auto,
-  # off by default until measured here; about 40 s, its compile included), first steps and, with LATE=1, late ones
-  if [[ ${RENDER_COMPILE:-0} == 1 ]]; then
-    for warm in 3 $([[ ${LATE:-0} == 1 ]] && echo 1200); do
+  # FUSED=1 adds learned at B = 8192 with the renderer's torch sampling (render.compile=auto), the emulator's pixel
+  # step (emulator.compile=auto) and both fused too: off by default until measured here; about 40 s each, their
+  # compiles included; with LATE=1 also both after 1,200 steps
+  if [[ ${FUSED:-0} == 1 ]]; then
+    for sets in render emulator "render emulator" "render emulator late"; do
+      args=(); warm=3; tag=${sets// /_}
+      for w in $sets; do [[ $w == late ]] && warm=1200 || args+=(--set "$w.compile=auto"); done
+      [[ $warm == 1200 && ${LATE:-0} != 1 ]] && continue
       timeout 150 python3 -m dvsland.bench.throughput --device cuda --batches 8192 --estimators learned --steps 10 \
-        --warmup "$warm" "${FIX[@]}" --set render.compile=auto > "$RES/throughput_render_compile_$warm.log" 2>&1
-      echo "render.compile=auto, warm-up $warm steps:" | tee -a "$SUM"
-      tail -3 "$RES/throughput_render_compile_$warm.log" | tee -a "$SUM"
+        --warmup "$warm" "${FIX[@]}" "${args[@]}" > "$RES/throughput_fused_$tag.log" 2>&1
+      echo "fused: $sets (${args[*]}):" | tee -a "$SUM"; tail -3 "$RES/throughput_fused_$tag.log" | tee -a "$SUM"
     done
   fi
   if [[ ${EAGER:-0} == 1 ]]; then  # EAGER=1 adds the first steps at B = 8192 uncompiled (about 30 s)

@@ -190,6 +190,10 @@ class EmulatorConfig:
                                       "is more than max_events_per_step: the cap grows with a large batch (B = 8192: "
                                       "82 M events, about 3.7 GiB); 0 = max_events_per_step alone (not in paper)",
                                       rng=(0, 10**9))
+    compile: str = opt("false", "fuse the ideal pixel's step (its torch path, log interpolation) with torch.compile "
+                       "over every pixel at once: auto = on a CUDA device; the CPU's compiled kernel runs regardless. "
+                       "Off by default: its speed on a GPU is unmeasured (docs/howto/devices.md)",
+                       choices=("auto", "true", "false"))
     # front-end denoising of every step's events (dvsland.events.denoise; docs/events.md), not in paper
     denoise: str = opt("none", "front-end event filters: 'none', or 'baf', 'refractory', 'hot_pixel' joined by '+' "
                        "(applied left to right, e.g. 'hot_pixel+baf'; tonic's definitions)")

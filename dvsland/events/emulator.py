@@ -62,12 +62,15 @@ from typing import NamedTuple, Optional, Tuple
 import numpy as np
 import torch
 
+from dvsland.compiled import MODES as _COMPILE_MODES
+from dvsland.compiled import CompiledFn, compile_on
 from dvsland.pytree import check_state_like, tree_map, tree_where
 
 from . import denoise as dn
 from . import native
 from . import pixel_model as pm
 from .denoise import DenoiseState, EventDenoiser
+from .emulator_dense import pixel_step_dense
 from .events import Events
 
 _DENOISE_KEYS = ("denoise", "denoise_baf_time_us", "denoise_baf_neighbours", "denoise_refractory_us",
@@ -150,6 +153,7 @@ class EmulatorParams:
     element_background_rate_hz: Optional[torch.Tensor] = None
     element_refractory_us: Optional[torch.Tensor] = None
     element_seeds: Optional[torch.Tensor] = None
+    compile: str = "false"
 
     def element_values(self) -> dict:
         """The per-descent values that are set, by field name."""
@@ -218,7 +222,7 @@ class EmulatorState(NamedTuple):
 def make_params(threshold: float = 0.1, threshold_off: Optional[float] = None, refractory_us: float = 15.0,
                 log_eps: float = 1e-4, interpolation: str = "log", device=None, mismatch_sigma: float = 0.0,
                 background_rate_hz: float = 0.0, seed: int = 0, max_events_per_step: Optional[int] = 20_000_000,
-                denoiser: Optional[EventDenoiser] = None, max_events_per_descent: int = 0,
+                denoiser: Optional[EventDenoiser] = None, max_events_per_descent: int = 0, compile: str = "false",
                 **pixel_model) -> EmulatorParams:
     """Checked :class:`EmulatorParams` from the constructor's arguments (``pixel_model``: the fields of
     :class:`~dvsland.events.pixel_model.PixelModelParams`); ValueError naming a bad one."""
@@ -228,6 +232,8 @@ def make_params(threshold: float = 0.1, threshold_off: Optional[float] = None, r
         raise ValueError(f"max_events_per_step must be an integer >= 1 or None, got {max_events_per_step}")
     if not int(max_events_per_descent) >= 0:
         raise ValueError(f"max_events_per_descent must be an integer >= 0, got {max_events_per_descent}")
+    if str(compile).lower() not in _COMPILE_MODES:
+        raise ValueError(f"compile must be one of {_COMPILE_MODES}, got {compile!r}")
     pmp = pm.PixelModelParams(**pixel_model)
     if interpolation != "log":
         for name, on in (("photoreceptor_cutoff_hz", pmp.lowpass), ("leak_rate_hz / hot_pixel_fraction", pmp.drift)):
@@ -242,7 +248,7 @@ def make_params(threshold: float = 0.1, threshold_off: Optional[float] = None, r
         background_rate_hz=_nonneg("background_rate_hz", background_rate_hz), seed=int(seed), pixel_model=pmp,
         max_events_per_step=None if max_events_per_step is None else int(max_events_per_step),
         max_events_per_descent=int(max_events_per_descent), device=None if device is None else torch.device(device),
-        denoiser=denoiser if denoiser is not None and denoiser.active else None)
+        denoiser=denoiser if denoiser is not None and denoiser.active else None, compile=str(compile).lower())
 
 
 def with_element_params(params: EmulatorParams, threshold_scale=None, mismatch_sigma=None,
@@ -500,7 +506,10 @@ class _Step:
         # fresh ones (its pass is the copy)
         self.native = (native.kernels() if _cpu_fast_path(state.lref) and params.interpolation == "log"
                        and state.lref.dtype == torch.float64 else None)
-        if donate:
+        # emulator.compile: every pixel's step in one traced function (new buffers: nothing to copy first)
+        self.dense = (_dense_fn() if self.native is None and params.interpolation == "log"
+                      and compile_on(params.compile, state.lref.device) else None)
+        if donate or self.dense is not None:
             self.lref, self.t_last = state.lref, state.t_last
         elif self.native is not None:
             self.lref, self.t_last = torch.empty_like(state.lref), torch.empty_like(state.t_last)
@@ -684,6 +693,8 @@ def _pixel_keys(ctx: _Step, l1: torch.Tensor, f1: torch.Tensor):
     candidate scan and :func:`_pixel_events` per block of candidates."""
     if ctx.native is not None:
         return _native_pixel_events(ctx, l1), True
+    if ctx.dense is not None:
+        return _dense_pixel_events(ctx, l1), False
     d = torch.sub(l1, ctx.lref)  # a temporary: the CPU scan may overwrite it
     # candidate pixels (A,): a superset of those with >= 1 crossing (exact counts follow)
     if ctx.th_scalar:
@@ -722,6 +733,46 @@ def _native_pixel_events(ctx: _Step, l1: torch.Tensor) -> torch.Tensor:
         tlast_out=ctx.t_last.view(-1))
     ctx.count(n_out)  # ValueError above the cap (the kernel then emitted nothing)
     return keys
+
+
+_DENSE: Optional[CompiledFn] = None
+
+
+def _dense_fn() -> CompiledFn:
+    """The process's traced :func:`~dvsland.events.emulator_dense.pixel_step_dense` (emulator.compile)."""
+    global _DENSE
+    if _DENSE is None:
+        _DENSE = CompiledFn(pixel_step_dense, "emulator.compile", "the pixels' step")
+    return _DENSE
+
+
+def _dense_pixel_events(ctx: _Step, l1: torch.Tensor) -> Optional[torch.Tensor]:
+    """Keys of the pixels' events (or None without any) from the traced step of every pixel, in the
+    candidate path's order and values; sets the working L_ref and t_last to the step's new ones.
+    One host sync: the events' count (the cap) and the sizes of the compactions."""
+    st, layout = ctx.state, ctx.layout
+    r = ctx.params.refractory_us if ctx.r_elem is None else ctx.r_elem.to(torch.float64).view(-1, 1, 1)
+    t0 = torch.tensor(float(ctx.t0), dtype=torch.float64, device=l1.device)
+    same = ctx.th_scalar and ctx.th_on == ctx.th_off
+    ctx.lref, ctx.t_last, cnt, first, step_us, off = ctx.dense(
+        l1, st.lref, st.l_prev, st.t_last, ctx.th_on, ctx.th_off, r, t0, ctx.dt, bool(ctx.spacing_may_bind), same,
+        LEVEL_TOL)
+    cnt, first, step_us, off = cnt.view(-1), first.view(-1), step_us.view(-1), off.view(-1)
+    n_cnt, n_sel, n_multi = torch.stack([cnt.sum(), (cnt > 0).sum(), (cnt > 1).sum()]).tolist()
+    ctx.add(n_cnt)  # before any per-event allocation
+    if n_sel == 0:
+        return None
+    sel = _compact(cnt > 0, int(n_sel))
+    t_first = first.index_select(0, sel).add_(0.5).floor_().clamp_(1.0, ctx.dt).to(torch.int64)
+    parts = [t_first.bitwise_left_shift_(layout.t_shift).add_(layout.pixel_key(sel, off.index_select(0, sel),
+                                                                                ctx.b_shift))]
+    if n_multi:
+        multi = _compact(cnt > 1, int(n_multi))
+        parts.append(_extra_keys(torch.arange(multi.numel(), device=multi.device), cnt.index_select(0, multi),
+                                 first.index_select(0, multi), step_us.index_select(0, multi),
+                                 layout.pixel_key(multi, off.index_select(0, multi), ctx.b_shift), ctx.dt,
+                                 layout.t_shift, int(n_cnt) - int(n_sel)))
+    return torch.cat(parts) if len(parts) > 1 else parts[0]
 
 
 def _pixel_events(ctx: _Step, act, l1, f1) -> torch.Tensor:
@@ -849,6 +900,10 @@ class EventEmulator:
         max_events_per_descent: a step of B descents may emit up to this times B events when that is
             more than ``max_events_per_step`` (so the cap grows with a large batch); 0 = off.
         denoise, denoise_*: the front-end filters (:class:`dvsland.events.denoise.EventDenoiser`).
+        compile: "auto", "true" or "false" (``emulator.compile``): the torch path's pixel step (log
+            interpolation) over every pixel at once through ``torch.compile``
+            (:mod:`dvsland.events.emulator_dense`); "auto" = on a CUDA device. The CPU's compiled kernel
+            runs regardless where it is built.
 
     Usage::
 
@@ -870,7 +925,7 @@ class EventEmulator:
                  max_events_per_step: Optional[int] = 20_000_000, denoise: str = "none",
                  denoise_baf_time_us: float = 10_000.0, denoise_baf_neighbours: int = 4,
                  denoise_refractory_us: float = 1_000.0, denoise_hot_pixel_rate_hz: float = 50.0,
-                 max_events_per_descent: int = 0):
+                 max_events_per_descent: int = 0, compile: str = "false"):
         denoiser = EventDenoiser(denoise, denoise_baf_time_us, denoise_baf_neighbours, denoise_refractory_us,
                                  denoise_hot_pixel_rate_hz)
         #: the settings (:class:`EmulatorParams`); per-element values of set_element_params join at reset
@@ -880,7 +935,7 @@ class EventEmulator:
             full_irradiance=full_irradiance, shot_noise_rate_hz=shot_noise_rate_hz,
             shot_noise_bright_factor=shot_noise_bright_factor, leak_rate_hz=leak_rate_hz,
             leak_rate_sigma=leak_rate_sigma, hot_pixel_fraction=hot_pixel_fraction,
-            hot_pixel_rate_hz=hot_pixel_rate_hz, max_events_per_descent=max_events_per_descent)
+            hot_pixel_rate_hz=hot_pixel_rate_hz, max_events_per_descent=max_events_per_descent, compile=compile)
         #: the state the object API holds (None before :meth:`reset`)
         self.state: Optional[EmulatorState] = None
 
@@ -907,6 +962,7 @@ class EventEmulator:
                                  if hasattr(cfg, f.name)},
                    max_events_per_step=getattr(cfg, "max_events_per_step", 20_000_000),
                    max_events_per_descent=getattr(cfg, "max_events_per_descent", 0),
+                   compile=getattr(cfg, "compile", "false"),
                    **{k: getattr(cfg, k) for k in _DENOISE_KEYS if hasattr(cfg, k)})
 
     # ------------------------------------------------------------------ the stage contract
