@@ -754,23 +754,21 @@ def _dense_pixel_events(ctx: _Step, l1: torch.Tensor) -> Optional[torch.Tensor]:
     r = ctx.params.refractory_us if ctx.r_elem is None else ctx.r_elem.to(torch.float64).view(-1, 1, 1)
     t0 = torch.tensor(float(ctx.t0), dtype=torch.float64, device=l1.device)
     same = ctx.th_scalar and ctx.th_on == ctx.th_off
-    ctx.lref, ctx.t_last, cnt, first, step_us, off = ctx.dense(
+    ctx.lref, ctx.t_last, cnt, first, step_us, off, sizes = ctx.dense(
         l1, st.lref, st.l_prev, st.t_last, ctx.th_on, ctx.th_off, r, t0, ctx.dt, bool(ctx.spacing_may_bind), same,
         LEVEL_TOL)
-    cnt, first, step_us, off = cnt.view(-1), first.view(-1), step_us.view(-1), off.view(-1)
-    n_cnt, n_sel, n_multi = torch.stack([cnt.sum(), (cnt > 0).sum(), (cnt > 1).sum()]).tolist()
+    n_cnt, n_sel, n_multi = sizes.tolist()
     ctx.add(n_cnt)  # before any per-event allocation
     if n_sel == 0:
         return None
-    sel = _compact(cnt > 0, int(n_sel))
-    t_first = first.index_select(0, sel).add_(0.5).floor_().clamp_(1.0, ctx.dt).to(torch.int64)
-    parts = [t_first.bitwise_left_shift_(layout.t_shift).add_(layout.pixel_key(sel, off.index_select(0, sel),
-                                                                                ctx.b_shift))]
-    if n_multi:
-        multi = _compact(cnt > 1, int(n_multi))
-        parts.append(_extra_keys(torch.arange(multi.numel(), device=multi.device), cnt.index_select(0, multi),
-                                 first.index_select(0, multi), step_us.index_select(0, multi),
-                                 layout.pixel_key(multi, off.index_select(0, multi), ctx.b_shift), ctx.dt,
+    cnt = cnt.view(-1)
+    sel = _nonzero_1d(cnt > 0) if _cpu_fast_path(cnt) else _compact(cnt > 0, int(n_sel))
+    cnt, first, step_us = (v.view(-1).index_select(0, sel) for v in (cnt, first, step_us))
+    code = layout.pixel_key(sel, off.view(-1).index_select(0, sel), ctx.b_shift)
+    t_first = first.add(0.5).floor_().clamp_(1.0, ctx.dt).to(torch.int64)
+    parts = [t_first.bitwise_left_shift_(layout.t_shift).add_(code)]
+    if n_multi:  # the further events of the pixels with two or more (indices into the selected ones)
+        parts.append(_extra_keys(_compact(cnt > 1, int(n_multi)), cnt, first, step_us, code, ctx.dt,
                                  layout.t_shift, int(n_cnt) - int(n_sel)))
     return torch.cat(parts) if len(parts) > 1 else parts[0]
 

@@ -34,9 +34,11 @@ def pixel_step_dense(l1: torch.Tensor, lref: torch.Tensor, l0: torch.Tensor, tla
         tol: the level tolerance (``LEVEL_TOL``) of the crossing counts.
 
     Returns:
-        (lref_new, tlast_new, cnt, first, step_us, off), each (B, H, W): the new reference level and
-        last event time (float64), the events emitted (float64 whole numbers, 0 where none), the first
-        one's time and the spacing (µs after t0, float64; meaningful where cnt > 0) and the OFF flag (bool).
+        (lref_new, tlast_new, cnt, first, step_us, off, sizes): each of the first six (B, H, W): the new
+        reference level and last event time (float64), the events emitted (float64 whole numbers, 0 where
+        none), the first one's time and the spacing (µs after t0, float64; meaningful where cnt > 0) and
+        the OFF flag (bool); sizes (3,) float64: the events, the pixels with one or more, and those with
+        two or more (the compactions' sizes, summed in the same fused pass).
     """
     d = l1 - lref
     shrink = 1.0 - 2 * tol
@@ -53,8 +55,10 @@ def pixel_step_dense(l1: torch.Tensor, lref: torch.Tensor, l0: torch.Tensor, tla
     cnt, first, step = _emitted(n, th, lref, l0, l1, dt, tlast - t0, r, spacing_may_bind)
     cnt = torch.where(cand, cnt, torch.zeros_like(cnt))
     lref_new = torch.where(cand, torch.addcmul(lref, n, th), lref)
-    tlast_new = torch.where(cnt > 0, torch.addcmul(first, cnt - 1, step) + t0, tlast)
-    return lref_new, tlast_new, cnt, first, step, torch.signbit(th)
+    has = cnt > 0
+    tlast_new = torch.where(has, torch.addcmul(first, cnt - 1, step) + t0, tlast)
+    sizes = torch.stack([cnt.sum(), has.sum().to(cnt.dtype), (cnt > 1).sum().to(cnt.dtype)])
+    return lref_new, tlast_new, cnt, first, step, torch.signbit(th), sizes
 
 
 def _emitted(n, th, lref, l0, l1, dt: float, tl, r: Num, spacing_may_bind: bool):
