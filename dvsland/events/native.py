@@ -158,6 +158,21 @@ static void radix_sort_runs(int64_t* a, int64_t n, int64_t bits, int64_t seg_bit
   if (buf.size() > (size_t(1) << 22)) std::vector<int64_t>().swap(buf);  // do not keep huge buffers
 }
 
+// The Events fields of n sorted keys (see dvs_sort_decode): one vectorised pass.
+DVS_CLONES static void decode_keys(const int64_t* __restrict k, int64_t n, int64_t b_shift, int64_t t_shift,
+                                   int64_t y_shift, int64_t x_mask, int64_t y_mask, int64_t t_mask, int64_t t0,
+                                   int64_t* __restrict pb, int64_t* __restrict px, int64_t* __restrict py,
+                                   int64_t* __restrict pt, int8_t* __restrict pp) {
+  for (int64_t w = 0; w < n; ++w) {
+    const int64_t v = k[w];
+    pp[w] = (v & 1) ? -1 : 1;
+    px[w] = (v >> 1) & x_mask;
+    py[w] = (v >> y_shift) & y_mask;
+    pt[w] = ((v >> t_shift) & t_mask) + t0;
+    pb[w] = v >> b_shift;
+  }
+}
+
 // radix_sort_bits (lo_bit: t_shift when the keys come in pixel order, else 0) then merge in `more`
 // (nb sorted keys, may be 0) and unpack all into the Events fields in one pass (see _KeyLayout):
 // b, x, y, t = t0 + t_rel (int64) and p = +1 / -1 (int8, OFF bit 1 = -1); outputs of na + nb entries.
@@ -176,6 +191,10 @@ extern "C" void dvs_sort_decode(int64_t* keys, int64_t na, int64_t bits, int64_t
   };
   // keys in pixel order (lo_bit > 0) come ordered by descent: each descent's run is sorted alone
   if (lo_bit > 0) radix_sort_runs(keys, na, bits, b_shift, lo_bit); else radix_sort_bits(keys, na, bits, 0);
+  if (nb == 0) {  // nothing to merge (no noise events): decoded in one vectorised pass
+    decode_keys(keys, na, b_shift, t_shift, y_shift, x_mask, y_mask, t_mask, t0, pb, px, py, pt, pp);
+    return;
+  }
   int64_t i = 0, j = 0;
   const uint64_t END = ~uint64_t(0);  // above every key (keys are < 2^63)
   for (int64_t w = 0; w < n; ++w) {
