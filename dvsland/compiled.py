@@ -1,8 +1,9 @@
 """``torch.compile`` for the loop's pure tensor functions, with an eager fallback.
 
-Two settings use it: ``simulation.compile`` (the filter's and the law's steps, wrapped by
-:class:`dvsland.sim.contracts.CompiledStage`) and ``render.compile`` (the fast renderer's sampling on
-its torch path, :class:`dvsland.render.fast.FastRenderer`). Each is "auto", "true" or "false";
+Three settings use it: ``simulation.compile`` (the filter's and the law's steps, wrapped by
+:class:`dvsland.sim.contracts.CompiledStage`), ``render.compile`` (the fast renderer's sampling on its
+torch path, :class:`dvsland.render.fast.FastRenderer`) and ``emulator.compile`` (the ideal pixel's step
+over every pixel, :mod:`dvsland.events.emulator_dense`). Each is "auto", "true" or "false";
 :func:`compile_on` resolves them: auto means a CUDA device, where fusing many small elementwise
 kernels into a few pays; on a CPU the compiled C++ kernels already do that work, and inductor would
 need a C++ compiler and tens of seconds.
