@@ -109,15 +109,21 @@ DVS_CLONES static void levels_range(const Tex t, const float* off, int64_t B, co
 // (torch's lerp with a weight below 0.5; 0.25 (n - x) is exact, so with or without an fma the same bits).
 DVS_INLINE float quarter_to(float x, float n) { return x + 0.25f * (n - x); }
 
-static void upsample2x_field(const float* __restrict x, int64_t h, int64_t w, float* __restrict col,
-                             float* __restrict out) {
+// (inlined into each clone of relief_range; the interior columns without a branch, so they vectorise)
+DVS_INLINE void upsample2x_field(const float* __restrict x, int64_t h, int64_t w, float* __restrict col,
+                                 float* __restrict out) {
   for (int64_t i = 0; i < h; ++i) {  // columns: col (h, 2w)
-    const float* xi = x + i * w;
-    float* ci = col + i * 2 * w;
-    for (int64_t j = 0; j < w; ++j) {
-      const float c = xi[j];
-      ci[2 * j] = quarter_to(c, xi[j > 0 ? j - 1 : 0]);
-      ci[2 * j + 1] = quarter_to(c, xi[j + 1 < w ? j + 1 : w - 1]);
+    const float* __restrict xi = x + i * w;
+    float* __restrict ci = col + i * 2 * w;
+    ci[0] = quarter_to(xi[0], xi[0]);
+    ci[1] = quarter_to(xi[0], xi[w > 1 ? 1 : 0]);
+    for (int64_t j = 1; j + 1 < w; ++j) {
+      ci[2 * j] = quarter_to(xi[j], xi[j - 1]);
+      ci[2 * j + 1] = quarter_to(xi[j], xi[j + 1]);
+    }
+    if (w > 1) {
+      ci[2 * w - 2] = quarter_to(xi[w - 1], xi[w - 2]);
+      ci[2 * w - 1] = quarter_to(xi[w - 1], xi[w - 1]);
     }
   }
   const int64_t W2 = 2 * w;
