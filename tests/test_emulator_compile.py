@@ -65,6 +65,15 @@ def test_traced_step_emits_the_candidate_paths_events(case, traced):
     assert E._DENSE is not None and not E._DENSE.eager  # traced, not fallen back
 
 
+def test_the_device_generic_compaction_emits_the_same_events(traced, monkeypatch):
+    """Without the CPU's numpy shortcuts (the path a GPU takes: compactions of known size, no nonzero)."""
+    monkeypatch.setattr(E, "CPU_FAST_PATHS", False)
+    for kw in (CASES["default"], CASES["per_descent"]):
+        (ev0, st0), (ev1, st1) = _fly("false", **kw), _fly("true", **kw)
+        _same_events(ev0, ev1)
+        assert torch.equal(st0.lref, st1.lref) and torch.equal(st0.t_last, st1.t_last)
+
+
 def test_one_trace_serves_other_batch_sizes_and_empty_steps(traced):
     for b in (6, 2, 4):
         frames = FRAMES[:, :b].clone()
