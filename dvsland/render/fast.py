@@ -91,10 +91,8 @@ class FastRenderer(Renderer):
         super().__init__(site_names, camera, render, device)
         self.native = bool(native)
         rc = self.render_config
-        self._compiled = None  # (relief, levels) CompiledFn of the torch path, or None (render.compile)
-        if compile_on(getattr(rc, "compile", "false") if compile is None else compile, self.device):
-            self._compiled = (CompiledFn(relief_ranges, "render.compile", "the relief's ray ranges"),
-                              CompiledFn(sample_levels, "render.compile", "the levels' sampling"))
+        self._compiled = _compiled_sampling(getattr(rc, "compile", "false") if compile is None else compile,
+                                            self.device)
         threads = rc.threads if threads is None else threads
         if threads < 0:
             raise ValueError(f"threads must be >= 0 (0 = all cores), got {threads}")
@@ -361,6 +359,15 @@ class _LevelGrid:
         # its (parts, 1, 2 F H / parts, W) result is level lo's F frames, then level lo + 1's
         both = torch.grid_sampler(self.atlas, self.grid, 0, 1, False).view(self.shape)
         torch.lerp(both[0], both[1], frac, out=out).mul_(gain)
+
+
+def _compiled_sampling(mode, device):
+    """(relief, levels): :func:`relief_ranges` and :func:`sample_levels` through ``torch.compile`` where
+    the ``render.compile`` setting ``mode`` is on for ``device``, else None (the eager torch path)."""
+    if not compile_on(mode, device):
+        return None
+    return (CompiledFn(relief_ranges, "render.compile", "the relief's ray ranges"),
+            CompiledFn(sample_levels, "render.compile", "the levels' sampling"))
 
 
 def sample_levels(atlas: torch.Tensor, off: torch.Tensor, slopes: torch.Tensor, rng_n: torch.Tensor,
