@@ -70,7 +70,7 @@ from . import denoise as dn
 from . import native
 from . import pixel_model as pm
 from .denoise import DenoiseState, EventDenoiser
-from .emulator_dense import pixel_step_dense
+from .emulator_dense import crossing_times, emitted_dense, pixel_step_dense, refractory_binds
 from .events import Events
 
 _DENOISE_KEYS = ("denoise", "denoise_baf_time_us", "denoise_baf_neighbours", "denoise_refractory_us",
@@ -1110,23 +1110,15 @@ def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r, spacing_may_bind: b
     """
     # whenever n > 0, L moved in the direction of th_a (dl != 0); candidates with n = 0 may have
     # dl = 0 and produce inf/NaN below, which the nan_to_num on cnt turns into cnt = 0
-    dl = l1_a - l0_a
-    scale = dt / dl
-    spacing = th_a * scale  # µs between crossings, > 0
-    base = (lref_a - l0_a).mul_(scale)
-    # without refractory: all n crossings
-    cnt = n_a
-    first = base + spacing
-    step = spacing
+    if not _cpu_fast_path(n_a):  # the closed form everywhere, kept where it binds: no host sync
+        return emitted_dense(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r, spacing_may_bind)
+    base, spacing, first = crossing_times(th_a, lref_a, l0_a, l1_a, dt)
+    cnt, step = n_a, spacing  # without refractory: all n crossings
     r_t = r if isinstance(r, torch.Tensor) else None  # per-pixel refractory (A,) or a scalar
     if r_t is not None or r > 0:
-        # the refractory rule can only bind where crossings are closer than r, or the first
-        # one is within r of the last emitted event: apply the closed form there only
-        near = first < tl_a + r
-        bind = (spacing < r) | near if spacing_may_bind else near
-        if not _cpu_fast_path(bind):  # the closed form everywhere, kept where it binds: no host sync
-            return _refractory_dense(bind, n_a, base, spacing, tl_a, r, first, step)
-        need = _nonzero_1d(bind)
+        # the refractory rule can only bind where crossings are closer than r, or the first one is
+        # within r of the last emitted event: its closed form on those only (compacted)
+        need = _nonzero_1d(refractory_binds(first, spacing, tl_a, r, spacing_may_bind))
         if need.numel() > 0:
             cnt, first, step = cnt.clone(), first.clone(), step.clone()
             sp, bs = spacing.index_select(0, need), base.index_select(0, need)
@@ -1141,19 +1133,6 @@ def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r, spacing_may_bind: b
             step.index_copy_(0, need, m.mul_(sp))
     tlast = first.addcmul(cnt - 1, step)
     return cnt, first, step, tlast
-
-
-def _refractory_dense(bind, n_a, base, spacing, tl_a, r, first, step):
-    """:func:`_emitted_log`'s refractory closed form on every candidate, kept where ``bind`` (A,)
-    bool: the same operations as on the compacted candidates, so the same values, with no host sync
-    (the GPU path; the CPU compacts first, where that is faster). Returns (cnt, first, step, tlast)."""
-    j0 = torch.ceil(tl_a.sub(base).add_(r).div_(spacing)).clamp_(min=1.0)
-    m = torch.ceil(r / spacing).clamp_(min=1.0)
-    c = torch.floor((n_a - j0).div_(m)).add_(1.0).clamp_(min=0.0).nan_to_num_(0.0, 0.0, 0.0)
-    cnt = torch.where(bind, c, n_a)
-    first = torch.where(bind, torch.addcmul(base, j0, spacing), first)
-    step = torch.where(bind, m.mul_(spacing), step)
-    return cnt, first, step, first.addcmul(cnt - 1, step)
 
 
 def _emitted_linear(n_a, th_a, lref_a, i0_a, i1_a, dt, tl_a, r, eps):

@@ -5,9 +5,10 @@ whose level moved by about a threshold or more: a host sync), gathers their valu
 forty elementwise passes over them. :func:`pixel_step_dense` is the same formulas over all pixels,
 the candidate rule a mask: no gather, no sync, one pure function of tensors that ``torch.compile``
 turns into a few fused kernels on a GPU (``emulator.compile``). Per pixel the operations are those of
-the candidate path (``_pixel_events``, ``_emitted_log``, ``_refractory_dense``) in the same order, so
-run eagerly or traced without code generation it gives the same bits; inductor's fused code equals
-them within float rounding (tests/test_emulator_compile.py).
+the candidate path (``_pixel_events``), and the closed form of the emitted crossings
+(:func:`emitted_dense`, with :func:`crossing_times` and :func:`refractory_binds`) is the one that path
+runs too, so run eagerly or traced without code generation it gives the same bits; inductor's fused
+code equals them within float rounding (tests/test_emulator_compile.py).
 """
 
 from __future__ import annotations
@@ -52,31 +53,50 @@ def pixel_step_dense(l1: torch.Tensor, lref: torch.Tensor, l0: torch.Tensor, tla
         cand = (d >= on * shrink) | (d <= off * -shrink)
         n = torch.floor(d / on + tol).clamp(min=0) + torch.floor(-d / off + tol).clamp(min=0)
         th = torch.where(d > 0, on, -off)
-    cnt, first, step = _emitted(n, th, lref, l0, l1, dt, tlast - t0, r, spacing_may_bind)
+    cnt, first, step, t_last = emitted_dense(n, th, lref, l0, l1, dt, tlast - t0, r, spacing_may_bind)
     cnt = torch.where(cand, cnt, torch.zeros_like(cnt))
     lref_new = torch.where(cand, torch.addcmul(lref, n, th), lref)
     has = cnt > 0
-    tlast_new = torch.where(has, torch.addcmul(first, cnt - 1, step) + t0, tlast)
+    tlast_new = torch.where(has, t_last + t0, tlast)
     sizes = torch.stack([cnt.sum(), has.sum().to(cnt.dtype), (cnt > 1).sum().to(cnt.dtype)])
     return lref_new, tlast_new, cnt, first, step, torch.signbit(th), sizes
 
 
-def _emitted(n, th, lref, l0, l1, dt: float, tl, r: Num, spacing_may_bind: bool):
-    """(cnt, first, step): the emitted crossings in closed form, the refractory rule where it binds
-    (as ``emulator._emitted_log`` with ``_refractory_dense``, on every pixel)."""
+def crossing_times(th, lref, l0, l1, dt: float):
+    """(base, spacing, first) µs after the step start, each shaped as the inputs (float64): crossing j of
+    a pixel is at base + j spacing (log interpolation: equally spaced), the first at base + spacing; th
+    the signed threshold, lref, l0, l1 the reference, last and new levels, dt the step, µs. Where the
+    level did not move (l1 = l0) the values are inf or NaN: such a pixel has no crossing to time."""
     scale = dt / (l1 - l0)
     spacing = th * scale
     base = (lref - l0) * scale
-    first = base + spacing
-    if not isinstance(r, torch.Tensor) and not r > 0:
-        return n, first, spacing
+    return base, spacing, base + spacing
+
+
+def refractory_binds(first, spacing, tl, r: Num, spacing_may_bind: bool):
+    """Where the refractory period ``r`` (µs; a float or broadcastable tensor) may drop crossings (bool):
+    crossings closer than r (tested only where ``spacing_may_bind``), or the first within r of the
+    last emitted event at ``tl`` (µs after the step start, -inf = never)."""
     near = first < tl + r
-    bind = (spacing < r) | near if spacing_may_bind else near
-    j0 = torch.ceil((tl - base + r) / spacing).clamp(min=1.0)
-    m = torch.ceil(r / spacing).clamp(min=1.0)
-    c = torch.floor((n - j0) / m).add(1.0).clamp(min=0.0).nan_to_num(0.0, 0.0, 0.0)
-    return (torch.where(bind, c, n), torch.where(bind, torch.addcmul(base, j0, spacing), first),
-            torch.where(bind, m * spacing, spacing))
+    return (spacing < r) | near if spacing_may_bind else near
 
 
-__all__ = ["pixel_step_dense"]
+def emitted_dense(n, th, lref, l0, l1, dt: float, tl, r: Num, spacing_may_bind: bool):
+    """(cnt, first, step, tlast): the emitted crossings of every pixel in closed form (the emulator's
+    ``_emitted_log``, whose arguments and returns these are), the refractory rule evaluated everywhere
+    and kept where :func:`refractory_binds`: no compaction, no host sync (the GPU's path and the traced
+    step's; the CPU compacts the binding pixels first, where that is faster)."""
+    base, spacing, first = crossing_times(th, lref, l0, l1, dt)
+    cnt, step = n, spacing
+    if isinstance(r, torch.Tensor) or r > 0:
+        bind = refractory_binds(first, spacing, tl, r, spacing_may_bind)
+        j0 = torch.ceil((tl - base + r) / spacing).clamp(min=1.0)
+        m = torch.ceil(r / spacing).clamp(min=1.0)
+        c = torch.floor((n - j0) / m).add(1.0).clamp(min=0.0).nan_to_num(0.0, 0.0, 0.0)
+        cnt = torch.where(bind, c, n)
+        first = torch.where(bind, torch.addcmul(base, j0, spacing), first)
+        step = torch.where(bind, m * spacing, spacing)
+    return cnt, first, step, first.addcmul(cnt - 1, step)
+
+
+__all__ = ["crossing_times", "emitted_dense", "pixel_step_dense", "refractory_binds"]
