@@ -13,6 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
+from dvsland.compiled import MODES as COMPILE_MODES
+
 from .errors import ConfigError
 
 INF = float("inf")
@@ -149,7 +151,7 @@ class RenderConfig:
     compile: str = opt("false", "fuse the fast renderer's torch sampling (relief and both levels) with torch.compile: "
                        "auto = on a CUDA device, where the torch path runs; the CPU's compiled kernels run "
                        "regardless. Off by default: its speed on a GPU is unmeasured (docs/howto/devices.md)",
-                       choices=("auto", "true", "false"))
+                       choices=COMPILE_MODES)
 
 
 @dataclass
@@ -193,7 +195,7 @@ class EmulatorConfig:
     compile: str = opt("false", "fuse the ideal pixel's step (its torch path, log interpolation) with torch.compile "
                        "over every pixel at once: auto = on a CUDA device; the CPU's compiled kernel runs regardless. "
                        "Off by default: its speed on a GPU is unmeasured (docs/howto/devices.md)",
-                       choices=("auto", "true", "false"))
+                       choices=COMPILE_MODES)
     # front-end denoising of every step's events (dvsland.events.denoise; docs/events.md), not in paper
     denoise: str = opt("none", "front-end event filters: 'none', or 'baf', 'refractory', 'hot_pixel' joined by '+' "
                        "(applied left to right, e.g. 'hot_pixel+baf'; tonic's definitions)")
@@ -572,7 +574,7 @@ class SimulationConfig:
                        "a GPU (where it pays: +7 % descent-steps/s over the first steps and +9.5 % near the ground "
                        "at B = 8192 on an H200), not on a CPU (where the filter's rounds run in a compiled kernel "
                        "already and inductor needs a C++ compiler); true/false force it (docs/howto/devices.md)",
-                       choices=("auto", "true", "false"))
+                       choices=COMPILE_MODES)
 
 
 @dataclass
