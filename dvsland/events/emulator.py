@@ -765,12 +765,10 @@ def _dense_pixel_events(ctx: _Step, l1: torch.Tensor) -> Optional[torch.Tensor]:
     sel = _nonzero_1d(cnt > 0) if _cpu_fast_path(cnt) else _compact(cnt > 0, int(n_sel))
     cnt, first, step_us = (v.view(-1).index_select(0, sel) for v in (cnt, first, step_us))
     code = layout.pixel_key(sel, off.view(-1).index_select(0, sel), ctx.b_shift)
-    t_first = first.add(0.5).floor_().clamp_(1.0, ctx.dt).to(torch.int64)
-    parts = [t_first.bitwise_left_shift_(layout.t_shift).add_(code)]
-    if n_multi:  # the further events of the pixels with two or more (indices into the selected ones)
-        parts.append(_extra_keys(_compact(cnt > 1, int(n_multi)), cnt, first, step_us, code, ctx.dt,
-                                 layout.t_shift, int(n_cnt) - int(n_sel)))
-    return torch.cat(parts) if len(parts) > 1 else parts[0]
+    # the pixels with two or more events (indices into the selected ones)
+    multi = _compact(cnt > 1, int(n_multi)) if n_multi else sel.new_empty(0)
+    return _event_keys(first, code, multi, cnt, first, step_us, code, ctx.dt, layout.t_shift,
+                       int(n_cnt) - int(n_sel))
 
 
 def _pixel_events(ctx: _Step, act, l1, f1) -> torch.Tensor:
@@ -833,15 +831,25 @@ def _log_keys(ctx: _Step, act, n_a, th_a, lref_a, l1_a, tl_a, r, code_a):
         ctx.add(n_cnt)  # before any per-event allocation
         sel, multi = _compact(cnt > 0, int(n_sel)), _compact(cnt > 1, int(n_multi))
     all_sel = sel.numel() == act.numel()
-    # the first event of every pixel with cnt >= 1 (no per-event gather) ...
-    f_sel = first if all_sel else first.index_select(0, sel)
-    t_first = f_sel.add(0.5).floor_().clamp_(1.0, dt).to(torch.int64)
-    parts = [t_first.bitwise_left_shift_(t_shift).add_(code_a if all_sel else code_a.index_select(0, sel))]
-    # ... then the further events of the pixels with cnt >= 2
+    n_extra = None if n_cnt is None else int(n_cnt) - sel.numel()  # events beyond each pixel's first
+    keys = _event_keys(first if all_sel else first.index_select(0, sel),
+                       code_a if all_sel else code_a.index_select(0, sel), multi, cnt, first, step_us, code_a, dt,
+                       t_shift, n_extra)
+    return keys, sel, tlast_new
+
+
+def _event_keys(first_sel, code_sel, multi, cnt, first, step_us, code, dt: float, t_shift: int,
+                n_extra: Optional[int]) -> torch.Tensor:
+    """Sort keys (N,) int64 of the events of the pixels with one or more: first the first event of each
+    (its time ``first_sel`` µs after the step start, its key bits ``code_sel``, one per such pixel; no
+    per-event gather), then the further events of the pixels ``multi`` (indices into ``cnt``, ``first``,
+    ``step_us`` and ``code``; :func:`_extra_keys`, ``n_extra`` of them where known). Event times round
+    to the nearest µs within (0, dt]."""
+    t_first = first_sel.add(0.5).floor_().clamp_(1.0, dt).to(torch.int64)
+    parts = [t_first.bitwise_left_shift_(t_shift).add_(code_sel)]
     if multi.numel() > 0:
-        n_extra = None if n_cnt is None else int(n_cnt) - sel.numel()  # events beyond each pixel's first
-        parts.append(_extra_keys(multi, cnt, first, step_us, code_a, dt, t_shift, n_extra))
-    return (torch.cat(parts) if len(parts) > 1 else parts[0]), sel, tlast_new
+        parts.append(_extra_keys(multi, cnt, first, step_us, code, dt, t_shift, n_extra))
+    return torch.cat(parts) if len(parts) > 1 else parts[0]
 
 
 def _noise_keys(ctx: _Step, flat: torch.Tensor, t_rel: torch.Tensor, off: torch.Tensor) -> torch.Tensor:
