@@ -84,6 +84,24 @@ def torch_event_path():
 
 
 @pytest.fixture
+def failing_compile(monkeypatch):
+    """``torch.compile`` replaced by a compiler that fails on every call of what it compiled (no working
+    Triton or C++ compiler); returns the list each attempt appends to."""
+    import torch
+
+    calls = []
+
+    def broken(fn, **options):
+        def run(*args, **kwargs):
+            calls.append(1)
+            raise RuntimeError("no working compiler")
+        return run
+
+    monkeypatch.setattr(torch, "compile", broken)
+    return calls
+
+
+@pytest.fixture
 def count_calls(monkeypatch):
     """``count_calls(cls, name)`` wraps method ``name`` of ``cls`` for this test (restored after it)
     and returns the list that each call appends to: which path a test ran."""

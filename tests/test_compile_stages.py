@@ -72,16 +72,8 @@ class _Doubler:
         return 2 * x + k
 
 
-def test_a_failing_compile_runs_eagerly(monkeypatch):
-    calls = []
-
-    def broken(fn, **options):
-        def run(*args, **kwargs):
-            calls.append(1)
-            raise RuntimeError("no working compiler")
-        return run
-
-    monkeypatch.setattr(torch, "compile", broken)
+def test_a_failing_compile_runs_eagerly(failing_compile):
+    calls = failing_compile
     st = CompiledStage(_Doubler())
     with pytest.warns(RuntimeWarning, match="torch.compile failed for _Doubler.*no working compiler"):
         assert st.step_state(torch.tensor(3.0), k=1).item() == 7.0

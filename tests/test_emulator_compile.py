@@ -115,13 +115,7 @@ def test_the_cpu_kernel_runs_regardless(monkeypatch):
     assert E._DENSE is None
 
 
-def test_a_failing_compile_steps_eagerly_and_warns_once(traced, monkeypatch):
-    def broken(fn, **options):
-        def run(*args, **kwargs):
-            raise RuntimeError("no working compiler")
-        return run
-
-    monkeypatch.setattr(torch, "compile", broken)
+def test_a_failing_compile_steps_eagerly_and_warns_once(traced, failing_compile):
     with pytest.warns(RuntimeWarning, match=r"emulator\.compile: torch\.compile failed for the pixels' step"):
         ev1, st1 = _fly("true")
     ev0, st0 = _fly("false")

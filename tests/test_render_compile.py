@@ -70,13 +70,7 @@ def test_traced_sampling_renders_the_eager_frames(case, monkeypatch):
     assert not any(f.eager for f in traced._compiled)  # traced, not fallen back
 
 
-def test_a_failing_compile_renders_eagerly_and_warns_once(monkeypatch):
-    def broken(fn, **options):
-        def run(*args, **kwargs):
-            raise RuntimeError("no working compiler")
-        return run
-
-    monkeypatch.setattr(torch, "compile", broken)
+def test_a_failing_compile_renders_eagerly_and_warns_once(failing_compile):
     eager, traced = _renderer("false"), _renderer("true")
     alt, idx = _altitudes(6)
     with pytest.warns(RuntimeWarning, match=r"render\.compile: torch\.compile failed for the relief.*no working"):
