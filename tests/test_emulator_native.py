@@ -174,6 +174,29 @@ def test_native_kernel_respects_the_event_cap(fresh):
         emu.step(frames[1], 100_000)
 
 
+def test_native_kernel_cap_boundary_keeps_every_key(fresh):
+    """A step of exactly the cap's events gives them all (the kernel keeps keys while its running
+    count is within the cap); one event fewer allowed refuses the step."""
+    fresh.setattr(native.LIBRARY, "chosen", True)
+    if native.load() is None:
+        pytest.skip("no C++ compiler here")
+    frames = smooth_frames(2, 40, 48, 3, omega=0.8)
+    free = EventEmulator(max_events_per_step=None)
+    free.reset(frames[0], 0)
+    ev = free.step(frames[1], 100_000)
+    n = len(ev)
+    assert n > 100
+    exact = EventEmulator(max_events_per_step=n)
+    exact.reset(frames[0], 0)
+    got = exact.step(frames[1], 100_000)
+    for name in ("b", "x", "y", "t", "p"):
+        assert torch.equal(getattr(got, name), getattr(ev, name)), name
+    short = EventEmulator(max_events_per_step=n - 1)
+    short.reset(frames[0], 0)
+    with pytest.raises(ValueError, match="max_events_per_step"):
+        short.step(frames[1], 100_000)
+
+
 def test_cli_build_native_builds_both_kernels_and_reports(monkeypatch, capsys):
     """`dvsland build-native` builds the terrain's, the renderer's, the emulator's, cmax's and dpr's kernels
     and the efference_fit filter's (compile mocked here) and returns 1 when one cannot be built, naming it."""

@@ -369,13 +369,22 @@ extern "C" int64_t dvs_cell_counts(const int64_t* b, const int64_t* x, const int
 // The ideal pixel's step (log interpolation, scalar thresholds and refractory period) in one pass
 // over the pixels, the same float64 operations in the same order as EventEmulator._pixel_events /
 // _emitted_log / _extra_keys (torch's addcmul is a fused multiply-add: std::fma here). Updates
-// lref and t_last in place; dvs_pixel_scan returns the count of events (their candidates are kept
-// for dvs_pixel_write, which writes their unsorted keys).
+// lref and t_last in place; dvs_pixel_scan returns the count of events and keeps their unsorted keys
+// (up to the cap) for dvs_pixel_write, which copies them out.
 static inline double clamp_lo(double x, double lo) { return x < lo ? lo : x; }  // NaN stays NaN, as torch
 static inline double clamp_lohi(double x, double lo, double hi) { x = x < lo ? lo : x; return x > hi ? hi : x; }
 
-struct Cand { int64_t code; double cnt, first, step; };  // one pixel with >= 1 emitted event
 
+// A pixel's events as keys: cnt of them at first + i step (µs after t0, rounded, clamped to [1, dt]).
+static inline void emit_keys(int64_t code, double cnt, double first, double step, double dt, int64_t t_shift,
+                             std::vector<int64_t>& keys) {
+  keys.push_back((int64_t(clamp_lohi(std::floor(first + 0.5), 1.0, dt)) << t_shift) + code);
+  const int64_t ce = int64_t(cnt);
+  for (int64_t i = 1; i < ce; ++i) {
+    const double tau = step * double(i) + first;
+    keys.push_back((int64_t(clamp_lohi(std::floor(tau + 0.5), 1.0, dt)) << t_shift) + code);
+  }
+}
 
 // th_on_map / th_off_map: per-pixel thresholds (or null: the scalars th_on / th_off); r_elem: per-
 // element refractory periods (or null: the scalar r). As the torch path: with maps the candidate
@@ -389,7 +398,7 @@ DVS_CLONES static double scan_pixels(const double* l1, const double* lref_in, do
                                      int64_t b_shift, int64_t y_shift, double th_on_s, double th_off_s,
                                      const double* th_on_map, const double* th_off_map, double r_s,
                                      const double* r_elem, double t0, double dt, bool spacing_may_bind,
-                                     std::vector<Cand>& out) {
+                                     int64_t t_shift, double cap, std::vector<int64_t>& keys) {
   const double TOL = 1e-9, shrink = 1.0 - 2 * TOL;
   const bool maps = th_on_map != nullptr;
   const bool same = !maps && th_on_s == th_off_s;
@@ -441,8 +450,11 @@ DVS_CLONES static double scan_pixels(const double* l1, const double* lref_in, do
         lref_out[k] = std::fma(n, th, lr);
         if (cnt > 0) {
           tlast_out[k] = std::fma(cnt - 1.0, step, first) + t0;
-          out.push_back({row_code | (x << 1) | (std::signbit(th) ? 1 : 0), cnt, first, step});
           total += cnt;
+          // the keys written at once (no list of emitting pixels to read again), until the cap
+          // is passed: then only counted (the caller refuses the step)
+          if (total <= cap) emit_keys(row_code | (x << 1) | (std::signbit(th) ? 1 : 0), cnt, first, step, dt,
+                                      t_shift, keys);
         } else {
           tlast_out[k] = tlk;
         }
@@ -452,37 +464,27 @@ DVS_CLONES static double scan_pixels(const double* l1, const double* lref_in, do
   return total;
 }
 
-DVS_CLONES static void write_keys(const std::vector<Cand>& cand, double dt, int64_t t_shift, int64_t* out) {
-  int64_t w = 0;
-  for (const Cand& c : cand) {
-    out[w++] = (int64_t(clamp_lohi(std::floor(c.first + 0.5), 1.0, dt)) << t_shift) + c.code;
-    const int64_t ce = int64_t(c.cnt);
-    for (int64_t i = 1; i < ce; ++i) {
-      const double tau = c.step * double(i) + c.first;
-      out[w++] = (int64_t(clamp_lohi(std::floor(tau + 0.5), 1.0, dt)) << t_shift) + c.code;
-    }
-  }
-}
+static thread_local std::vector<int64_t> g_keys;  // kept across calls (no fresh pages per step)
 
-static thread_local std::vector<Cand> g_cand;  // kept across calls (no fresh pages per step)
-
-// th_on_map, th_off_map, r_elem: null for the scalars (see scan_pixels). Returns the events' count.
+// th_on_map, th_off_map, r_elem: null for the scalars (see scan_pixels); cap < 0: no cap. Returns the
+// events' count; their keys are kept for dvs_pixel_write when the count is within the cap.
 extern "C" double dvs_pixel_scan(const double* l1, const double* lref_in, double* lref_out, const double* l0,
                                  const double* tlast_in, double* tlast_out, int64_t B, int64_t H, int64_t W,
                                  int64_t b_shift, int64_t y_shift, double th_on, double th_off,
                                  const double* th_on_map, const double* th_off_map, double r, const double* r_elem,
-                                 double t0, double dt, int64_t spacing_may_bind) {
-  g_cand.clear();
+                                 double t0, double dt, int64_t spacing_may_bind, int64_t t_shift, int64_t cap) {
+  g_keys.clear();
   const int64_t P = B * H * W;
-  if (g_cand.capacity() < size_t(P / 2)) g_cand.reserve(size_t(P / 2));
+  if (g_keys.capacity() < size_t(P)) g_keys.reserve(size_t(P));
   return scan_pixels(l1, lref_in, lref_out, l0, tlast_in, tlast_out, B, H, W, b_shift, y_shift, th_on, th_off,
-                     th_on_map, th_off_map, r, r_elem, t0, dt, spacing_may_bind != 0, g_cand);
+                     th_on_map, th_off_map, r, r_elem, t0, dt, spacing_may_bind != 0, t_shift,
+                     cap < 0 ? HUGE_VAL : double(cap), g_keys);
 }
 
-// The keys of the last dvs_pixel_scan's events (as many as it counted) into out.
-extern "C" void dvs_pixel_write(double dt, int64_t t_shift, int64_t* out) {
-  write_keys(g_cand, dt, t_shift, out);
-  if (g_cand.capacity() > (size_t(1) << 22)) std::vector<Cand>().swap(g_cand);  // do not keep huge buffers
+// The keys of the last dvs_pixel_scan's events (as many as it counted, within its cap) into out.
+extern "C" void dvs_pixel_write(int64_t* out) {
+  if (!g_keys.empty()) std::memcpy(out, g_keys.data(), g_keys.size() * sizeof(int64_t));
+  if (g_keys.capacity() > (size_t(1) << 22)) std::vector<int64_t>().swap(g_keys);  // do not keep huge buffers
 }
 """
 
@@ -497,8 +499,8 @@ _SIGNATURES = {
     "dvs_sort_decode": ([_P, _I64, _I64, _I64, _P, _I64] + [_I64] * 6 + [_P] * 5, _VOID),
     "dvs_baf_keep": ([_P] * 4 + [_I64, _P] + [_I64] * 4 + [_P], _VOID),
     "dvs_refractory_keep": ([_P, _P, _I64, _P, _I64, _P], _VOID),
-    "dvs_pixel_scan": ([_P] * 6 + [_I64] * 5 + [_F64, _F64, _P, _P, _F64, _P, _F64, _F64, _I64], _F64),
-    "dvs_pixel_write": ([_F64, _I64, _P], _VOID),
+    "dvs_pixel_scan": ([_P] * 6 + [_I64] * 5 + [_F64, _F64, _P, _P, _F64, _P, _F64, _F64, _I64, _I64, _I64], _F64),
+    "dvs_pixel_write": ([_P], _VOID),
     "dvs_motion_counts": ([_P] * 5 + [_I64] * 6 + [_P] * 4, _VOID),
     "dvs_cell_counts": ([_P] * 4 + [_I64] * 5 + [_P], _I64),
 }
@@ -589,12 +591,12 @@ class Kernels:
             _ptr(tlast, f64, "pixel_events: tlast"), _ptr(tlast_out, f64, "pixel_events: tlast_out"), B, H, W,
             int(b_shift), int(y_shift), float(th_on), float(th_off), _ptr(th_on_map, f64, "pixel_events: maps"),
             _ptr(th_off_map, f64, "pixel_events: maps"), float(r), _ptr(r_elem, f64, "pixel_events: r_elem"),
-            float(t0), float(dt), int(bool(spacing_may_bind)))
+            float(t0), float(dt), int(bool(spacing_may_bind)), int(t_shift), int(cap))
         n_out[0] = n
         if cap >= 0 and n > cap:
             return torch.empty(0, dtype=torch.int64)
         keys = torch.empty(int(n), dtype=torch.int64)
-        self._lib.dvs_pixel_write(float(dt), int(t_shift), keys.data_ptr())
+        self._lib.dvs_pixel_write(keys.data_ptr())
         return keys
 
 
