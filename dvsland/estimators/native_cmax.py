@@ -51,6 +51,35 @@ _SRC = r"""
 #include <vector>
 
 """ + PARALLEL_RANGES + r"""
+// A stable counting sort of the events [0, E) by their element Bi[e] in [0, B): start (B + 1) the first
+// position of each element in order (E), which lists the events element by element, in event order
+// within one. The events come in runs of one element (each stored step is sorted by element): the counts
+// and positions move by whole runs, not by one shared counter per event (a chain of loads and stores
+// through the same counter that a plain histogram waits on).
+static void sort_by_element(const int64_t* Bi, int64_t E, int64_t B, std::vector<int64_t>& start,
+                            std::vector<int64_t>& order) {
+  start.assign(B + 1, 0);
+  order.resize(E);
+  for (int64_t e = 0; e < E;) {
+    const int64_t k = Bi[e];
+    int64_t j = e + 1;
+    while (j < E && Bi[j] == k) ++j;
+    start[k + 1] += j - e;
+    e = j;
+  }
+  for (int64_t i = 0; i < B; ++i) start[i + 1] += start[i];
+  std::vector<int64_t> pos(start.begin(), start.end() - 1);
+  for (int64_t e = 0; e < E;) {
+    const int64_t k = Bi[e];
+    int64_t j = e + 1;
+    while (j < E && Bi[j] == k) ++j;
+    int64_t* o = order.data() + pos[k];
+    for (int64_t i = e; i < j; ++i) o[i - e] = i;
+    pos[k] += j - e;
+    e = j;
+  }
+}
+
 // A stable counting sort of the events [0, E) by key(e) in [0, n_keys): start (n_keys + 1) the first
 // position of each key in order (E), which lists the events key by key, in event order within a key.
 template <class F>
@@ -151,7 +180,7 @@ extern "C" int64_t cmax_splat_sums(const float* X, const float* Y, const int64_t
     if (!(Bi[e] >= 0 && Bi[e] < B && (Hf[e] == 0 || Hf[e] == 1))) return -1;
   for (int64_t e = 0; e < E; ++e)
     if (!(std::fabs((double)W[e]) * unit < 1073741824.0)) return -2;
-  std::vector<int64_t> start, order;  // by (element, half)
+  static thread_local std::vector<int64_t> start, order;  // by (element, half); kept: no fresh pages per call
   counting_sort(E, 2 * B, [&](int64_t e) { return 2 * Bi[e] + Hf[e]; }, start, order);
   const float fcx = (float)cx, fcy = (float)cy, uf = (float)unit;
   const float lox = (float)(x_lo - cx), hix = (float)(x_hi - cx), loy = (float)(y_lo - cy), hiy = (float)(y_hi - cy);
@@ -205,22 +234,27 @@ extern "C" int64_t cmax_splat_sums(const float* X, const float* Y, const int64_t
 // out (E,) int64. Returns 0, or -1 when some b or px is out of range (nothing written).
 // For the events idx[0 .. n) of one element (pixels Px[idx[k]] in [0, n_px)): put(k, c), c the events of the
 // n on event k's pixel, counted on ``canvas`` (n_px zeros, left zeroed).
+// (The pixels are gathered once into ``pk``, a buffer of the caller's, and read three times from there.)
 template <class F>
-static void element_pixel_counts(const int64_t* Px, const int64_t* idx, int64_t n, int32_t* canvas, F put) {
-  for (int64_t k = 0; k < n; ++k) canvas[Px[idx[k]]]++;
-  for (int64_t k = 0; k < n; ++k) put(k, canvas[Px[idx[k]]]);
-  for (int64_t k = 0; k < n; ++k) canvas[Px[idx[k]]] = 0;
+static void element_pixel_counts(const int64_t* Px, const int64_t* idx, int64_t n, int32_t* canvas,
+                                 std::vector<int64_t>& pk, F put) {
+  pk.resize(n);
+  for (int64_t k = 0; k < n; ++k) pk[k] = Px[idx[k]];
+  for (int64_t k = 0; k < n; ++k) canvas[pk[k]]++;
+  for (int64_t k = 0; k < n; ++k) put(k, canvas[pk[k]]);
+  for (int64_t k = 0; k < n; ++k) canvas[pk[k]] = 0;
 }
 
 static int64_t pixel_counts(const int64_t* Bi, const int64_t* Px, int64_t E, int64_t B, int64_t n_px, int64_t* O) {
   for (int64_t e = 0; e < E; ++e)
     if (!(Bi[e] >= 0 && Bi[e] < B && Px[e] >= 0 && Px[e] < n_px)) return -1;
-  std::vector<int64_t> start, order;  // by element
-  counting_sort(E, B, [&](int64_t e) { return Bi[e]; }, start, order);
+  static thread_local std::vector<int64_t> start, order;  // by element; kept: no fresh pages per call
+  sort_by_element(Bi, E, B, start, order);
   std::vector<int32_t> canvas(n_px, 0);
+  std::vector<int64_t> pk;
   for (int64_t bi = 0; bi < B; ++bi) {
     const int64_t* idx = order.data() + start[bi];
-    element_pixel_counts(Px, idx, start[bi + 1] - start[bi], canvas.data(),
+    element_pixel_counts(Px, idx, start[bi + 1] - start[bi], canvas.data(), pk,
                          [&](int64_t k, int32_t c) { O[idx[k]] = c; });
   }
   return 0;
@@ -253,20 +287,20 @@ extern "C" int64_t cmax_hot_weights(const int64_t* Bi, const int64_t* Px, int64_
                                     double factor, float* O) {
   for (int64_t e = 0; e < E; ++e)
     if (!(Bi[e] >= 0 && Bi[e] < B && Px[e] >= 0 && Px[e] < n_px)) return -1;
-  std::vector<int64_t> start, order;  // by element
-  counting_sort(E, B, [&](int64_t e) { return Bi[e]; }, start, order);
+  static thread_local std::vector<int64_t> start, order;  // by element; kept: no fresh pages per call
+  sort_by_element(Bi, E, B, start, order);
   // element by element, its events in event order (the order of torch's bincount sums): the count of
   // its pixel, then two rounds of the mean count per active pixel
   std::vector<int32_t> canvas(n_px, 0);
+  std::vector<int64_t> pk;
   std::vector<double> cnt, inv;
   std::vector<unsigned char> keep;
   for (int64_t bi = 0; bi < B; ++bi) {
     const int64_t k0 = start[bi], n = start[bi + 1] - k0;
     if (n == 0) continue;
     cnt.resize(n); inv.resize(n); keep.assign(n, 1);
-    element_pixel_counts(Px, order.data() + k0, n, canvas.data(), [&](int64_t k, int32_t c) {
-      cnt[k] = (double)c; inv[k] = 1.0 / cnt[k];
-    });
+    element_pixel_counts(Px, order.data() + k0, n, canvas.data(), pk, [&](int64_t k, int32_t c) { cnt[k] = (double)c; });
+    for (int64_t k = 0; k < n; ++k) inv[k] = 1.0 / cnt[k];
     double mean = 0.0;
     for (int round = 0; round < 2; ++round) {
       double n_px_s = 0.0, n_ev_s = 0.0;
@@ -275,7 +309,13 @@ extern "C" int64_t cmax_hot_weights(const int64_t* Bi, const int64_t* Px, int64_
         n_ev_s += keep[k] ? 1.0 : 0.0;
       }
       mean = n_ev_s / std::max(n_px_s, 1e-9);
-      for (int64_t k = 0; k < n; ++k) keep[k] = cnt[k] <= factor * mean;
+      bool dropped = false;
+      for (int64_t k = 0; k < n; ++k) {
+        keep[k] = cnt[k] <= factor * mean;
+        dropped |= !keep[k];
+      }
+      // nothing flagged: the second round would sum the same terms to the same mean and keep all
+      if (!dropped) break;
     }
     for (int64_t k = 0; k < n; ++k) O[order[k0 + k]] = keep[k] ? 1.0f : (float)(mean / cnt[k]);
   }
