@@ -186,10 +186,14 @@ extern "C" int64_t cmax_splat_sums(const float* X, const float* Y, const int64_t
   const float lox = (float)(x_lo - cx), hix = (float)(x_hi - cx), loy = (float)(y_lo - cy), hiy = (float)(y_hi - cy);
   const float xmax = (float)(Wc - 2), ymax = (float)(Hc - 2);
   parallel_ranges(B, n_threads, [&](int64_t lo, int64_t hi) {
-    std::vector<int32_t> canvas32(2 * P, 0);
-    std::vector<int64_t> canvas64;
-    std::vector<float> ex, ey, ew, es;
-    std::vector<int32_t> at, q;
+    // each thread's canvases and buffers are kept across calls (no fresh pages per call); every use
+    // clears the canvas pixels it touched, so a kept canvas is all zeros
+    static thread_local std::vector<int32_t> canvas32;
+    static thread_local std::vector<int64_t> canvas64;
+    static thread_local std::vector<float> ex, ey, ew, es;
+    static thread_local std::vector<int32_t> at, q;
+    if (canvas32.size() != size_t(2 * P)) canvas32.assign(2 * P, 0);
+    if (!canvas64.empty() && canvas64.size() != size_t(2 * P)) canvas64.clear();
     for (int64_t bi = lo; bi < hi; ++bi) {
       const int64_t e0 = start[2 * bi], n0_e = start[2 * bi + 1] - e0, n_e = start[2 * bi + 2] - e0;
       if (n_e == 0) continue;
@@ -250,8 +254,9 @@ static int64_t pixel_counts(const int64_t* Bi, const int64_t* Px, int64_t E, int
     if (!(Bi[e] >= 0 && Bi[e] < B && Px[e] >= 0 && Px[e] < n_px)) return -1;
   static thread_local std::vector<int64_t> start, order;  // by element; kept: no fresh pages per call
   sort_by_element(Bi, E, B, start, order);
-  std::vector<int32_t> canvas(n_px, 0);
-  std::vector<int64_t> pk;
+  static thread_local std::vector<int32_t> canvas;  // kept across calls, all zeros between uses
+  static thread_local std::vector<int64_t> pk;
+  if (canvas.size() != size_t(n_px)) canvas.assign(n_px, 0);
   for (int64_t bi = 0; bi < B; ++bi) {
     const int64_t* idx = order.data() + start[bi];
     element_pixel_counts(Px, idx, start[bi + 1] - start[bi], canvas.data(), pk,
@@ -291,10 +296,11 @@ extern "C" int64_t cmax_hot_weights(const int64_t* Bi, const int64_t* Px, int64_
   sort_by_element(Bi, E, B, start, order);
   // element by element, its events in event order (the order of torch's bincount sums): the count of
   // its pixel, then two rounds of the mean count per active pixel
-  std::vector<int32_t> canvas(n_px, 0);
-  std::vector<int64_t> pk;
-  std::vector<double> cnt, inv;
-  std::vector<unsigned char> keep;
+  static thread_local std::vector<int32_t> canvas;  // kept across calls, all zeros between uses
+  static thread_local std::vector<int64_t> pk;
+  static thread_local std::vector<double> cnt, inv;
+  static thread_local std::vector<unsigned char> keep;
+  if (canvas.size() != size_t(n_px)) canvas.assign(n_px, 0);
   for (int64_t bi = 0; bi < B; ++bi) {
     const int64_t k0 = start[bi], n = start[bi + 1] - k0;
     if (n == 0) continue;
