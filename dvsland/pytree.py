@@ -20,7 +20,8 @@ run through :class:`ObjectStage`, which makes its state data by copying the obje
 Tree operations (leaves are tensors; NamedTuples, tuples, lists and dicts are walked; None and
 other values are kept as they are): :func:`tree_map`, :func:`tree_clone`, :func:`tree_to`,
 :func:`tree_where` (per-descent selection, the heart of a per-descent reset), :func:`tree_equal`,
-:func:`check_state_like`.
+:func:`check_state_like`; :func:`packed_append` grows a packed (variable-length) field without
+copying it whole.
 """
 
 from __future__ import annotations
@@ -144,6 +145,52 @@ def check_state_like(stage: str, state: Tree, reference: Tree) -> None:
             if gv != wv:
                 raise ValueError(f"{stage}: state field {k!r} must have {what} {wv}, got {gv}")
 
+
+
+# ------------------------------------------------------------------ packed fields
+#: the attribute of a packed field's buffer that holds how far it is written (elements)
+_PACKED_END = "_dvsland_packed_end"
+#: a packed field's new buffer holds this many times what it needs (amortised appends)
+PACKED_GROWTH = 2
+
+
+def packed_append(old: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
+    """``torch.cat([old, new])`` for a packed (variable-length, 1-D) state field, pure, without
+    copying ``old`` where it can.
+
+    A packed field grows by a step's entries and is cut from the front (a ring of stored steps):
+    copying it whole on every append costs its size per step. The result is a view of a buffer
+    with room to grow (:data:`PACKED_GROWTH` times what it holds when made). An append to the
+    newest view of a buffer writes ``new`` after it, past the end of every view made before, so
+    no earlier state changes; an append to any other view (a state stepped twice, a reset one, a
+    field from elsewhere) copies into a new buffer. The values, dtype and device are
+    ``torch.cat``'s; tensors that need gradients, or of different dtypes or devices, take
+    ``torch.cat`` itself.
+
+    Args:
+        old: (N,) the field. new: (M,) what comes after it.
+
+    Returns:
+        (N + M,) tensor.
+    """
+    if (old.dim() != 1 or new.dim() != 1 or old.dtype != new.dtype or old.device != new.device
+            or old.requires_grad or new.requires_grad):
+        return torch.cat([old, new])
+    n_old, n_new = old.shape[0], new.shape[0]
+    base = old._base
+    if base is not None and base.dim() == 1 and old.stride(0) == 1 and base.stride(0) == 1:
+        off = old.storage_offset() - base.storage_offset()
+        end = off + n_old
+        if getattr(base, _PACKED_END, None) == end and end + n_new <= base.shape[0]:
+            base[end:end + n_new].copy_(new)
+            setattr(base, _PACKED_END, end + n_new)
+            return base[off:end + n_new]
+    n = n_old + n_new
+    buf = torch.empty(max(PACKED_GROWTH * n, 256), dtype=old.dtype, device=old.device)
+    buf[:n_old].copy_(old)
+    buf[n_old:n].copy_(new)
+    setattr(buf, _PACKED_END, n)
+    return buf[:n]
 
 # ------------------------------------------------------------------ counter-based random numbers
 _M1, _M2 = 0x7FEB352D, 0x846CA68B

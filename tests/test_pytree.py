@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from dvsland.pytree import (ObjectStage, ObjectState, check_state_like, hash_bits, hash_normal, hash_uniform,
-                            tree_clone, tree_equal, tree_leaves, tree_to, tree_where)
+                            packed_append, tree_clone, tree_equal, tree_leaves, tree_to, tree_where)
 
 
 class Inner(NamedTuple):
@@ -101,3 +101,40 @@ def test_object_stage_makes_hidden_state_data():
     assert isinstance(s0, ObjectState) and out2.tolist() == [2.0, 2.0] and torch.equal(out1, out1b)
     r = st.reset_where(s2, torch.tensor([True, False]))
     assert r.attrs["n"].tolist() == [0.0, 2.0] and s2.attrs["n"].tolist() == [2.0, 2.0]
+
+
+# ------------------------------------------------------------------ packed_append
+def test_packed_append_is_cat_and_leaves_every_earlier_field_unchanged():
+    g = torch.Generator().manual_seed(0)
+    field = torch.zeros(0, dtype=torch.int64)
+    history = []
+    for k in range(30):
+        new = torch.randint(0, 1000, (int(torch.randint(0, 50, (1,), generator=g)),), generator=g)
+        want = torch.cat([field, new])
+        field = packed_append(field, new)
+        assert torch.equal(field, want) and field.dtype == want.dtype
+        if k % 7 == 3:  # cut from the front, as a pruned ring
+            field = field[5:]
+        history.append((field, field.clone()))
+    for view, copy in history:
+        assert torch.equal(view, copy)  # no append wrote into an earlier field
+
+
+def test_packed_append_reuses_its_buffer_and_copies_a_branch():
+    a = packed_append(torch.arange(4.0), torch.arange(3.0))
+    b = packed_append(a, torch.tensor([9.0]))  # the newest view: written after it, no copy
+    assert b.untyped_storage().data_ptr() == a.untyped_storage().data_ptr()
+    c = packed_append(a, torch.tensor([7.0, 8.0]))  # `a` stepped again: a new buffer, `b` unchanged
+    assert c.untyped_storage().data_ptr() != a.untyped_storage().data_ptr()
+    assert torch.equal(b, torch.tensor([0.0, 1, 2, 3, 0, 1, 2, 9]))
+    assert torch.equal(c, torch.tensor([0.0, 1, 2, 3, 0, 1, 2, 7, 8]))
+
+
+def test_packed_append_falls_back_to_cat():
+    x = torch.arange(3.0, requires_grad=True)
+    out = packed_append(x, torch.ones(2))
+    assert out.requires_grad and torch.equal(out.detach(), torch.tensor([0.0, 1, 2, 1, 1]))
+    mixed = packed_append(torch.arange(3), torch.ones(2))  # int64 then float32: cat's promotion
+    assert mixed.dtype == torch.float32 and torch.equal(mixed, torch.tensor([0.0, 1, 2, 1, 1]))
+    two_d = packed_append(torch.zeros(2, 3), torch.ones(1, 3))
+    assert two_d.shape == (3, 3)

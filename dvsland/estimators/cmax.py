@@ -74,7 +74,7 @@ import torch
 
 from dvsland.checks import check_fields, check_keys
 from dvsland.config.schema import CMaxConfig
-from dvsland.pytree import check_state_like
+from dvsland.pytree import check_state_like, packed_append
 
 from .base import DivergenceEstimator, EstimateOut, Truth, confidence_from_rel_std
 from . import native_cmax
@@ -290,7 +290,7 @@ def _store(p: CMaxConfig, setup: CMaxSetup, state: CMaxState, events) -> CMaxSta
     key = (h2 & 0xFFFF) | ((y.to(_I64) * setup.sensor_size[0] + x.to(_I64)) << 16)
     n_old = state.ev_b_packed.numel()
     new = dict(zip(_EVENT_FIELDS, (b, xf, yf, t, key)))
-    out = {f: torch.cat([getattr(state, f), v]) for f, v in new.items()}
+    out = {f: packed_append(getattr(state, f), v) for f, v in new.items()}  # no copy of the store
     start = torch.full((1,), n_old, dtype=_I64, device=dev)
     out.update(step_start_packed=torch.cat([state.step_start_packed, start]),
                step_tmax_packed=torch.cat([state.step_tmax_packed, t.max().view(1)]))

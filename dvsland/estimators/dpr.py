@@ -36,7 +36,7 @@ import torch
 
 from dvsland.checks import check_fields
 from dvsland.config.schema import DPRConfig
-from dvsland.pytree import check_state_like, tree_where
+from dvsland.pytree import check_state_like, packed_append, tree_where
 
 from .base import DivergenceEstimator, EstimateOut, Truth, confidence_from_rel_std
 from .abstain import EVIDENCE_KEY
@@ -180,7 +180,7 @@ def _window_step(c: DPRConsts, state: DPRState, events) -> Tuple[torch.Tensor, t
     new = torch.add(events.x.to(dev), events.y.to(dev), alpha=Wp).add_(b, alpha=Hp * Wp).add_(q * Wp + q)
     flat.scatter_add_(0, new, c.unit[0].expand(new.numel()))
     n_new = torch.bincount(b, minlength=c.batch_size).unsqueeze(1)
-    return torch.cat([kept, new]), torch.cat([rc[:, 1:], n_new], 1), window
+    return packed_append(kept, new), torch.cat([rc[:, 1:], n_new], 1), window
 
 
 def capped_window(window: torch.Tensor, factor: float) -> torch.Tensor:
