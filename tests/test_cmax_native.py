@@ -229,12 +229,13 @@ def test_kernel_window_and_gather_equal_torch_path(max_events, some_ok):
         ev_key_packed=torch.randint(0, 2 ** 40, (N,), generator=g),
         window_s=torch.tensor([0.5, 1.0, 2.5, 0.01, 1.0], dtype=torch.float64))
     ok = torch.tensor([True, False, True, True, False]) if some_ok else None
+    t_ref_us = torch.tensor([2_350_000, 2_100_000, 1_350_000, 2_595_000, 2_100_000])
     out = []
     for native in (False, True):
         native_cmax.use_native_cmax(native)
         try:
             inw, n_per = _window_mask(est.setup, st, 2_600_000)
-            out.append((inw, n_per, _gather(st, inw, ok)))
+            out.append((inw, n_per, _gather(st, inw, ok, t_ref_us, est.setup.pad_px)))
         finally:
             native_cmax.use_native_cmax(None)
     (m0, n0, g0), (m1, n1, g1) = out
@@ -243,6 +244,10 @@ def test_kernel_window_and_gather_equal_torch_path(max_events, some_ok):
         assert bool((m0.sum() < (n0.sum()))) or max_events >= int(n0.max())
     assert all(a.dtype == c.dtype and torch.equal(a, c) for a, c in zip(g0, g1))
     assert len(g0[0]) == int((m0 & (ok[st.ev_b_packed] if ok is not None else True)).sum())
+    sel = (m0 & (ok[st.ev_b_packed] if ok is not None else True)).nonzero().squeeze(1)
+    b, key = st.ev_b_packed[sel], st.ev_key_packed[sel]
+    assert torch.equal(g0[1], st.ev_x_packed[sel] + est.setup.pad_px) and torch.equal(g0[4], (key >> 15) & 1)
+    assert torch.equal(g0[3], (st.ev_t_packed[sel] - t_ref_us[b]).float() * 1e-6) and torch.equal(g0[5], key >> 16)
 
 
 def test_kernel_radial_and_event_weights_equal_torch_path():

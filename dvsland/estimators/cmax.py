@@ -336,21 +336,25 @@ def _window_mask(setup: CMaxSetup, state: CMaxState, t_us: int) -> Tuple[torch.T
     return inw, n_per.round().to(_I64)
 
 
-def _gather(state: CMaxState, mask: torch.Tensor, ok: Optional[torch.Tensor] = None):
-    """(b, x, y, t, key) of the stored events where ``mask`` (N,) bool holds, and ``ok`` (B,) bool of
-    their element (None: every element), in store order (the compiled kernel: one pass)."""
+def _gather(state: CMaxState, mask: torch.Tensor, ok: Optional[torch.Tensor], t_ref_us: torch.Tensor, pad: int):
+    """The stored events where ``mask`` (N,) bool holds, and ``ok`` (B,) bool of their element (None:
+    every element), in store order, as the score takes them: (b (E,) int64; xc, yc (E,) float32 the
+    canvas coordinates, x and y plus the margin ``pad`` px; tau (E,) float32 s after the element's
+    reference time ``t_ref_us`` (B,) int64; half (E,) int64 the half-split bit; pix (E,) int64 the
+    pixel y W + x). The compiled kernel: one pass."""
     fields = [getattr(state, f) for f in _EVENT_FIELDS]
     mod = native_cmax.kernel_for(mask)
     if mod is not None:
         return mod.gather(mask.contiguous(), None if ok is None else ok.contiguous(), state.d_mid.numel(),
-                          *(v.contiguous() for v in fields))
+                          *(v.contiguous() for v in fields), t_ref_us.contiguous(), pad)
     if ok is not None:
         mask = mask & ok.index_select(0, fields[0])
     sel = mask.nonzero().squeeze(1)
-    return tuple(v.index_select(0, sel) for v in fields)
+    b, x, y, t, key = (v.index_select(0, sel) for v in fields)
+    tau = (t - t_ref_us.index_select(0, b)).to(_F32) * 1e-6
+    return b, x + pad, y + pad, tau, (key >> 15) & 1, key >> 16
 
 
-# ------------------------------------------------------------------ event weights
 def hot_pixel_weights(p: CMaxConfig, setup: CMaxSetup, pix: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """(E,) float32 weights of the events of hot pixels: a pixel holding c events, more than
     ``hot_pixel_factor`` times its element's mean count per active pixel m, weighs m / c per
@@ -426,7 +430,7 @@ def _score(setup: CMaxSetup, xs, ys, b, half, tau, cand, half_window_s, wt=None)
 def _global_search(p: CMaxConfig, setup: CMaxSetup, xs, ys, b, half, tau, sel_el, win_s, wt):
     """Grid search (+ refinement) for elements ``sel_el`` (B,) bool: ((B,) float64 D, NaN
     elsewhere; (B,) bool where the grid's maximum lay at either end of [d_min, d_max]). xs, ys
-    are sensor coordinates (no canvas margin).
+    are canvas coordinates (:func:`_gather`).
 
     Each round scores the events of only the newest part of the window in which candidates one
     grid step apart move an event at the sensor's edge by at most 2 px (the whole window once
@@ -439,9 +443,7 @@ def _global_search(p: CMaxConfig, setup: CMaxSetup, xs, ys, b, half, tau, sel_el
     remap = torch.full((B,), -1, dtype=_I64, device=dev).index_put((idx,), torch.arange(n, device=dev))
     e = sel_el.index_select(0, b).nonzero().squeeze(1)  # the events of those elements
     bs = remap.index_select(0, b.index_select(0, e))
-    pad = setup.pad_px
     xe, ye, he, te = (v.index_select(0, e) for v in (xs, ys, half, tau))
-    xe, ye = xe + pad, ye + pad
     we = torch.ones_like(te) if wt is None else wt.index_select(0, e)
     win, half_w = win_s[idx], 0.5 * win_s[idx]
     grid = torch.linspace(p.d_min, p.d_max, p.n_grid, device=dev, dtype=_F64)
@@ -475,13 +477,11 @@ def _newton(p: CMaxConfig, setup: CMaxSetup, xs, ys, b, half, tau, d0, win_s, wt
     step_motion / T, halved each round), the parabola's vertex the next d0. Returns (d (B,),
     sigma (B,) half-split standard error, sigma_step (B,) the same, at least 2 h where the maximum
     is not bracketed, contrast (B,) float32 score at d0, bracketed (B,) bool) of the last round."""
-    pad = setup.pad_px
-    xc, yc = xs + pad, ys + pad
     hstep = p.step_motion / win_s
     three = torch.tensor([-1.0, 0.0, 1.0], dtype=_F64, device=setup.device)
     for _ in range(p.newton_iters):
         cand = d0.unsqueeze(1) + hstep.unsqueeze(1) * three
-        sc = _score(setup, xc, yc, b, half, tau, cand, 0.5 * win_s, wt)  # (B, 3 candidates, 3: all, halves)
+        sc = _score(setup, xs, ys, b, half, tau, cand, 0.5 * win_s, wt)  # (B, 3 candidates, 3: all, halves)
         off = _parabola_offset(sc[:, 0], sc[:, 1], sc[:, 2], 2.0)  # (B, 3): all events, each half
         d_last, h_last = d0, hstep
         d0, hstep = d0 + off[:, 0] * hstep, hstep * 0.5
@@ -648,16 +648,13 @@ def blank_out(state: CMaxState, n_events: Optional[torch.Tensor] = None) -> Esti
 
 
 def _search(p: CMaxConfig, setup: CMaxSetup, state: CMaxState, ev, ok, t_us: int):
-    """Warm start (or global search) and Newton rounds on the window's events ``ev`` = (b, x, y, t,
-    key) of the elements ``ok``: (d0 (B,) float64, need (B,) bool searched globally, edge (B,)
+    """Warm start (or global search) and Newton rounds on the window's events ``ev`` (:func:`_gather`'s
+    b, xc, yc, tau, half, pix) of the elements ``ok``: (d0 (B,) float64, need (B,) bool searched globally, edge (B,)
     bool global maximum at a range end, sigma, sigma_step, contrast, bracketed; see :func:`_newton`;
     then the noise floor (B,) float64 of the window's events, :func:`_noise_floor`)."""
-    b, xs, ys, t, key = ev
-    half = (key >> 15) & 1
+    b, xs, ys, tau, half, pix = ev
     win_s = state.window_s
-    t_ref_us = t_us - win_s * 0.5e6  # (B,) float64
-    tau = ((t - t_ref_us.round().to(_I64).index_select(0, b)).to(_F32) * 1e-6)
-    wt = _event_weights(p, setup, key >> 16, b)
+    wt = _event_weights(p, setup, pix, b)
     # start: last estimate (warm), else the global search
     d0 = state.d_mid
     need = ok & ~torch.isfinite(d0)
@@ -689,9 +686,9 @@ def cmax_step(p: CMaxConfig, state: CMaxState, events, t_us: int, setup: CMaxSet
     any_ok, all_ok = torch.stack([ok.any(), ok.all()]).tolist()  # one host sync for both
     if not any_ok:
         return state, blank_out(state, n_per)
-    b, xs, ys, t, key = _gather(state, inw, None if all_ok else ok)  # the estimating elements' events
-    d0, need, edge, sigma, sigma_step, contrast, bracketed, floor = _search(p, setup, state, (b, xs, ys, t, key),
-                                                                            ok, t_us)
+    t_ref_us = (t_us - state.window_s * 0.5e6).round().to(_I64)  # (B,) each window's middle
+    ev = _gather(state, inw, None if all_ok else ok, t_ref_us, setup.pad_px)  # the estimating elements' events
+    d0, need, edge, sigma, sigma_step, contrast, bracketed, floor = _search(p, setup, state, ev, ok, t_us)
     win_s = state.window_s
     structure = torch.where(ok, contrast.to(_F64) / floor - 1.0, torch.full_like(floor, float("nan")))
     scale = sensor_scale(setup.sensor_size)

@@ -379,18 +379,25 @@ extern "C" int64_t cmax_window_mask(const int64_t* Bi, const int64_t* T, const i
   return 0;
 }
 
-// The stored events where M[e] (and OK[b], when OK is not null) holds, in store order, into the outputs
-// (b, x, y, t, key; each of room for N). Returns how many, or -1 when OK is given and some b is out of [0, B).
+// The stored events where M[e] (and OK[b], when OK is not null) holds, in store order, as the score takes
+// them (cmax._gather, the torch path): b, the canvas coordinates x + pad and y + pad (float32), tau =
+// float32(t - TREF[b]) * float32(1e-6) s, half = (key >> 15) & 1 and pix = key >> 16; outputs of room for N.
+// Returns how many, or -1 when some b is out of [0, B).
 extern "C" int64_t cmax_gather(const uint8_t* M, const uint8_t* OK, const int64_t* Bi, const float* X,
                                const float* Y, const int64_t* T, const int64_t* K, int64_t N, int64_t B,
-                               int64_t* ob, float* ox, float* oy, int64_t* ot, int64_t* okey) {
-  if (OK)  // b is read as an index only into OK (without it, it is copied, not followed)
-    for (int64_t e = 0; e < N; ++e)
-      if (!(Bi[e] >= 0 && Bi[e] < B)) return -1;
+                               const int64_t* TREF, double pad, int64_t* ob, float* ox, float* oy, float* otau,
+                               int64_t* ohalf, int64_t* opix) {
+  for (int64_t e = 0; e < N; ++e)
+    if (!(Bi[e] >= 0 && Bi[e] < B)) return -1;
+  const float pf = (float)pad, us = (float)1e-6;
   int64_t n = 0;
   for (int64_t e = 0; e < N; ++e) {
-    if (!M[e] || (OK && !OK[Bi[e]])) continue;
-    ob[n] = Bi[e]; ox[n] = X[e]; oy[n] = Y[e]; ot[n] = T[e]; okey[n] = K[e];
+    const int64_t b = Bi[e];
+    if (!M[e] || (OK && !OK[b])) continue;
+    ob[n] = b; ox[n] = X[e] + pf; oy[n] = Y[e] + pf;
+    otau[n] = (float)(T[e] - TREF[b]) * us;
+    ohalf[n] = (K[e] >> 15) & 1;
+    opix[n] = K[e] >> 16;
     ++n;
   }
   return n;
@@ -446,7 +453,7 @@ _SIGNATURES = {
     "cmax_radial_counts": ([_P, _P, _P, _I64, _I64, _I64, _I64, _P], _I64),
     "cmax_radial_apply": ([_P, _P, _P, _I64, _I64, _P, _I64, _P], None),
     "cmax_window_mask": ([_P, _P, _P, _I64, _I64, _P, _I64, _I64, _P, _P], _I64),
-    "cmax_gather": ([_P] * 7 + [_I64, _I64] + [_P] * 5, _I64),
+    "cmax_gather": ([_P] * 7 + [_I64, _I64, _P, _F64] + [_P] * 6, _I64),
     "cmax_weight_sums": ([_P, _P, _I64, _I64, _P, _P], _I64),
 }
 
@@ -573,22 +580,23 @@ class Kernels:
             "window_mask: b out of range")
         return mask, n_per
 
-    def gather(self, mask, ok, n_elements: int, b, x, y, t, key):
-        """(b, x, y, t, key) of the stored events where ``mask`` (N,) bool and ``ok`` (B,) bool (or
-        None: every element) hold, in store order; b in [0, ``n_elements``); x, y (N,) float32, the
-        others (N,) int64."""
+    def gather(self, mask, ok, n_elements: int, b, x, y, t, key, t_ref_us, pad: float):
+        """The stored events where ``mask`` (N,) bool and ``ok`` (B,) bool (or None: every element) hold,
+        in store order, as (b, xc, yc, tau, half, pix): b in [0, ``n_elements``) int64, xc = x + pad and
+        yc = y + pad float32, tau = float32(t - t_ref_us[b]) * 1e-6 s float32, half = (key >> 15) & 1 and
+        pix = key >> 16 int64 (module source); x, y (N,) float32, b, t, key (N,) and t_ref_us (B,) int64."""
         i64, f32 = torch.int64, torch.float32
         N, B = b.numel(), int(n_elements)
         if not all(v.numel() == N for v in (mask, x, y, t, key)) or mask.dtype != torch.bool:
             raise RuntimeError("gather: mask bool, b, x, y, t, key (N,)")
-        if ok is not None and (ok.dtype != torch.bool or ok.numel() != B):
-            raise RuntimeError("gather: ok bool (B,)")
-        outs = [torch.empty(N, dtype=d) for d in (i64, f32, f32, i64, i64)]
+        if (ok is not None and (ok.dtype != torch.bool or ok.numel() != B)) or t_ref_us.numel() != B:
+            raise RuntimeError("gather: ok bool (B,), t_ref_us int64 (B,)")
+        outs = [torch.empty(N, dtype=d) for d in (i64, f32, f32, f32, i64, i64)]
         n = self._lib.cmax_gather(_ptr(mask, torch.bool, "gather: mask"),
                                   None if ok is None else _ptr(ok, torch.bool, "gather: ok"),
                                   _ptr(b, i64, "gather: b"), _ptr(x, f32, "gather: x"), _ptr(y, f32, "gather: y"),
                                   _ptr(t, i64, "gather: t"), _ptr(key, i64, "gather: key"), N, B,
-                                  *(o.data_ptr() for o in outs))
+                                  _ptr(t_ref_us, i64, "gather: t_ref_us"), float(pad), *(o.data_ptr() for o in outs))
         _ok(n, "gather: b out of range")
         return tuple(o[:n] for o in outs)
 
