@@ -174,6 +174,28 @@ def test_native_kernel_respects_the_event_cap(fresh):
         emu.step(frames[1], 100_000)
 
 
+@pytest.mark.parametrize("P", [1, 15, 16, 37, 16 * 40 + 3])
+def test_widen_range_is_the_float64_copy_and_its_amin_amax(fresh, P):
+    """The emulator's float64 copy of the frames and each descent's range in one pass: the values of
+    ``to(float64)``, ``amin`` and ``amax`` (NaN in the row's vector part, in its tail, inf, -0.0)."""
+    fresh.setattr(native.LIBRARY, "chosen", True)
+    kern = native.load()
+    if kern is None:
+        pytest.skip("no C++ compiler here")
+    g = torch.Generator().manual_seed(P)
+    f = torch.rand(6, P, generator=g) * 100
+    f[1, P // 2] = float("nan")
+    f[2, P - 1] = float("nan")
+    f[3, 0] = float("inf")
+    f[4, :] = -0.0
+    f[5, P - 1] = -3.0
+    out, lo, hi = kern.widen_range(f)
+    assert out.dtype == torch.float64 and torch.equal(out.nan_to_num(7.0), f.double().nan_to_num(7.0))
+    for got, want in ((lo, f.amin(1).double()), (hi, f.amax(1).double())):
+        assert torch.equal(torch.isnan(got), torch.isnan(want))
+        assert torch.equal(got.nan_to_num(7.0), want.nan_to_num(7.0))
+
+
 def test_native_kernel_cap_boundary_keeps_every_key(fresh):
     """A step of exactly the cap's events gives them all (the kernel keeps keys while its running
     count is within the cap); one event fewer allowed refuses the step."""

@@ -208,6 +208,42 @@ extern "C" void dvs_sort_decode(int64_t* keys, int64_t na, int64_t bits, int64_t
   }
 }
 
+// The frames (B, P) float32 widened to float64 into out, and each row's range lo[b], hi[b] (float64; NaN where
+// the row holds a NaN), in one pass (EventEmulator's float64 copy and its amin / amax). Sixteen running
+// minima and maxima per row (x < m ? x : m is the IEEE min instruction's rule), merged at the end.
+DVS_CLONES static void widen_row(const float* __restrict f, double* __restrict out, int64_t P, double* lo,
+                                 double* hi) {
+  float mn[16], mx[16];
+  int32_t nan[16];
+  for (int j = 0; j < 16; ++j) { mn[j] = INFINITY; mx[j] = -INFINITY; nan[j] = 0; }
+  int64_t k = 0;
+  for (; k + 16 <= P; k += 16) {
+    for (int j = 0; j < 16; ++j) {
+      const float v = f[k + j];
+      out[k + j] = double(v);
+      mn[j] = v < mn[j] ? v : mn[j];
+      mx[j] = v > mx[j] ? v : mx[j];
+      nan[j] |= v != v;
+    }
+  }
+  for (; k < P; ++k) {
+    const float v = f[k];
+    out[k] = double(v);
+    mn[0] = v < mn[0] ? v : mn[0];
+    mx[0] = v > mx[0] ? v : mx[0];
+    nan[0] |= v != v;
+  }
+  float a = mn[0], b = mx[0];
+  int32_t any = nan[0];
+  for (int j = 1; j < 16; ++j) { a = mn[j] < a ? mn[j] : a; b = mx[j] > b ? mx[j] : b; any |= nan[j]; }
+  *lo = any ? NAN : double(a);
+  *hi = any ? NAN : double(b);
+}
+
+extern "C" void dvs_widen_range(const float* f, int64_t B, int64_t P, double* out, double* lo, double* hi) {
+  for (int64_t b = 0; b < B; ++b) widen_row(f + b * P, out + b * P, P, lo + b, hi + b);
+}
+
 // The front-end filters of dvsland.events.denoise as tonic writes them: one loop over the events
 // in stream order with a per-pixel memory of the last event time (mem, flat, in/out).
 extern "C" void dvs_baf_keep(const int64_t* pix, const int64_t* x, const int64_t* y, const int64_t* t, int64_t n,
@@ -501,6 +537,7 @@ _SIGNATURES = {
     "dvs_refractory_keep": ([_P, _P, _I64, _P, _I64, _P], _VOID),
     "dvs_pixel_scan": ([_P] * 6 + [_I64] * 5 + [_F64, _F64, _P, _P, _F64, _P, _F64, _F64, _I64, _I64, _I64], _F64),
     "dvs_pixel_write": ([_P], _VOID),
+    "dvs_widen_range": ([_P, _I64, _I64, _P, _P, _P], _VOID),
     "dvs_motion_counts": ([_P] * 5 + [_I64] * 6 + [_P] * 4, _VOID),
     "dvs_cell_counts": ([_P] * 4 + [_I64] * 5 + [_P], _I64),
 }
@@ -526,6 +563,16 @@ class Kernels:
                                   _ptr(more, torch.int64, "sort_decode: more"), nb, int(b_shift), int(t_shift),
                                   int(y_shift), int(x_mask), int(y_mask), int(t0), *(o.data_ptr() for o in out))
         return out
+
+    def widen_range(self, frames: torch.Tensor):
+        """(float64 copy (B, ...), lo (B,), hi (B,)) of ``frames`` (B, ...) float32 contiguous: each row's
+        min and max as float64 (NaN where the row holds a NaN), in one pass."""
+        B = frames.shape[0]
+        out = torch.empty(frames.shape, dtype=torch.float64)
+        lo, hi = torch.empty(B, dtype=torch.float64), torch.empty(B, dtype=torch.float64)
+        self._lib.dvs_widen_range(_ptr(frames, torch.float32, "widen_range: frames"), B, frames.numel() // max(B, 1),
+                                  out.data_ptr(), lo.data_ptr(), hi.data_ptr())
+        return out, lo, hi
 
     def baf_keep(self, pix, x, y, t, mem, H: int, W: int, window: int, neighbours: int) -> torch.Tensor:
         """The background-activity filter's keep mask (N,) bool; updates ``mem`` in place."""
