@@ -243,25 +243,21 @@ def _divergence(p: DPRConfig, c: DPRConsts, state: DPRState, cen, keep, dt, t_me
     return (*baseline_divergence(cen, torch.stack([past_i, past_j], 3), lag, elapsed), age_now)
 
 
-def _reinitialise(p: DPRConfig, c: DPRConsts, image, centroids, valid, counts):
+def _reinitialise(p: DPRConfig, c: DPRConsts, image, centroids, valid, counts, ring_counts):
     """Re-initialise (DPR) the descents left with fewer than c_min centroids, only those; writes
-    into ``centroids``, ``valid``, ``counts`` (this step's new tensors). Returns need (B,) bool."""
+    into ``centroids``, ``valid``, ``counts`` (this step's new tensors). ``ring_counts`` (B, K): the
+    window's events per stored step. Returns need (B,) bool."""
     need = valid.sum(1) < p.c_min
-    if bool(need.any()):
-        idx = need.nonzero().squeeze(1)
-        padded = image[idx]
-        # an element with an empty window (e.g. a finished descent) has no density peak, so DPR
-        # would give it no centroid; its state already says so (a kept centroid needs n_min >= 1
-        # events within R): skip it
-        busy = padded.sum((1, 2)) > 0
-        if not bool(busy.all()):
-            sel = busy.nonzero().squeeze(1)
-            idx, padded = idx[sel], padded[sel]
-        if idx.numel():
-            ci, ni, ki = dpr_initialise(p, c, padded)
-            centroids[idx] = torch.where(ki.unsqueeze(-1), ci, c.nan)
-            valid[idx] = ki
-            counts[idx] = torch.where(ki, ni, c.zero)
+    # an element with an empty window (e.g. a finished descent) has no density peak, so DPR would
+    # give it no centroid; its state already says so (a kept centroid needs n_min >= 1 events within
+    # R): it is skipped. Its window holds no event exactly when its image is all zeros.
+    run = need & (ring_counts.sum(1) > 0)
+    if bool(run.any()):
+        idx = run.nonzero().squeeze(1)
+        ci, ni, ki = dpr_initialise(p, c, image.index_select(0, idx))
+        centroids[idx] = torch.where(ki.unsqueeze(-1), ci, c.nan)
+        valid[idx] = ki
+        counts[idx] = torch.where(ki, ni, c.zero)
     return need
 
 
@@ -290,7 +286,7 @@ def dpr_step(p: DPRConfig, c: DPRConsts, state: DPRState, events, t_us: int) -> 
     centroids = torch.where(keep.unsqueeze(-1), cen, c.nan)
     counts = torch.where(keep, counts, c.zero)
     valid = keep.clone()
-    need = _reinitialise(p, c, image, centroids, valid, counts)
+    need = _reinitialise(p, c, image, centroids, valid, counts, ring_counts)
     new = DPRState(ring, ring_counts, window, centroids, valid, counts, need, n_pairs, age,
                    torch.full_like(last, t_us), torch.cat([state.hist[:, 1:], centroids.unsqueeze(1)], 1),
                    torch.cat([state.hist_t[:, 1:], t_mean.unsqueeze(1)], 1),
