@@ -14,11 +14,13 @@ from dvsland.stages import build_stages
 
 @pytest.fixture(autouse=True)
 def _rows_step_always(monkeypatch):
-    """The emulator steps only the flying rows as soon as one descent has ended (the shipped share,
-    a quarter of the batch, is never reached by these batches of 2-3)."""
+    """The emulator steps only the flying rows as soon as one descent has ended (the shipped shares,
+    a quarter of the batch and a tenth with the compiled kernel, are never reached by these batches
+    of 2-3)."""
     import dvsland.sim.step as step
 
     monkeypatch.setattr(step, "EMULATOR_ROWS_SHARE", 1.0)
+    monkeypatch.setattr(step, "EMULATOR_ROWS_SHARE_COMPILED", 1.0)
 
 
 def _stages(preset, est, sites, compact, extra=()):

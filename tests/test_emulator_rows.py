@@ -80,3 +80,30 @@ def test_rows_step_with_every_row_and_none_flying_events():
     assert len(ev) == 0 and ev.checked == (B, W, H)
     none_state, ev = emulator_step_rows(emu.params, state, _frames(1), 100_000, torch.zeros(0, dtype=torch.int64))
     assert len(ev) == 0 and bool((none_state.t_us == 100_000).all()) and torch.equal(none_state.lref, state.lref)
+
+
+@pytest.mark.parametrize("name,native_on", [("ideal", True), ("ideal", False), ("linear", True)])
+def test_compiled_pixel_step_says_which_kernel_steps(name, native_on):
+    """compiled_pixel_step: True exactly where the step runs the compiled pixel kernel (CPU, log
+    interpolation, float64, the kernels built); the loop picks the rows' share from it."""
+    from dvsland.events import native
+    from dvsland.events.emulator import compiled_pixel_step
+
+    if native_on and native.load() is None:
+        pytest.skip("no C++ compiler here")
+    emu = _emulator(name)
+    emu.reset(_frames(0), 0)
+    native.use_native_sort(native_on)
+    try:
+        want = native_on and name != "linear"
+        assert compiled_pixel_step(emu.params, emu.state) is want
+        calls = []
+        orig = native.Kernels.pixel_events
+        native.Kernels.pixel_events = lambda self, *a, **k: calls.append(1) or orig(self, *a, **k)
+        try:
+            emu.step(_frames(1), 100_000)
+        finally:
+            native.Kernels.pixel_events = orig
+        assert bool(calls) is want
+    finally:
+        native.use_native_sort(None)

@@ -98,6 +98,17 @@ def _cpu_fast_path(t: torch.Tensor) -> bool:
     return CPU_FAST_PATHS and t.device.type == "cpu"
 
 
+def _compiled_pixels(params: "EmulatorParams", state: "EmulatorState") -> bool:
+    """Whether a step of ``state`` may run the compiled pixel kernel (CPU, log interpolation, float64)."""
+    return _cpu_fast_path(state.lref) and params.interpolation == "log" and state.lref.dtype == torch.float64
+
+
+def compiled_pixel_step(params: "EmulatorParams", state: "EmulatorState") -> bool:
+    """Whether :func:`emulator_step` runs the compiled pixel kernel on ``state`` (:mod:`dvsland.events.native`:
+    a CPU state, log interpolation, float64, the kernels built and switched on)."""
+    return _compiled_pixels(params, state) and native.kernels() is not None
+
+
 def _check_t_us(t_us, name: str = "t_us") -> int:
     if isinstance(t_us, torch.Tensor):
         if t_us.numel() != 1:
@@ -508,8 +519,7 @@ class _Step:
         self.b_shift = self.layout.b_shift(t1 - t0)  # ValueError if the key would overflow
         # the compiled pixel kernel (or None: the torch path) reads the state's buffers and writes
         # fresh ones (its pass is the copy)
-        self.native = (native.kernels() if _cpu_fast_path(state.lref) and params.interpolation == "log"
-                       and state.lref.dtype == torch.float64 else None)
+        self.native = native.kernels() if _compiled_pixels(params, state) else None
         # emulator.compile: every pixel's step in one traced function (new buffers: nothing to copy first)
         self.dense = (_dense_fn() if self.native is None and params.interpolation == "log"
                       and compile_on(params.compile, state.lref.device) else None)

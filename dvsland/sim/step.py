@@ -33,6 +33,7 @@ import torch
 
 from dvsland.estimators import Truth
 from dvsland.events import EventEmulator
+from dvsland.events.emulator import compiled_pixel_step
 from dvsland.events.emulator_rows import emulator_step_rows
 from dvsland.plugins import call_plugin, check_batch_tensor
 from dvsland.pytree import ObjectStage
@@ -213,6 +214,10 @@ def render(stages, state: LoopState, all_active: Optional[bool] = None,
 #: most of the batch has finished: on this project's CPU, B = 90, 20.4 ms for the whole batch's step
 #: against 12.9 / 9.4 / 6.6 ms for 22 / 11 / 2 rows, and 77.7 ms for all 90 (benchmarks.md)
 EMULATOR_ROWS_SHARE = 0.25
+#: the same where the compiled pixel kernel runs (CPU): its whole-batch step over the finished rows'
+#: unchanged frames is one memory pass, so the copies pay only below this share: B = 63, 3.9 ms for
+#: the whole batch against 3.2 / 3.6-3.9 / 3.9-4.6 / 5.9 ms for 4 / 6 / 8 / 15 rows (benchmarks.md)
+EMULATOR_ROWS_SHARE_COMPILED = 0.1
 
 
 def sense(stages, state: LoopState, frames: Optional[torch.Tensor], t_us: int, compact: bool = False,
@@ -222,7 +227,8 @@ def sense(stages, state: LoopState, frames: Optional[torch.Tensor], t_us: int, c
     The first frame (and a batch without events) gives no events. Descents restarted since the last
     step (``state.restarted``) restart their pixels on these frames: their events are dropped.
     Finished descents' events are dropped when ``compact``; given ``rows`` (K,) int64, the active
-    descents' indices, and at most :data:`EMULATOR_ROWS_SHARE` of the batch flying, the built-in
+    descents' indices, and at most :data:`EMULATOR_ROWS_SHARE` of the batch flying
+    (:data:`EMULATOR_ROWS_SHARE_COMPILED` where the compiled pixel kernel runs), the built-in
     emulator steps only those (:func:`emulator_step_rows`: the same events, and a finished
     descent's pixels cost nothing).
     """
@@ -231,8 +237,8 @@ def sense(stages, state: LoopState, frames: Optional[torch.Tensor], t_us: int, c
     emu, st = stage_fns(stages).emulator, state.stage_state.emulator
     if st is None:
         return emu.init_state(frames, t_us, state.noise_seed), None
-    if compact and rows is not None and isinstance(emu, EventEmulator) and \
-            rows.numel() <= EMULATOR_ROWS_SHARE * frames.shape[0]:
+    if compact and rows is not None and isinstance(emu, EventEmulator) and rows.numel() <= frames.shape[0] * (
+            EMULATOR_ROWS_SHARE_COMPILED if compiled_pixel_step(emu.params, st) else EMULATOR_ROWS_SHARE):
         st, events = emulator_step_rows(emu.params, st, frames, t_us, rows)
     else:
         st, events = emu.step_state(st, frames, t_us)
