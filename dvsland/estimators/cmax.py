@@ -355,6 +355,7 @@ def _gather(state: CMaxState, mask: torch.Tensor, ok: Optional[torch.Tensor], t_
     return b, x + pad, y + pad, tau, (key >> 15) & 1, key >> 16
 
 
+# ------------------------------------------------------------------ event weights
 def hot_pixel_weights(p: CMaxConfig, setup: CMaxSetup, pix: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """(E,) float32 weights of the events of hot pixels: a pixel holding c events, more than
     ``hot_pixel_factor`` times its element's mean count per active pixel m, weighs m / c per
@@ -647,11 +648,11 @@ def blank_out(state: CMaxState, n_events: Optional[torch.Tensor] = None) -> Esti
                          torch.zeros(B, dtype=_F32, device=dev), state.window_s, no, no.clone(), nan.clone())
 
 
-def _search(p: CMaxConfig, setup: CMaxSetup, state: CMaxState, ev, ok, t_us: int):
+def _search(p: CMaxConfig, setup: CMaxSetup, state: CMaxState, ev, ok):
     """Warm start (or global search) and Newton rounds on the window's events ``ev`` (:func:`_gather`'s
-    b, xc, yc, tau, half, pix) of the elements ``ok``: (d0 (B,) float64, need (B,) bool searched globally, edge (B,)
-    bool global maximum at a range end, sigma, sigma_step, contrast, bracketed; see :func:`_newton`;
-    then the noise floor (B,) float64 of the window's events, :func:`_noise_floor`)."""
+    b, xc, yc, tau, half, pix) of the elements ``ok``: (d0 (B,) float64, need (B,) bool searched
+    globally, edge (B,) bool global maximum at a range end, sigma, sigma_step, contrast, bracketed;
+    see :func:`_newton`; then the noise floor (B,) float64 of the window's events, :func:`_noise_floor`)."""
     b, xs, ys, tau, half, pix = ev
     win_s = state.window_s
     wt = _event_weights(p, setup, pix, b)
@@ -688,7 +689,7 @@ def cmax_step(p: CMaxConfig, state: CMaxState, events, t_us: int, setup: CMaxSet
         return state, blank_out(state, n_per)
     t_ref_us = (t_us - state.window_s * 0.5e6).round().to(_I64)  # (B,) each window's middle
     ev = _gather(state, inw, None if all_ok else ok, t_ref_us, setup.pad_px)  # the estimating elements' events
-    d0, need, edge, sigma, sigma_step, contrast, bracketed, floor = _search(p, setup, state, ev, ok, t_us)
+    d0, need, edge, sigma, sigma_step, contrast, bracketed, floor = _search(p, setup, state, ev, ok)
     win_s = state.window_s
     structure = torch.where(ok, contrast.to(_F64) / floor - 1.0, torch.full_like(floor, float("nan")))
     scale = sensor_scale(setup.sensor_size)

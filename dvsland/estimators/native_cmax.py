@@ -305,7 +305,8 @@ extern "C" int64_t cmax_hot_weights(const int64_t* Bi, const int64_t* Px, int64_
     const int64_t k0 = start[bi], n = start[bi + 1] - k0;
     if (n == 0) continue;
     cnt.resize(n); inv.resize(n); keep.assign(n, 1);
-    element_pixel_counts(Px, order.data() + k0, n, canvas.data(), pk, [&](int64_t k, int32_t c) { cnt[k] = (double)c; });
+    element_pixel_counts(Px, order.data() + k0, n, canvas.data(), pk,
+                         [&](int64_t k, int32_t c) { cnt[k] = (double)c; });
     for (int64_t k = 0; k < n; ++k) inv[k] = 1.0 / cnt[k];
     double mean = 0.0;
     for (int round = 0; round < 2; ++round) {
