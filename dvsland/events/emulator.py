@@ -316,7 +316,7 @@ def _frames_f64(frames, device) -> Tuple[torch.Tensor, torch.Tensor, torch.Tenso
     if min(frames.shape) < 1:
         raise ValueError(f"frames must have B, H, W >= 1, got {tuple(frames.shape)}")
     dev = torch.device(device) if device is not None else frames.device
-    mod = native.kernels() if frames.dtype == torch.float32 and frames.device.type == dev.type == "cpu" else None
+    mod = native.kernels() if frames.dtype == torch.float32 and dev.type == "cpu" and _cpu_fast_path(frames) else None
     if mod is not None:  # the copy and both ranges in one compiled pass (the same values)
         return mod.widen_range(frames.contiguous())
     f = frames.to(device=dev, dtype=torch.float64, copy=True)

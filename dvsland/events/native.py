@@ -410,7 +410,6 @@ extern "C" int64_t dvs_cell_counts(const int64_t* b, const int64_t* x, const int
 static inline double clamp_lo(double x, double lo) { return x < lo ? lo : x; }  // NaN stays NaN, as torch
 static inline double clamp_lohi(double x, double lo, double hi) { x = x < lo ? lo : x; return x > hi ? hi : x; }
 
-
 // A pixel's events as keys: cnt of them at first + i step (µs after t0, rounded, clamped to [1, dt]).
 static inline void emit_keys(int64_t code, double cnt, double first, double step, double dt, int64_t t_shift,
                              std::vector<int64_t>& keys) {
