@@ -138,3 +138,11 @@ def test_packed_append_falls_back_to_cat():
     assert mixed.dtype == torch.float32 and torch.equal(mixed, torch.tensor([0.0, 1, 2, 1, 1]))
     two_d = packed_append(torch.zeros(2, 3), torch.ones(1, 3))
     assert two_d.shape == (3, 3)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_packed_append_on_cuda_reuses_its_buffer():
+    a = packed_append(torch.arange(5, device="cuda"), torch.arange(3, device="cuda"))
+    b = packed_append(a, torch.tensor([9], device="cuda"))
+    assert b.device.type == "cuda" and b.untyped_storage().data_ptr() == a.untyped_storage().data_ptr()
+    assert b.cpu().tolist() == [0, 1, 2, 3, 4, 0, 1, 2, 9] and a.cpu().tolist() == [0, 1, 2, 3, 4, 0, 1, 2]
