@@ -337,4 +337,5 @@ def has_stage_contract(obj: Any) -> bool:
 
 
 __all__ = ["tree_map", "tree_leaves", "tree_clone", "tree_to", "tree_where", "tree_equal", "check_state_like",
-           "hash_bits", "hash_uniform", "hash_normal", "ObjectState", "ObjectStage", "has_stage_contract"]
+           "packed_append", "hash_bits", "hash_uniform", "hash_normal", "ObjectState", "ObjectStage",
+           "has_stage_contract"]

@@ -1111,7 +1111,7 @@ def photoreceptor_level(state: EmulatorState) -> torch.Tensor:
 
 __all__ = ["EventEmulator", "EmulatorParams", "EmulatorState", "emulator_init", "emulator_step",
            "emulator_reset_where", "make_params", "with_element_params", "check_state", "photoreceptor_level",
-           "LEVEL_TOL"]
+           "compiled_pixel_step", "LEVEL_TOL"]
 
 # ---------------------------------------------------------------------------- helpers
 def _emitted_log(n_a, th_a, lref_a, l0_a, l1_a, dt, tl_a, r, spacing_may_bind: bool = True):
