@@ -315,20 +315,19 @@ def _prune(state: CMaxState, t_us: int) -> CMaxState:
                           step_tmax_packed=state.step_tmax_packed[n_pop:], **out)
 
 
+def _window_since(state: CMaxState, t_us: int) -> torch.Tensor:
+    """(B,) int64 each element's window start (excluded), µs."""
+    return t_us - (state.window_s * 1e6).round().to(_I64)
+
+
 def _window_mask(setup: CMaxSetup, state: CMaxState, t_us: int) -> Tuple[torch.Tensor, torch.Tensor]:
     """(inw (N,) bool: which stored events lie in their element's window, hash-thinned to
-    max_events; n_per (B,) int64 events in each window before the thinning)."""
+    max_events; n_per (B,) int64 events in each window before the thinning). The torch path."""
     B = setup.batch_size
     b, t, key = state.ev_b_packed, state.ev_t_packed, state.ev_key_packed
     if b.numel() == 0:
         return torch.zeros(0, dtype=torch.bool, device=b.device), torch.zeros(B, dtype=_I64, device=b.device)
-    since_us = t_us - (state.window_s * 1e6).round().to(_I64)  # (B,) each window's start (excluded)
-    mod = native_cmax.kernel_for(b)
-    if mod is not None:  # the same mask and counts in two passes
-        inw, n_per = mod.window_mask(b.contiguous(), t.contiguous(), key.contiguous(), since_us.contiguous(), t_us,
-                                     setup.max_events)
-        return inw, n_per.round().to(_I64)
-    inw = (t > since_us.index_select(0, b)) & (t <= t_us)
+    inw = (t > _window_since(state, t_us).index_select(0, b)) & (t <= t_us)
     n_per = torch.bincount(b, weights=inw.to(_F32), minlength=B)[:B]
     if setup.max_events > 0:
         frac = (setup.max_events / n_per.clamp_min(1)).clamp(max=1.0)
@@ -341,18 +340,37 @@ def _gather(state: CMaxState, mask: torch.Tensor, ok: Optional[torch.Tensor], t_
     every element), in store order, as the score takes them: (b (E,) int64; xc, yc (E,) float32 the
     canvas coordinates, x and y plus the margin ``pad`` px; tau (E,) float32 s after the element's
     reference time ``t_ref_us`` (B,) int64; half (E,) int64 the half-split bit; pix (E,) int64 the
-    pixel y W + x). The compiled kernel: one pass."""
+    pixel y W + x). The torch path."""
     fields = [getattr(state, f) for f in _EVENT_FIELDS]
-    mod = native_cmax.kernel_for(mask)
-    if mod is not None:
-        return mod.gather(mask.contiguous(), None if ok is None else ok.contiguous(), state.d_mid.numel(),
-                          *(v.contiguous() for v in fields), t_ref_us.contiguous(), pad)
     if ok is not None:
         mask = mask & ok.index_select(0, fields[0])
     sel = mask.nonzero().squeeze(1)
     b, x, y, t, key = (v.index_select(0, sel) for v in fields)
     tau = (t - t_ref_us.index_select(0, b)).to(_F32) * 1e-6
     return b, x + pad, y + pad, tau, (key >> 15) & 1, key >> 16
+
+
+def _window_events(p: CMaxConfig, setup: CMaxSetup, state: CMaxState, t_us: int, filled: torch.Tensor):
+    """Each element's window over the stored events: (n_per (B,) int64 its events before the thinning;
+    ok (B,) bool the elements that estimate, with at least ``min_events`` and a ``filled`` first window;
+    their kept events as the score takes them (:func:`_gather`), or None where no element estimates).
+    The compiled kernel: two passes over the store. One host read either way."""
+    t_ref_us = (t_us - state.window_s * 0.5e6).round().to(_I64)  # (B,) each window's middle
+    b = state.ev_b_packed
+    mod = native_cmax.kernel_for(b) if b.numel() else None
+    if mod is not None:
+        fields = [getattr(state, f).contiguous() for f in _EVENT_FIELDS]
+        n_f, ev = mod.window_gather(*fields, _window_since(state, t_us).contiguous(), t_us, setup.max_events,
+                                    filled.contiguous(), p.min_events, t_ref_us.contiguous(), setup.pad_px)
+        n_per = n_f.round().to(_I64)
+        ok = (n_per >= p.min_events) & filled
+        return n_per, ok, (ev if bool(ok.any()) else None)
+    inw, n_per = _window_mask(setup, state, t_us)
+    ok = (n_per >= p.min_events) & filled
+    any_ok, all_ok = torch.stack([ok.any(), ok.all()]).tolist()  # one host sync for both
+    if not any_ok:
+        return n_per, ok, None
+    return n_per, ok, _gather(state, inw, None if all_ok else ok, t_ref_us, setup.pad_px)
 
 
 # ------------------------------------------------------------------ event weights
@@ -676,19 +694,15 @@ def cmax_step(p: CMaxConfig, state: CMaxState, events, t_us: int, setup: CMaxSet
     if events is not None and events.b.numel() > 0:
         state = _store(p, setup, state, events)
     state = _prune(state, t_us)
-    inw, n_per = _window_mask(setup, state, t_us)
     t_begin = t_us - int(round(setup.dt_s * 1e6))
     t_start = torch.where(state.t_start_us < 0, torch.full_like(state.t_start_us, t_begin), state.t_start_us)
     state = state._replace(t_start_us=t_start)
     # half of the first window must have passed since the reset (later windows, longer or
     # shorter, simply hold what there is)
     filled = (t_us - t_start).to(_F64) * 2e-6 >= setup.window_us * 1e-6 - 1e-9
-    ok = (n_per >= p.min_events) & filled
-    any_ok, all_ok = torch.stack([ok.any(), ok.all()]).tolist()  # one host sync for both
-    if not any_ok:
+    n_per, ok, ev = _window_events(p, setup, state, t_us, filled)  # the estimating elements' events
+    if ev is None:
         return state, blank_out(state, n_per)
-    t_ref_us = (t_us - state.window_s * 0.5e6).round().to(_I64)  # (B,) each window's middle
-    ev = _gather(state, inw, None if all_ok else ok, t_ref_us, setup.pad_px)  # the estimating elements' events
     d0, need, edge, sigma, sigma_step, contrast, bracketed, floor = _search(p, setup, state, ev, ok)
     win_s = state.window_s
     structure = torch.where(ok, contrast.to(_F64) / floor - 1.0, torch.full_like(floor, float("nan")))

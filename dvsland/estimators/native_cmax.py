@@ -13,9 +13,9 @@ box test, corner weights) is the torch path's operation for operation (the expon
 from torch).
 
 Beside it, the per-event passes of an update: the store's thinning (``store_select``), each
-window's mask and counts and the gather of its events (``window_mask``, ``gather``), and the event
-weights (``hot_weights``, ``radial_counts`` / ``radial_apply``). Tests pin every kernel to its
-torch path.
+window's counts and the gather of its estimating elements' events as the score takes them
+(``window_gather``), and the event weights (``hot_weights``, ``radial_counts`` / ``radial_apply``).
+Tests pin every kernel to its torch path.
 
 Plain C++ behind a C interface (no torch headers), called through ``ctypes`` on the tensors'
 memory, compiled with the system's C++ compiler in a second or two into a cache folder
@@ -352,49 +352,35 @@ extern "C" void cmax_radial_apply(const int64_t* Bi, const int64_t* Px, const in
   }
 }
 
-// cmax's window (cmax._window_mask, the torch path): M[e] = 1 where the stored event's time lies in its
-// element's window (since[b], t_us]; NP (B,) float32 the events in each window, summed in event order in
-// float32 (as torch's bincount does); with max_events > 0 the window is then hash-thinned: kept where
-// (key & 0x7FFF) < min(max_events / max(NP, 1), 1) x 32768, computed in float32 as torch does (the
-// division as reciprocal times max_events, torch's int / tensor). Returns 0, or -1 when some b is out
-// of [0, B) (nothing written).
-extern "C" int64_t cmax_window_mask(const int64_t* Bi, const int64_t* T, const int64_t* K, int64_t N, int64_t B,
-                                    const int64_t* since, int64_t t_us, int64_t max_events, uint8_t* M, float* NP) {
+// cmax's window and the gather of its events (cmax._window_mask then cmax._gather, the torch path), in two
+// passes over the stored events. A stored event lies in its element's window when its time is in (since[b],
+// t_us]; NP (B,) float32 the events in each window, summed in event order in float32 (as torch's bincount
+// does). With max_events > 0 the window is then hash-thinned: kept where (key & 0x7FFF) < min(max_events /
+// max(NP, 1), 1) x 32768, computed in float32 as torch does (the division as reciprocal times max_events,
+// torch's int / tensor). An element estimates (OK) when round(NP) >= min_events and filled[b]. Its kept
+// events are written in store order as the score takes them: b, the canvas coordinates x + pad and y + pad
+// (float32), tau = float32(t - TREF[b]) * float32(1e-6) s, half = (key >> 15) & 1 and pix = key >> 16
+// (outputs of room for N). Returns how many, or -1 when some b is out of [0, B) (nothing written).
+extern "C" int64_t cmax_window_gather(const int64_t* Bi, const float* X, const float* Y, const int64_t* T,
+                                      const int64_t* K, int64_t N, int64_t B, const int64_t* since, int64_t t_us,
+                                      int64_t max_events, const uint8_t* filled, int64_t min_events,
+                                      const int64_t* TREF, double pad, float* NP, int64_t* ob, float* ox, float* oy,
+                                      float* otau, int64_t* ohalf, int64_t* opix) {
   for (int64_t e = 0; e < N; ++e)
     if (!(Bi[e] >= 0 && Bi[e] < B)) return -1;
   for (int64_t i = 0; i < B; ++i) NP[i] = 0.0f;
-  for (int64_t e = 0; e < N; ++e) {
-    const bool in = T[e] > since[Bi[e]] && T[e] <= t_us;
-    M[e] = in ? 1 : 0;
-    NP[Bi[e]] += in ? 1.0f : 0.0f;
+  for (int64_t e = 0; e < N; ++e) NP[Bi[e]] += (T[e] > since[Bi[e]] && T[e] <= t_us) ? 1.0f : 0.0f;
+  std::vector<float> thr(B, 32768.0f);  // every in-window key passes without thinning ((key & 0x7FFF) < 2^15)
+  std::vector<uint8_t> ok(B);
+  for (int64_t i = 0; i < B; ++i) {
+    if (max_events > 0) thr[i] = std::min((1.0f / std::max(NP[i], 1.0f)) * (float)max_events, 1.0f) * 32768.0f;
+    ok[i] = filled[i] && (int64_t)std::nearbyint(NP[i]) >= min_events;
   }
-  if (max_events > 0) {
-    std::vector<float> thr(B);
-    for (int64_t i = 0; i < B; ++i) {
-      const float r = 1.0f / std::max(NP[i], 1.0f);
-      thr[i] = std::min(r * (float)max_events, 1.0f) * 32768.0f;
-    }
-    for (int64_t e = 0; e < N; ++e)
-      if (M[e]) M[e] = (float)(K[e] & 0x7FFF) < thr[Bi[e]] ? 1 : 0;
-  }
-  return 0;
-}
-
-// The stored events where M[e] (and OK[b], when OK is not null) holds, in store order, as the score takes
-// them (cmax._gather, the torch path): b, the canvas coordinates x + pad and y + pad (float32), tau =
-// float32(t - TREF[b]) * float32(1e-6) s, half = (key >> 15) & 1 and pix = key >> 16; outputs of room for N.
-// Returns how many, or -1 when some b is out of [0, B).
-extern "C" int64_t cmax_gather(const uint8_t* M, const uint8_t* OK, const int64_t* Bi, const float* X,
-                               const float* Y, const int64_t* T, const int64_t* K, int64_t N, int64_t B,
-                               const int64_t* TREF, double pad, int64_t* ob, float* ox, float* oy, float* otau,
-                               int64_t* ohalf, int64_t* opix) {
-  for (int64_t e = 0; e < N; ++e)
-    if (!(Bi[e] >= 0 && Bi[e] < B)) return -1;
   const float pf = (float)pad, us = (float)1e-6;
   int64_t n = 0;
   for (int64_t e = 0; e < N; ++e) {
     const int64_t b = Bi[e];
-    if (!M[e] || (OK && !OK[b])) continue;
+    if (!(ok[b] && T[e] > since[b] && T[e] <= t_us && (float)(K[e] & 0x7FFF) < thr[b])) continue;
     ob[n] = b; ox[n] = X[e] + pf; oy[n] = Y[e] + pf;
     otau[n] = (float)(T[e] - TREF[b]) * us;
     ohalf[n] = (K[e] >> 15) & 1;
@@ -453,8 +439,7 @@ _SIGNATURES = {
     "cmax_store_select": ([_P] * 4 + [_I64, _P, _I64, _I64, _I64, _P, _P], _I64),
     "cmax_radial_counts": ([_P, _P, _P, _I64, _I64, _I64, _I64, _P], _I64),
     "cmax_radial_apply": ([_P, _P, _P, _I64, _I64, _P, _I64, _P], None),
-    "cmax_window_mask": ([_P, _P, _P, _I64, _I64, _P, _I64, _I64, _P, _P], _I64),
-    "cmax_gather": ([_P] * 7 + [_I64, _I64, _P, _F64] + [_P] * 6, _I64),
+    "cmax_window_gather": ([_P] * 5 + [_I64, _I64, _P, _I64, _I64, _P, _I64, _P, _F64] + [_P] * 7, _I64),
     "cmax_weight_sums": ([_P, _P, _I64, _I64, _P, _P], _I64),
 }
 
@@ -566,40 +551,28 @@ class Kernels:
                                     _ptr(out, torch.float32, "radial_apply: times"))
         return out
 
-    def window_mask(self, b, t, key, since, t_us: int, max_events: int):
-        """(mask (N,) bool, n_per (B,) float32): cmax's window over its stored events (module source).
-        b, t, key (N,) int64; since (B,) int64."""
-        i64 = torch.int64
-        N, B = b.numel(), since.numel()
-        if t.numel() != N or key.numel() != N:
-            raise RuntimeError("window_mask: b, t, key contiguous int64 (N,)")
-        mask = torch.empty(N, dtype=torch.bool)
-        n_per = torch.empty(B, dtype=torch.float32)
-        _ok(self._lib.cmax_window_mask(_ptr(b, i64, "window_mask: b"), _ptr(t, i64, "window_mask: t"),
-                                       _ptr(key, i64, "window_mask: key"), N, B, _ptr(since, i64, "window_mask: since"),
-                                       int(t_us), int(max_events), mask.data_ptr(), n_per.data_ptr()),
-            "window_mask: b out of range")
-        return mask, n_per
-
-    def gather(self, mask, ok, n_elements: int, b, x, y, t, key, t_ref_us, pad: float):
-        """The stored events where ``mask`` (N,) bool and ``ok`` (B,) bool (or None: every element) hold,
-        in store order, as (b, xc, yc, tau, half, pix): b in [0, ``n_elements``) int64, xc = x + pad and
-        yc = y + pad float32, tau = float32(t - t_ref_us[b]) * 1e-6 s float32, half = (key >> 15) & 1 and
-        pix = key >> 16 int64 (module source); x, y (N,) float32, b, t, key (N,) and t_ref_us (B,) int64."""
+    def window_gather(self, b, x, y, t, key, since, t_us: int, max_events: int, filled, min_events: int,
+                      t_ref_us, pad: float):
+        """cmax's window over its stored events and the gather of the estimating elements' (module source):
+        (n_per (B,) float32 the events in each window before thinning, (b, xc, yc, tau, half, pix) of the kept
+        events of the elements with round(n_per) >= ``min_events`` and ``filled``, in store order). b, t, key
+        (N,) int64; x, y (N,) float32; since, t_ref_us (B,) int64; filled (B,) bool."""
         i64, f32 = torch.int64, torch.float32
-        N, B = b.numel(), int(n_elements)
-        if not all(v.numel() == N for v in (mask, x, y, t, key)) or mask.dtype != torch.bool:
-            raise RuntimeError("gather: mask bool, b, x, y, t, key (N,)")
-        if (ok is not None and (ok.dtype != torch.bool or ok.numel() != B)) or t_ref_us.numel() != B:
-            raise RuntimeError("gather: ok bool (B,), t_ref_us int64 (B,)")
+        N, B = b.numel(), since.numel()
+        if not all(v.numel() == N for v in (x, y, t, key)):
+            raise RuntimeError("window_gather: b, x, y, t, key (N,)")
+        if filled.dtype != torch.bool or filled.numel() != B or t_ref_us.numel() != B:
+            raise RuntimeError("window_gather: filled bool (B,), t_ref_us int64 (B,)")
+        n_per = torch.empty(B, dtype=f32)
         outs = [torch.empty(N, dtype=d) for d in (i64, f32, f32, f32, i64, i64)]
-        n = self._lib.cmax_gather(_ptr(mask, torch.bool, "gather: mask"),
-                                  None if ok is None else _ptr(ok, torch.bool, "gather: ok"),
-                                  _ptr(b, i64, "gather: b"), _ptr(x, f32, "gather: x"), _ptr(y, f32, "gather: y"),
-                                  _ptr(t, i64, "gather: t"), _ptr(key, i64, "gather: key"), N, B,
-                                  _ptr(t_ref_us, i64, "gather: t_ref_us"), float(pad), *(o.data_ptr() for o in outs))
-        _ok(n, "gather: b out of range")
-        return tuple(o[:n] for o in outs)
+        n = self._lib.cmax_window_gather(
+            _ptr(b, i64, "window_gather: b"), _ptr(x, f32, "window_gather: x"), _ptr(y, f32, "window_gather: y"),
+            _ptr(t, i64, "window_gather: t"), _ptr(key, i64, "window_gather: key"), N, B,
+            _ptr(since, i64, "window_gather: since"), int(t_us), int(max_events),
+            _ptr(filled, torch.bool, "window_gather: filled"), int(min_events),
+            _ptr(t_ref_us, i64, "window_gather: t_ref_us"), float(pad), n_per.data_ptr(), *(o.data_ptr() for o in outs))
+        _ok(n, "window_gather: b out of range")
+        return n_per, tuple(o[:n] for o in outs)
 
 
 #: the library (its mode, cache and build)
