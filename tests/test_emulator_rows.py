@@ -83,7 +83,7 @@ def test_rows_step_with_every_row_and_none_flying_events():
 
 
 @pytest.mark.parametrize("name,native_on", [("ideal", True), ("ideal", False), ("linear", True)])
-def test_compiled_pixel_step_says_which_kernel_steps(name, native_on):
+def test_compiled_pixel_step_says_which_kernel_steps(name, native_on, count_calls):
     """compiled_pixel_step: True exactly where the step runs the compiled pixel kernel (CPU, log
     interpolation, float64, the kernels built); the loop picks the rows' share from it."""
     from dvsland.events import native
@@ -93,17 +93,12 @@ def test_compiled_pixel_step_says_which_kernel_steps(name, native_on):
         pytest.skip("no C++ compiler here")
     emu = _emulator(name)
     emu.reset(_frames(0), 0)
+    calls = count_calls(native.Kernels, "pixel_events")
     native.use_native_sort(native_on)
     try:
         want = native_on and name != "linear"
         assert compiled_pixel_step(emu.params, emu.state) is want
-        calls = []
-        orig = native.Kernels.pixel_events
-        native.Kernels.pixel_events = lambda self, *a, **k: calls.append(1) or orig(self, *a, **k)
-        try:
-            emu.step(_frames(1), 100_000)
-        finally:
-            native.Kernels.pixel_events = orig
+        emu.step(_frames(1), 100_000)
         assert bool(calls) is want
     finally:
         native.use_native_sort(None)
