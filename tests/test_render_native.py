@@ -79,7 +79,8 @@ def test_kernel_is_used_and_mode_off_runs_torch(kernels, monkeypatch, count_call
 
 
 def test_kernel_checks_its_inputs(kernels):
-    atlas = torch.rand(64, 128)
+    plain = torch.rand(64, 128)
+    atlas = native_render.tile_atlas(plain)
     off = torch.zeros(4, 2)
     slopes = torch.zeros(2, 3, 4, 4)
     rng, frac, gain, out = torch.ones(2), torch.zeros(2), torch.ones(4, 4), torch.empty(2, 4, 4)
@@ -88,7 +89,12 @@ def test_kernel_checks_its_inputs(kernels):
     with pytest.raises(RuntimeError, match="site index"):
         kernels.levels(atlas, off, slopes, torch.tensor([0, 3]), rng, frac, gain, out)
     with pytest.raises(RuntimeError, match="atlas must be a contiguous torch.float32 CPU tensor"):
-        kernels.levels(atlas.double(), off, slopes, torch.tensor([0, 1]), rng, frac, gain, out)
+        kernels.levels(atlas._replace(texels=atlas.texels.double()), off, slopes, torch.tensor([0, 1]), rng, frac,
+                       gain, out)
+    with pytest.raises(RuntimeError, match="atlas must be a TiledAtlas"):
+        kernels.levels(plain, off, slopes, torch.tensor([0, 1]), rng, frac, gain, out)
+    with pytest.raises(RuntimeError, match="atlas must hold 10240 elements"):
+        kernels.levels(atlas._replace(height=65), off, slopes, torch.tensor([0, 1]), rng, frac, gain, out)
     with pytest.raises(RuntimeError, match="off must hold 8 elements"):
         kernels.levels(atlas, off[:3], slopes, torch.tensor([0, 1]), rng, frac, gain, out)
     with pytest.raises(RuntimeError, match="site_idx"):
@@ -97,7 +103,7 @@ def test_kernel_checks_its_inputs(kernels):
 
 def test_relief_matches_its_definition(kernels):
     """On a constant height field h the ranges are max(z - h, 0.05 z) times inv_lo, whatever the slopes."""
-    atlas = torch.full((32, 64), 30.0)
+    atlas = native_render.tile_atlas(torch.full((32, 64), 30.0))
     slopes = torch.randn(2, 2, 6, 6)
     z = torch.tensor([100.0, 20.0, 500.0])
     inv_lo = torch.tensor([1.0, 0.5, 0.25])
@@ -114,7 +120,7 @@ def test_relief_upsampled_in_its_pass_equals_upsample2x(kernels, hw):
 
     h, w = hw
     g = torch.Generator().manual_seed(3)
-    atlas = torch.rand(32, 64, generator=g) * 40.0
+    atlas = native_render.tile_atlas(torch.rand(32, 64, generator=g) * 40.0)
     slopes = torch.randn(2, 2, h, w, generator=g) * 0.3
     z = torch.tensor([100.0, 20.0, 500.0])
     inv, inv_lo = torch.tensor([0.01, 0.05, 0.002]), torch.tensor([1.0, 0.5, 0.25])
@@ -129,5 +135,40 @@ def test_atlas_too_large_for_int32_indices_is_left_to_torch():
     """2^31 texels or more (about 1,100 dispersed scenes) cannot be indexed by the passes: the renderer
     then samples with grid_sample (checked on meta tensors: no memory)."""
     assert native_render.fits(torch.empty(388 * 9, 388 * 13))
+    assert native_render.fits(native_render.TiledAtlas(torch.empty(0), 388 * 9, 388 * 13))
+    assert not native_render.fits(native_render.TiledAtlas(torch.empty(0), 388 * 1100, 388 * 13))
     assert not native_render.fits(torch.empty(388 * 1100, 388 * 13, device="meta"))
     assert not native_render.fits(torch.empty(10, 1))
+
+
+@pytest.mark.parametrize("hw", [(1, 2), (15, 17), (16, 16), (33, 5), (40, 48), (388, 5044)])
+def test_tiled_atlas_is_the_atlas_in_16_x_16_tiles(hw):
+    """tile_atlas: the texels tile after tile, each tile row-major, zero padding (sizes that are and are
+    not multiples of 16, narrower and shorter than a tile); untile_atlas gives the atlas back."""
+    h, w = hw
+    atlas = torch.rand(h, w, generator=torch.Generator().manual_seed(h * w))
+    tiled = native_render.tile_atlas(atlas)
+    T = native_render.TILE_TEXELS
+    ht, wt = -(-h // T), -(-w // T)
+    want = torch.nn.functional.pad(atlas, (0, wt * T - w, 0, ht * T - h)).view(ht, T, wt, T).permute(0, 2, 1, 3)
+    assert (tiled.height, tiled.width) == (h, w) and torch.equal(tiled.texels, want.reshape(-1))
+    assert torch.equal(native_render.untile_atlas(tiled), atlas)
+    with pytest.raises(ValueError, match="tile_atlas: atlas must be a"):
+        native_render.tile_atlas(atlas.double())
+
+
+def test_renderer_holds_one_layout_and_switches_with_the_mode(kernels, monkeypatch):
+    """The compiled passes read the atlases in tiles, the torch path row-major: the renderer converts
+    when the mode changes, keeps one layout, and gives the same frames either way."""
+    torch_r, native_r = _pair()
+    alt, idx = _altitudes(9, seed=4)
+    ref = torch_r.render(alt, idx)
+    plain = native_r.atlas_irradiance.clone()
+    _same(ref, native_r.render(alt, idx))
+    assert native_r._atlas_tiled and isinstance(native_r._atlas_pair[0], native_render.TiledAtlas)
+    monkeypatch.setattr(native_render.LIBRARY, "chosen", False)  # the torch path: back to row-major
+    assert torch.equal(native_r.render(alt, idx), ref) and not native_r._atlas_tiled
+    assert torch.equal(native_r.atlas_irradiance, plain)
+    monkeypatch.setattr(native_render.LIBRARY, "chosen", True)
+    _same(ref, native_r.render(alt, idx))
+    assert native_r._atlas_tiled

@@ -171,8 +171,8 @@ class FastRenderer(Renderer):
             irr[r * t:(r + 1) * t] = lv.irradiance.permute(1, 0, 2).reshape(t, -1)
             hgt[r * t:(r + 1) * t] = lv.height_m.permute(1, 0, 2).reshape(t, -1)
         dev = self.device
-        self.atlas_irradiance = irr.to(dev)[None, None]  # (1, 1, S*T, K*T)
-        self.atlas_height = hgt.to(dev)[None, None]
+        # (1, 1, S*T, K*T) each, row-major; the compiled passes take them in tiles (_atlases)
+        self._atlas_pair, self._atlas_tiled = (irr.to(dev)[None, None], hgt.to(dev)[None, None]), False
         row_of_site = [order[s] for s in self._scene_keys]
         self._site_row = torch.tensor(row_of_site, dtype=torch.float32, device=dev)
         ang = torch.tensor([tiles[r].angle_rad for r in row_of_site], dtype=torch.float64)
@@ -196,7 +196,7 @@ class FastRenderer(Renderer):
         self._gain_shared = self._gain[0] if bool((self._gain == self._gain[:1]).all()) else None
         # normalised atlas coordinates of tile centres (align_corners=False), float32 with
         # exact integer numerators: x = (level * 2T + T) / W_atlas - 1, y likewise per site row
-        t, ha, wa = p.tile_size, self.atlas_irradiance.shape[-2], self.atlas_irradiance.shape[-1]
+        t, (ha, wa) = p.tile_size, irr.shape
         self._ox = (2.0 * t, float(t), float(wa))
         self._oy_site = ((self._site_row * (2.0 * t) + t) / ha - 1.0).contiguous()
         # per-site ray slopes in the sun frame, u along (c, s) toward the sun, v along (s, -c), scaled
@@ -212,6 +212,28 @@ class FastRenderer(Renderer):
             self._slopes_half = self._sun_frame_slopes(blk(tx), blk(ty), nrm)
         else:
             self._slopes_half = None
+
+    def _atlases(self, tiled: bool):
+        """The (irradiance, height) atlases: (1, 1, S*T, K*T) float32 tensors row-major, or with ``tiled`` the
+        :class:`~dvsland.render.native_render.TiledAtlas` pair the compiled passes read. One layout is held
+        at a time (the atlases are most of the renderer's memory): asking for the other converts them once."""
+        if self._atlas_tiled != tiled:
+            if tiled:
+                self._atlas_pair = tuple(native_render.tile_atlas(a[0, 0]) for a in self._atlas_pair)
+            else:
+                self._atlas_pair = tuple(native_render.untile_atlas(a)[None, None] for a in self._atlas_pair)
+            self._atlas_tiled = tiled
+        return self._atlas_pair
+
+    @property
+    def atlas_irradiance(self) -> torch.Tensor:
+        """(1, 1, S*T, K*T) float32: the shaded irradiance of every scene (rows) and level (columns)."""
+        return self._atlases(False)[0]
+
+    @property
+    def atlas_height(self) -> torch.Tensor:
+        """(1, 1, S*T, K*T) float32: the heights (m) in the irradiance atlas's layout."""
+        return self._atlases(False)[1]
 
     def _emission_gain(self, tiles, row_of_site, tx: torch.Tensor, ty: torch.Tensor) -> torch.Tensor:
         """(S, H, W) per-pixel gain for the view direction: the tiles are shaded for a nadir view
@@ -273,7 +295,7 @@ class FastRenderer(Renderer):
         lo, frac, oy, z = self._frame_terms(altitude_m, site_idx)
         ax, bx, wa = self._ox
         inv_lo = torch.exp2(-lo)[:, None, None]  # level lo texel scale relative to level 0
-        kern = native_render.kernel_for(out) if self.native and native_render.fits(self.atlas_irradiance) else None
+        kern = native_render.kernel_for(out) if self.native and native_render.fits(self._atlas_pair[0]) else None
         # rng_n: ray range (metres of z) times the level-lo scale, (B, H, W) or (B, 1, 1)
         rng_n = self._relief_range(lo, oy, z, site_idx, inv_lo, kern) if self.parallax_iters else z * inv_lo
         # grid offsets (coordinate, B) of level lo and lo + 1; level lo + 1 has half the scale of
@@ -283,7 +305,7 @@ class FastRenderer(Renderer):
         off = torch.stack([ox0, oy, ox1 - 0.5 * ox0, oy - 0.5 * oy])[:, :, None, None]  # (4, B, 1, 1)
         gain = self._gain_shared
         if kern is not None:  # one compiled pass over the frames, the same bits (native_render)
-            return kern.levels(self.atlas_irradiance[0, 0], off, self._slopes, site_idx, rng_n, frac,
+            return kern.levels(self._atlases(True)[0], off, self._slopes, site_idx, rng_n, frac,
                                self._gain if gain is None else gain, out, self.threads)
         rows = None if gain is not None else self._gain.index_select(0, site_idx)  # (B, H, W) per frame
         if self._compiled is not None:  # render.compile: the whole batch in one fused call
@@ -327,7 +349,7 @@ class FastRenderer(Renderer):
         off = torch.stack([(lvl * ax + bx) / wa - 1.0, oy])[..., None, None]  # (2, B, 1, 1)
         inv = torch.exp2(-lvl)[:, None, None]
         if kern is not None:
-            return kern.relief(self.atlas_height[0, 0], off, slopes, site_idx, z, inv, inv_lo, self.parallax_iters,
+            return kern.relief(self._atlases(True)[1], off, slopes, site_idx, z, inv, inv_lo, self.parallax_iters,
                                self.threads, upsample2x=half)  # the upsampling in the same pass
         fn = relief_ranges if self._compiled is None else self._compiled[0]  # render.compile: fused
         return fn(self.atlas_height, off, slopes.index_select(1, site_idx), z, inv, inv_lo, self.parallax_iters, half)
