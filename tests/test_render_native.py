@@ -93,8 +93,9 @@ def test_kernel_checks_its_inputs(kernels):
                        gain, out)
     with pytest.raises(RuntimeError, match="atlas must be a TiledAtlas"):
         kernels.levels(plain, off, slopes, torch.tensor([0, 1]), rng, frac, gain, out)
-    with pytest.raises(RuntimeError, match="atlas must hold 10240 elements"):
-        kernels.levels(atlas._replace(height=65), off, slopes, torch.tensor([0, 1]), rng, frac, gain, out)
+    T = native_render.TILE_TEXELS
+    with pytest.raises(RuntimeError, match=f"atlas must hold {(64 // T + 1) * (128 // T) * T * T} elements"):
+        kernels.levels(atlas._replace(height=64 + T), off, slopes, torch.tensor([0, 1]), rng, frac, gain, out)
     with pytest.raises(RuntimeError, match="off must hold 8 elements"):
         kernels.levels(atlas, off[:3], slopes, torch.tensor([0, 1]), rng, frac, gain, out)
     with pytest.raises(RuntimeError, match="site_idx"):
@@ -141,10 +142,10 @@ def test_atlas_too_large_for_int32_indices_is_left_to_torch():
     assert not native_render.fits(torch.empty(10, 1))
 
 
-@pytest.mark.parametrize("hw", [(1, 2), (15, 17), (16, 16), (33, 5), (40, 48), (388, 5044)])
-def test_tiled_atlas_is_the_atlas_in_16_x_16_tiles(hw):
+@pytest.mark.parametrize("hw", [(1, 2), (15, 17), (32, 32), (33, 5), (40, 96), (388, 5044)])
+def test_tiled_atlas_is_the_atlas_in_square_tiles(hw):
     """tile_atlas: the texels tile after tile, each tile row-major, zero padding (sizes that are and are
-    not multiples of 16, narrower and shorter than a tile); untile_atlas gives the atlas back."""
+    not multiples of the tile, narrower and shorter than a tile); untile_atlas gives the atlas back."""
     h, w = hw
     atlas = torch.rand(h, w, generator=torch.Generator().manual_seed(h * w))
     tiled = native_render.tile_atlas(atlas)

@@ -9,13 +9,13 @@ gains by the frames' site indices (no gathered copies), so the grid and the two 
 reach memory.
 
 The passes read the atlases in tiles (:class:`TiledAtlas`, made by :func:`tile_atlas`): squares of
-16 x 16 texels, each 1 KB contiguous. A frame's samples walk its tile of the atlas along a rotated,
+32 x 32 texels, each one 4 KB page. A frame's samples walk its tile of the atlas along a rotated,
 scaled grid; in the row-major atlas (a row of 13 levels is 20 KB at 128 x 128 pixels) the texels of a
-few neighbouring pixels lie in as many memory pages, so each frame of a dispersed batch (every
-descent its own scene) spent most of its time waiting for memory. In tiles, neighbours share a cache
-line or its neighbour. The levels pass of a B = 63 campaign step on an Intel Xeon took 3.1 ms instead of
-9.4 alone, 7.5 ms instead of 11.5 inside the loop (whose other stages take the caches in between); the
-same texels, the same bits.
+few neighbouring pixels lay in as many memory pages, so each frame of a dispersed batch (every
+descent its own scene) spent most of its time waiting for memory. In tiles, neighbours share a page
+and mostly a cache line. In a B = 63 campaign step on an Intel Xeon the levels pass took 7.2-7.8 ms
+instead of 13.7-17.7 and the relief 2.5-3.0 ms instead of 5.7-7.6 (the loop's other stages take the
+caches in between; alone, with warm caches, 3.2 ms instead of 9.4). The same texels, the same bits.
 
 The arithmetic is torch's, operation for operation, on CPUs where torch runs its AVX2 or AVX-512
 kernels (every x86-64 CPU of the last decade): the grid as ``fma(slope, range, offset)`` (``addcmul``),
@@ -42,7 +42,10 @@ import torch
 
 from dvsland.native_build import CLONES, GATHER_FLAGS, PARALLEL_RANGES, NativeLibrary, bind_functions, tensor_address
 
-_SRC = r"""
+#: texels on a side of the square tiles of a :class:`TiledAtlas` (one 4 KB page of float32 each)
+TILE_TEXELS = 32
+
+_SRC = f"#define TILE_BITS {TILE_TEXELS.bit_length() - 1}\n" + r"""
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -52,16 +55,17 @@ _SRC = r"""
 """ + PARALLEL_RANGES + r"""
 """ + CLONES + r"""
 // The texture's geometry for torch.grid_sampler (bilinear, border padding, align_corners=False), its
-// texels stored in tiles of 16 x 16 (module doc): texel (y, x) at tile (y >> 4, x >> 4), row-major
-// over nt tiles a row, and within its tile at (y & 15) * 16 + (x & 15).
+// texels stored in square tiles of 2^TILE_BITS texels a side (module doc): texel (y, x) in tile
+// (y >> TILE_BITS, x >> TILE_BITS), row-major over nt tiles a row, and row-major within its tile.
 struct Tex {
-  const float* __restrict a;  // (Ha / 16 rounded up, nt, 16, 16) float32
+  const float* __restrict a;  // (Ha / tile rounded up, nt, tile, tile) float32
   int32_t Ha, Wa, nt;
   float sx, sy, mx, my;       // size / 2 and size - 1, per axis
 };
 
 DVS_INLINE int32_t texel(const Tex& t, int32_t y, int32_t x) {
-  return (((y >> 4) * t.nt + (x >> 4)) << 8) + ((y & 15) << 4) + (x & 15);
+  constexpr int32_t m = (1 << TILE_BITS) - 1;
+  return (((y >> TILE_BITS) * t.nt + (x >> TILE_BITS)) << (2 * TILE_BITS)) + ((y & m) << TILE_BITS) + (x & m);
 }
 
 // torch.grid_sampler's sample at normalised (gx, gy): unnormalise, clamp to the border, four corners.
@@ -184,12 +188,15 @@ DVS_CLONES static void relief_range(const Tex t, const float* off, int64_t B, co
 }
 
 static Tex texture(const float* a, int64_t Ha, int64_t Wa) {
-  return Tex{a, (int32_t)Ha, (int32_t)Wa, (int32_t)((Wa + 15) / 16), (float)Wa / 2, (float)Ha / 2, (float)(Wa - 1),
+  return Tex{a, (int32_t)Ha, (int32_t)Wa, (int32_t)((Wa + (1 << TILE_BITS) - 1) >> TILE_BITS), (float)Wa / 2, (float)Ha / 2, (float)(Wa - 1),
              (float)(Ha - 1)};
 }
 
-// the texels of an (Ha, Wa) texture in whole 16 x 16 tiles
-static int64_t tiled_texels(int64_t Ha, int64_t Wa) { return ((Ha + 15) / 16) * ((Wa + 15) / 16) * 256; }
+// the texels of an (Ha, Wa) texture in whole tiles
+static int64_t tiled_texels(int64_t Ha, int64_t Wa) {
+  const int64_t n = int64_t(1) << TILE_BITS;
+  return ((Ha + n - 1) / n) * ((Wa + n - 1) / n) * n * n;
+}
 
 extern "C" {
 
@@ -253,14 +260,10 @@ def _sites(site_idx: torch.Tensor, b: int) -> torch.Tensor:
     return site_idx.to(torch.int64).contiguous()
 
 
-#: texels on a side of the square tiles of a :class:`TiledAtlas`
-TILE_TEXELS = 16
-
-
 class TiledAtlas(NamedTuple):
-    """An atlas as the compiled passes read it: ``texels`` (ceil(height / 16) * ceil(width / 16) * 256,)
-    float32, tile after tile (row-major over the tiles), each tile's 16 x 16 texels row-major; the
-    padding past ``height`` x ``width`` is 0 and never read."""
+    """An atlas as the compiled passes read it: ``texels`` (ceil(height / T) * ceil(width / T) * T * T,)
+    float32 with T = :data:`TILE_TEXELS`, tile after tile (row-major over the tiles), each tile's T x T
+    texels row-major; the padding past ``height`` x ``width`` is 0 and never read."""
 
     texels: torch.Tensor
     height: int
@@ -270,7 +273,7 @@ class TiledAtlas(NamedTuple):
 def _tile_bands(height: int, width: int, texels: torch.Tensor):
     """Triples (view of ``texels`` (the tiled layout), (rows, cols) slices of the (height, width) atlas,
     the view's shape) that cover every texel once: the whole tiles, then where the sizes are not
-    multiples of 16 the right band, the bottom band and the corner."""
+    multiples of the tile the right band, the bottom band and the corner."""
     T = TILE_TEXELS
     ht, wt, hf, wf = -(-height // T), -(-width // T), height // T, width // T
     v = texels.as_strided((ht, T, wt, T), (wt * T * T, T, T * T, 1))  # (tile y, y in tile, tile x, x in tile)
