@@ -159,17 +159,35 @@ def test_tiled_atlas_is_the_atlas_in_square_tiles(hw):
 
 
 def test_renderer_holds_one_layout_and_switches_with_the_mode(kernels, monkeypatch):
-    """The compiled passes read the atlases in tiles, the torch path row-major: the renderer converts
-    when the mode changes, keeps one layout, and gives the same frames either way."""
+    """The compiled passes read the atlases in tiles, the torch path row-major: the renderer builds the
+    layout its mode will read, converts when the mode changes, keeps one layout, and gives the same
+    frames either way."""
     torch_r, native_r = _pair()
+    assert native_r._atlas_tiled and isinstance(native_r._atlas_pair[0], native_render.TiledAtlas)
+    t, k = torch_r.levels.tile_size, torch_r.levels.n_levels
+    assert not torch_r._atlas_tiled and torch_r._atlas_pair[0].shape == (1, 1, t * len(SITES), t * k)
     alt, idx = _altitudes(9, seed=4)
     ref = torch_r.render(alt, idx)
-    plain = native_r.atlas_irradiance.clone()
-    _same(ref, native_r.render(alt, idx))
-    assert native_r._atlas_tiled and isinstance(native_r._atlas_pair[0], native_render.TiledAtlas)
-    monkeypatch.setattr(native_render.LIBRARY, "chosen", False)  # the torch path: back to row-major
-    assert torch.equal(native_r.render(alt, idx), ref) and not native_r._atlas_tiled
-    assert torch.equal(native_r.atlas_irradiance, plain)
-    monkeypatch.setattr(native_render.LIBRARY, "chosen", True)
     _same(ref, native_r.render(alt, idx))
     assert native_r._atlas_tiled
+    assert torch.equal(native_r.atlas_irradiance, torch_r.atlas_irradiance)  # converted back: the same texels
+    assert not native_r._atlas_tiled and torch.equal(native_r.render(alt, idx), ref)  # the torch path's layout
+    _same(ref, native_r.render(alt, idx))
+    assert native_r._atlas_tiled
+    monkeypatch.setattr(native_render.LIBRARY, "chosen", False)  # the mode off: the torch path, row-major
+    assert torch.equal(native_r.render(alt, idx), ref) and not native_r._atlas_tiled
+
+
+@pytest.mark.parametrize("y0, x0, hw", [(0, 0, (40, 96)), (5, 7, (30, 60)), (31, 33, (1, 1)), (64, 0, (36, 96))])
+def test_tiled_write_places_a_block(y0, x0, hw):
+    """A block written at any offset (inside one tile, across tile edges, at the atlas's last row) lands
+    where the row-major atlas has it; the padding stays 0."""
+    h, w = hw
+    full = torch.zeros(100, 96)
+    full[y0:y0 + h, x0:x0 + w] = torch.rand(h, w)
+    tiled = native_render.tiled_empty(100, 96)  # its padding 0, the rest written below
+    native_render.tiled_write(tiled, 0, 0, torch.zeros(100, 96))
+    native_render.tiled_write(tiled, y0, x0, full[y0:y0 + h, x0:x0 + w])
+    assert torch.equal(tiled.texels, native_render.tile_atlas(full).texels)
+    with pytest.raises(ValueError, match="outside the atlas"):
+        native_render.tiled_write(tiled, 90, 0, torch.zeros(11, 4))

@@ -160,19 +160,11 @@ class FastRenderer(Renderer):
 
     # ------------------------------------------------------------ preparation
     def _build_atlas(self, tiles: Sequence[SiteLevels]) -> None:
-        p = self.levels
+        p, dev = self.levels, self.device
         t = p.tile_size
         order = {lv.name: i for i, lv in enumerate(tiles)}
-        n_rows = len(tiles)
-        irr = torch.empty(n_rows * t, p.n_levels * t, dtype=torch.float32)
-        hgt = torch.empty_like(irr)
-        for r, lv in enumerate(tiles):
-            # (K, T, T) -> (T, K * T): levels side by side
-            irr[r * t:(r + 1) * t] = lv.irradiance.permute(1, 0, 2).reshape(t, -1)
-            hgt[r * t:(r + 1) * t] = lv.height_m.permute(1, 0, 2).reshape(t, -1)
-        dev = self.device
-        # (1, 1, S*T, K*T) each, row-major; the compiled passes take them in tiles (_atlases)
-        self._atlas_pair, self._atlas_tiled = (irr.to(dev)[None, None], hgt.to(dev)[None, None]), False
+        ha, wa = len(tiles) * t, p.n_levels * t
+        self._atlas_pair, self._atlas_tiled = self._assemble_atlases(tiles, ha, wa)
         row_of_site = [order[s] for s in self._scene_keys]
         self._site_row = torch.tensor(row_of_site, dtype=torch.float32, device=dev)
         ang = torch.tensor([tiles[r].angle_rad for r in row_of_site], dtype=torch.float64)
@@ -196,7 +188,6 @@ class FastRenderer(Renderer):
         self._gain_shared = self._gain[0] if bool((self._gain == self._gain[:1]).all()) else None
         # normalised atlas coordinates of tile centres (align_corners=False), float32 with
         # exact integer numerators: x = (level * 2T + T) / W_atlas - 1, y likewise per site row
-        t, (ha, wa) = p.tile_size, irr.shape
         self._ox = (2.0 * t, float(t), float(wa))
         self._oy_site = ((self._site_row * (2.0 * t) + t) / ha - 1.0).contiguous()
         # per-site ray slopes in the sun frame, u along (c, s) toward the sun, v along (s, -c), scaled
@@ -213,10 +204,30 @@ class FastRenderer(Renderer):
         else:
             self._slopes_half = None
 
+    def _assemble_atlases(self, tiles: Sequence[SiteLevels], ha: int, wa: int):
+        """((irradiance, height) atlases of (ha, wa) texels, whether in tiles): row r T ... (r + 1) T holds
+        scene r's levels side by side, laid out as the sampling will read them (:meth:`_atlases`): in
+        tiles for the compiled passes (CPU), else row-major as (1, 1, ha, wa) tensors on the device."""
+        t, dev = self.levels.tile_size, self.device
+        tiled = dev.type == "cpu" and self.native and native_render.fits((ha, wa)) and native_render.LIBRARY.enabled()
+        if tiled:
+            pair = native_render.tiled_empty(ha, wa), native_render.tiled_empty(ha, wa)
+        else:
+            pair = torch.empty(ha, wa, dtype=torch.float32), torch.empty(ha, wa, dtype=torch.float32)
+        for r, lv in enumerate(tiles):
+            for a, lvl in zip(pair, (lv.irradiance, lv.height_m)):
+                block = lvl.permute(1, 0, 2).reshape(t, -1)  # (K, T, T) -> (T, K * T)
+                if tiled:
+                    native_render.tiled_write(a, r * t, 0, block)
+                else:
+                    a[r * t:(r + 1) * t] = block
+        return (pair if tiled else tuple(a.to(dev)[None, None] for a in pair)), tiled
+
     def _atlases(self, tiled: bool):
         """The (irradiance, height) atlases: (1, 1, S*T, K*T) float32 tensors row-major, or with ``tiled`` the
         :class:`~dvsland.render.native_render.TiledAtlas` pair the compiled passes read. One layout is held
-        at a time (the atlases are most of the renderer's memory): asking for the other converts them once."""
+        at a time (the atlases are most of the renderer's memory), built as the sampling will read it;
+        asking for the other converts them (a mode switched after the build)."""
         if self._atlas_tiled != tiled:
             if tiled:
                 self._atlas_pair = tuple(native_render.tile_atlas(a[0, 0]) for a in self._atlas_pair)

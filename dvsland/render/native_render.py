@@ -8,14 +8,15 @@ three more passes; these kernels do each in one pass over the pixels, reading th
 gains by the frames' site indices (no gathered copies), so the grid and the two sampled levels never
 reach memory.
 
-The passes read the atlases in tiles (:class:`TiledAtlas`, made by :func:`tile_atlas`): squares of
-32 x 32 texels, each one 4 KB page. A frame's samples walk its tile of the atlas along a rotated,
-scaled grid; in the row-major atlas (a row of 13 levels is 20 KB at 128 x 128 pixels) the texels of a
-few neighbouring pixels lay in as many memory pages, so each frame of a dispersed batch (every
-descent its own scene) spent most of its time waiting for memory. In tiles, neighbours share a page
-and mostly a cache line. In a B = 63 campaign step on an Intel Xeon the levels pass took 7.2-7.8 ms
-instead of 13.7-17.7 and the relief 2.5-3.0 ms instead of 5.7-7.6 (the loop's other stages take the
-caches in between; alone, with warm caches, 3.2 ms instead of 9.4). The same texels, the same bits.
+The passes read the atlases in tiles (:class:`TiledAtlas`; :func:`tiled_empty` and :func:`tiled_write`
+build one, :func:`tile_atlas` converts a row-major one): squares of 32 x 32 texels, each one 4 KB page.
+A frame's samples walk its tile of the atlas along a rotated, scaled grid; in the row-major atlas (a
+row of 13 levels is 20 KB at 128 x 128 pixels) the texels of a few neighbouring pixels lay in as many
+memory pages, so each frame of a dispersed batch (every descent its own scene) spent most of its
+time waiting for memory. In tiles, neighbours share a page and mostly a cache line. In the B = 63
+campaign batch on an Intel Xeon the levels pass took 4.5-4.6 ms a step instead of 8.6-8.8 and the
+relief 1.4-1.5 ms instead of 2.5-2.6 (huge pages on, as the command line sets them; without them
+7.2-7.8 ms instead of 13.7-17.7). The same texels, the same bits.
 
 The arithmetic is torch's, operation for operation, on CPUs where torch runs its AVX2 or AVX-512
 kernels (every x86-64 CPU of the last decade): the grid as ``fma(slope, range, offset)`` (``addcmul``),
@@ -188,8 +189,8 @@ DVS_CLONES static void relief_range(const Tex t, const float* off, int64_t B, co
 }
 
 static Tex texture(const float* a, int64_t Ha, int64_t Wa) {
-  return Tex{a, (int32_t)Ha, (int32_t)Wa, (int32_t)((Wa + (1 << TILE_BITS) - 1) >> TILE_BITS), (float)Wa / 2, (float)Ha / 2, (float)(Wa - 1),
-             (float)(Ha - 1)};
+  const int32_t nt = (int32_t)((Wa + (1 << TILE_BITS) - 1) >> TILE_BITS);
+  return Tex{a, (int32_t)Ha, (int32_t)Wa, nt, (float)Wa / 2, (float)Ha / 2, (float)(Wa - 1), (float)(Ha - 1)};
 }
 
 // the texels of an (Ha, Wa) texture in whole tiles
@@ -270,46 +271,71 @@ class TiledAtlas(NamedTuple):
     width: int
 
 
-def _tile_bands(height: int, width: int, texels: torch.Tensor):
-    """Triples (view of ``texels`` (the tiled layout), (rows, cols) slices of the (height, width) atlas,
-    the view's shape) that cover every texel once: the whole tiles, then where the sizes are not
-    multiples of the tile the right band, the bottom band and the corner."""
+def _segments(start: int, stop: int):
+    """[start, stop) of one axis of the atlas in pieces that each lie in one tile or span whole tiles:
+    (tile index or slice, slice within the tile, slice of [start, stop) from 0, the piece's shape)."""
+    T, out, a = TILE_TEXELS, [], start
+    if a % T and a < stop:  # the head, inside one tile
+        b = min(stop, (a // T + 1) * T)
+        out.append((a // T, slice(a % T, a % T + b - a), slice(a - start, b - start), (b - a,)))
+        a = b
+    n = (stop - a) // T
+    if n:  # whole tiles
+        out.append((slice(a // T, a // T + n), slice(0, T), slice(a - start, a - start + n * T), (n, T)))
+        a += n * T
+    if a < stop:  # the tail, inside one tile
+        out.append((a // T, slice(0, stop - a), slice(a - start, stop - start), (stop - a,)))
+    return out
+
+
+def _blocks(atlas: TiledAtlas, y0: int, x0: int, h: int, w: int):
+    """Pairs (view of ``atlas.texels``, (rows, cols) slices of an (h, w) block) that together cover the
+    block placed at (y0, x0) of the atlas, each view shaped as its piece of the block reshapes."""
     T = TILE_TEXELS
-    ht, wt, hf, wf = -(-height // T), -(-width // T), height // T, width // T
-    v = texels.as_strided((ht, T, wt, T), (wt * T * T, T, T * T, 1))  # (tile y, y in tile, tile x, x in tile)
-    r, q = width - wf * T, height - hf * T
-    rows, cols = (slice(0, hf * T), slice(hf * T, height)), (slice(0, wf * T), slice(wf * T, width))
-    bands = [(v[:hf, :, :wf, :], (rows[0], cols[0]), (hf, T, wf, T))]
-    if r:
-        bands.append((v[:hf, :, wf, :r], (rows[0], cols[1]), (hf, T, r)))
-    if q:
-        bands.append((v[hf, :q, :wf, :], (rows[1], cols[0]), (q, wf, T)))
-    if r and q:
-        bands.append((v[hf, :q, wf, :r], (rows[1], cols[1]), (q, r)))
-    return bands
+    ht, wt = -(-atlas.height // T), -(-atlas.width // T)
+    v = atlas.texels.as_strided((ht, T, wt, T), (wt * T * T, T, T * T, 1))  # (tile y, y in tile, tile x, x in tile)
+    return [(v[ty, iy, tx, ix], (sy, sx), hy + hx)
+            for ty, iy, sy, hy in _segments(y0, y0 + h) for tx, ix, sx, hx in _segments(x0, x0 + w)]
+
+
+def tiled_empty(height: int, width: int) -> TiledAtlas:
+    """A :class:`TiledAtlas` of ``height`` x ``width`` texels (CPU float32) to be written with
+    :func:`tiled_write`; only its padding past the atlas's edges is set (to 0)."""
+    T = TILE_TEXELS
+    ht, wt = -(-int(height) // T), -(-int(width) // T)
+    out = TiledAtlas(torch.empty(ht * wt * T * T, dtype=torch.float32), int(height), int(width))
+    padded = out._replace(height=ht * T, width=wt * T)  # the same texels, its pads as ordinary texels
+    for y0, x0, h, w in ((0, out.width, out.height, wt * T - out.width), (out.height, 0, ht * T - out.height, wt * T)):
+        if h and w:
+            tiled_write(padded, y0, x0, torch.zeros(h, w))
+    return out
+
+
+def tiled_write(atlas: TiledAtlas, y0: int, x0: int, block: torch.Tensor) -> None:
+    """Write the (h, w) float32 ``block`` into ``atlas`` at texel (y0, x0) (inside the atlas)."""
+    h, w = block.shape
+    if not (0 <= y0 and y0 + h <= atlas.height and 0 <= x0 and x0 + w <= atlas.width):
+        raise ValueError(f"tiled_write: a ({h}, {w}) block at ({y0}, {x0}) is outside the atlas "
+                         f"({atlas.height}, {atlas.width})")
+    for dst, (rows, cols), shape in _blocks(atlas, y0, x0, h, w):
+        dst.copy_(block[rows, cols].reshape(shape))
 
 
 def tile_atlas(atlas: torch.Tensor) -> TiledAtlas:
-    """``atlas`` (H, W) float32 (CPU) in the tiled layout of the passes (:class:`TiledAtlas`): one copy
-    of its texels, no larger intermediate."""
+    """``atlas`` (H, W) float32 (CPU) in the tiled layout of the passes (:class:`TiledAtlas`)."""
     if atlas.dim() != 2 or atlas.dtype != torch.float32 or atlas.device.type != "cpu":
         raise ValueError(f"tile_atlas: atlas must be a (H, W) float32 CPU tensor, got {tuple(atlas.shape)} "
                          f"{atlas.dtype} on {atlas.device}")
-    h, w = atlas.shape
-    T = TILE_TEXELS
-    texels = torch.zeros(-(-h // T) * -(-w // T) * T * T, dtype=torch.float32)
-    for dst, (rows, cols), shape in _tile_bands(h, w, texels):
-        if dst.numel():
-            dst.copy_(atlas[rows, cols].reshape(shape))
-    return TiledAtlas(texels, int(h), int(w))
+    out = tiled_empty(*atlas.shape)
+    tiled_write(out, 0, 0, atlas)
+    return out
 
 
 def untile_atlas(tiled: TiledAtlas) -> torch.Tensor:
     """The (H, W) float32 atlas of ``tiled`` (:func:`tile_atlas`'s inverse)."""
     out = torch.empty(tiled.height, tiled.width, dtype=torch.float32)
-    for src, (rows, cols), _ in _tile_bands(tiled.height, tiled.width, tiled.texels):
-        if src.numel():
-            out[rows, cols] = src.reshape(out[rows, cols].shape)
+    for src, (rows, cols), _ in _blocks(tiled, 0, 0, tiled.height, tiled.width):
+        out[rows, cols] = src.reshape(out[rows, cols].shape)
     return out
 
 
@@ -387,13 +413,16 @@ def kernel_for(t: torch.Tensor) -> Optional[Kernels]:
 
 
 def fits(atlas) -> bool:
-    """Whether the passes take this atlas (a tensor (..., H, W) or a :class:`TiledAtlas`): texel indices
-    are int32, so fewer than 2^31 texels in whole tiles (about 1,100 dispersed scenes of 128 x 128
-    frames); a larger one is sampled by torch's ``grid_sample``."""
-    h, w = (atlas.height, atlas.width) if isinstance(atlas, TiledAtlas) else atlas.shape[-2:]
+    """Whether the passes take this atlas (a tensor (..., H, W), a :class:`TiledAtlas` or its (H, W)):
+    texel indices are int32, so fewer than 2^31 texels in whole tiles (about 1,100 dispersed scenes of
+    128 x 128 frames); a larger one is sampled by torch's ``grid_sample``."""
+    if isinstance(atlas, TiledAtlas):
+        h, w = atlas.height, atlas.width
+    else:
+        h, w = atlas.shape[-2:] if isinstance(atlas, torch.Tensor) else atlas
     T = TILE_TEXELS
     return 2 <= w and -(-h // T) * -(-w // T) * T * T < 2 ** 31
 
 
 __all__ = ["Kernels", "LIBRARY", "use_native_render", "kernel_for", "fits", "TILE_TEXELS", "TiledAtlas",
-           "tile_atlas", "untile_atlas"]
+           "tiled_empty", "tiled_write", "tile_atlas", "untile_atlas"]
