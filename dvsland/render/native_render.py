@@ -299,16 +299,13 @@ def _blocks(atlas: TiledAtlas, y0: int, x0: int, h: int, w: int):
 
 
 def tiled_empty(height: int, width: int) -> TiledAtlas:
-    """A :class:`TiledAtlas` of ``height`` x ``width`` texels (CPU float32) to be written with
-    :func:`tiled_write`; only its padding past the atlas's edges is set (to 0)."""
+    """A zeroed :class:`TiledAtlas` of ``height`` x ``width`` texels (CPU float32), to be written with
+    :func:`tiled_write`. (Zeroed in one pass in address order, which touches its pages first in that
+    order. Writing only the padding first, one page in every row of tiles, cost 6.8 s of system time
+    for the 3.5 GB of a B = 225 campaign shard's atlases with huge pages, against 0.4-4 s.)"""
     T = TILE_TEXELS
     ht, wt = -(-int(height) // T), -(-int(width) // T)
-    out = TiledAtlas(torch.empty(ht * wt * T * T, dtype=torch.float32), int(height), int(width))
-    padded = out._replace(height=ht * T, width=wt * T)  # the same texels, its pads as ordinary texels
-    for y0, x0, h, w in ((0, out.width, out.height, wt * T - out.width), (out.height, 0, ht * T - out.height, wt * T)):
-        if h and w:
-            tiled_write(padded, y0, x0, torch.zeros(h, w))
-    return out
+    return TiledAtlas(torch.zeros(ht * wt * T * T, dtype=torch.float32), int(height), int(width))
 
 
 def tiled_write(atlas: TiledAtlas, y0: int, x0: int, block: torch.Tensor) -> None:
