@@ -271,6 +271,11 @@ class TiledAtlas(NamedTuple):
     width: int
 
 
+def _tile_counts(height: int, width: int):
+    """(rows, columns) of whole tiles that hold ``height`` x ``width`` texels."""
+    return -(-int(height) // TILE_TEXELS), -(-int(width) // TILE_TEXELS)
+
+
 def _segments(start: int, stop: int):
     """[start, stop) of one axis of the atlas in pieces that each lie in one tile or span whole tiles:
     (tile index or slice, slice within the tile, slice of [start, stop) from 0, the piece's shape)."""
@@ -289,10 +294,11 @@ def _segments(start: int, stop: int):
 
 
 def _blocks(atlas: TiledAtlas, y0: int, x0: int, h: int, w: int):
-    """Pairs (view of ``atlas.texels``, (rows, cols) slices of an (h, w) block) that together cover the
-    block placed at (y0, x0) of the atlas, each view shaped as its piece of the block reshapes."""
+    """Triples (view of ``atlas.texels``, (rows, cols) slices of an (h, w) block, the view's shape) that
+    together cover the block placed at (y0, x0) of the atlas, each view shaped as its piece of the
+    block reshapes."""
     T = TILE_TEXELS
-    ht, wt = -(-atlas.height // T), -(-atlas.width // T)
+    ht, wt = _tile_counts(atlas.height, atlas.width)
     v = atlas.texels.as_strided((ht, T, wt, T), (wt * T * T, T, T * T, 1))  # (tile y, y in tile, tile x, x in tile)
     return [(v[ty, iy, tx, ix], (sy, sx), hy + hx)
             for ty, iy, sy, hy in _segments(y0, y0 + h) for tx, ix, sx, hx in _segments(x0, x0 + w)]
@@ -301,9 +307,8 @@ def _blocks(atlas: TiledAtlas, y0: int, x0: int, h: int, w: int):
 def tiled_empty(height: int, width: int) -> TiledAtlas:
     """A zeroed :class:`TiledAtlas` of ``height`` x ``width`` texels (CPU float32), to be written with
     :func:`tiled_write` (the padding past its edges stays 0)."""
-    T = TILE_TEXELS
-    ht, wt = -(-int(height) // T), -(-int(width) // T)
-    return TiledAtlas(torch.zeros(ht * wt * T * T, dtype=torch.float32), int(height), int(width))
+    ht, wt = _tile_counts(height, width)
+    return TiledAtlas(torch.zeros(ht * wt * TILE_TEXELS ** 2, dtype=torch.float32), int(height), int(width))
 
 
 def tiled_write(atlas: TiledAtlas, y0: int, x0: int, block: torch.Tensor) -> None:
@@ -329,8 +334,8 @@ def tile_atlas(atlas: torch.Tensor) -> TiledAtlas:
 def untile_atlas(tiled: TiledAtlas) -> torch.Tensor:
     """The (H, W) float32 atlas of ``tiled`` (:func:`tile_atlas`'s inverse)."""
     out = torch.empty(tiled.height, tiled.width, dtype=torch.float32)
-    for src, (rows, cols), _ in _blocks(tiled, 0, 0, tiled.height, tiled.width):
-        out[rows, cols] = src.reshape(out[rows, cols].shape)
+    for src, (rows, cols), shape in _blocks(tiled, 0, 0, tiled.height, tiled.width):
+        out[rows, cols].view(shape).copy_(src)
     return out
 
 
@@ -339,8 +344,8 @@ def _tiles(atlas: TiledAtlas, what: str) -> int:
     if not isinstance(atlas, TiledAtlas):
         raise RuntimeError(f"native render: {what} must be a TiledAtlas (tile_atlas(atlas)), "
                            f"got {type(atlas).__name__}")
-    T = TILE_TEXELS
-    return _f32(atlas.texels, what, -(-atlas.height // T) * -(-atlas.width // T) * T * T)
+    ht, wt = _tile_counts(atlas.height, atlas.width)
+    return _f32(atlas.texels, what, ht * wt * TILE_TEXELS ** 2)
 
 
 class Kernels:
@@ -415,8 +420,8 @@ def fits(atlas) -> bool:
         h, w = atlas.height, atlas.width
     else:
         h, w = atlas.shape[-2:] if isinstance(atlas, torch.Tensor) else atlas
-    T = TILE_TEXELS
-    return 2 <= w and -(-h // T) * -(-w // T) * T * T < 2 ** 31
+    ht, wt = _tile_counts(h, w)
+    return 2 <= w and ht * wt * TILE_TEXELS ** 2 < 2 ** 31
 
 
 __all__ = ["Kernels", "LIBRARY", "use_native_render", "kernel_for", "fits", "TILE_TEXELS", "TiledAtlas",
