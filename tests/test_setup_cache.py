@@ -3,6 +3,8 @@ so another sun re-shades them; the result equals a preparation from scratch bit 
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -63,3 +65,40 @@ def test_cache_off_writes_nothing(cache, monkeypatch):
     assert fields_path("x") is None
     prepare_scene_levels(load_scene("C@el13"), PARAMS, "C@el13")
     assert not cache.exists()
+
+
+def test_cached_levels_are_mapped_from_their_file_and_equal(cache):
+    ref = prepare_scene_levels(load_scene("D~3@el15"), PARAMS, "D~3@el15")
+    _forget()
+    again = prepare_scene_levels(load_scene("D~3@el15"), PARAMS, "D~3@el15")
+    assert again.source == "disk"
+    assert torch.equal(ref.irradiance, again.irradiance) and torch.equal(ref.height_m, again.height_m)
+    (path,) = cache.glob("*.pt")
+    # mapped, not copied into process memory (lod.load_cached)
+    assert _mapped_from(again.irradiance.data_ptr()) == str(path)
+
+
+def _mapped_from(address: int):
+    """The file whose mapping holds ``address`` in this process (Linux ``/proc/self/maps``), or None."""
+    maps = Path("/proc/self/maps")
+    if not maps.exists():
+        pytest.skip("no /proc/self/maps on this platform")
+    for line in maps.read_text().splitlines():
+        parts = line.split(maxsplit=5)
+        lo, hi = (int(v, 16) for v in parts[0].split("-"))
+        if lo <= address < hi:
+            return parts[5] if len(parts) == 6 else None
+    return None
+
+
+@pytest.mark.parametrize("body", ["legacy", "broken"])
+def test_load_cached_reads_legacy_files_and_raises_for_broken_ones(tmp_path, body):
+    path = tmp_path / "levels.pt"
+    data = {"irradiance": torch.arange(6.0).view(2, 3)}
+    if body == "legacy":  # torch's pre-zip format: no mmap, read the plain way
+        torch.save(data, path, _use_new_zipfile_serialization=False)
+        assert torch.equal(lod.load_cached(path)["irradiance"], data["irradiance"])
+    else:
+        path.write_bytes(b"not a torch file")
+        with pytest.raises(Exception):
+            lod.load_cached(path)

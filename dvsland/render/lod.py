@@ -80,6 +80,23 @@ def cache_dir() -> Optional[Path]:
     return Path(env) if env else Path.home() / ".cache" / "dvsland" / "levels"
 
 
+def load_cached(path: Path) -> dict:
+    """A disk cache file's dict, its tensors mapped from the file (``torch.load(mmap=True)``): the
+    page cache's pages are read in place, not copied into fresh process memory. A batch of 63
+    dispersed scenes loads 1 GB of levels; copying them faulted in 1 GB of new pages, which on a
+    virtual machine cost up to 2.5 s per GB (docs/benchmarks.md). The tensors are read-only in
+    effect (a write would stay private to the process). Files in torch's legacy format (not
+    written by this project) are read the plain way.
+
+    Raises:
+        whatever ``torch.load`` raises for a missing or broken file (callers recompute).
+    """
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except RuntimeError:  # not a zip-format file: no mmap
+        return torch.load(path, map_location="cpu", weights_only=True)
+
+
 def prepare_levels(terrain: Terrain, params: LevelParams, disk_cache: bool = True,
                    progress=None, threads: Optional[int] = None) -> SiteLevels:
     """Shade every level of ``terrain`` (see module doc). Cached in memory and on disk.
@@ -98,7 +115,7 @@ def prepare_levels(terrain: Terrain, params: LevelParams, disk_cache: bool = Tru
     path = folder / f"{key}.pt" if folder is not None else None
     if path is not None and path.is_file():
         try:
-            d = torch.load(path, map_location="cpu", weights_only=True)
+            d = load_cached(path)
             lv = SiteLevels(terrain.name, d["irradiance"], d["height_m"], float(d["h0_m"]),
                             float(d["angle_rad"]), 0.0, "disk")
             _MEMORY[key] = lv

@@ -27,7 +27,7 @@ from dvsland.terrain.grid import Grid, compute_threads
 from dvsland.terrain.photometry import shade
 from dvsland.terrain.spec import load_spec
 
-from .lod import LevelParams, SiteLevels, _MEMORY, cache_dir, save_levels
+from .lod import LevelParams, SiteLevels, _MEMORY, cache_dir, load_cached, save_levels
 
 #: height and albedo fields per (spec without sun elevation, level params, level): float64 CPU
 _FIELDS: dict = {}
@@ -85,7 +85,7 @@ def _load_fields(key: str):
     if path is None or not path.is_file():
         return None
     try:
-        d = torch.load(path, map_location="cpu", weights_only=True)
+        d = load_cached(path)
         return d["height"], d["albedo"]
     except Exception:  # a broken cache file is recomputed
         return None
@@ -157,7 +157,7 @@ def prepare_scene_levels(terrain: Terrain, params: LevelParams, label: str, disk
     path = folder / f"{key}.pt" if folder is not None else None
     if path is not None and path.is_file():
         try:
-            d = torch.load(path, map_location="cpu", weights_only=True)
+            d = load_cached(path)
             lv = SiteLevels(label, d["irradiance"], d["height_m"], float(d["h0_m"]), float(d["angle_rad"]), 0.0, "disk")
             lv.levels = None if full else (k_lo, k_hi)
             _MEMORY[key] = lv
