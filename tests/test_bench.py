@@ -90,9 +90,9 @@ def test_time_stages_runs_the_loop_with_the_configured_controller(controller, mo
     calls = []
     real = sim.loop_step
 
-    def spy(stages, state, thrust=None, timer=None):
+    def spy(stages, state, thrust=None, timer=None, donate=False):
         calls.append((type(stages.controller).controller_name, thrust is None, timer is not None))
-        return real(stages, state, thrust=thrust, timer=timer)
+        return real(stages, state, thrust=thrust, timer=timer, donate=donate)
 
     monkeypatch.setattr(sim, "loop_step", spy)
     r = time_stages(cfg, 3, "cpu", "dpr", n_steps=2, warmup=1, fractions=(0.2, 0.6), frame_source=_Frames())

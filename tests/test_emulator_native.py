@@ -163,6 +163,35 @@ def test_native_kernels_give_the_same_events(fresh):
                              _frame_sets())
 
 
+def test_native_kernel_in_place_gives_the_same_events_and_state(fresh):
+    """A donated state (the kernel moves the reference and last-event times in place, and neither
+    writes nor reads a quiet pixel's) against fresh buffers: the same events and state, bit for bit,
+    with scalar and per-pixel thresholds, per-element refractory periods, and rows longer than the
+    kernel's chunk of 256 pixels."""
+    fresh.setattr(native.LIBRARY, "chosen", True)
+    if native.load() is None:
+        pytest.skip("no C++ compiler here")
+    from test_emulator_fast_paths import CONFIGS
+
+    wide = smooth_frames(2, 7, 300, 4, omega=0.9)
+    for kw in CONFIGS[:2] + ELEMENTS + [dict(refractory_us=20_000.0)]:
+        for frames in _frame_sets()[:2] + [wide]:
+            kw = dict(kw)
+            elem = kw.pop("elem", None)
+            emu = EventEmulator(seed=3, **kw)
+            if elem is not None:
+                emu.set_element_params(**{k: v(frames.shape[1]) for k, v in elem.items()})
+            a = b = emu.init_state(frames[0], 0)
+            n = 0
+            for k in range(1, frames.shape[0]):
+                a, ev_a = emu.step_state(a, frames[k], k * 100_000)
+                b, ev_b = emu.step_state(b, frames[k], k * 100_000, donate=True)
+                assert ev_a == ev_b, kw
+                assert torch.equal(a.lref, b.lref) and torch.equal(a.t_last, b.t_last), kw
+                n += len(ev_a)
+            assert n > 0
+
+
 def test_native_kernel_respects_the_event_cap(fresh):
     fresh.setattr(native.LIBRARY, "chosen", True)
     if native.load() is None:

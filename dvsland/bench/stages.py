@@ -230,7 +230,7 @@ def time_stages(cfg: Config, batch_size: int, device="cpu", estimator="dpr", n_s
             ctl_name = getattr(stages.controller, "controller_name", type(stages.controller).__name__)
             state = init_state(stages)  # every stage reset; the plan starts here
             for j in range(warmup + n_steps + 1):
-                state, out = loop_step(stages, state, timer=timer)
+                state, out = loop_step(stages, state, timer=timer, donate=True)  # as the loop runners step
                 wall, proc = timer.take()
                 if j <= warmup:
                     continue  # step 0 has no events yet; then the warm-up

@@ -181,7 +181,7 @@ def fly_fleet(stages, n_descents: int, check_every: int = 4, max_steps: Optional
     keys = slot_keys(stages)
     t0, steps = time.perf_counter(), 0
     while True:
-        state, _ = loop_step(stages, state)
+        state, _ = loop_step(stages, state, donate=True)  # the fleet's own state
         steps += 1
         last = max_steps is not None and steps >= max_steps
         if steps % check_every and not last:

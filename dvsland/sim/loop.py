@@ -62,12 +62,13 @@ class ClosedLoop:
     Args:
         stages: :class:`dvsland.stages.Stages` from :func:`dvsland.stages.build_stages` (the loop
             builds nothing itself).
-        state: the state to start from (default :func:`init_state`).
+        state: the state to start from (default :func:`init_state`); read, never written.
         sync_timers: synchronise CUDA around stage timers (profiling only).
 
     Attributes:
         stages, layout: what it flies.
-        state: the current :class:`LoopState`.
+        state: the current :class:`LoopState` (its pixel buffers are moved in place by the next step:
+            copy it to keep it).
         traces: :class:`TraceRecorder` of every step's :class:`StepOutput` and the final state.
         timer: :class:`StageTimer` (seconds per stage).
         n_steps_max: steps in ``simulation.t_max_s``.
@@ -79,6 +80,9 @@ class ClosedLoop:
         self.B = stages.layout.batch_size
         self.n_steps_max = stages.settings.n_steps_max
         self.state = init_state(stages) if state is None else state
+        # the states the loop made itself are donated to the next step (loop_step(donate=True)); one
+        # given by the caller is only read
+        self._owned = state is None
         self.traces = TraceRecorder(self.n_steps_max + 1, self.B, torch.device(stages.device))
         self.timer = StageTimer(stages.device, sync_timers)
 
@@ -93,8 +97,11 @@ class ClosedLoop:
         return self.state.step >= self.n_steps_max or self.state.done
 
     def step(self) -> StepOutput:
-        """Fly one control step (finished descents stay frozen) and record it."""
-        self.state, out = loop_step(self.stages, self.state, timer=self.timer)
+        """Fly one control step (finished descents stay frozen) and record it. The step is handed the
+        state the loop made (:func:`loop_step` ``donate``): a :class:`LoopState` read from ``state``
+        must be copied to be stepped from again after the loop moved on."""
+        self.state, out = loop_step(self.stages, self.state, timer=self.timer, donate=self._owned)
+        self._owned = True
         with self.timer("record"):
             self.traces.record_output(out)
         return out
