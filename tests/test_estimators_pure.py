@@ -344,6 +344,22 @@ def test_dpr_dt_is_the_time_since_the_last_step():
     assert ok.any() and not _same(a.d_hat[ok], b.d_hat[ok])
 
 
+@pytest.mark.parametrize("name", ["dpr", "learned"])
+def test_estimators_that_accept_donate_give_the_pure_steps_outputs(name):
+    """step_state(..., donate=True) of an estimator that says ``accepts_donate``: the same next state
+    and estimate as the pure step, step after step, the donated state's buffers reused."""
+    est, steps = _stage_and_steps(name)
+    assert est.accepts_donate
+    pure = donated = est.init_state()
+    for ev, t in steps:
+        pure, a = est.step_state(pure, ev, t)
+        given = donated
+        donated, b = est.step_state(donated, ev, t, donate=True)
+        assert tree_equal(pure, donated) and tree_equal(a, b)
+        held = "window" if name == "dpr" else "ring"
+        assert getattr(donated, held) is getattr(given, held)  # worked in place
+
+
 # ------------------------------------------------------------------ learned specifics
 def test_learned_donate_writes_the_ring_in_place_with_the_same_estimates():
     est, steps = _stage_and_steps("learned")

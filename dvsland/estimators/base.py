@@ -127,6 +127,11 @@ class DivergenceEstimator:
     #: rescales its predicted sigma. D_hat is never changed.
     calibration: Optional[CalibrationParams] = None
 
+    #: Whether ``step_state`` takes ``donate=True``: the caller gives the input state up, and the step
+    #: may write its buffers in place (as JAX's donated arguments). The loop runners donate the states
+    #: they made (:func:`dvsland.sim.loop_step` ``donate``); a plug-in without the keyword says False.
+    accepts_donate: bool = False
+
     def __init_subclass__(cls, **kwargs):
         """Every subclass's ``update`` runs behind :func:`_checked_update`: events are checked
         (b, x, y, p in range: a clear error, never an index error deep in an estimator) and

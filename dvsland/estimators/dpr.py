@@ -156,9 +156,11 @@ def dpr_reset_where(p: DPRConfig, c: DPRConsts, state: DPRState, mask: torch.Ten
     return tree_where(mask, fresh, state._replace(ring_packed=ring))
 
 
-def _window_step(c: DPRConsts, state: DPRState, events) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _window_step(c: DPRConsts, state: DPRState, events,
+                 donate: bool = False) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(ring_packed, ring_counts, window) after the step's events came in and the ones K steps
-    old (the ring's prefix) left. One host read: the prefix's length.
+    old (the ring's prefix) left (``donate``: in the state's window, else in a copy). One host read:
+    the prefix's length.
 
     ``events`` must lie on the sensor and in the batch (the estimator's input gate checks that)."""
     W, H = c.sensor_size
@@ -167,7 +169,7 @@ def _window_step(c: DPRConsts, state: DPRState, events) -> Tuple[torch.Tensor, t
     ring, rc = state.ring_packed, state.ring_counts
     n_old = int(rc[:, 0].sum()) if ring.numel() else 0
     old, kept = ring[:n_old], ring[n_old:]
-    window = state.window.clone()
+    window = state.window if donate else state.window.clone()
     flat = window.view(-1)
     # scatter_add_ (about 2x faster than index_add_ on CPU for these scattered indices); counts
     # are integers, which float32 adds exactly in any order
@@ -261,8 +263,10 @@ def _reinitialise(p: DPRConfig, c: DPRConsts, image, centroids, valid, counts, r
     return need
 
 
-def dpr_step(p: DPRConfig, c: DPRConsts, state: DPRState, events, t_us: int) -> Tuple[DPRState, EstimateOut]:
-    """Pure step of ``dpr`` (module doc): (next state, :class:`EstimateOut`); ``state`` unchanged.
+def dpr_step(p: DPRConfig, c: DPRConsts, state: DPRState, events, t_us: int,
+             donate: bool = False) -> Tuple[DPRState, EstimateOut]:
+    """Pure step of ``dpr`` (module doc): (next state, :class:`EstimateOut`); ``state`` unchanged
+    unless ``donate`` (its count window is then moved in place: ``state`` must not be used again).
 
     Args:
         p, c: the params and constants. state: :class:`DPRState` of B descents.
@@ -274,7 +278,7 @@ def dpr_step(p: DPRConfig, c: DPRConsts, state: DPRState, events, t_us: int) -> 
     last = state.last_t_us
     dt = torch.where((last >= 0) & (last < t_us), (t_us - last).to(torch.float64) * 1e-6,
                      torch.full(last.shape, c.dt_s, dtype=torch.float64, device=last.device))  # (B,) s
-    ring, ring_counts, window = _window_step(c, state, events)
+    ring, ring_counts, window = _window_step(c, state, events, donate)
     image = capped_window(window, p.hot_pixel_factor) if p.hot_pixel_factor > 0 else window
     cen, counts, _ = meanshift_flat(image, state.centroids, state.valid, p.radius_px, p.meanshift_iters,
                                     p.meanshift_tol_px, image_pad_px=c.pad)
@@ -341,6 +345,8 @@ class DPREstimator(DivergenceEstimator):
     error of the pairs' mean (0 with fewer than two pairs or no estimate).
     """
 
+    accepts_donate = True  # step_state(..., donate=True): the count window moved in place
+
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, n_max: int = 15,
                  n_min: int = 15, radius_px: float = 4.0, c_min: int = 3, r_min_px: float = 3.0,
                  memory_ms: float = 500.0, blur_sigma_px: float = 2.0, meanshift_iters: int = 20,
@@ -380,10 +386,11 @@ class DPREstimator(DivergenceEstimator):
         """``state`` with the descents where ``mask`` (B,) bool is True restarted."""
         return dpr_reset_where(self.params, self.consts, state, self._mask(mask))
 
-    def step_state(self, state: DPRState, events, t_us: int, truth: Optional[Truth] = None):
-        """Pure step (:func:`dpr_step`): (next :class:`DPRState`, :class:`EstimateOut`)."""
+    def step_state(self, state: DPRState, events, t_us: int, truth: Optional[Truth] = None, donate: bool = False):
+        """Pure step (:func:`dpr_step`): (next :class:`DPRState`, :class:`EstimateOut`); ``donate``:
+        ``state``'s window is moved in place."""
         check_state_like("dpr", state, self._template)
-        return dpr_step(self.params, self.consts, state, events, t_us)
+        return dpr_step(self.params, self.consts, state, events, t_us, donate)
 
     # ------------------------------------------------------------------ object API extras
     def window_image(self) -> torch.Tensor:

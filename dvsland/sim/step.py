@@ -255,7 +255,8 @@ def sense(stages, state: LoopState, frames: Optional[torch.Tensor], t_us: int, c
     return st, events
 
 
-def estimate(stages, state: LoopState, events, t_us: int, grad: bool = False) -> Tuple[Any, Estimate]:
+def estimate(stages, state: LoopState, events, t_us: int, grad: bool = False,
+             donate: bool = False) -> Tuple[Any, Estimate]:
     """The estimator's step on ``events``: (estimator state, :class:`Estimate`).
 
     Event estimators give no estimate on the first frame and for descents restarted at this step.
@@ -263,6 +264,8 @@ def estimate(stages, state: LoopState, events, t_us: int, grad: bool = False) ->
     ``grad="straight_through"`` makes D_hat = D_true(z, v) + (D_hat - D_true) held fixed: the
     estimate's value, with the gradient of the true divergence (events are inputs, not functions
     of the state, so an event estimator's output has no other path back to the state).
+    ``donate``: an estimator that ``accepts_donate`` may work in the state's buffers (see
+    :func:`loop_step`).
     """
     fns = stage_fns(stages)
     B, dev, name = state.batch_size, state.z_m.device, fns.estimator_name
@@ -271,7 +274,8 @@ def estimate(stages, state: LoopState, events, t_us: int, grad: bool = False) ->
         d = torch.full((B,), float("nan"), dtype=torch.float64, device=dev)
         return st, Estimate(d, torch.zeros_like(d), torch.zeros(B, dtype=torch.bool, device=dev), {})
     truth = Truth(altitude_m=state.z_m, velocity_mps=state.v_mps)
-    st, out = call_plugin(name, "update", fns.estimator.step_state, st, events, t_us, truth)
+    kw = {"donate": True} if donate and getattr(fns.estimator, "accepts_donate", False) else {}
+    st, out = call_plugin(name, "update", fns.estimator.step_state, st, events, t_us, truth, **kw)
     d_hat = check_batch_tensor(out.d_hat, B, dev, name, "update", detach=not grad).to(dtype=torch.float64)
     if stages.events is not None and state.restarted is not None:
         # a restarted descent leaves this step as a new one leaves its first frame: no estimate, and
@@ -366,8 +370,9 @@ def loop_step(stages, state: LoopState, thrust: Optional[torch.Tensor] = None,
             (the estimate is detached).
         donate: hand ``state``'s per-pixel buffers to the step (JAX's donated arguments): the
             built-in emulator then moves its pixels' reference and last-event times in place
-            instead of writing new arrays (a third of its pass on this project's CPU), and ``state``
-            must not be stepped from again (its flight values stay valid). The loop runners
+            instead of writing new arrays (a third of its pass on this project's CPU), an estimator
+            that ``accepts_donate`` (``dpr``, ``learned``) its window, and ``state`` must not be
+            stepped from again (its flight values stay valid). The loop runners
             (:class:`~dvsland.sim.ClosedLoop`, the fleet, data collection) donate. Off by default:
             the step is then pure.
 
@@ -414,7 +419,7 @@ def sense_step(stages, state: LoopState, timer: Optional[Callable[[str], Any]] =
         with tm("emulate"):
             emu_st, events = sense(stages, state, frames, t_us, compact, rows, donate)
     with tm("estimate"):
-        est_st, est = estimate(stages, state, events, t_us, grad)
+        est_st, est = estimate(stages, state, events, t_us, grad, donate)
     with tm("control"):
         f_st, c_st, cmd = act(stages, state, est)
         u = _applied_thrust(cmd.control.thrust_n, None, state.active)

@@ -306,6 +306,8 @@ class LearnedEstimator(DivergenceEstimator):
     :class:`LearnedState`.
     """
 
+    accepts_donate = True  # step_state(..., donate=True): the new window written into the ring
+
     def __init__(self, batch_size, sensor_size, device="cpu", dt_s: float = 0.1, checkpoint: str = "",
                  min_events: int = 20, principal_point_px=None, focal_px: Optional[float] = None,
                  fast: str = "ring", donate: bool = True, flips: int = 1):
