@@ -142,7 +142,8 @@ def fly_profile(stages, z_ref, v0, m_kg=None, timer: Optional[Callable] = None,
     state = init_state(stages, z_m=z_ref[:, 0], v_mps=v, m_kg=m)
     for k in range(n):
         u = tracking_thrust(stages, state, z_ref[:, k + 1], z_ref[:, k + 2])
-        state, out = loop_step(stages, state, thrust=u, timer=timer, terminate=not keep_flying)
+        state, out = loop_step(stages, state, thrust=u, timer=timer, terminate=not keep_flying,
+                               donate=True)  # the profile's own state
         yield out
 
 
