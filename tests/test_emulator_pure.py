@@ -66,9 +66,17 @@ def test_object_api_is_the_contract(kw):
     assert tree_equal(st, emu.state)
 
 
-@pytest.mark.parametrize("kw", [dict(), NOISY], ids=["ideal", "noisy"])
-def test_donate_gives_the_same_events(kw):
-    """donate=True works on the handed-over buffers in place: the same events and next state."""
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch"])
+@pytest.mark.parametrize("kw", [dict(), NOISY, dict(refractory_us=20_000.0, threshold_off=0.15)],
+                         ids=["ideal", "noisy", "refractory"])
+def test_donate_gives_the_same_events(kw, compiled, monkeypatch):
+    """donate=True works on the handed-over buffers in place: the same events and next state, with
+    the compiled pixel kernel and with the torch path (the one a GPU runs, where the loop donates too)."""
+    from dvsland.events import native
+
+    monkeypatch.setattr(native.LIBRARY, "chosen", compiled)
+    if compiled and native.load() is None:
+        pytest.skip("no C++ compiler here")
     frames = _frames()
     emu = EventEmulator(seed=1, **kw)
     a = b = emu.init_state(frames[0], 0)

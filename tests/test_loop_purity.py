@@ -85,11 +85,15 @@ def _outputs(out) -> list:
     return [out.d_est, out.thrust_n, out.z_m, out.v_mps] + ([out.events.t, out.events.x] if out.events else [])
 
 
-@pytest.mark.parametrize("est", ["dpr", "cmax"])
-def test_donated_steps_give_the_pure_steps_outputs(est):
+@pytest.mark.parametrize("est,compiled", [("dpr", True), ("cmax", True), ("dpr", False)])
+def test_donated_steps_give_the_pure_steps_outputs(est, compiled, monkeypatch):
     """loop_step(donate=True) moves the emulator's pixel buffers in place: the same outputs and next
-    states as the pure step, and the pure step leaves its input state as it was."""
+    states as the pure step, and the pure step leaves its input state as it was; with the compiled
+    pixel kernel and with the emulator's torch path (a GPU's)."""
+    from dvsland.events import native
     from dvsland.pytree import tree_clone, tree_equal
+
+    monkeypatch.setattr(native.LIBRARY, "chosen", compiled)
 
     over = [f"estimator.name={est}", "render.threads=1", "camera.width_px=64", "camera.height_px=64"]
     stages = build_stages(load_config("paper", over), "D")
