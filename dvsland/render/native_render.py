@@ -276,6 +276,12 @@ def _tile_counts(height: int, width: int):
     return -(-int(height) // TILE_TEXELS), -(-int(width) // TILE_TEXELS)
 
 
+def _tiled_numel(height: int, width: int) -> int:
+    """The texels of a ``height`` x ``width`` atlas in whole tiles (its padding included)."""
+    ht, wt = _tile_counts(height, width)
+    return ht * wt * TILE_TEXELS ** 2
+
+
 def _segments(start: int, stop: int):
     """[start, stop) of one axis of the atlas in pieces that each lie in one tile or span whole tiles:
     (tile index or slice, slice within the tile, slice of [start, stop) from 0, the piece's shape)."""
@@ -307,8 +313,7 @@ def _blocks(atlas: TiledAtlas, y0: int, x0: int, h: int, w: int):
 def tiled_empty(height: int, width: int) -> TiledAtlas:
     """A zeroed :class:`TiledAtlas` of ``height`` x ``width`` texels (CPU float32), to be written with
     :func:`tiled_write` (the padding past its edges stays 0)."""
-    ht, wt = _tile_counts(height, width)
-    return TiledAtlas(torch.zeros(ht * wt * TILE_TEXELS ** 2, dtype=torch.float32), int(height), int(width))
+    return TiledAtlas(torch.zeros(_tiled_numel(height, width), dtype=torch.float32), int(height), int(width))
 
 
 def tiled_write(atlas: TiledAtlas, y0: int, x0: int, block: torch.Tensor) -> None:
@@ -344,8 +349,7 @@ def _tiles(atlas: TiledAtlas, what: str) -> int:
     if not isinstance(atlas, TiledAtlas):
         raise RuntimeError(f"native render: {what} must be a TiledAtlas (tile_atlas(atlas)), "
                            f"got {type(atlas).__name__}")
-    ht, wt = _tile_counts(atlas.height, atlas.width)
-    return _f32(atlas.texels, what, ht * wt * TILE_TEXELS ** 2)
+    return _f32(atlas.texels, what, _tiled_numel(atlas.height, atlas.width))
 
 
 class Kernels:
@@ -420,8 +424,7 @@ def fits(atlas) -> bool:
         h, w = atlas.height, atlas.width
     else:
         h, w = atlas.shape[-2:] if isinstance(atlas, torch.Tensor) else atlas
-    ht, wt = _tile_counts(h, w)
-    return 2 <= w and ht * wt * TILE_TEXELS ** 2 < 2 ** 31
+    return 2 <= w and _tiled_numel(h, w) < 2 ** 31
 
 
 __all__ = ["Kernels", "LIBRARY", "use_native_render", "kernel_for", "fits", "TILE_TEXELS", "TiledAtlas",

@@ -242,10 +242,9 @@ def sense(stages, state: LoopState, frames: Optional[torch.Tensor], t_us: int, c
     if compact and rows is not None and isinstance(emu, EventEmulator) and rows.numel() <= frames.shape[0] * (
             EMULATOR_ROWS_SHARE_COMPILED if compiled_pixel_step(emu.params, st) else EMULATOR_ROWS_SHARE):
         st, events = emulator_step_rows(emu.params, st, frames, t_us, rows)
-    elif donate and isinstance(emu, EventEmulator):
-        st, events = emu.step_state(st, frames, t_us, donate=True)
-    else:
-        st, events = emu.step_state(st, frames, t_us)
+    else:  # only the built-in emulator takes donate (a plug-in's step_state may not)
+        kw = {"donate": True} if donate and isinstance(emu, EventEmulator) else {}
+        st, events = emu.step_state(st, frames, t_us, **kw)
     keep = state.active if compact else None
     if state.restarted is not None:
         st = emu.reset_where(st, state.restarted, frames, t_us, state.noise_seed)
@@ -372,9 +371,9 @@ def loop_step(stages, state: LoopState, thrust: Optional[torch.Tensor] = None,
             built-in emulator then moves its pixels' reference and last-event times in place
             instead of writing new arrays (a third of its pass on this project's CPU), an estimator
             that ``accepts_donate`` (``dpr``, ``learned``) its window, and ``state`` must not be
-            stepped from again (its flight values stay valid). The loop runners
-            (:class:`~dvsland.sim.ClosedLoop`, the fleet, data collection) donate. Off by default:
-            the step is then pure.
+            stepped from again (its flight values stay valid). The loop runners that made their
+            state donate it (:class:`~dvsland.sim.ClosedLoop`, the fleet, the evaluation's
+            ``fly_profile``, ``dvsland bench``). Off by default: the step is then pure.
 
     Returns:
         (the next :class:`LoopState`, the :class:`StepOutput` of this step).
